@@ -1,0 +1,12 @@
+"""jskel: ray casting skeletal and detail surface representations in JAX."""
+
+__version__ = "0.1.0"
+
+from .config import ConfigError as ConfigError
+from .config import load as load
+from .interface import Built as Built
+from .rays import Camera as Camera
+from .rays import Hit as Hit
+from .rays import Rays as Rays
+from .rays import make_rays as make_rays
+from .rays import map_chunks as map_chunks

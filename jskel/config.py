@@ -1,0 +1,250 @@
+"""Experiment files -> validated, frozen pydantic models; every bad key reported at once.
+
+An experiment is YAML with the sections ``object`` (its ``type`` picks a representation from
+the registry, which owns the model of the rest of that section), ``camera``, ``lights``,
+``shading`` and ``render``. Unknown keys, wrong types, out-of-range and non-finite values are
+errors. :func:`load` raises :class:`ConfigError` (a ``ValueError``) whose message has one line
+per problem, ``<dotted.path[index]>: <what is wrong> (got <value>)``.
+
+``--set key.path=value`` overrides (:func:`apply_overrides`) are parsed as YAML scalars and
+applied before validation, so an override is checked like the file itself.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
+
+from . import registry
+
+DEFAULT_EXPERIMENT = Path(__file__).parent / "data" / "default.yaml"
+
+
+class ConfigError(ValueError):
+    """A bad experiment file; ``lines`` holds one message per problem."""
+
+    def __init__(self, lines: list[str]):
+        self.lines = list(lines)
+        super().__init__("\n".join(self.lines))
+
+
+class StrictModel(BaseModel):
+    """Base for every config section: frozen, no unknown keys, no NaN or inf."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+Vec3 = tuple[float, float, float]
+RGB = tuple[
+    Annotated[float, Field(ge=0.0)], Annotated[float, Field(ge=0.0)], Annotated[float, Field(ge=0.0)]
+]
+
+
+class CameraConfig(StrictModel):
+    """Pinhole look-at camera; ``up`` may not be parallel to ``target - eye``."""
+
+    eye: Vec3 = (0.0, 1.0, 6.0)
+    target: Vec3 = (0.0, 1.0, 0.0)
+    up: Vec3 = (0.0, 1.0, 0.0)
+    fov_deg: Annotated[float, Field(gt=0.0, lt=180.0)] = 40.0
+    width: Annotated[int, Field(ge=1, le=16384)] = 320
+    height: Annotated[int, Field(ge=1, le=16384)] = 240
+
+    @field_validator("target")
+    @classmethod
+    def _target_not_eye(cls, v, info: ValidationInfo):
+        eye = info.data.get("eye")
+        if eye is not None and np.allclose(np.asarray(v), np.asarray(eye), rtol=0, atol=0):
+            raise ValueError("target equals eye")
+        return v
+
+    @field_validator("up")
+    @classmethod
+    def _up_not_parallel(cls, v, info: ValidationInfo):
+        eye, target = info.data.get("eye"), info.data.get("target")
+        if eye is None or target is None:
+            return v
+        f = np.asarray(target, float) - np.asarray(eye, float)
+        u = np.asarray(v, float)
+        nf, nu = np.linalg.norm(f), np.linalg.norm(u)
+        if nu == 0:
+            raise ValueError("up is the zero vector")
+        if nf > 0 and np.linalg.norm(np.cross(f, u)) <= 1e-6 * nf * nu:
+            raise ValueError("camera looks along its up vector")
+        return v
+
+
+class LightConfig(StrictModel):
+    """Directional light; ``direction`` points from the scene *towards* the light."""
+
+    type: Literal["directional"] = "directional"
+    direction: Vec3 = (0.4, 0.8, 0.6)
+    color: RGB = (1.0, 1.0, 1.0)
+    intensity: Annotated[float, Field(ge=0.0)] = 1.0
+
+    @field_validator("direction")
+    @classmethod
+    def _nonzero(cls, v):
+        if not any(v):
+            raise ValueError("direction is the zero vector")
+        return v
+
+
+class ShadingConfig(StrictModel):
+    """Lambert + Blinn-Phong; colours are linear RGB, ``gamma`` encodes the PNG."""
+
+    ambient: Annotated[float, Field(ge=0.0)] = 0.15
+    specular: Annotated[float, Field(ge=0.0)] = 0.25
+    shininess: Annotated[float, Field(gt=0.0)] = 32.0
+    background: RGB = (0.82, 0.86, 0.92)
+    gamma: Annotated[float, Field(gt=0.0)] = 2.2
+
+
+class RenderConfig(StrictModel):
+    """How rays are evaluated: chunk size (rays per compiled call), precision, progress bar."""
+
+    chunk: Annotated[int, Field(ge=1, le=1 << 24)] = 65536
+    dtype: Literal["float32", "float64"] = "float32"
+    progress: bool | None = None
+
+
+class Experiment(StrictModel):
+    """A whole experiment; ``object`` is validated by the registered representation."""
+
+    name: str = "experiment"
+    object: Any
+    camera: CameraConfig = CameraConfig()
+    lights: list[LightConfig] = [LightConfig()]
+    shading: ShadingConfig = ShadingConfig()
+    render: RenderConfig = RenderConfig()
+
+
+def _loc(loc) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "<root>"
+
+
+def _short(v) -> str:
+    s = repr(v)
+    return s if len(s) <= 80 else s[:77] + "..."
+
+
+def _format(err: ValidationError, prefix: tuple = ()) -> list[str]:
+    lines = []
+    for e in err.errors(include_url=False):
+        loc = prefix + tuple(e["loc"])
+        msg = e["msg"]
+        if e["type"] == "value_error":
+            msg = msg.removeprefix("Value error, ")
+        if e["type"] == "missing":
+            lines.append(f"{_loc(loc)}: required key is missing")
+        elif e["type"] == "extra_forbidden":
+            lines.append(f"{_loc(loc)}: unknown key (got {_short(e['input'])})")
+        else:
+            lines.append(f"{_loc(loc)}: {msg} (got {_short(e['input'])})")
+    return lines
+
+
+def validate(raw: dict) -> tuple[Experiment, BaseModel]:
+    """Validate a raw experiment dict; returns (experiment, object config) or raises ConfigError."""
+    if not isinstance(raw, dict):
+        raise ConfigError([f"<root>: an experiment must be a mapping (got {_short(raw)})"])
+    lines: list[str] = []
+    exp = obj = None
+    try:
+        exp = Experiment.model_validate(raw)
+    except ValidationError as e:
+        lines += _format(e)
+    raw_obj = raw.get("object")
+    if isinstance(raw_obj, dict):
+        kind = raw_obj.get("type")
+        if kind not in registry.names():
+            lines.append(f"object.type: unknown representation (got {_short(kind)}; known: {', '.join(registry.names())})")
+        else:
+            try:
+                obj = registry.get(kind).Config.model_validate(raw_obj)
+            except ValidationError as e:
+                lines += _format(e, ("object",))
+    elif "object" in raw:
+        lines.append(f"object: must be a mapping with a 'type' key (got {_short(raw_obj)})")
+    if lines:
+        raise ConfigError(lines)
+    return exp, obj
+
+
+def _set_path(d: dict, path: str, value):
+    parts = path.split(".")
+    cur = d
+    for i, p in enumerate(parts[:-1]):
+        if isinstance(cur, list):
+            cur = cur[int(p)]
+            continue
+        if p not in cur or not isinstance(cur[p], (dict, list)):
+            cur[p] = {}
+        cur = cur[p]
+    last = parts[-1]
+    if isinstance(cur, list):
+        cur[int(last)] = value
+    else:
+        cur[last] = value
+
+
+def apply_overrides(raw: dict, overrides: list[str]) -> dict:
+    """Return a copy of ``raw`` with ``key.path=value`` overrides applied (values parsed as YAML)."""
+    out = copy.deepcopy(raw)
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError([f"--set: expected key.path=value (got {item!r})"])
+        key, val = item.split("=", 1)
+        key = key.strip()
+        if not key:
+            raise ConfigError([f"--set: empty key (got {item!r})"])
+        try:
+            parsed = yaml.safe_load(val)
+        except yaml.YAMLError as e:
+            raise ConfigError([f"--set {key}: value is not valid YAML (got {val!r}): {e}"]) from None
+        try:
+            _set_path(out, key, parsed)
+        except (ValueError, IndexError, TypeError):
+            raise ConfigError([f"--set {key}: no such list index in the experiment"]) from None
+    return out
+
+
+def read_yaml(path: str | Path | None) -> dict:
+    """Read an experiment file (the embedded default when ``path`` is None)."""
+    p = Path(path) if path is not None else DEFAULT_EXPERIMENT
+    if not p.exists():
+        raise ConfigError([f"experiment: file not found (got {str(p)!r})"])
+    try:
+        raw = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError([f"experiment: {p} is not valid YAML: {str(e).splitlines()[0]}"]) from None
+    return raw if raw is not None else {}
+
+
+def load(path: str | Path | None = None, overrides: list[str] | None = None) -> tuple[Experiment, BaseModel]:
+    """Read, override and validate an experiment file."""
+    raw = apply_overrides(read_yaml(path), overrides or [])
+    return validate(raw)
+
+
+def resolved(exp: Experiment, obj: BaseModel) -> dict:
+    """The resolved config as plain data (saved to ``run.json``)."""
+    d = exp.model_dump(mode="json")
+    d["object"] = obj.model_dump(mode="json")
+    return d
+
+
+def finite_or_none(x: float) -> float | None:
+    return x if math.isfinite(x) else None

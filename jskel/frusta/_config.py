@@ -1,0 +1,53 @@
+"""The ``object`` section of a frusta experiment (``type: frusta``)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import Field, model_validator
+
+from ..config import RGB, StrictModel, Vec3
+
+Radius = Annotated[float, Field(ge=0.0)]
+
+
+class SkeletonConfig(StrictModel):
+    """Either explicit ``joints``/``radii``/``parents`` or a ``procedural`` generator.
+
+    ``offset`` translates and ``scale`` scales the whole skeleton (world units).
+    ``options`` are generator-specific (see ``jskel.scenes``); unknown options are errors.
+    """
+
+    procedural: Literal["saguaro", "aloe", "well", "lsystem_tree"] | None = None
+    seed: int = 0
+    options: dict[str, float] = {}
+    joints: list[Vec3] | None = None
+    radii: list[Radius] | None = None
+    parents: list[int] | None = None
+    colors: list[RGB] | None = None
+    scale: Annotated[float, Field(gt=0.0)] = 1.0
+    offset: Vec3 = (0.0, 0.0, 0.0)
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        explicit = [self.joints is not None, self.radii is not None, self.parents is not None]
+        if self.procedural is None and not all(explicit):
+            missing = [n for n, e in zip(("joints", "radii", "parents"), explicit) if not e]
+            raise ValueError(f"give 'procedural' or all of joints, radii, parents (missing: {', '.join(missing)})")
+        if self.procedural is not None and any(explicit):
+            raise ValueError("give either 'procedural' or joints/radii/parents, not both")
+        return self
+
+
+class FrustaConfig(StrictModel):
+    """Conical frusta skinning a skeleton (Bhagvat et al. 2009)."""
+
+    type: Literal["frusta"]
+    skeleton: SkeletonConfig
+    normals: Literal["interpolated", "true"] = "interpolated"
+    match_minor_axes: bool = False
+    twist_deg: float = 0.0
+    color: RGB = (0.35, 0.55, 0.3)
+    texture: str | None = None
+    texture_scale: tuple[Annotated[float, Field(gt=0.0)], Annotated[float, Field(gt=0.0)]] = (1.0, 1.0)
+    block: Annotated[int, Field(ge=1, le=4096)] = 64

@@ -1,0 +1,143 @@
+"""Skeleton validation and topology (host side, NumPy float64).
+
+A skeleton is ``joints`` (J, 3), ``radii`` (J,) and ``parents`` (J,) with -1 for a root. Every
+non-root joint ``j`` closes one segment ``parents[j] -> j``; segments are numbered in increasing
+order of their end joint. Branching is allowed.
+
+Branching (Bhagvat et al. 2009 leave it open, Sec. 4.1 "Limitations"): at a joint with several
+children, the child whose axis is best aligned with the incoming segment *continues* it and
+shares the medial cutting plane of Eq. 3-5 with it; every other child is a *side branch*: its
+base is cut by the plane through the joint perpendicular to its own axis and closed by a flat
+cap. That cap lies inside the parent wherever the branch is thinner than the parent at the
+joint, which is the case for trees and cacti.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+#: a continuation may not fold back by more than this (degrees): Eq. 3's medial plane and the
+#: cutting plane through A and B degenerate as the bend approaches 180 degrees.
+MAX_BEND_DEG = 179.0
+
+
+class Topology(NamedTuple):
+    """Segment structure of a validated skeleton (all int arrays)."""
+
+    seg_start: np.ndarray  # (S,) joint index at the base of each segment
+    seg_end: np.ndarray  # (S,) joint index at the top
+    parent_seg: np.ndarray  # (S,) segment this one continues, or -1 (root or side branch)
+    incoming: np.ndarray  # (J,) segment ending at each joint, or -1
+    continuation: np.ndarray  # (J,) segment continuing through each joint, or -1
+    depth: np.ndarray  # (S,) number of segments before this one along continuations/branches
+    branch_parent: np.ndarray  # (S,) incoming segment at the base joint (also for side branches), -1 at roots
+
+
+def _fmt(v) -> str:
+    return "[" + ", ".join(f"{float(x):.6g}" for x in np.ravel(v)) + "]"
+
+
+def validate_skeleton(joints, radii, parents, path: str = "object.skeleton"):
+    """Return float64/int arrays after checking every field; raise ValueError naming the bad one."""
+    j = np.asarray(joints, dtype=np.float64)
+    if j.ndim != 2 or j.shape[1] != 3 or j.shape[0] < 2:
+        raise ValueError(f"{path}.joints: expected a list of at least 2 [x, y, z] points, got shape {j.shape}")
+    nj = j.shape[0]
+    r = np.asarray(radii, dtype=np.float64).reshape(-1)
+    p_raw = np.asarray(parents)
+    if r.shape[0] != nj:
+        raise ValueError(f"{path}.radii: has {r.shape[0]} entries for {nj} joints")
+    if p_raw.reshape(-1).shape[0] != nj:
+        raise ValueError(f"{path}.parents: has {p_raw.size} entries for {nj} joints")
+    for i in range(nj):
+        if not np.all(np.isfinite(j[i])):
+            raise ValueError(f"{path}.joints[{i}]: not finite: {_fmt(j[i])}")
+        if not np.isfinite(r[i]):
+            raise ValueError(f"{path}.radii[{i}]: not finite: {r[i]}")
+        if r[i] < 0:
+            raise ValueError(f"{path}.radii[{i}]: negative radius {r[i]:.6g}")
+    p = p_raw.reshape(-1)
+    if not np.issubdtype(p.dtype, np.integer):
+        pf = p.astype(np.float64)
+        if not np.all(pf == np.round(pf)):
+            i = int(np.argmax(pf != np.round(pf)))
+            raise ValueError(f"{path}.parents[{i}]: not an integer: {p[i]}")
+    p = p.astype(np.int64)
+    for i in range(nj):
+        if p[i] < -1 or p[i] >= nj:
+            raise ValueError(f"{path}.parents[{i}]: index {p[i]} out of range [-1, {nj - 1}]")
+        if p[i] == i:
+            raise ValueError(f"{path}.parents[{i}]: joint is its own parent")
+    # cycles: follow parents at most nj steps
+    state = np.zeros(nj, np.int8)  # 0 unknown, 1 reaches a root
+    for i in range(nj):
+        chain = []
+        k = i
+        while k != -1 and state[k] == 0:
+            if k in chain:
+                cyc = chain[chain.index(k):] + [k]
+                raise ValueError(
+                    f"{path}.parents[{i}]: parent index {p[i]} makes a cycle "
+                    f"({' -> '.join(map(str, cyc))})"
+                )
+            chain.append(k)
+            k = p[k]
+        for c in chain:
+            state[c] = 1
+    if np.all(p == -1):
+        raise ValueError(f"{path}.parents: every joint is a root, so there is no segment")
+    scale = float(np.max(np.ptp(j, axis=0))) or 1.0
+    for i in np.nonzero(p >= 0)[0]:
+        length = float(np.linalg.norm(j[i] - j[p[i]]))
+        if not length > 1e-9 * scale:
+            raise ValueError(
+                f"{path}.joints[{i}]: zero-length segment {p[i]} -> {i} (length {length:.3g}, both at {_fmt(j[i])})"
+            )
+        if r[i] == 0 and r[p[i]] == 0:
+            raise ValueError(f"{path}.radii[{i}]: segment {p[i]} -> {i} has radius 0 at both ends")
+    return j, r, p
+
+
+def topology(joints: np.ndarray, parents: np.ndarray, path: str = "object.skeleton") -> Topology:
+    """Segments, continuation choice (see module docstring) and depth order."""
+    nj = joints.shape[0]
+    ends = np.nonzero(parents >= 0)[0]
+    starts = parents[ends]
+    ns = ends.shape[0]
+    incoming = -np.ones(nj, np.int64)
+    incoming[ends] = np.arange(ns)
+    axis = joints[ends] - joints[starts]
+    axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
+    continuation = -np.ones(nj, np.int64)
+    best = np.full(nj, -np.inf)
+    for s in range(ns):  # host loop over segments at build time (not over rays)
+        a = starts[s]
+        if incoming[a] < 0:
+            continue
+        d = float(axis[incoming[a]] @ axis[s])
+        if d > best[a]:
+            best[a] = d
+            continuation[a] = s
+    cos_max = np.cos(np.radians(MAX_BEND_DEG))
+    for jnt in np.nonzero(continuation >= 0)[0]:
+        if best[jnt] < cos_max:
+            ang = np.degrees(np.arccos(np.clip(best[jnt], -1, 1)))
+            raise ValueError(
+                f"{path}.joints[{jnt}]: the skeleton folds back by {ang:.3f} degrees at this joint "
+                f"(at most {MAX_BEND_DEG} allowed)"
+            )
+    parent_seg = -np.ones(ns, np.int64)
+    branch_parent = incoming[starts]
+    for s in range(ns):
+        if continuation[starts[s]] == s:
+            parent_seg[s] = incoming[starts[s]]
+    depth = -np.ones(ns, np.int64)
+    depth[branch_parent < 0] = 0
+    while np.any(depth < 0):
+        todo = depth < 0
+        known = depth[branch_parent] >= 0
+        upd = todo & known
+        depth[upd] = depth[branch_parent[upd]] + 1
+    return Topology(starts, ends, parent_seg, incoming, continuation, depth, branch_parent)

@@ -1,0 +1,75 @@
+"""Gradient-safe numerics shared by every representation.
+
+Every function here is branch-free and safe under ``jax.grad``: the double-``where`` pattern
+(jax-md ``safe_mask``, MJX ``math.norm``) keeps NaN out of the backward pass, because a single
+``where`` around ``sqrt`` or a division still differentiates the discarded branch.
+
+Tolerances are looked up from the dtype of the data (``jnp.finfo(x.dtype).eps``), never from a
+float32 constant, so the same code is right in float32 (the default) and float64 (references).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+
+def eps_of(x) -> jnp.ndarray:
+    """Machine epsilon of ``x``'s floating dtype, as a scalar of that dtype."""
+    return jnp.asarray(jnp.finfo(jnp.result_type(x)).eps, dtype=jnp.result_type(x))
+
+
+def safe_sqrt(x):
+    """``sqrt(max(x, 0))`` with a zero (not NaN/inf) gradient at and below 0."""
+    ok = x > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+
+
+def safe_div(num, den, fallback=0.0):
+    """``num / den`` where ``den != 0``, else ``fallback``; gradients finite everywhere."""
+    ok = den != 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), fallback)
+
+
+def safe_norm(v, axis=-1, keepdims=False):
+    """Euclidean norm with gradient 0 (not NaN) at the zero vector."""
+    return safe_sqrt(jnp.sum(v * v, axis=axis, keepdims=keepdims))
+
+
+def safe_normalize(v, axis=-1):
+    """``v / |v|``; the zero vector maps to the zero vector (finite gradient)."""
+    n = safe_norm(v, axis=axis, keepdims=True)
+    return safe_div(v, n, 0.0)
+
+
+def stable_quadratic(a, half_b, c):
+    """Both roots of ``a t^2 + 2 half_b t + c = 0`` without catastrophic cancellation.
+
+    Uses ``q = -(half_b + sign(half_b) sqrt(half_b^2 - a c))`` and the roots ``q / a``, ``c / q``
+    (Press et al., Numerical Recipes 5.6), so the root of small magnitude is not formed as the
+    difference of two nearly equal numbers. Handles the linear case ``a == 0`` (one root
+    ``-c / (2 half_b)``, returned as ``c / q``) and returns ``+inf`` for every root that does not
+    exist (negative discriminant, ``a == half_b == 0``).
+
+    Args:
+      a, half_b, c: arrays of one shape and floating dtype.
+
+    Returns:
+      ``(t_lo, t_hi)`` with ``t_lo <= t_hi`` where both exist; missing roots are ``+inf``.
+    """
+    disc = half_b * half_b - a * c
+    has = disc >= 0
+    sq = safe_sqrt(disc)
+    sgn = jnp.where(half_b >= 0, 1.0, -1.0)
+    q = -(half_b + sgn * sq)
+    inf = jnp.inf
+    r1 = safe_div(q, a, inf)
+    r2 = safe_div(c, q, inf)
+    r1 = jnp.where(has, r1, inf)
+    r2 = jnp.where(has, r2, inf)
+    lo = jnp.minimum(r1, r2)
+    hi = jnp.maximum(r1, r2)
+    # a missing root is inf; keep it last so lo is the existing one
+    lo_f = jnp.isfinite(lo)
+    t_lo = jnp.where(lo_f, lo, hi)
+    t_hi = jnp.where(lo_f, hi, inf)
+    return t_lo, t_hi
