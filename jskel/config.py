@@ -107,9 +107,14 @@ class ShadingConfig(StrictModel):
 
 
 class RenderConfig(StrictModel):
-    """How rays are evaluated: chunk size (rays per compiled call), precision, progress bar."""
+    """How rays are evaluated: rays per compiled call, screen tile order, precision, progress bar.
 
-    chunk: Annotated[int, Field(ge=1, le=1 << 24)] = 65536
+    Rays are ordered in ``tile`` x ``tile`` screen tiles so a chunk of ``chunk = tile**2`` rays
+    covers one compact tile (see ``jskel.rays.tile_order``).
+    """
+
+    chunk: Annotated[int, Field(ge=1, le=1 << 24)] = 4096
+    tile: Annotated[int, Field(ge=1, le=4096)] = 64
     dtype: Literal["float32", "float64"] = "float32"
     progress: bool | None = None
 

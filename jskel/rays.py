@@ -128,6 +128,21 @@ class Camera(NamedTuple):
         return make_rays(o, d, 0.0, np.inf, dtype)
 
 
+def tile_order(width: int, height: int, tile: int) -> np.ndarray:
+    """Permutation of row-major pixel indices that lists pixels tile by tile (tile x tile).
+
+    Chunks of consecutive rays are then compact on screen, which is what lets a batch-level
+    test (one scalar per chunk) skip geometry that no ray of the chunk can reach.
+    """
+    ys, xs = np.divmod(np.arange(width * height), width)
+    key = ((ys // tile) * (-(-width // tile)) + xs // tile) * (tile * tile) + (ys % tile) * tile + xs % tile
+    return np.argsort(key, kind="stable")
+
+
+def permute(rays: Rays, order: np.ndarray) -> Rays:
+    return Rays(*(a[order] for a in rays))
+
+
 def _pad_to(x: jnp.ndarray, n: int) -> jnp.ndarray:
     pad = n - x.shape[0]
     if pad == 0:

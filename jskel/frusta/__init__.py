@@ -27,6 +27,7 @@ from ._config import SkeletonConfig as SkeletonConfig
 from ._intersect import FrustaParams as FrustaParams
 from ._intersect import Quality as Quality
 from ._intersect import inside_one as _inside_one
+from ._intersect import intersect_batch as _intersect_batch
 from ._intersect import intersect_one as _intersect_one
 from ._skeleton import topology as topology
 from ._skeleton import validate_skeleton as validate_skeleton
@@ -41,6 +42,8 @@ class FrustaScene(NamedTuple):
     colors: jnp.ndarray  # (S_pad, 3) linear RGB per segment
     texture: jnp.ndarray  # (H, W, 3) linear RGB, (1, 1, 3) when unused
     tex_scale: jnp.ndarray  # (2,) repeats of the texture per unit u and v
+    block_c: jnp.ndarray  # (B,3) bounding sphere centre of each block of segments
+    block_r: jnp.ndarray  # (B,) its radius
 
 
 class Static(NamedTuple):
@@ -69,6 +72,47 @@ def to_params(arr: FrustaArrays, anchor: np.ndarray, block: int, dtype=np.float3
         out[k] = jnp.asarray(v, dtype=jnp.bool_ if v.dtype == bool else dtype)
     out["valid"] = jnp.asarray(np.arange(n) < s)
     return FrustaParams(**out)
+
+
+def rim_points(arr: FrustaArrays, n_ang: int = 64) -> np.ndarray:
+    """(S, 2*n_ang, 3) points where generators meet the two cutting planes (host, float64).
+
+    The clipped frustum is the convex hull of its two elliptical cuts, so bounds of these points
+    (grown by the chord sag 1 - cos(pi / n_ang)) bound the frustum (Sec. 2.6 uses pyramids).
+    """
+    ang = np.linspace(0, 2 * np.pi, n_ang, endpoint=False)
+    rad = np.cos(ang)[None, :, None] * arr.u[:, None, :] + np.sin(ang)[None, :, None] * arr.w[:, None, :]
+    k = (arr.r2 - arr.r1) / arr.h
+    base = arr.c1[:, None, :] + arr.r1[:, None, None] * rad
+    dirn = arr.m[:, None, :] + k[:, None, None] * rad
+    out = []
+    for n, dist in ((arr.nb, arr.db), (arr.nt, arr.dt)):
+        den = np.einsum("sk,sak->sa", n, dirn)
+        y = (dist[:, None] - np.einsum("sk,sak->sa", n, base - arr.c1[:, None, :])) / np.where(den == 0, 1.0, den)
+        out.append(base + y[..., None] * dirn)
+    return np.concatenate(out, axis=1)
+
+
+def block_spheres(arr: FrustaArrays, anchor: np.ndarray, block: int):
+    """Bounding sphere (centre relative to anchor, radius) of each block of segments."""
+    pts = rim_points(arr) - anchor
+    s = pts.shape[0]
+    n = -(-s // block) * block
+    sag = 1.0 - np.cos(np.pi / 64)
+    rmax = np.maximum(arr.r1, arr.r2)
+    cs, rs = [], []
+    for i in range(0, n, block):  # host loop over blocks at build time
+        p = pts[i : i + block].reshape(-1, 3)
+        if p.shape[0] == 0:
+            cs.append(np.zeros(3))
+            rs.append(-1.0)  # padding block: no ray touches it
+            continue
+        lo, hi = p.min(0), p.max(0)
+        c = 0.5 * (lo + hi)
+        r = np.sqrt(np.max(np.sum((p - c) ** 2, -1))) + 2 * sag * float(np.max(rmax[i : i + block])) + 1e-6 * (1 + np.linalg.norm(c))
+        cs.append(c)
+        rs.append(r)
+    return np.array(cs), np.array(rs)
 
 
 def frusta_from_skeleton(joints, radii, parents, *, twist_deg=0.0, match_minor_axes=False, path="object.skeleton"):
@@ -129,11 +173,14 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         tex = _load_texture(cfg.texture)
     else:
         tex = np.ones((1, 1, 3))
+    bc, br = block_spheres(arrays, anchor, cfg.block)
     scene = FrustaScene(
         frusta=params,
         colors=jnp.asarray(seg_col, dtype),
         texture=jnp.asarray(tex, dtype),
         tex_scale=jnp.asarray(cfg.texture_scale, dtype),
+        block_c=jnp.asarray(bc, dtype),
+        block_r=jnp.asarray(br, dtype),
     )
     static = Static(Quality(normals=cfg.normals, block=cfg.block), cfg.texture is not None)
     info = dict(info, segments=int(s), joints=int(j.shape[0]), padded_segments=int(n))
@@ -149,6 +196,13 @@ def intersect(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
     """Batched :func:`intersect_one` (vmap over the ray axis)."""
     f = jax.vmap(lambda o, d, a, b: intersect_one(scene, static, o, d, a, b))
     return f(rays.origins, rays.directions, rays.t_min, rays.t_max)
+
+
+def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
+    """Like :func:`intersect`, but skips blocks of segments that no ray of the batch reaches."""
+    return _intersect_batch(
+        scene.frusta, scene.block_c, scene.block_r, rays.origins, rays.directions, rays.t_min, rays.t_max, static.quality
+    )
 
 
 def _bilinear_wrap(tex, uv):
@@ -189,6 +243,7 @@ class _Frusta:
     Config = FrustaConfig
     build = staticmethod(build)
     intersect_one = staticmethod(intersect_one)
+    intersect_batch = staticmethod(intersect_batch)
     albedo = staticmethod(albedo)
     inside = staticmethod(inside)
 

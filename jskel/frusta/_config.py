@@ -44,7 +44,7 @@ class FrustaConfig(StrictModel):
 
     type: Literal["frusta"]
     skeleton: SkeletonConfig
-    normals: Literal["interpolated", "true"] = "interpolated"
+    normals: Literal["interpolated", "geometric"] = "interpolated"
     match_minor_axes: bool = False
     twist_deg: float = 0.0
     color: RGB = (0.35, 0.55, 0.3)

@@ -17,7 +17,11 @@ Numerical form (why it differs from Eq. 9-10 as printed):
   gives no side hit, and then only the caps can be hit.
 
 Segments are visited in blocks of ``block`` with ``lax.scan`` (a vmap over the block inside), so
-memory is O(block) per ray whatever the number of segments; padding segments never hit.
+memory is O(block) per ray whatever the number of segments; padding segments never hit. Two CPU
+measurements (2 cores, 65,536 rays, during development) shaped this: dot products written out
+per component instead of ``jnp.sum(a * b, -1)`` took one segment from 32 ms to 3.4 ms; and a
+vmap over a block of 64 with a min/select reduction (0.22 s) beat a scan over single segments
+(0.54 s). The nearest candidate is therefore found by min and selects, not argmin.
 """
 
 from __future__ import annotations
@@ -61,8 +65,8 @@ class FrustaParams(NamedTuple):
 class Quality(NamedTuple):
     """Static options (hashable): changing one recompiles."""
 
-    normals: str = "interpolated"  # "interpolated" (Eq. 8) or "true" (cone gradient)
-    block: int = 64
+    normals: str = "interpolated"  # "interpolated" (Eq. 8) or "geometric" (cone gradient)
+    block: int = 64  # segments per scan step (padded to a multiple of it)
 
 
 # codes of the surface that was hit
@@ -70,7 +74,7 @@ SIDE, CAP_BOTTOM, CAP_TOP = 0, 1, 2
 
 
 def _dot(a, b):
-    return jnp.sum(a * b, axis=-1)
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
 def _segment_t(seg: FrustaParams, o, d, t_min, t_max):
@@ -115,12 +119,20 @@ def _segment_t(seg: FrustaParams, o, d, t_min, t_max):
         inside = (x * x + z * z <= ry * ry) & (ry >= 0) & in_slab(s)
         return accept(s, inside & flag)
 
-    cands = [side(s_lo), side(s_hi), cap(seg.nb, seg.db, seg.cap_b), cap(seg.nt, seg.dt, seg.cap_t)]
-    ts = jnp.stack([c_[0] for c_ in cands])
-    ss = jnp.stack([c_[1] for c_ in cands])
-    codes = jnp.array([SIDE, SIDE, CAP_BOTTOM, CAP_TOP], jnp.int32)
-    i = jnp.argmin(ts)
-    return ts[i], ss[i], codes[i]
+    # nearest of the four candidates by a chain of selects (an argmin over a stacked axis is a
+    # variadic reduce, which XLA on CPU runs several times slower)
+    best_t, best_s = side(s_lo)
+    best_c = jnp.int32(SIDE)
+    for (tc, sc), code in (
+        (side(s_hi), SIDE),
+        (cap(seg.nb, seg.db, seg.cap_b), CAP_BOTTOM),
+        (cap(seg.nt, seg.dt, seg.cap_t), CAP_TOP),
+    ):
+        better = tc < best_t
+        best_t = jnp.where(better, tc, best_t)
+        best_s = jnp.where(better, sc, best_s)
+        best_c = jnp.where(better, jnp.int32(code), best_c)
+    return best_t, best_s, best_c
 
 
 def _surface(seg: FrustaParams, o, d, s, code, normals: str):
@@ -158,7 +170,7 @@ def _surface(seg: FrustaParams, o, d, s, code, normals: str):
         n_side = safe_normalize((1.0 - v) * nl + v * nu)
         # at a closed tip N_u vanishes; fall back to the cone normal where the blend does
         n_side = jnp.where(_dot(n_side, n_side) > 0.5, n_side, true_n)
-    elif normals == "true":
+    elif normals == "geometric":
         n_side = true_n
     else:  # pragma: no cover - validated in config
         raise ValueError(f"object.normals: unknown mode {normals!r}")
@@ -168,37 +180,12 @@ def _surface(seg: FrustaParams, o, d, s, code, normals: str):
     return seg.c1 + p, normal, jnp.stack([u, v])
 
 
-def intersect_one(params: FrustaParams, origin, direction, t_min, t_max, quality: Quality = Quality()) -> Hit:
-    """Nearest hit of one ray with every frustum (brute force in blocks of ``quality.block``).
-
-    origin, direction: (3,); t_min, t_max: (). Returns a ``Hit`` with t in (t_min, t_max] or inf.
-    """
-    n = params.h.shape[0]
-    b = quality.block
-    nblk = n // b
-    blocks = jax.tree_util.tree_map(lambda a: a.reshape((nblk, b) + a.shape[1:]), params)
-    seg_t = jax.vmap(_segment_t, in_axes=(0, None, None, None, None))
+def _finish(params: FrustaParams, origin, direction, t, s, code, prim, normals: str) -> Hit:
+    """Hit attributes for the winning segment of one ray (gathered once, not per segment)."""
     inf = jnp.asarray(jnp.inf, origin.dtype)
-
-    def step(carry, xs):
-        blk, base = xs
-        bt, bs, bc, bi = carry
-        ts, ss, cs = seg_t(blk, origin, direction, t_min, t_max)
-        i = jnp.argmin(ts)
-        better = ts[i] < bt
-        return (
-            jnp.where(better, ts[i], bt),
-            jnp.where(better, ss[i], bs),
-            jnp.where(better, cs[i], bc),
-            jnp.where(better, base + i.astype(jnp.int32), bi),
-        ), None
-
-    init = (inf, jnp.zeros((), origin.dtype), jnp.int32(0), jnp.int32(-1))
-    bases = jnp.arange(nblk, dtype=jnp.int32) * b
-    (t, s, code, prim), _ = jax.lax.scan(step, init, (blocks, bases))
     hit = jnp.isfinite(t)
     seg = jax.tree_util.tree_map(lambda a: a[jnp.maximum(prim, 0)], params)
-    pos, normal, uv = _surface(seg, origin, direction, jnp.where(hit, s, 0.0), code, quality.normals)
+    pos, normal, uv = _surface(seg, origin, direction, jnp.where(hit, s, 0.0), code, normals)
     return Hit(
         t=t,
         position=jnp.where(hit, pos, inf),
@@ -206,6 +193,96 @@ def intersect_one(params: FrustaParams, origin, direction, t_min, t_max, quality
         uv=jnp.where(hit, uv, 0.0),
         prim=jnp.where(hit, prim, -1).astype(jnp.int32),
     )
+
+
+def _blocks(params: FrustaParams, b: int):
+    n = params.h.shape[0]
+    return jax.tree_util.tree_map(lambda a: a.reshape((n // b, b) + a.shape[1:]), params)
+
+
+def _reduce_block(ts, ss, cs, base, carry):
+    """Fold the nearest of a block (last axis) into the running best, without argmin."""
+    bt, bs, bc, bi = carry
+    b = ts.shape[-1]
+    tm = jnp.min(ts, axis=-1)
+    idx = jnp.arange(b, dtype=jnp.int32)
+    i = jnp.min(jnp.where(ts == tm[..., None], idx, b), axis=-1)
+    sel = idx == i[..., None]
+    sm = jnp.sum(jnp.where(sel, ss, 0.0), axis=-1)
+    cm = jnp.sum(jnp.where(sel, cs, 0), axis=-1)
+    better = tm < bt
+    return (
+        jnp.where(better, tm, bt),
+        jnp.where(better, sm, bs),
+        jnp.where(better, cm, bc),
+        jnp.where(better, base + i, bi),
+    )
+
+
+def intersect_one(params: FrustaParams, origin, direction, t_min, t_max, quality: Quality = Quality()) -> Hit:
+    """Nearest hit of one ray with every frustum (brute force, blocks of ``quality.block``).
+
+    origin, direction: (3,); t_min, t_max: (). Returns a ``Hit`` with t in (t_min, t_max] or inf.
+    This is the reference path: every segment is tested. ``intersect_batch`` skips blocks.
+    """
+    b = quality.block
+    seg_t = jax.vmap(_segment_t, in_axes=(0, None, None, None, None))
+    inf = jnp.asarray(jnp.inf, origin.dtype)
+
+    def step(carry, xs):
+        blk, base = xs
+        ts, ss, cs = seg_t(blk, origin, direction, t_min, t_max)
+        return _reduce_block(ts, ss, cs, base, carry), None
+
+    init = (inf, jnp.zeros((), origin.dtype), jnp.int32(SIDE), jnp.int32(-1))
+    nblk = params.h.shape[0] // b
+    bases = jnp.arange(nblk, dtype=jnp.int32) * b
+    (t, s, code, prim), _ = jax.lax.scan(step, init, (_blocks(params, b), bases))
+    return _finish(params, origin, direction, t, s, code, prim, quality.normals)
+
+
+def intersect_batch(params: FrustaParams, block_c, block_r, origins, directions, t_min, t_max, quality: Quality = Quality()) -> Hit:
+    """Batched nearest hit that skips whole blocks of segments no ray of the batch can reach.
+
+    block_c (B,3), block_r (B,): a bounding sphere per block of ``quality.block`` segments.
+    For each block the rays of the batch are tested against its sphere; if none touches it, the
+    block is skipped by a ``lax.cond`` on that *scalar* (batch-wide) predicate, which, unlike a
+    per-ray ``cond`` under vmap, really skips the work. Rays should be spatially coherent (the
+    renderer orders them in screen tiles). Equal to ``vmap(intersect_one)`` hit for hit.
+    """
+    b = quality.block
+    seg_t = jax.vmap(jax.vmap(_segment_t, in_axes=(0, None, None, None, None)), in_axes=(None, 0, 0, 0, 0))
+    dtype = origins.dtype
+    n = origins.shape[0]
+    dd = _dot(directions, directions)
+
+    def touches(c, r):
+        oc = c[None, :] - origins
+        tc = safe_div(_dot(oc, directions), dd, 0.0)
+        dist2 = _dot(oc, oc) - tc * tc * dd
+        rt = r / jnp.sqrt(dd)
+        return (dist2 <= r * r) & (tc + rt > t_min) & (tc - rt <= t_max)
+
+    def step(carry, xs):
+        blk, base, c, r = xs
+
+        def work(carry):
+            ts, ss, cs = seg_t(blk, origins, directions, t_min, t_max)
+            return _reduce_block(ts, ss, cs, base, carry)
+
+        return jax.lax.cond(jnp.any(touches(c, r)), work, lambda c_: c_, carry), None
+
+    init = (
+        jnp.full((n,), jnp.inf, dtype),
+        jnp.zeros((n,), dtype),
+        jnp.full((n,), SIDE, jnp.int32),
+        jnp.full((n,), -1, jnp.int32),
+    )
+    nblk = params.h.shape[0] // b
+    bases = jnp.arange(nblk, dtype=jnp.int32) * b
+    (t, s, code, prim), _ = jax.lax.scan(step, init, (_blocks(params, b), bases, block_c, block_r))
+    fin = jax.vmap(_finish, in_axes=(None, 0, 0, 0, 0, 0, 0, None))
+    return fin(params, origins, directions, t, s, code, prim, quality.normals)
 
 
 def inside_one(params: FrustaParams, point) -> jnp.ndarray:

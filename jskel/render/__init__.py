@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import registry
 from ..config import Experiment, resolved
-from ..rays import Camera, Rays, map_chunks
+from ..rays import Camera, Rays, map_chunks, permute, tile_order
 from ._aov import write_aovs as write_aovs
 from ._shade import Lights as Lights
 from ._shade import Shading as Shading
@@ -39,14 +39,20 @@ def pixel_fn(rep_name: str, static):
     """Batch function ``(params, rays) -> (Hit, rgb)`` for a representation and static options."""
     rep = registry.get(rep_name)
 
-    def one(params, o, d, t_min, t_max):
-        scene, lights, sh = params
-        hit = rep.intersect_one(scene, static, o, d, t_min, t_max)
-        base = rep.albedo(scene, static, hit)
-        return hit, shade_one(hit, d, base, lights, sh)
+    def one_hit(scene, o, d, t_min, t_max):
+        return rep.intersect_one(scene, static, o, d, t_min, t_max)
+
+    def colour(scene, lights, sh, hit, d):
+        return shade_one(hit, d, rep.albedo(scene, static, hit), lights, sh)
 
     def batch(params, rays: Rays):
-        return jax.vmap(one, in_axes=(None, 0, 0, 0, 0))(params, *rays)
+        scene, lights, sh = params
+        if hasattr(rep, "intersect_batch"):
+            hits = rep.intersect_batch(scene, static, rays)
+        else:
+            hits = jax.vmap(one_hit, in_axes=(None, 0, 0, 0, 0))(scene, *rays)
+        rgb = jax.vmap(colour, in_axes=(None, None, None, 0, 0))(scene, lights, sh, hits, rays.directions)
+        return hits, rgb
 
     return batch
 
@@ -89,12 +95,15 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     built = rep.build(obj, dtype)
     build_s = time.perf_counter() - t0
     cam = camera_of(exp)
-    rays = cam.rays(anchor=built.anchor, dtype=dtype)
+    order = tile_order(cam.width, cam.height, exp.render.tile)
+    rays = permute(cam.rays(anchor=built.anchor, dtype=dtype), order)
     params = (built.params, lights_from_config(exp.lights, dtype), shading_from_config(exp.shading, dtype))
     fn = pixel_fn(rep.name, built.static)
     prog = exp.render.progress if progress is None else progress
     res = map_chunks(fn, params, rays, chunk=exp.render.chunk, progress=prog, desc="render")
-    hits, rgb = res.out
+    inv = np.empty_like(order)
+    inv[order] = np.arange(order.size)
+    hits, rgb = jax.tree_util.tree_map(lambda a: a[inv], res.out)
     # hit positions back to world coordinates (host, float64)
     hits = hits._replace(position=np.asarray(hits.position, np.float64) + built.anchor)
     image = encode_png(rgb.reshape(cam.height, cam.width, 3), exp.shading.gamma)
