@@ -1,0 +1,61 @@
+"""Shared test helpers. Tests stay in float32 (the default); x64 is never switched on here.
+
+Compile time dominates on 2 cores, so every frusta test casts rays through the same two
+compiled functions: skeletons are padded to one block of 64 segments and rays are evaluated
+in chunks of 8192, so the shapes never change between tests.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(os.path.dirname(__file__), "..", ".jax_cache"))
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from jskel import frusta  # noqa: E402
+from jskel.rays import make_rays, map_chunks  # noqa: E402
+
+CHUNK = 8192
+
+
+def _one(scene, static, rays):
+    return frusta.intersect(scene, static, rays)
+
+
+def _batch(scene, static, rays):
+    return frusta.intersect_batch(scene, static, rays)
+
+
+_FNS = {}
+
+
+def batch_fn(static, culled):
+    key = (static, culled)
+    if key not in _FNS:
+        f = _batch if culled else _one
+        _FNS[key] = lambda params, rays: f(params, static, rays)
+    return _FNS[key]
+
+
+def build_skeleton(joints, radii, parents, offset=(0.0, 0.0, 0.0), **kw):
+    cfg = frusta.FrustaConfig.model_validate(
+        {"type": "frusta", "skeleton": {"joints": np.asarray(joints, float).tolist(), "radii": list(map(float, radii)),
+                                         "parents": list(map(int, parents)), "offset": list(offset)}, **kw}
+    )
+    return frusta.build(cfg)
+
+
+def cast(built, O, D, t_min=0.0, t_max=np.inf, culled=False):
+    """Cast float64 world rays (O, D) against ``built``; returns a NumPy Hit in world units."""
+    O = np.asarray(O, np.float64) - built.anchor
+    rays = make_rays(O, D, t_min, t_max)
+    res = map_chunks(batch_fn(built.static, culled), built.params, rays, chunk=CHUNK, progress=False)
+    return res.out._replace(position=np.asarray(res.out.position, np.float64) + built.anchor)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)
