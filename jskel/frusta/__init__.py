@@ -161,7 +161,9 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
     lo = np.min(j - rmax, axis=0)
     hi = np.max(j + rmax, axis=0)
     anchor = 0.5 * (lo + hi)
-    params = to_params(arrays, anchor, cfg.block, dtype)
+    # a small skeleton gets a smaller block, so a well of 8 segments is not padded to 64
+    block = int(min(cfg.block, max(8, 1 << int(np.ceil(np.log2(arrays.h.shape[0]))))))
+    params = to_params(arrays, anchor, block, dtype)
     s = arrays.h.shape[0]
     n = params.h.shape[0]
     if colors is None:
@@ -173,7 +175,7 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         tex = _load_texture(cfg.texture)
     else:
         tex = np.ones((1, 1, 3))
-    bc, br = block_spheres(arrays, anchor, cfg.block)
+    bc, br = block_spheres(arrays, anchor, block)
     scene = FrustaScene(
         frusta=params,
         colors=jnp.asarray(seg_col, dtype),
@@ -182,7 +184,7 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         block_c=jnp.asarray(bc, dtype),
         block_r=jnp.asarray(br, dtype),
     )
-    static = Static(Quality(normals=cfg.normals, block=cfg.block), cfg.texture is not None)
+    static = Static(Quality(normals=cfg.normals, block=block), cfg.texture is not None)
     info = dict(info, segments=int(s), joints=int(j.shape[0]), padded_segments=int(n))
     return Built(scene, static, anchor, (lo, hi), info)
 

@@ -50,4 +50,4 @@ class FrustaConfig(StrictModel):
     color: RGB = (0.35, 0.55, 0.3)
     texture: str | None = None
     texture_scale: tuple[Annotated[float, Field(gt=0.0)], Annotated[float, Field(gt=0.0)]] = (1.0, 1.0)
-    block: Annotated[int, Field(ge=1, le=4096)] = 64
+    block: Annotated[int, Field(ge=1, le=4096)] = 64  # segments per scan step (smaller for small skeletons)
