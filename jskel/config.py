@@ -13,7 +13,6 @@ applied before validation, so an override is checked like the file itself.
 from __future__ import annotations
 
 import copy
-import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -250,6 +249,3 @@ def resolved(exp: Experiment, obj: BaseModel) -> dict:
     d["object"] = obj.model_dump(mode="json")
     return d
 
-
-def finite_or_none(x: float) -> float | None:
-    return x if math.isfinite(x) else None
