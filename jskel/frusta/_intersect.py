@@ -213,9 +213,9 @@ def _reduce_block(ts, ss, cs, base, carry):
     better = tm < bt
     return (
         jnp.where(better, tm, bt),
-        jnp.where(better, sm, bs),
-        jnp.where(better, cm, bc),
-        jnp.where(better, base + i, bi),
+        jnp.where(better, sm, bs).astype(bs.dtype),
+        jnp.where(better, cm, bc).astype(bc.dtype),
+        jnp.where(better, base + i, bi).astype(bi.dtype),
     )
 
 
