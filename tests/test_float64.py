@@ -23,7 +23,7 @@ SCRIPT = textwrap.dedent(
     cfg = frusta.FrustaConfig.model_validate({"type": "frusta", "skeleton": {
         "joints": joints.tolist(), "radii": list(radii), "parents": list(map(int, parents)), "offset": [1e4, 0, 0]}})
     b = frusta.build(cfg, np.float64)
-    assert b.params.frusta.c1.dtype == np.float64
+    assert b.params.plain.frusta.c1.dtype == np.float64
     lo, hi = _bounds(joints, np.asarray(radii))
     O, D = ref.random_rays(np.random.default_rng(5), lo, hi, 20000)
     segs = ref.segments(joints, radii, parents)

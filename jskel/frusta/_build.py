@@ -52,6 +52,7 @@ class FrustaArrays(NamedTuple):
     cap_t: np.ndarray  # (S,) bool
     u_off: np.ndarray  # (S,) u offset (turns) from the twist of the segments below
     twist: np.ndarray  # (S,) twist (turns per unit v)
+    v_off: np.ndarray  # (S,) number of segments before this one along its chain (v spans segments)
 
 
 def _unit(v):
@@ -222,6 +223,7 @@ def build_frusta(
     # frame of the segment they grow from, continuations pass through Q (Sec. 2.3)
     w = np.zeros((ns, 3))
     u_off = np.zeros(ns)
+    v_off = np.zeros(ns)
     twist = np.full(ns, float(twist_turns))
     for lvl in np.unique(topo.depth):
         ss = np.nonzero(topo.depth == lvl)[0]
@@ -247,8 +249,9 @@ def build_frusta(
             wc = np.where(good[:, None], wq / np.maximum(nq, 1e-300)[:, None], wr[is_c])
             wr[is_c] = wc
             u_off[sc] = u_off[ac] + twist[ac]
+            v_off[sc] = v_off[ac] + 1.0
         w[ss] = wr
     u = np.cross(m, w)
     u_off = np.mod(u_off, 1.0)
-    arrays = FrustaArrays(c1, m, u, w, h, r1, r2, nb, db, nt, dt, cap_b, cap_t, u_off, twist)
+    arrays = FrustaArrays(c1, m, u, w, h, r1, r2, nb, db, nt, dt, cap_b, cap_t, u_off, twist, v_off)
     return arrays, info

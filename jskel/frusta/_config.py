@@ -39,6 +39,25 @@ class SkeletonConfig(StrictModel):
         return self
 
 
+class ReliefConfig(StrictModel):
+    """A height field in a shell over some or all segments (Sec. 3).
+
+    ``map``: an 8-bit image file, or ``brick``/``gravel``/``grass`` (scikit-image's texture
+    photographs). ``scale``: repeats of the map per unit u and per unit v (v runs 0..1 per
+    segment and continues along a chain, so scale_v = 1/n spans n segments).
+    """
+
+    map: str
+    thickness: Annotated[float, Field(gt=0.0)] = 0.05
+    scale: tuple[Annotated[float, Field(gt=0.0)], Annotated[float, Field(gt=0.0)]] = (4.0, 1.0)
+    steps: Annotated[int, Field(ge=1, le=65536)] = 32
+    bisection: Annotated[int, Field(ge=0, le=64)] = 6
+    uv: Literal["approximate", "exact"] = "approximate"
+    v_mode: Literal["wrap", "clamp"] = "wrap"
+    early_exit: bool = False
+    segments: list[Annotated[int, Field(ge=0)]] | None = None
+
+
 class FrustaConfig(StrictModel):
     """Conical frusta skinning a skeleton (Bhagvat et al. 2009)."""
 
@@ -50,4 +69,5 @@ class FrustaConfig(StrictModel):
     color: RGB = (0.35, 0.55, 0.3)
     texture: str | None = None
     texture_scale: tuple[Annotated[float, Field(gt=0.0)], Annotated[float, Field(gt=0.0)]] = (1.0, 1.0)
+    relief: ReliefConfig | None = None
     block: Annotated[int, Field(ge=1, le=4096)] = 64  # segments per scan step (smaller for small skeletons)

@@ -1,8 +1,8 @@
 """Analytic ray casting of conical frusta (Bhagvat et al. 2009, Sec. 2.3-2.5), in JAX.
 
-``intersect_one`` takes one ray and the whole ``FrustaParams`` and returns the nearest ``Hit``.
-It is branch-free (a miss is ``t = inf``; the nearest hit is an argmin) and is batched with
-``jax.vmap`` at the call site.
+``nearest_one`` takes one ray and a group of frusta and returns the nearest (t, s, code, index);
+``_finish`` turns it into a ``Hit``. Both are branch-free (a miss is ``t = inf``) and batched with
+``jax.vmap`` at the call site; ``nearest_batch`` is the batch-level variant that skips blocks.
 
 Numerical form (why it differs from Eq. 9-10 as printed):
 
@@ -60,6 +60,9 @@ class FrustaParams(NamedTuple):
     u_off: jnp.ndarray
     twist: jnp.ndarray
     valid: jnp.ndarray
+    sid: jnp.ndarray  # (S,) int32 segment id in the skeleton (-1 for padding)
+    shell: jnp.ndarray  # (S,) relief shell thickness (0 where the segment has no relief)
+    v_off: jnp.ndarray  # (S,) v of the segment's base along its chain (a texture spans segments)
 
 
 class Quality(NamedTuple):
@@ -77,22 +80,38 @@ def _dot(a, b):
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
-def _segment_t(seg: FrustaParams, o, d, t_min, t_max):
-    """Nearest hit of one ray with one frustum: (t, s, code); t = inf on a miss."""
-    inf = jnp.asarray(jnp.inf, o.dtype)
+def recentre(seg: FrustaParams, o, d):
+    """(t0, e): the ray origin moved to the point nearest the segment's midpoint, relative to C1.
+
+    Hits are then found as local parameters s with t = t0 + s, so the quadratic's constant term
+    does not cancel for far origins.
+    """
     dd = _dot(d, d)
     cm = seg.c1 + 0.5 * seg.h * seg.m
     t0 = safe_div(_dot(cm - o, d), dd, 0.0)
-    e = o + t0 * d - seg.c1  # recentred origin, relative to C1
+    return t0, o + t0 * d - seg.c1
+
+
+def side_roots(seg: FrustaParams, e, d, dr=0.0):
+    """Roots (s_lo, s_hi) of the ray e + s d with the cone of radii (r1 + dr, r2 + dr)."""
     ex, ey, ez = _dot(e, seg.u), _dot(e, seg.m), _dot(e, seg.w)
     dx, dy, dz = _dot(d, seg.u), _dot(d, seg.m), _dot(d, seg.w)
     k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
-    re = seg.r1 + k * ey
+    re = seg.r1 + dr + k * ey
     a = dx * dx + dz * dz - k * k * dy * dy
     hb = ex * dx + ez * dz - k * dy * re
     c = ex * ex + ez * ez - re * re
+    return stable_quadratic(a, hb, c)
+
+
+def _segment_t(seg: FrustaParams, o, d, t_min, t_max):
+    """Nearest hit of one ray with one frustum: (t, s, code); t = inf on a miss."""
+    inf = jnp.asarray(jnp.inf, o.dtype)
+    t0, e = recentre(seg, o, d)
+    ey, dy = _dot(e, seg.m), _dot(d, seg.m)
+    k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
     # a, hb, c are all zero only for a ray along a cylinder's axis: no side hit then
-    s_lo, s_hi = stable_quadratic(a, hb, c)
+    s_lo, s_hi = side_roots(seg, e, d)
 
     tol = 32.0 * eps_of(o) * (seg.h + seg.r1 + seg.r2)
 
@@ -143,10 +162,7 @@ def _surface(seg: FrustaParams, o, d, s, code, normals: str):
     apex, written as direction M + k * radial so cylinders need no apex).
     Interpolated normals: Eq. 8, N = (1 - v) N_l + v N_u with N_l = P_l - C1, N_u = P_u - C2.
     """
-    dd = _dot(d, d)
-    cm = seg.c1 + 0.5 * seg.h * seg.m
-    t0 = safe_div(_dot(cm - o, d), dd, 0.0)
-    e = o + t0 * d - seg.c1
+    t0, e = recentre(seg, o, d)
     p = e + s * d  # relative to C1
     x, y, z = _dot(p, seg.u), _dot(p, seg.m), _dot(p, seg.w)
     rho = safe_sqrt(x * x + z * z)
@@ -180,22 +196,27 @@ def _surface(seg: FrustaParams, o, d, s, code, normals: str):
     return seg.c1 + p, normal, jnp.stack([u, v])
 
 
-def _finish(params: FrustaParams, origin, direction, t, s, code, prim, normals: str) -> Hit:
+def _finish(params: FrustaParams, origin, direction, t, s, code, idx, normals: str) -> Hit:
     """Hit attributes for the winning segment of one ray (gathered once, not per segment)."""
     inf = jnp.asarray(jnp.inf, origin.dtype)
     hit = jnp.isfinite(t)
-    seg = jax.tree_util.tree_map(lambda a: a[jnp.maximum(prim, 0)], params)
+    seg = jax.tree_util.tree_map(lambda a: a[jnp.maximum(idx, 0)], params)
     pos, normal, uv = _surface(seg, origin, direction, jnp.where(hit, s, 0.0), code, normals)
+    return make_hit(t, pos, normal, uv, seg.sid, inf)
+
+
+def make_hit(t, pos, normal, uv, sid, inf) -> Hit:
+    hit = jnp.isfinite(t)
     return Hit(
         t=t,
         position=jnp.where(hit, pos, inf),
         normal=jnp.where(hit, normal, 0.0),
         uv=jnp.where(hit, uv, 0.0),
-        prim=jnp.where(hit, prim, -1).astype(jnp.int32),
+        prim=jnp.where(hit, sid, -1).astype(jnp.int32),
     )
 
 
-def _blocks(params: FrustaParams, b: int):
+def _blocks(params, b: int):
     n = params.h.shape[0]
     return jax.tree_util.tree_map(lambda a: a.reshape((n // b, b) + a.shape[1:]), params)
 
@@ -219,39 +240,36 @@ def _reduce_block(ts, ss, cs, base, carry):
     )
 
 
-def intersect_one(params: FrustaParams, origin, direction, t_min, t_max, quality: Quality = Quality()) -> Hit:
-    """Nearest hit of one ray with every frustum (brute force, blocks of ``quality.block``).
+def nearest_one(params: FrustaParams, seg_fn, origin, direction, t_min, t_max, block: int):
+    """Brute-force nearest of ``seg_fn(seg, o, d, t_min, t_max) -> (t, s, code)`` over segments.
 
-    origin, direction: (3,); t_min, t_max: (). Returns a ``Hit`` with t in (t_min, t_max] or inf.
-    This is the reference path: every segment is tested. ``intersect_batch`` skips blocks.
+    Returns (t, s, code, idx) with idx the position in ``params`` (-1 on a miss).
     """
-    b = quality.block
-    seg_t = jax.vmap(_segment_t, in_axes=(0, None, None, None, None))
+    vfn = jax.vmap(seg_fn, in_axes=(0, None, None, None, None))
     inf = jnp.asarray(jnp.inf, origin.dtype)
 
     def step(carry, xs):
         blk, base = xs
-        ts, ss, cs = seg_t(blk, origin, direction, t_min, t_max)
+        ts, ss, cs = vfn(blk, origin, direction, t_min, t_max)
         return _reduce_block(ts, ss, cs, base, carry), None
 
     init = (inf, jnp.zeros((), origin.dtype), jnp.int32(SIDE), jnp.int32(-1))
-    nblk = params.h.shape[0] // b
-    bases = jnp.arange(nblk, dtype=jnp.int32) * b
-    (t, s, code, prim), _ = jax.lax.scan(step, init, (_blocks(params, b), bases))
-    return _finish(params, origin, direction, t, s, code, prim, quality.normals)
+    nblk = params.h.shape[0] // block
+    bases = jnp.arange(nblk, dtype=jnp.int32) * block
+    out, _ = jax.lax.scan(step, init, (_blocks(params, block), bases))
+    return out
 
 
-def intersect_batch(params: FrustaParams, block_c, block_r, origins, directions, t_min, t_max, quality: Quality = Quality()) -> Hit:
-    """Batched nearest hit that skips whole blocks of segments no ray of the batch can reach.
+def nearest_batch(params: FrustaParams, block_c, block_r, seg_fn, origins, directions, t_min, t_max, block: int):
+    """Batched :func:`nearest_one` that skips whole blocks no ray of the batch can reach.
 
-    block_c (B,3), block_r (B,): a bounding sphere per block of ``quality.block`` segments.
-    For each block the rays of the batch are tested against its sphere; if none touches it, the
-    block is skipped by a ``lax.cond`` on that *scalar* (batch-wide) predicate, which, unlike a
-    per-ray ``cond`` under vmap, really skips the work. Rays should be spatially coherent (the
-    renderer orders them in screen tiles). Equal to ``vmap(intersect_one)`` hit for hit.
+    block_c (B,3), block_r (B,): a bounding sphere per block of ``block`` segments. For each
+    block the rays of the batch are tested against its sphere; if none touches it, the block is
+    skipped by a ``lax.cond`` on that *scalar* (batch-wide) predicate, which, unlike a per-ray
+    ``cond`` under vmap, really skips the work. Rays should be spatially coherent (the renderer
+    orders them in screen tiles). Equal to ``vmap(nearest_one)`` hit for hit.
     """
-    b = quality.block
-    seg_t = jax.vmap(jax.vmap(_segment_t, in_axes=(0, None, None, None, None)), in_axes=(None, 0, 0, 0, 0))
+    vfn = jax.vmap(jax.vmap(seg_fn, in_axes=(0, None, None, None, None)), in_axes=(None, 0, 0, 0, 0))
     dtype = origins.dtype
     n = origins.shape[0]
     dd = _dot(directions, directions)
@@ -267,7 +285,7 @@ def intersect_batch(params: FrustaParams, block_c, block_r, origins, directions,
         blk, base, c, r = xs
 
         def work(carry):
-            ts, ss, cs = seg_t(blk, origins, directions, t_min, t_max)
+            ts, ss, cs = vfn(blk, origins, directions, t_min, t_max)
             return _reduce_block(ts, ss, cs, base, carry)
 
         return jax.lax.cond(jnp.any(touches(c, r)), work, lambda c_: c_, carry), None
@@ -278,11 +296,10 @@ def intersect_batch(params: FrustaParams, block_c, block_r, origins, directions,
         jnp.full((n,), SIDE, jnp.int32),
         jnp.full((n,), -1, jnp.int32),
     )
-    nblk = params.h.shape[0] // b
-    bases = jnp.arange(nblk, dtype=jnp.int32) * b
-    (t, s, code, prim), _ = jax.lax.scan(step, init, (_blocks(params, b), bases, block_c, block_r))
-    fin = jax.vmap(_finish, in_axes=(None, 0, 0, 0, 0, 0, 0, None))
-    return fin(params, origins, directions, t, s, code, prim, quality.normals)
+    nblk = params.h.shape[0] // block
+    bases = jnp.arange(nblk, dtype=jnp.int32) * block
+    out, _ = jax.lax.scan(step, init, (_blocks(params, block), bases, block_c, block_r))
+    return out
 
 
 def inside_one(params: FrustaParams, point) -> jnp.ndarray:

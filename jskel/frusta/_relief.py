@@ -1,0 +1,245 @@
+"""Relief-mapped conical frusta: a height field in a shell (Bhagvat et al. 2009, Sec. 3).
+
+Each relief segment has an outer frustum of radii (r1 + T, r2 + T) sharing its cutting planes
+(T = ``shell``). A ray's interval inside that solid (clipped by the cutting planes, possibly
+starting inside) is marched in ``steps`` uniform samples, then the first bracket where the ray
+crosses the relief surface is refined by ``bisection`` halvings (Sec. 3: "uniform sampling
+followed by a bisectional search", after Policarpo et al. 2005).
+
+At a sample P the relief height is w = (d - r_i) / (r_o - r_i) (Eq. 11-12), d the distance of P
+from the axis and r_i, r_o the inner and outer radii at P's height; the ray is *below* the
+surface where w <= h(u, v). (u, v) per sample either way the paper gives:
+
+* ``exact``: the cone through P concentric with the frustum (same slope k, Sec. 3) gives v from
+  the cutting planes along its generator (Sec. 2.3, Eq. 7), u from the angle (Eq. 6);
+* ``approximate`` (default): u from the angle, v interpolated linearly between the exact v at
+  the ends of the interval. The paper notes this is exact when the cutting planes are parallel.
+
+The step and bisection counts are static (they shape the program); thickness, tiling and the
+height map are traced. ``early_exit`` marches in a ``while_loop`` that stops when every ray of
+the batch has found its bracket (under vmap the loop runs while any ray is still marching);
+the fixed variant is a ``fori_loop`` of exactly ``steps`` iterations.
+
+Shading normals come from the height map's gradient (central differences, one texel apart)
+mapped to the surface frame: with P'(u, v) = P0 + h T n_r (n_r radial), the normal is
+dP'/du x dP'/dv with dP/du = 2 pi d c_hat + T h_u n_r and dP/dv = L g + T h_v n_r (g the
+generator, L its length between the cutting planes).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ..numerics import eps_of, safe_div, safe_normalize, safe_sqrt
+from ._intersect import CAP_BOTTOM, CAP_TOP, FrustaParams, _dot, make_hit, recentre, side_roots
+
+RELIEF = 3
+_TWO_PI = 2.0 * jnp.pi
+
+
+class ReliefMaps(NamedTuple):
+    """height: (H, W) uint8 (8-bit storage, Sec. 4); scale: (2,) repeats per unit u and v."""
+
+    height: jnp.ndarray
+    scale: jnp.ndarray
+
+
+class ReliefQuality(NamedTuple):
+    """Static march options (changing one recompiles)."""
+
+    steps: int = 32
+    bisection: int = 6
+    uv: str = "approximate"  # or "exact"
+    early_exit: bool = False
+    v_mode: str = "wrap"  # or "clamp"
+
+
+def sample_height(maps: ReliefMaps, uu, vv, v_mode: str):
+    """Bilinear height in [0, 1] at texture coordinates (uu, vv) (already scaled); u wraps."""
+    img = maps.height
+    h, w = img.shape
+    x = uu * w - 0.5
+    y = vv * h - 0.5
+    x0 = jnp.floor(x)
+    y0 = jnp.floor(y)
+    fx = x - x0
+    fy = y - y0
+    x0 = x0.astype(jnp.int32)
+    y0 = y0.astype(jnp.int32)
+    xa, xb = jnp.mod(x0, w), jnp.mod(x0 + 1, w)
+    if v_mode == "wrap":
+        ya, yb = jnp.mod(y0, h), jnp.mod(y0 + 1, h)
+    else:
+        ya, yb = jnp.clip(y0, 0, h - 1), jnp.clip(y0 + 1, 0, h - 1)
+    dt = uu.dtype
+    f = lambda yy, xx: img[yy, xx].astype(dt)  # noqa: E731
+    val = (1 - fx) * (1 - fy) * f(ya, xa) + fx * (1 - fy) * f(ya, xb) + (1 - fx) * fy * f(yb, xa) + fx * fy * f(yb, xb)
+    return val / 255.0
+
+
+def _in_slab(seg, p, tol):
+    return (_dot(seg.nb, p) >= seg.db - tol) & (_dot(seg.nt, p) <= seg.dt + tol)
+
+
+def shell_interval(seg: FrustaParams, e, d):
+    """Interval (s_in, s_out) of the line e + s d inside the outer solid frustum, and entry code.
+
+    The outer solid (radii + shell, between the cutting planes) is convex, so its boundary
+    crossings are its entry and exit: the smallest and largest valid crossing of its side and
+    of its two planes. Returns (s_in, s_out, ok, entry_code).
+    """
+    inf = jnp.asarray(jnp.inf, e.dtype)
+    k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
+    r1o = seg.r1 + seg.shell
+    tol = 32.0 * eps_of(e) * (seg.h + seg.r1 + seg.r2 + 2 * seg.shell)
+    s_lo, s_hi = side_roots(seg, e, d, seg.shell)
+
+    def side_ok(s):
+        p = e + s * d
+        return jnp.isfinite(s) & _in_slab(seg, p, tol) & (r1o + k * _dot(p, seg.m) >= 0)
+
+    def plane(n, dist):
+        s = safe_div(dist - _dot(n, e), _dot(n, d), inf)
+        p = e + s * d
+        x, y, z = _dot(p, seg.u), _dot(p, seg.m), _dot(p, seg.w)
+        ry = r1o + k * y
+        ok = jnp.isfinite(s) & (x * x + z * z <= ry * ry) & (ry >= 0) & _in_slab(seg, p, tol)
+        return s, ok
+
+    sb, okb = plane(seg.nb, seg.db)
+    st, okt = plane(seg.nt, seg.dt)
+    ss = jnp.stack([s_lo, s_hi, sb, st])
+    ok = jnp.stack([side_ok(s_lo), side_ok(s_hi), okb, okt])
+    s_in = jnp.min(jnp.where(ok, ss, inf))
+    s_out = jnp.max(jnp.where(ok, ss, -inf))
+    codes = jnp.array([RELIEF, RELIEF, CAP_BOTTOM, CAP_TOP], jnp.int32)
+    entry = jnp.sum(jnp.where(ok & (ss == s_in), codes, 0) * (jnp.cumsum(ok & (ss == s_in)) == 1))
+    good = (jnp.sum(ok) >= 2) & (s_in < s_out)
+    return s_in, s_out, good, entry
+
+
+def exact_v(seg: FrustaParams, p):
+    """v of Eq. 7 for a point p (relative to C1) on any cone concentric with the frustum."""
+    x, z = _dot(p, seg.u), _dot(p, seg.w)
+    rho = safe_sqrt(x * x + z * z)
+    radial = safe_div(x * seg.u + z * seg.w, rho, 0.0)
+    k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
+    g = seg.m + k * radial
+    s_l = safe_div(seg.db - _dot(seg.nb, p), _dot(seg.nb, g), 0.0)
+    s_u = safe_div(seg.dt - _dot(seg.nt, p), _dot(seg.nt, g), 0.0)
+    return safe_div(-s_l, s_u - s_l, 0.0), s_u - s_l, g, radial, rho
+
+
+def _angle_u(seg, p, v):
+    x, z = _dot(p, seg.u), _dot(p, seg.w)
+    on_axis = (x == 0) & (z == 0)
+    ang = jnp.arctan2(jnp.where(on_axis, 0.0, x), jnp.where(on_axis, 1.0, z))
+    return jnp.mod(ang / _TWO_PI + seg.u_off + v * seg.twist, 1.0)
+
+
+def make_relief_t(maps: ReliefMaps, q: ReliefQuality):
+    """Per-segment relief test ``(seg, o, d, t_min, t_max) -> (t, s, code)`` for nearest_*."""
+    n_steps, n_bis = int(q.steps), int(q.bisection)
+
+    def relief_t(seg: FrustaParams, o, d, t_min, t_max):
+        inf = jnp.asarray(jnp.inf, o.dtype)
+        t0, e = recentre(seg, o, d)
+        s_in, s_out, ok, entry = shell_interval(seg, e, d)
+        lo_lim = t_min - t0
+        s_a = jnp.maximum(s_in, lo_lim)
+        s_b = jnp.minimum(s_out, t_max - t0)
+        ok = ok & (s_a < s_b) & seg.valid & (seg.shell > 0)
+        s_a = jnp.where(ok, s_a, 0.0)
+        s_b = jnp.where(ok, s_b, 1.0)
+        from_outside = s_in > lo_lim
+        k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
+        if q.uv == "approximate":
+            v_a = exact_v(seg, e + s_a * d)[0]
+            v_b = exact_v(seg, e + s_b * d)[0]
+
+        def below(s):
+            p = e + s * d
+            y = _dot(p, seg.m)
+            x, z = _dot(p, seg.u), _dot(p, seg.w)
+            rho = safe_sqrt(x * x + z * z)
+            w = safe_div(rho - (seg.r1 + k * y), seg.shell, 0.0)  # Eq. 11-12
+            if q.uv == "exact":
+                v = exact_v(seg, p)[0]
+            else:
+                v = v_a + (v_b - v_a) * safe_div(s - s_a, s_b - s_a, 0.0)
+            u = _angle_u(seg, p, v)
+            hgt = sample_height(maps, u * maps.scale[0], (v + seg.v_off) * maps.scale[1], q.v_mode)
+            return w <= hgt
+
+        b0 = below(s_a)
+        inside0 = (~from_outside) & b0  # the march starts below the relief surface
+        hit_at_entry = from_outside & b0
+        ds = (s_b - s_a) / n_steps
+
+        def visit(i, carry):
+            found, lo, hi = carry
+            s_i = s_a + ds * i
+            c = (~found) & (below(s_i) != inside0)
+            return found | c, jnp.where(c, s_i - ds, lo), jnp.where(c, s_i, hi)
+
+        init = (hit_at_entry, s_a, s_a)
+        if q.early_exit:
+            def cond(st):
+                return (st[0] < n_steps + 1) & ~st[1][0]
+
+            def body(st):
+                i, carry = st
+                return i + 1, visit(i, carry)
+
+            _, (found, lo, hi) = jax.lax.while_loop(cond, body, (jnp.int32(1), init))
+        else:
+            found, lo, hi = jax.lax.fori_loop(1, n_steps + 1, visit, init)
+
+        def bis(_, lh):
+            lo, hi = lh
+            mid = 0.5 * (lo + hi)
+            c = below(mid) != inside0
+            return jnp.where(c, lo, mid), jnp.where(c, mid, hi)
+
+        if n_bis > 0:
+            lo, hi = jax.lax.fori_loop(0, n_bis, bis, (lo, hi))
+        s_hit = jnp.where(hit_at_entry, s_a, 0.5 * (lo + hi))
+        t = t0 + s_hit
+        good = ok & found & (t > t_min) & (t <= t_max)
+        code = jnp.where(hit_at_entry, entry, RELIEF)
+        return jnp.where(good, t, inf), s_hit, code.astype(jnp.int32)
+
+    return relief_t
+
+
+def make_relief_finish(maps: ReliefMaps, q: ReliefQuality):
+    """Hit attributes at a relief hit (exact uv at the hit; normal from the height gradient)."""
+
+    def finish(params: FrustaParams, origin, direction, t, s, code, idx):
+        inf = jnp.asarray(jnp.inf, origin.dtype)
+        hit = jnp.isfinite(t)
+        seg = jax.tree_util.tree_map(lambda a: a[jnp.maximum(idx, 0)], params)
+        t0, e = recentre(seg, origin, direction)
+        p = e + jnp.where(hit, s, 0.0) * direction
+        v, length, g, radial, rho = exact_v(seg, p)
+        v = jnp.clip(v, 0.0, 1.0)
+        u = _angle_u(seg, p, v)
+        c_hat = jnp.cross(seg.m, radial)
+        hw, hh = maps.height.shape[1], maps.height.shape[0]
+        su, sv = maps.scale[0], maps.scale[1]
+        uu, vv = u * su, (v + seg.v_off) * sv
+        du, dv = 1.0 / hw, 1.0 / hh
+        h_u = (sample_height(maps, uu + du, vv, q.v_mode) - sample_height(maps, uu - du, vv, q.v_mode)) / (2 * du) * su
+        h_v = (sample_height(maps, uu, vv + dv, q.v_mode) - sample_height(maps, uu, vv - dv, q.v_mode)) / (2 * dv) * sv
+        dpdu = _TWO_PI * rho * c_hat + seg.shell * h_u * radial
+        dpdv = length * g + seg.shell * h_v * radial
+        n = safe_normalize(jnp.cross(dpdu, dpdv))
+        n = jnp.where(_dot(n, radial) < 0, -n, n)
+        n = jnp.where(code == CAP_BOTTOM, -seg.nb, jnp.where(code == CAP_TOP, seg.nt, n))
+        n = jnp.where(_dot(n, n) > 0.5, n, radial)
+        return make_hit(t, seg.c1 + p, n, jnp.stack([u, v]), seg.sid, inf)
+
+    return finish
