@@ -1,0 +1,222 @@
+"""Relief mapping (Bhagvat et al. 2009, Sec. 3) against closed forms and a float64 reference march."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import reference as ref
+from conftest import cast
+from jskel import frusta
+
+MAP = 64  # every test map is 64 x 64 so the compiled shapes are shared
+
+
+def build_relief(tmp_path, height, joints, radii, parents, **relief):
+    import imageio.v3 as iio
+
+    path = tmp_path / "h.png"
+    iio.imwrite(path, np.asarray(height, np.uint8))
+    cfg = frusta.FrustaConfig.model_validate({
+        "type": "frusta",
+        "skeleton": {"joints": np.asarray(joints, float).tolist(), "radii": list(map(float, radii)), "parents": list(parents)},
+        "relief": {"map": str(path), **relief},
+    })
+    return frusta.build(cfg)
+
+
+SEG = ([[0, 0, 0], [0, 2, 0]], [0.5, 0.4], [-1, 0])
+CHAIN = ([[0, 0, 0], [0, 1, 0], [0, 2, 0]], [0.5, 0.45, 0.4], [-1, 0, 1])  # collinear: planes independent of radii
+
+
+def _exit_t(segs, O, D, far=100.0):
+    """Exit parameter of the (convex) reference solid, by casting back from far along the ray."""
+    t_rev, _ = ref.intersect(segs, O + far * D, -D)
+    return far - t_rev
+
+
+@pytest.mark.parametrize("steps", [8, 64])
+@pytest.mark.parametrize("level", [0, 102, 255])
+def test_constant_height_is_a_frustum(tmp_path, rng, steps, level):
+    """h constant: the relief surface is the frustum of radii r + h * T (zeros: inner; ones: outer)."""
+    T = 0.1
+    joints, radii, parents = CHAIN
+    b = build_relief(tmp_path, np.full((MAP, MAP), level), joints, radii, parents, thickness=T, steps=steps, bisection=8)
+    h = level / 255.0
+    segs = ref.segments(joints, np.asarray(radii) + h * T, parents)
+    outer = ref.segments(joints, np.asarray(radii) + T, parents)
+    O, D = ref.random_rays(rng, [-0.7, -0.2, -0.7], [0.7, 2.2, 0.7], 20_000)
+    t_ref, _ = ref.intersect(segs, O, D)
+    hit = cast(b, O, D, culled=True)
+    assert not np.any(np.isnan(hit.t)) and np.all(np.isfinite(hit.normal)) and np.all(np.isfinite(hit.uv))
+    # the march brackets a crossing when the chord through the relief solid spans > 2 steps
+    t_in, _ = ref.intersect(outer, O, D)
+    chord_outer = _exit_t(outer, O, D) - t_in
+    ds = chord_outer / steps
+    chord = _exit_t(segs, O, D) - t_ref
+    well = np.isfinite(t_ref) & (chord > 2 * ds)
+    missed_ref = ~np.isfinite(t_ref) & ~np.isfinite(t_in)  # misses even the shell
+    assert np.all(np.isfinite(hit.t[well]))
+    assert np.all(~np.isfinite(hit.t[missed_ref]))
+    tol = ds[well] / 2 ** (8 + 1) + 1e-4 * 2.2  # bisection bracket + the float32 term of the frusta tests (1e-4 x scale)
+    err = np.abs(hit.t[well] - t_ref[well])
+    assert np.all(err <= tol), (err.max(), np.argmax(err - tol))
+    assert well.mean() > 0.1
+
+
+def test_thin_spike_needs_enough_steps(tmp_path):
+    """One bright texel: 3 steps step over it, 64 steps find it (accuracy costs steps)."""
+    r, T = 0.5, 0.2
+    height = np.zeros((MAP, MAP))
+    iu, iv = 16, 32  # u = (16 + 0.5) / 64, v = (32 + 0.5) / 64
+    height[iv, iu] = 255
+    joints = [[0, 0, 0], [0, 2, 0]]
+    u = (iu + 0.5) / MAP
+    v = (iv + 0.5) / MAP
+    ang = 2 * np.pi * u
+    radial = np.array([np.sin(ang), 0.0, np.cos(ang)])  # u = atan2(x, z) / 2 pi for a segment along +y
+    tangent = np.array([np.cos(ang), 0.0, -np.sin(ang)])
+    closest = radial * (r + 0.3 * T) + np.array([0, 2 * v, 0])
+    O = (closest - 2.0 * tangent)[None, :]
+    D = tangent[None, :]
+    found = {}
+    for steps in (3, 64):
+        b = build_relief(tmp_path, height, joints, [r, r], [-1, 0], thickness=T, steps=steps, bisection=8, scale=[1, 1])
+        hit = cast(b, O, D, culled=True)
+        found[steps] = np.isfinite(hit.t[0])
+        if found[steps]:
+            assert abs(hit.t[0] - 2.0) < 0.05  # at the spike, near the chord's middle
+    assert not found[3] and found[64]
+
+
+def _ref_height(img, uu, vv):
+    """Bilinear 8-bit height, u and v wrapping (written here, independently of jskel)."""
+    h, w = img.shape
+    x = uu * w - 0.5
+    y = vv * h - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    g = lambda yy, xx: img[np.mod(yy, h), np.mod(xx, w)].astype(float)  # noqa: E731
+    return ((1 - fx) * (1 - fy) * g(y0, x0) + fx * (1 - fy) * g(y0, x0 + 1) + (1 - fx) * fy * g(y0 + 1, x0) + fx * fy * g(y0 + 1, x0 + 1)) / 255.0
+
+
+def _ref_march(img, r1, r2, H, T, O, D, n=4096, nbis=40):
+    """Float64 reference: 4096 uniform samples over the outer shell interval, then bisection.
+
+    A single segment along +y from the origin (perpendicular planes): w from Eq. 11-12, u =
+    atan2(x, z) / 2 pi, v = y / H (exact for parallel planes).
+    """
+    outer = ref.segments([[0, 0, 0], [0, H, 0]], [r1 + T, r2 + T], [-1, 0])
+    t_in, _ = ref.intersect(outer, O, D)
+    t_in = np.where(np.isfinite(t_in) & (ref.inside(outer, O) == 0), t_in, 0.0)
+    t_out = _exit_t(outer, O, D)
+    k = (r2 - r1) / H
+
+    def below(t, O=O, D=D):
+        if t.ndim == 2:
+            O, D = O[:, None, :], D[:, None, :]
+        P = O + t[..., None] * D
+        rho = np.hypot(P[..., 0], P[..., 2])
+        w = (rho - (r1 + k * P[..., 1])) / T
+        u = np.mod(np.arctan2(P[..., 0], P[..., 2]) / (2 * np.pi), 1.0)
+        return w <= _ref_height(img, u, P[..., 1] / H)
+
+    valid = np.isfinite(t_out) & (t_out > t_in)
+    a = np.where(valid, t_in, 0.0)
+    b = np.where(valid, t_out, 1.0)
+    grid = np.linspace(0, 1, n + 1)[None, :]
+    first = np.zeros(len(O), int)
+    anyb = np.zeros(len(O), bool)
+    for i in range(0, len(O), 200):  # rows in batches to bound memory
+        sl = slice(i, i + 200)
+        bl = below(a[sl, None] + (b - a)[sl, None] * grid, O[sl], D[sl])
+        first[sl] = np.argmax(bl, axis=1)
+        anyb[sl] = bl.any(axis=1)
+    found = valid & anyb
+    lo = a + (b - a) * np.maximum(first - 1, 0) / n
+    hi = a + (b - a) * first / n
+    for _ in range(nbis):
+        mid = 0.5 * (lo + hi)
+        bm = below(mid)
+        hi = np.where(bm, mid, hi)
+        lo = np.where(bm, lo, mid)
+    t = np.where(first == 0, a, 0.5 * (lo + hi))
+    return np.where(found, t, np.inf), (b - a) / n
+
+
+def _smooth_map():
+    yy, xx = np.mgrid[0:MAP, 0:MAP] / MAP
+    return np.round(255 * (0.5 + 0.45 * np.sin(2 * np.pi * xx) * np.cos(2 * np.pi * yy))).astype(np.uint8)
+
+
+@pytest.mark.parametrize("kind", ["grazing", "through_plane", "inside_shell"])
+def test_hard_rays_match_reference_march(tmp_path, rng, kind):
+    r1, r2, H, T = 0.5, 0.4, 2.0, 0.15
+    img = _smooth_map()
+    n = 4000
+    if kind == "grazing":  # nearly tangent to the outer frustum
+        y = rng.uniform(0.2, 1.8, n)
+        rr = r1 + (r2 - r1) * y / H + T * rng.uniform(0.6, 0.999, n)
+        ang = rng.uniform(0, 2 * np.pi, n)
+        radial = np.stack([np.sin(ang), 0 * ang, np.cos(ang)], 1)
+        tang = np.stack([np.cos(ang), 0 * ang, -np.sin(ang)], 1)
+        tilt = rng.normal(0, 0.05, n)
+        D = tang + tilt[:, None] * np.array([0, 1.0, 0])
+        D /= np.linalg.norm(D, axis=1, keepdims=True)
+        O = radial * rr[:, None] + y[:, None] * np.array([0, 1.0, 0]) - 1.5 * D
+    elif kind == "through_plane":  # from above, into the shell ring through the top plane
+        ang = rng.uniform(0, 2 * np.pi, n)
+        rr = r2 + T * rng.uniform(0.05, 0.95, n)
+        P = np.stack([rr * np.sin(ang), np.full(n, H), rr * np.cos(ang)], 1)
+        D = np.stack([rng.normal(0, 0.3, n), -np.ones(n), rng.normal(0, 0.3, n)], 1)
+        D /= np.linalg.norm(D, axis=1, keepdims=True)
+        O = P - 0.5 * D
+    else:  # origins inside the shell, above the relief, in random directions
+        ang = rng.uniform(0, 2 * np.pi, n)
+        y = rng.uniform(0.2, 1.8, n)
+        rr = r1 + (r2 - r1) * y / H + T * 0.97
+        O = np.stack([rr * np.sin(ang), y, rr * np.cos(ang)], 1)
+        D = rng.normal(size=(n, 3))
+        D /= np.linalg.norm(D, axis=1, keepdims=True)
+    t_ref, _ = _ref_march(img, r1, r2, H, T, O, D)
+    b = build_relief(tmp_path, img, [[0, 0, 0], [0, H, 0]], [r1, r2], [-1, 0], thickness=T, steps=64, bisection=8, scale=[1, 1], uv="exact")
+    hit = cast(b, O, D, culled=True)
+    assert not np.any(np.isnan(hit.t)) and np.all(np.isfinite(hit.normal)) and np.all(np.isfinite(hit.uv))
+    agree = np.isfinite(hit.t) == np.isfinite(t_ref)
+    assert agree.mean() >= 0.99, agree.mean()
+    both = np.isfinite(hit.t) & np.isfinite(t_ref)
+    ds = 2 * (r1 + T) * 2 / 64  # a step is at most the longest chord over 64
+    close = np.abs(hit.t[both] - t_ref[both]) <= ds
+    assert close.mean() >= 0.99, close.mean()
+    assert both.sum() > n * 0.05  # enough hits to mean something (grazing rays mostly miss)
+
+
+def test_early_exit_equals_fixed_and_approximate_uv_is_exact_for_parallel_planes(tmp_path, rng):
+    r1, r2, H, T = 0.5, 0.4, 2.0, 0.15
+    img = _smooth_map()
+    O, D = ref.random_rays(rng, [-0.7, -0.1, -0.7], [0.7, 2.1, 0.7], 8000)
+    seg = ([[0, 0, 0], [0, H, 0]], [r1, r2], [-1, 0])
+    fixed = cast(build_relief(tmp_path, img, *seg, thickness=T, steps=64, bisection=8, scale=[1, 1], uv="exact"), O, D, culled=True)
+    early = cast(build_relief(tmp_path, img, *seg, thickness=T, steps=64, bisection=8, scale=[1, 1], uv="exact", early_exit=True), O, D, culled=True)
+    np.testing.assert_array_equal(fixed.t, early.t)
+    np.testing.assert_array_equal(fixed.prim, early.prim)
+    approx = cast(build_relief(tmp_path, img, *seg, thickness=T, steps=64, bisection=8, scale=[1, 1]), O, D, culled=True)
+    both = np.isfinite(approx.t) & np.isfinite(fixed.t)
+    assert np.mean(np.isfinite(approx.t) == np.isfinite(fixed.t)) > 0.995
+    assert np.quantile(np.abs(approx.t[both] - fixed.t[both]), 0.99) < 1e-3
+
+
+def test_texture_spans_segments_along_a_chain(tmp_path):
+    """A ramp in v with scale_v = 0.5 runs once over two unit segments: radius r + T h(y / 2)."""
+    r, T = 0.4, 0.2
+    img = np.repeat((4 * np.arange(MAP))[:, None], MAP, axis=1).astype(np.uint8)
+    b = build_relief(tmp_path, img, [[0, 0, 0], [0, 1, 0], [0, 2, 0]], [r, r, r], [-1, 0, 1],
+                     thickness=T, steps=64, bisection=12, scale=[1, 0.5], v_mode="clamp")
+    ys = np.linspace(0.05, 1.95, 39)
+    O = np.stack([np.full_like(ys, 3.0), ys, np.zeros_like(ys)], 1)
+    D = np.tile([-1.0, 0, 0], (len(ys), 1))
+    hit = cast(b, O, D, culled=True)
+    row = np.clip(ys / 2 * MAP - 0.5, 0, MAP - 1)
+    h = 4 * row / 255.0  # the ramp is linear, so bilinear sampling is exact
+    np.testing.assert_allclose(3.0 - hit.t, r + T * h, atol=2e-4)
+    assert set(np.unique(hit.prim)) == {0, 1}
