@@ -9,14 +9,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
 from pathlib import Path
-from typing import Annotated
+from pydantic import ValidationError
 
-from pydantic import Field, ValidationError
-
-from .config import ConfigError, StrictModel, _format, apply_overrides, read_yaml, validate
+from .config import ConfigError, _format, apply_overrides, read_yaml, validate
 
 
 def _enable_x64_if_asked(raw: dict):
@@ -49,68 +46,62 @@ def cmd_render(args) -> int:
     return 0
 
 
-class BenchFile(StrictModel):
-    """A benchmark file: experiments rendered at one size, timed over warm runs."""
-
-    scenes: list[str]
-    width: Annotated[int, Field(ge=1, le=16384)] = 1024
-    height: Annotated[int, Field(ge=1, le=16384)] = 768
-    runs: Annotated[int, Field(ge=1, le=1000)] = 5
-    warmup: Annotated[int, Field(ge=0, le=100)] = 1
-    set: list[str] = []
-
-
 def cmd_bench(args) -> int:
-    raw = read_yaml(args.file)
-    raw = apply_overrides(raw, args.set)
+    from .bench import BenchFile, plot_sweep, sweep_settings, timed_render
+
+    raw = apply_overrides(read_yaml(args.file), args.set)
     try:
         bench = BenchFile.model_validate(raw)
     except ValidationError as e:
         raise ConfigError(_format(e)) from None
     base = Path(args.file).parent
     runs = args.runs or bench.runs
-    loaded = []
-    for i, scene in enumerate(bench.scenes):  # validate every scene before any compilation
+    common = [f"camera.width={bench.width}", f"camera.height={bench.height}", "render.progress=false", *bench.set]
+    paths = []
+    for i, scene in enumerate(bench.scenes):
         p = Path(scene)
         p = p if p.exists() else base / scene
         if not p.exists():
             raise ConfigError([f"scenes[{i}]: file not found (got {scene!r})"])
-        ov = [f"camera.width={bench.width}", f"camera.height={bench.height}", "render.progress=false", *bench.set]
-        loaded.append((scene, _load(p, ov)))
-    from .render import render
+        paths.append(p)
+    # validate every experiment (and every sweep setting) before any compilation
+    if bench.sweep is None:
+        jobs = [(str(p), _load(p, common), None) for p in paths]
+    else:
+        ref_job = _load(paths[0], common + bench.reference)
+        jobs = [(str(paths[0]), _load(paths[0], common + [f"{k}={json.dumps(v)}" for k, v in st.items()]), st)
+                for st in sweep_settings(bench.sweep)]
+    rows = []
+    ref_hits = None
+    if bench.sweep is not None:
+        from .metrics import compare
+        from .render import render
 
-    results = []
-    for scene, (exp, obj) in loaded:
-        first = render(exp, obj, progress=False)
-        for _ in range(max(bench.warmup - 1, 0)):
-            render(exp, obj, progress=False)
-        times = [render(exp, obj, progress=False).run["render_s"] for _ in range(runs)]
-        med = statistics.median(times)
-        row = {
-            "scene": exp.name,
-            "file": scene,
-            "segments": first.run["info"].get("segments"),
-            "width": exp.camera.width,
-            "height": exp.camera.height,
-            "rays": first.run["rays"],
-            "dtype": exp.render.dtype,
-            "chunk": exp.render.chunk,
-            "compile_s": round(first.run["compile_s"], 4),
-            "render_s_median": round(med, 4),
-            "render_s_min": round(min(times), 4),
-            "render_s_max": round(max(times), 4),
-            "runs": runs,
-            "mrays_per_s": round(first.run["rays"] / med / 1e6, 4),
-            "hit_fraction": round(first.run["hit_fraction"], 4),
-            "device": first.run["device"],
-            "jax": first.run["jax"],
-            "jskel": first.run["jskel"],
-        }
+        ref_res = render(*ref_job, progress=False)
+        ref_hits = ref_res.hits
+        print(json.dumps({"reference": bench.reference, "render_s": round(ref_res.run["render_s"], 4)}), flush=True)
+    for file, (exp, obj), setting in jobs:
+        row, first = timed_render(exp, obj, runs, bench.warmup)
+        row["file"] = file
+        if setting is not None:
+            row["setting"] = setting
+            row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(first.hits, ref_hits).items()})
         print(json.dumps(row), flush=True)
-        results.append(row)
+        rows.append(row)
+    if bench.peer is not None and bench.sweep is not None:
+        from .bench import peer_embree_mesh
+
+        for row in peer_embree_mesh(bench, *ref_job, ref_hits, runs, rows):
+            print(json.dumps(row), flush=True)
+            rows.append(row)
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text("".join(json.dumps(r) + "\n" for r in results))
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text("".join(json.dumps(r) + "\n" for r in rows))
+        if bench.sweep is not None:
+            png = plot_sweep([r for r in rows if "setting" in r], list(bench.sweep), bench.metric, out.with_suffix(".png"), f"{rows[0]['scene']}: {bench.metric} vs time ({rows[0]['device']})")
+            if png:
+                print(f"jskel: plot -> {png}")
     return 0
 
 

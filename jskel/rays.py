@@ -112,6 +112,11 @@ class Camera(NamedTuple):
         anchor: (3,) world point subtracted from the origins in float64 before casting to
         ``dtype`` (see module docstring). Directions are unit length, t in (0, inf].
         """
+        o, d = self.ray_arrays(anchor)
+        return make_rays(o, d, 0.0, np.inf, dtype)
+
+    def ray_arrays(self, anchor=None) -> tuple[np.ndarray, np.ndarray]:
+        """(origins, directions), both (H*W, 3) float64 NumPy, as :meth:`rays` casts them."""
         right, up, fwd = self.basis()
         w, h = int(self.width), int(self.height)
         tan_half = math.tan(math.radians(self.fov_y_deg) / 2.0)
@@ -124,8 +129,7 @@ class Camera(NamedTuple):
         eye = np.asarray(self.eye, np.float64)
         if anchor is not None:
             eye = eye - np.asarray(anchor, np.float64)
-        o = np.broadcast_to(eye, d.shape)
-        return make_rays(o, d, 0.0, np.inf, dtype)
+        return np.broadcast_to(eye, d.shape).copy(), d
 
 
 def tile_order(width: int, height: int, tile: int) -> np.ndarray:

@@ -220,3 +220,19 @@ def test_texture_spans_segments_along_a_chain(tmp_path):
     h = 4 * row / 255.0  # the ramp is linear, so bilinear sampling is exact
     np.testing.assert_allclose(3.0 - hit.t, r + T * h, atol=2e-4)
     assert set(np.unique(hit.prim)) == {0, 1}
+
+
+def test_compacted_march_equals_masked_march(tmp_path, rng):
+    """intersect_batch marches only the (ray, segment) pairs that enter a shell; vmap of
+    intersect_one marches every pair under a mask. Same hits (t up to float32 program noise)."""
+    img = _smooth_map()
+    joints, radii, parents = CHAIN
+    b = build_relief(tmp_path, img, joints, radii, parents, thickness=0.1, steps=64, bisection=8, scale=[1, 1], uv="exact")
+    O, D = ref.random_rays(rng, [-0.7, -0.2, -0.7], [0.7, 2.2, 0.7], 8000)
+    compact = cast(b, O, D, culled=True)
+    masked = cast(b, O, D, culled=False)
+    np.testing.assert_array_equal(np.isfinite(compact.t), np.isfinite(masked.t))
+    h = np.isfinite(compact.t)
+    assert h.mean() > 0.1
+    np.testing.assert_array_equal(compact.prim[h], masked.prim[h])
+    np.testing.assert_allclose(compact.t[h], masked.t[h], atol=1e-3)

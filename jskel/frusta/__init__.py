@@ -27,10 +27,10 @@ from ._config import SkeletonConfig as SkeletonConfig
 from ._intersect import FrustaParams as FrustaParams
 from ._intersect import Quality as Quality
 from ._intersect import inside_one as _inside_one
-from ._intersect import _finish, _segment_t, nearest_batch, nearest_one
+from ._intersect import _finish, _segment_t, nearest_batch, nearest_batch_compact, nearest_one
 from ._relief import ReliefMaps as ReliefMaps
 from ._relief import ReliefQuality as ReliefQuality
-from ._relief import make_relief_finish, make_relief_t
+from ._relief import enters_shell, make_relief_finish, make_relief_t
 from ._skeleton import topology as topology
 from ._skeleton import validate_skeleton as validate_skeleton
 
@@ -236,10 +236,16 @@ def relief_memory(arr: FrustaArrays, height: np.ndarray, scale, relief_ids, dtyp
             "mesh_vertices": int(verts), "mesh_triangles": int(2 * verts), "mesh_bytes": mesh_b}
 
 
-def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
-    """Host-side build: validate, cut, frame, split plain/relief, pad, cast. ValueError names the field."""
+def host_frusta(cfg: FrustaConfig):
+    """World-space float64 frusta of an object config: (arrays, topo, info, joints, radii, colors)."""
     j, r, p, colors = _skeleton_arrays(cfg.skeleton)
     arrays, topo, info = frusta_from_skeleton(j, r, p, twist_deg=cfg.twist_deg, match_minor_axes=cfg.match_minor_axes)
+    return arrays, topo, info, j, r, colors
+
+
+def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
+    """Host-side build: validate, cut, frame, split plain/relief, pad, cast. ValueError names the field."""
+    arrays, topo, info, j, r, colors = host_frusta(cfg)
     s = arrays.h.shape[0]
     rel = cfg.relief
     grow = rel.thickness if rel is not None else 0.0
@@ -316,7 +322,8 @@ def intersect(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
 
 
 def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
-    """Like :func:`intersect`, but skips blocks of segments that no ray of the batch reaches."""
+    """Like :func:`intersect`, but skips blocks of segments that no ray of the batch reaches, and
+    marches relief only for the (ray, segment) pairs whose ray enters that segment's shell."""
     o, d, a, b = rays
     hits = []
     if scene.plain is not None:
@@ -327,7 +334,8 @@ def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
     if scene.relief is not None:
         g = scene.relief
         seg_fn = make_relief_t(scene.maps, static.relief)
-        t, s, c, i = nearest_batch(g.frusta, g.block_c, g.block_r, seg_fn, o, d, a, b, static.relief_block)
+        cap = min(o.shape[0], 4096)
+        t, s, c, i = nearest_batch_compact(g.frusta, g.block_c, g.block_r, enters_shell, seg_fn, o, d, a, b, static.relief_block, cap)
         fin = jax.vmap(make_relief_finish(scene.maps, static.relief), in_axes=(None, 0, 0, 0, 0, 0, 0))
         hits.append(fin(g.frusta, o, d, t, s, c, i))
     out = hits[0]

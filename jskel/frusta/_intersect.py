@@ -302,6 +302,74 @@ def nearest_batch(params: FrustaParams, block_c, block_r, seg_fn, origins, direc
     return out
 
 
+def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn, origins, directions, t_min, t_max, block: int, cap: int):
+    """Like :func:`nearest_batch`, but ``seg_fn`` runs only on the (ray, segment) pairs that
+    ``pre_fn(seg, o, d, t_min, t_max) -> bool`` admits: compaction, not masking.
+
+    For each block the cheap ``pre_fn`` (e.g. "the ray enters this segment's relief shell") is
+    evaluated for every pair; the admitted pairs are gathered into dense sub-batches of ``cap``
+    lanes and a ``while_loop`` runs only as many sub-batches as there are admitted pairs. Under
+    vmap a per-pair ``cond`` would run the expensive branch for every pair. Results are merged
+    with scatter-min, so they equal the masked version up to ties in t.
+    """
+    n = origins.shape[0]
+    dtype = origins.dtype
+    dd = _dot(directions, directions)
+    vpre = jax.vmap(jax.vmap(pre_fn, in_axes=(0, None, None, None, None)), in_axes=(None, 0, 0, 0, 0))
+    vseg = jax.vmap(seg_fn, in_axes=(0, 0, 0, 0, 0))
+
+    def touches(c, r):
+        oc = c[None, :] - origins
+        tc = safe_div(_dot(oc, directions), dd, 0.0)
+        dist2 = _dot(oc, oc) - tc * tc * dd
+        rt = r / jnp.sqrt(dd)
+        return (dist2 <= r * r) & (tc + rt > t_min) & (tc - rt <= t_max)
+
+    def step(carry, xs):
+        blk, base, c, r = xs
+
+        def work(carry):
+            ok = vpre(blk, origins, directions, t_min, t_max).reshape(-1)  # (n * block,)
+            count = jnp.sum(ok.astype(jnp.int32))
+            order = jnp.nonzero(ok, size=ok.shape[0], fill_value=0)[0].astype(jnp.int32)
+            order = jnp.concatenate([order, jnp.zeros((cap,), jnp.int32)])
+
+            def sub(state):
+                j, (bt, bs, bc, bi) = state
+                lane = j * cap + jnp.arange(cap, dtype=jnp.int32)
+                pair = jax.lax.dynamic_slice(order, (j * cap,), (cap,))
+                live = lane < count
+                ray = jnp.where(live, pair // block, n)  # n: dropped by the scatters
+                sj = pair % block
+                seg = jax.tree_util.tree_map(lambda a: a[sj], blk)
+                rc = jnp.minimum(ray, n - 1)
+                t, s_, code = vseg(seg, origins[rc], directions[rc], t_min[rc], t_max[rc])
+                t = jnp.where(live, t, jnp.inf)
+                new_t = bt.at[ray].min(t, mode="drop")
+                win = live & (t == new_t[rc]) & (t < bt[rc])
+                wr = jnp.where(win, ray, n)
+                bs = bs.at[wr].set(s_, mode="drop")
+                bc = bc.at[wr].set(code, mode="drop")
+                bi = bi.at[wr].set(base + sj, mode="drop")
+                return j + 1, (new_t, bs, bc, bi)
+
+            _, out = jax.lax.while_loop(lambda st: st[0] * cap < count, sub, (jnp.int32(0), carry))
+            return out
+
+        return jax.lax.cond(jnp.any(touches(c, r)), work, lambda c_: c_, carry), None
+
+    init = (
+        jnp.full((n,), jnp.inf, dtype),
+        jnp.zeros((n,), dtype),
+        jnp.full((n,), SIDE, jnp.int32),
+        jnp.full((n,), -1, jnp.int32),
+    )
+    nblk = params.h.shape[0] // block
+    bases = jnp.arange(nblk, dtype=jnp.int32) * block
+    out, _ = jax.lax.scan(step, init, (_blocks(params, block), bases, block_c, block_r))
+    return out
+
+
 def inside_one(params: FrustaParams, point) -> jnp.ndarray:
     """True when ``point`` (3,) lies inside (or on) any frustum between its cutting planes."""
     def one(seg):

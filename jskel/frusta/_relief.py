@@ -140,6 +140,14 @@ def _angle_u(seg, p, v):
     return jnp.mod(ang / _TWO_PI + seg.u_off + v * seg.twist, 1.0)
 
 
+def enters_shell(seg: FrustaParams, o, d, t_min, t_max):
+    """True when the ray's (t_min, t_max] overlaps the segment's relief shell (the cheap pre-pass
+    that decides which (ray, segment) pairs are marched)."""
+    t0, e = recentre(seg, o, d)
+    s_in, s_out, ok, _ = shell_interval(seg, e, d)
+    return ok & (jnp.maximum(s_in, t_min - t0) < jnp.minimum(s_out, t_max - t0)) & seg.valid & (seg.shell > 0)
+
+
 def make_relief_t(maps: ReliefMaps, q: ReliefQuality):
     """Per-segment relief test ``(seg, o, d, t_min, t_max) -> (t, s, code)`` for nearest_*."""
     n_steps, n_bis = int(q.steps), int(q.bisection)
