@@ -49,6 +49,8 @@ class Hit(NamedTuple):
     normal: (3,) unit shading normal, zero on a miss.
     uv: (2,) surface parametrization, zero on a miss.
     prim: () int32 primitive id (segment id for frusta), -1 on a miss.
+    flags: () int32 bit set of diagnostics (representation-specific, e.g. the implicit tracer's
+      candidate overflow and step cap), or None where a representation has none.
     """
 
     t: jnp.ndarray
@@ -56,6 +58,7 @@ class Hit(NamedTuple):
     normal: jnp.ndarray
     uv: jnp.ndarray
     prim: jnp.ndarray
+    flags: jnp.ndarray | None = None
 
 
 def make_rays(origins, directions, t_min=0.0, t_max=np.inf, dtype=np.float32) -> Rays:

@@ -11,6 +11,7 @@ import importlib
 
 _ENTRIES = {
     "frusta": "jskel.frusta:REPRESENTATION",
+    "implicit": "jskel.implicit:REPRESENTATION",
 }
 
 

@@ -236,3 +236,23 @@ def test_compacted_march_equals_masked_march(tmp_path, rng):
     assert h.mean() > 0.1
     np.testing.assert_array_equal(compact.prim[h], masked.prim[h])
     np.testing.assert_allclose(compact.t[h], masked.t[h], atol=1e-3)
+
+
+def test_uv_auto_is_approximate_only_where_the_paper_says_it_is_exact(tmp_path):
+    img = np.zeros((MAP, MAP))
+    straight = build_relief(tmp_path, img, *CHAIN, thickness=0.1)
+    bent = build_relief(tmp_path, img, [[0, 0, 0], [0, 1, 0], [0.5, 1.8, 0]], [0.3, 0.3, 0.3], [-1, 0, 1], thickness=0.1)
+    assert straight.info["relief_uv"] == "approximate" and straight.static.relief.uv == "approximate"
+    assert bent.info["relief_uv"] == "exact" and bent.static.relief.uv == "exact"
+
+
+def test_bad_relief_input_names_the_field(tmp_path):
+    with pytest.raises(ValueError, match=r"object\.relief\.map"):
+        frusta.load_height_map(str(tmp_path / "nope.png"))
+    img = np.zeros((MAP, MAP))
+    with pytest.raises(ValueError, match=r"object\.relief\.segments\[0\]"):
+        build_relief(tmp_path, img, *CHAIN, thickness=0.1, segments=[7])
+    from jskel.config import validate
+
+    with pytest.raises(ValueError, match=r"object\.relief\.thickness"):
+        validate({"object": {"type": "frusta", "skeleton": {"procedural": "well"}, "relief": {"map": "brick", "thickness": -1}}})

@@ -286,7 +286,12 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
     )
     rq = None
     if rel is not None:
-        rq = ReliefQuality(rel.steps, rel.bisection, rel.uv, rel.early_exit, rel.v_mode)
+        uv = rel.uv
+        if uv == "auto":
+            par = np.abs(np.sum(arrays.nb[relief_ids] * arrays.nt[relief_ids], -1)) >= 1.0 - 1e-12
+            uv = "approximate" if np.all(par) else "exact"
+        rq = ReliefQuality(rel.steps, rel.bisection, uv, rel.early_exit, rel.v_mode)
+        info = dict(info, relief_uv=uv)
     static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block)
     info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size))
     return Built(scene, static, anchor, (lo, hi), info)

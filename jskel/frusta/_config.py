@@ -44,7 +44,9 @@ class ReliefConfig(StrictModel):
 
     ``map``: an 8-bit image file, or ``brick``/``gravel``/``grass`` (scikit-image's texture
     photographs). ``scale``: repeats of the map per unit u and per unit v (v runs 0..1 per
-    segment and continues along a chain, so scale_v = 1/n spans n segments).
+    segment and continues along a chain, so scale_v = 1/n spans n segments). ``uv: auto`` takes
+    the fast approximate v where the paper says it is exact (every relief segment's cutting
+    planes parallel) and the exact one otherwise.
     """
 
     map: str
@@ -52,7 +54,7 @@ class ReliefConfig(StrictModel):
     scale: tuple[Annotated[float, Field(gt=0.0)], Annotated[float, Field(gt=0.0)]] = (4.0, 1.0)
     steps: Annotated[int, Field(ge=1, le=65536)] = 32
     bisection: Annotated[int, Field(ge=0, le=64)] = 6
-    uv: Literal["approximate", "exact"] = "approximate"
+    uv: Literal["auto", "approximate", "exact"] = "auto"
     v_mode: Literal["wrap", "clamp"] = "wrap"
     early_exit: bool = False
     segments: list[Annotated[int, Field(ge=0)]] | None = None

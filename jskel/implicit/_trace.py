@@ -1,0 +1,193 @@
+"""Ray tracing skeletal implicit surfaces (Rouiller 2011, Sec. 4), one ray at a time.
+
+Every method first *culls*: only primitives whose sphere of influence the ray crosses within
+(t_min, t_max] are kept (Sec. 4.2), compacted into a candidate list of static capacity C; a ray
+with more candidates sets the ``OVERFLOW`` flag (it is counted by the renderer, never silently
+dropped) and its result is not trusted. Field evaluations along the ray then cost O(C), not
+O(P): cost grows with overlap, not with model size. The ray interval is the union of the
+candidates' sphere intervals.
+
+Methods (``Quality.method``):
+
+* ``naive``: Algorithm 1, constant steps of ``step`` (world units) until F > T, then
+  ``bisection`` halvings of the last bracket (0 halvings: the first inside sample, as Alg. 1).
+* ``bisection``: Algorithm 2 with the inside points of Sec. 4.2.1: the projection of each
+  metaball's centre on the ray; for a metatube the projections of its ends and the intersection
+  with the plane containing the segment and facing the viewer, keeping the one closest to the
+  segment. The nearest candidate point with F > T is the inside end of the bracket and the entry
+  into the first sphere of influence the outside end. Fast, but it misses the Figure 7 case and
+  may bracket a later crossing (Sec. 4.2.2).
+* ``lipschitz`` (guaranteed; not in the thesis): |F(x) - F(y)| <= L |x - y| with L the sum over
+  the candidates of each kernel's steepest slope (``_field.lipschitz``). From an outside point
+  with F < T no root lies closer than (T - F) / (L |d|) in t, so the march steps by that
+  distance, but at least ``eps``. Guarantee: if the ray has no candidate overflow and does not
+  exhaust ``steps`` (flag ``STEP_CAP``), the first interval of the ray inside the surface that is
+  at least ``eps`` long is the one bracketed, and the returned t is within eps / 2^(k+1) of its
+  start after k bisections.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ..numerics import safe_div, safe_normalize
+from ._field import Prims, _dot, field, lipschitz
+
+OVERFLOW, STEP_CAP = 1, 2
+
+
+class Quality(NamedTuple):
+    """Static options: changing one recompiles. (Step length and eps are traced: see ``Tuning``.)"""
+
+    method: str = "lipschitz"  # naive | bisection | lipschitz
+    steps: int = 256  # step cap of the naive and Lipschitz marches
+    bisection: int = 12
+    capacity: int = 32  # candidate list per ray
+    early_exit: bool = True
+
+
+class Tuning(NamedTuple):
+    """Traced knobs: threshold T, naive step length, Lipschitz minimum step (world units)."""
+
+    threshold: jnp.ndarray
+    step: jnp.ndarray
+    eps: jnp.ndarray
+
+
+def influence_spheres(prims: Prims):
+    """Centre (P,3) and radius (P,) of a sphere containing each primitive's support."""
+    c = 0.5 * (prims.a + prims.b)
+    half = 0.5 * jnp.sqrt(_dot(prims.b - prims.a, prims.b - prims.a))
+    return c, half + jnp.maximum(prims.ra, prims.rb)
+
+
+def cull(prims: Prims, o, d, t_min, t_max, capacity: int):
+    """Candidates of one ray: (sub-prims (C,), t_lo, t_hi, any, overflow)."""
+    c, r = influence_spheres(prims)
+    dd = _dot(d, d)
+    oc = c - o
+    tc = safe_div(_dot(oc, d), dd, 0.0)
+    dist2 = _dot(oc, oc) - tc * tc * dd
+    half = jnp.sqrt(jnp.maximum(r * r - dist2, 0.0) / dd)
+    t0 = jnp.maximum(tc - half, t_min)
+    t1 = jnp.minimum(tc + half, t_max)
+    hit = prims.valid & (dist2 < r * r) & (t0 < t1)
+    count = jnp.sum(hit.astype(jnp.int32))
+    p = prims.a.shape[0]
+    idx = jnp.nonzero(hit, size=capacity, fill_value=p)[0]
+    sub = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])[idx], prims)
+    inf = jnp.asarray(jnp.inf, o.dtype)
+    t_lo = jnp.min(jnp.where(hit, t0, inf))
+    t_hi = jnp.max(jnp.where(hit, t1, -inf))
+    return sub, t_lo, t_hi, count > 0, count > capacity
+
+
+def _bisect(g, lo, hi, n: int):
+    def body(_, lh):
+        lo, hi = lh
+        mid = 0.5 * (lo + hi)
+        inside = g(mid) > 0
+        return jnp.where(inside, lo, mid), jnp.where(inside, mid, hi)
+
+    if n > 0:
+        lo, hi = jax.lax.fori_loop(0, n, body, (lo, hi))
+    return lo, hi
+
+
+def _inside_points(sub: Prims, o, d):
+    """Sec. 4.2.1 candidate t per primitive (C,)."""
+    dd = _dot(d, d)
+    ta = safe_div(_dot(sub.a - o, d), dd, 0.0)
+    tb = safe_div(_dot(sub.b - o, d), dd, 0.0)
+    ab = sub.b - sub.a
+    n = jnp.cross(ab, jnp.cross(ab, jnp.broadcast_to(d, ab.shape)))
+    tp = safe_div(_dot(sub.a - o, n), _dot(d, n), jnp.inf)
+
+    def dist_to_seg(t):
+        x = o + t[..., None] * d
+        s = jnp.clip(safe_div(_dot(x - sub.a, ab), _dot(ab, ab), 0.0), 0.0, 1.0)
+        e = x - sub.a - s[..., None] * ab
+        return jnp.where(jnp.isfinite(t), _dot(e, e), jnp.inf)
+
+    cands = jnp.stack([ta, tb, tp])  # (3, C); a ball has ta == tb and tp = inf
+    dist = jnp.stack([dist_to_seg(t) for t in (ta, tb, tp)])
+    best = jnp.argmin(dist, axis=0)
+    return jnp.take_along_axis(cands, best[None, :], axis=0)[0]
+
+
+def trace_one(prims: Prims, tune: Tuning, o, d, t_min, t_max, q: Quality):
+    """(t, flags) of the first hit of one ray; t = inf on a miss."""
+    inf = jnp.asarray(jnp.inf, o.dtype)
+    sub, t_lo, t_hi, anyc, overflow = cull(prims, o, d, t_min, t_max, q.capacity)
+    T = tune.threshold
+
+    def g(t):
+        return field(sub, o + t * d) - T
+
+    flags = jnp.where(overflow, OVERFLOW, 0)
+    if q.method == "bisection":
+        tin = _inside_points(sub, o, d)
+        ok = sub.valid & (tin > t_min) & (tin <= t_max) & (tin >= t_lo) & (tin <= t_hi)
+        inside = ok & (jax.vmap(g)(jnp.where(ok, tin, t_lo)) > 0)
+        t_in = jnp.min(jnp.where(inside, tin, inf))
+        found = anyc & jnp.isfinite(t_in)
+        lo, hi = _bisect(g, t_lo, jnp.where(found, t_in, t_lo), q.bisection)
+        t = jnp.where(found, 0.5 * (lo + hi), inf)
+        return t, flags
+
+    if q.method == "naive":
+        def advance(t, gv):
+            return t + tune.step
+    elif q.method == "lipschitz":
+        L = jnp.sum(lipschitz(sub)) * jnp.sqrt(_dot(d, d))
+
+        def advance(t, gv):
+            return t + jnp.maximum(safe_div(-gv, L, 0.0), tune.eps)
+    else:  # pragma: no cover - validated in config
+        raise ValueError(f"object.method: unknown method {q.method!r}")
+
+    # march state: (i, t_prev, t, found); the sample at t is tested each iteration
+    def visit(st):
+        i, tp, t, found = st
+        gv = g(t)
+        hit = (~found) & (gv > 0) & (t <= t_hi)
+        nt = jnp.where(found | hit, t, advance(t, gv))
+        ntp = jnp.where(found | hit, tp, t)
+        return i + 1, ntp, nt, found | hit
+
+    init = (jnp.int32(0), t_lo, t_lo, jnp.asarray(False))
+    if q.early_exit:
+        def cond(st):
+            return (st[0] < q.steps) & ~st[3] & (st[2] <= t_hi)
+
+        i, tp, t, found = jax.lax.while_loop(cond, visit, init)
+    else:
+        i, tp, t, found = jax.lax.fori_loop(0, q.steps, lambda _, st: visit(st), init)
+    found = found & anyc
+    capped = (~found) & anyc & (t <= t_hi)  # stopped by the step cap before leaving the interval
+    flags = flags | jnp.where(capped, STEP_CAP, 0)
+    first_sample = tp == t  # inside already at the first sample: nothing to bisect
+    lo, hi = _bisect(g, tp, t, q.bisection)
+    t_hit = jnp.where(first_sample | (q.bisection == 0), t, 0.5 * (lo + hi))
+    if q.bisection == 0:
+        t_hit = t
+    return jnp.where(found, t_hit, inf), flags
+
+
+def surface_one(prims: Prims, tune: Tuning, o, d, t, capacity: int):
+    """Position, outward unit normal -grad F / |grad F| (by jax.grad over the candidates), and
+    the id of the primitive contributing most at the hit (-1 on a miss)."""
+    hit = jnp.isfinite(t)
+    x = o + jnp.where(hit, t, 0.0) * d
+    sub, *_ = cull(prims, o, d, -jnp.inf, jnp.inf, capacity)
+    grad = jax.grad(lambda y: field(sub, y))(x)
+    n = safe_normalize(-grad)
+    from ._field import closest, kernel
+
+    r2, R = closest(prims, x)
+    contrib = jnp.where(prims.valid, kernel(r2, R), -1.0)
+    prim = jnp.argmax(contrib).astype(jnp.int32)
+    return x, n, prim
