@@ -39,7 +39,7 @@ def cmd_render(args) -> int:
     paths = write_aovs(args.out, res.hits, res.image, exp.camera.width, exp.camera.height, res.run)
     r = res.run
     print(
-        f"jskel: rendered {exp.name} ({r['info'].get('segments', '?')} segments) "
+        f"jskel: rendered {exp.name} ({r['info'].get('segments', r['info'].get('primitives', '?'))} primitives) "
         f"{exp.camera.width}x{exp.camera.height} in {r['render_s']:.3f} s "
         f"(compile {r['compile_s']:.2f} s) -> {Path(paths['image']).parent}"
     )

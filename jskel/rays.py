@@ -41,6 +41,11 @@ class Rays(NamedTuple):
         return int(self.origins.shape[0])
 
 
+#: Hit.flags bits shared by every representation that reports diagnostics
+FLAG_OVERFLOW = 1  # a static-capacity list (e.g. candidate primitives) overflowed: result not trusted
+FLAG_STEP_CAP = 2  # an iterative search stopped at its step cap before finishing
+
+
 class Hit(NamedTuple):
     """The nearest intersection of one ray (or a batch: every field gains a leading axis).
 

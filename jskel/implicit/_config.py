@@ -48,7 +48,7 @@ class ImplicitConfig(StrictModel):
     method: Literal["naive", "bisection", "lipschitz"] = "lipschitz"
     step: Pos = 0.02
     eps: Pos = 1e-3
-    steps: Annotated[int, Field(ge=1, le=1 << 20)] = 512
+    steps: Annotated[int, Field(ge=1, le=1 << 20)] = 2048
     bisection: Annotated[int, Field(ge=0, le=64)] = 12
     capacity: Annotated[int, Field(ge=1, le=4096)] = 32
     early_exit: bool = True

@@ -45,9 +45,10 @@ def gecko(seed: int, options: dict):
             d /= np.linalg.norm(d)
             balls.append((tuple(foot + 0.14 * d + [0, -0.04, 0]), 0.12))
             balls.append((tuple(foot + 0.26 * d + [0, -0.05, 0]), 0.1))
-    for i, x in enumerate((1.8, 1.86)):  # snout tip and neck fill
+    for i, x in enumerate((1.8, 1.86)):  # snout tip
         balls.append(((x, 0.2, 0.0), 0.12 - 0.03 * i))
-    assert len(balls) == 66, len(balls)
+    for x in (0.25, -0.35):  # belly
+        balls.append(((x, 0.12, 0.0), 0.3))
     c = np.array([b[0] for b in balls], np.float64)
     r = np.array([b[1] for b in balls], np.float64) * 1.6  # effective radius R: kernel support
     return c, c.copy(), r, r.copy()

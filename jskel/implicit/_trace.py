@@ -34,9 +34,9 @@ import jax
 import jax.numpy as jnp
 
 from ..numerics import safe_div, safe_normalize
+from ..rays import FLAG_OVERFLOW as OVERFLOW
+from ..rays import FLAG_STEP_CAP as STEP_CAP
 from ._field import Prims, _dot, field, lipschitz
-
-OVERFLOW, STEP_CAP = 1, 2
 
 
 class Quality(NamedTuple):

@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import registry
 from ..config import Experiment, resolved
-from ..rays import Camera, Rays, map_chunks, permute, tile_order
+from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Camera, Rays, map_chunks, permute, tile_order
 from ._aov import write_aovs as write_aovs
 from ._shade import Lights as Lights
 from ._shade import Shading as Shading
@@ -121,4 +121,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
         "anchor": [float(x) for x in built.anchor],
         "info": built.info,
     }
+    if hits.flags is not None:
+        f = np.asarray(hits.flags)
+        run["flags"] = {"overflow_rays": int(np.sum((f & FLAG_OVERFLOW) != 0)), "step_cap_rays": int(np.sum((f & FLAG_STEP_CAP) != 0))}
     return RenderResult(hits, rgb, image, run)

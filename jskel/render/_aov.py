@@ -26,6 +26,8 @@ def write_aovs(out: str | Path, hits, image_u8: np.ndarray, width: int, height: 
         "uv": (np.asarray(hits.uv, np.float32).reshape(h, w, 2)),
         "prim": (np.asarray(hits.prim, np.int32).reshape(h, w)),
     }
+    if getattr(hits, "flags", None) is not None:
+        files["flags"] = np.asarray(hits.flags, np.int32).reshape(h, w)
     paths = {}
     for name, arr in files.items():
         p = out / f"{name}.npy"

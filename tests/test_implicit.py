@@ -1,0 +1,182 @@
+"""Skeletal implicit surfaces (Rouiller 2011) against an independent float64 root finder."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import implicit_reference as iref
+import reference as ref
+from jskel import implicit
+from jskel.rays import make_rays, map_chunks
+
+# a small model: 4 balls, a constant and a tapering tube
+BALLS = [((0.0, 0.0, 0.0), 1.0), ((0.9, 0.3, 0.0), 0.8), ((-0.8, 0.2, 0.4), 0.7), ((0.2, 1.0, -0.3), 0.6)]
+TUBES = [((-1.5, -0.5, 0.0), (1.2, -0.6, 0.2), 0.5, 0.5), ((0.0, 0.4, 0.0), (0.3, 1.9, 0.6), 0.7, 0.35)]
+T = 0.5
+
+
+def model_cfg(method, **kw):
+    return implicit.ImplicitConfig.model_validate({
+        "type": "implicit", "threshold": T, "method": method,
+        "balls": [{"center": c, "radius": r} for c, r in BALLS],
+        "tubes": [{"a": a, "b": b, "radius_a": ra, "radius_b": rb} for a, b, ra, rb in TUBES], **kw})
+
+
+def arrays():
+    a = np.array([c for c, _ in BALLS] + [t[0] for t in TUBES], float)
+    b = np.array([c for c, _ in BALLS] + [t[1] for t in TUBES], float)
+    ra = np.array([r for _, r in BALLS] + [t[2] for t in TUBES], float)
+    rb = np.array([r for _, r in BALLS] + [t[3] for t in TUBES], float)
+    return a, b, ra, rb
+
+
+_FNS = {}
+
+
+def cast(built, O, D):
+    key = built.static
+    if key not in _FNS:
+        import jax
+
+        _FNS[key] = lambda p, r: jax.vmap(lambda o, d, a, b: implicit.intersect_one(p, key, o, d, a, b))(*r)
+    rays = make_rays(np.asarray(O) - built.anchor, D)
+    out = map_chunks(_FNS[key], built.params, rays, chunk=8192, progress=False).out
+    return out._replace(position=np.asarray(out.position, np.float64) + built.anchor)
+
+
+@pytest.fixture(scope="module")
+def random_case():
+    rng = np.random.default_rng(7)
+    a, b, ra, rb = arrays()
+    lo = np.minimum(a, b).min(0) - 1.0
+    hi = np.maximum(a, b).max(0) + 1.0
+    O, D = ref.random_rays(rng, lo, hi, 100_000, spread=1.2)
+    t_ref, margin, slope = iref.first_root(O, D, a, b, ra, rb, T, n=256, batch=2000)
+    scale = float(np.linalg.norm(hi - lo))
+    # well-posed rays: not grazing the level set (margin) and crossing it at a real angle (slope)
+    clear = (margin > 0.005) & ((~np.isfinite(t_ref)) | (slope > 0.02))
+    return O, D, t_ref, clear, scale
+
+
+@pytest.mark.parametrize("method, kw, min_agree", [
+    ("lipschitz", {"eps": 1e-3, "steps": 4096}, 1.0),
+    ("naive", {"step": 0.01, "steps": 1024}, 0.999),
+    ("bisection", {}, 0.99),
+])
+def test_random_rays_against_reference(random_case, method, kw, min_agree):
+    """Guaranteed method: every well-posed ray agrees. The thesis' heuristics: nearly all."""
+    O, D, t_ref, clear, scale = random_case
+    b = implicit.build(model_cfg(method, **kw))
+    hit = cast(b, O, D)
+    assert np.all(hit.flags == 0)
+    assert not np.any(np.isnan(hit.t)) and np.all(np.isfinite(hit.normal))
+    assert clear.mean() > 0.9 and 0.1 < np.isfinite(t_ref).mean() < 0.9
+    same = np.isfinite(hit.t) == np.isfinite(t_ref)
+    close = same & (~np.isfinite(t_ref) | (np.abs(np.where(np.isfinite(hit.t), hit.t, 0) - np.where(np.isfinite(t_ref), t_ref, 0)) <= 1e-4 * scale))
+    assert close[clear].mean() >= min_agree, (method, close[clear].mean(), same[clear].mean())
+
+
+def _fig7_rays(rng, n=4000):
+    """Two balls that only just blend (Rouiller Fig. 7) and rays through the thin bridge whose
+    Sec. 4.2.1 candidate points (centre projections) are both outside the surface."""
+    s, R = 0.68, 1.0
+    a = np.array([[-s, 0, 0], [s, 0, 0]], float)
+    ra = np.array([R, R])
+    P = np.stack([rng.uniform(-0.05, 0.05, n), rng.uniform(-0.12, 0.12, n), rng.uniform(-0.12, 0.12, n)], 1)
+    D = rng.normal(size=(n, 3))
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    O = P - 3.0 * D
+    proj = [O + np.sum((c - O) * D, 1, keepdims=True) * D for c in a]
+    outside = np.all([iref.field(p, a, a, ra, ra) <= T for p in proj], axis=0)
+    t_ref, margin, slope = iref.first_root(O, D, a, a, ra, ra, T, n=2048)
+    sel = outside & np.isfinite(t_ref) & (slope > 0.01)
+    return a, ra, O[sel], D[sel], t_ref[sel]
+
+
+def test_figure7_bisection_misses_and_lipschitz_finds():
+    a, ra, O, D, t_ref = _fig7_rays(np.random.default_rng(3))
+    assert O.shape[0] >= 50
+    base = {"type": "implicit", "threshold": T, "balls": [{"center": list(c), "radius": float(r)} for c, r in zip(a, ra)]}
+    bis = cast(implicit.build(implicit.ImplicitConfig.model_validate({**base, "method": "bisection"})), O, D)
+    lip = cast(implicit.build(implicit.ImplicitConfig.model_validate({**base, "method": "lipschitz", "eps": 1e-3})), O, D)
+    assert np.all(~np.isfinite(bis.t))  # the thesis' method misses every one (Sec. 4.2.2)
+    assert np.all(np.isfinite(lip.t)) and np.all(lip.flags == 0)
+    np.testing.assert_allclose(lip.t, t_ref, atol=1e-4 * 4)
+
+
+def test_grazing_rays_naive_misses_lipschitz_finds():
+    """Rays that graze a ball and are inside it for less than the naive step."""
+    rng = np.random.default_rng(4)
+    n = 2000
+    R = 1.0
+    rho = np.sqrt(1 - np.sqrt(T))  # the surface radius of one ball: (1 - rho^2)^2 = T
+    depth = rng.uniform(0.002, 0.02, n)  # how far the ray dips inside the surface
+    d_axis = rho - depth
+    ang = rng.uniform(0, 2 * np.pi, n)
+    radial = np.stack([np.cos(ang), np.sin(ang), np.zeros(n)], 1)
+    D = np.stack([-np.sin(ang), np.cos(ang), np.zeros(n)], 1)
+    O = radial * d_axis[:, None] - 2.0 * D
+    chord = 2 * np.sqrt(rho**2 - d_axis**2)
+    t_exact = 2.0 - chord / 2
+    base = {"type": "implicit", "threshold": T, "balls": [{"center": [0, 0, 0], "radius": R}]}
+    naive = cast(implicit.build(implicit.ImplicitConfig.model_validate({**base, "method": "naive", "step": 0.5})), O, D)
+    lip = cast(implicit.build(implicit.ImplicitConfig.model_validate({**base, "method": "lipschitz", "eps": 1e-3})), O, D)
+    assert np.mean(~np.isfinite(naive.t)) > 0.5  # coarse steps jump over most of these chords
+    assert np.all(np.isfinite(lip.t))  # chords are >= 2 sqrt(2 rho 0.002) > eps: guaranteed
+    np.testing.assert_allclose(lip.t, t_exact, atol=1e-4 * 4)
+
+
+def test_gradient_normals_match_the_analytic_kernel_gradient():
+    import jax
+
+    rng = np.random.default_rng(5)
+    a, b, ra, rb = arrays()
+    cfg = model_cfg("lipschitz")
+    built = implicit.build(cfg)
+    # constant-radius primitives only: balls and the first tube have an analytic gradient here
+    keep = np.array([True] * 4 + [True, False])
+    X = rng.uniform(-1.5, 1.5, (2000, 3))
+
+    def analytic(x):
+        g = np.zeros(3)
+        for ai, bi, R in zip(a[keep], b[keep], ra[keep]):
+            ab = bi - ai
+            den = ab @ ab
+            s = np.clip((x - ai) @ ab / den, 0, 1) if den > 0 else 0.0
+            d = x - ai - s * ab
+            q = d @ d / R**2
+            if q < 1:
+                g += 2 * (1 - q) * (-2 * d / R**2)
+        return g
+
+    sub_a, sub_b = a[keep], b[keep]
+    one = implicit.ImplicitConfig.model_validate({"type": "implicit", "threshold": T,
+        "balls": [{"center": list(c), "radius": float(r)} for c, r in zip(sub_a[:4], ra[:4])],
+        "tubes": [{"a": list(sub_a[4]), "b": list(sub_b[4]), "radius_a": float(ra[4]), "radius_b": float(rb[4])}]})
+    bo = implicit.build(one)
+    grads = np.asarray(jax.jit(jax.vmap(lambda x: implicit.gradient(bo.params.prims, x)))(np.float32(X - bo.anchor)))
+    want = np.array([analytic(x) for x in X])
+    np.testing.assert_allclose(grads, want, atol=2e-4)
+    # no NaN at a centre, on an influence boundary, on a tube's axis (the full model, tapering tube too)
+    specials = [a[0], a[1] + np.array([ra[1], 0, 0]), 0.5 * (a[4] + b[4]), 0.3 * a[5] + 0.7 * b[5], a[5]]
+    g = np.asarray(jax.vmap(lambda x: implicit.gradient(built.params.prims, x))(np.float32(np.array(specials) - built.anchor)))
+    assert np.all(np.isfinite(g))
+
+
+def test_bad_implicit_input_names_the_key():
+    from jskel.config import validate
+
+    base = {"type": "implicit", "balls": [{"center": [0, 0, 0], "radius": 1.0}]}
+    with pytest.raises(ValueError, match=r"object\.balls\[0\]\.radius"):
+        validate({"object": {**base, "balls": [{"center": [0, 0, 0], "radius": 0.0}]}})
+    with pytest.raises(ValueError, match=r"object\.threshold"):
+        validate({"object": {**base, "threshold": -1}})
+    with pytest.raises(ValueError, match=r"object\.tubes\[0\]"):
+        validate({"object": {**base, "tubes": [{"a": [0, 0, 0], "b": [1, 0, 0], "radius_a": 0, "radius_b": 0}]}})
+    with pytest.raises(ValueError, match=r"object\.balls\[0\]\.center"):
+        validate({"object": {**base, "balls": [{"center": [0, float("nan"), 0], "radius": 1.0}]}})
+    with pytest.raises(ValueError, match=r"object\.threshold: 1\.5 is not below"):
+        implicit.build(implicit.ImplicitConfig.model_validate({**base, "threshold": 1.5}))
+    with pytest.raises(ValueError, match=r"object\.tubes\[0\]\.radius_b: the lipschitz method"):
+        implicit.build(implicit.ImplicitConfig.model_validate({**base, "tubes": [{"a": [0, 0, 0], "b": [1, 0, 0], "radius_a": 0.5, "radius_b": 0}]}))
