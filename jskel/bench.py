@@ -29,7 +29,7 @@ class BenchFile(StrictModel):
     runs: Annotated[int, Field(ge=1, le=1000)] = 5
     warmup: Annotated[int, Field(ge=0, le=100)] = 1
     set: list[str] = []
-    sweep: dict[str, list[Any]] | None = None
+    sweep: dict[str, list[Any]] | list[dict[str, Any]] | None = None  # a grid, or explicit settings
     reference: list[str] = []
     metric: str = "depth_rmse"
     peer: Literal["embree_mesh"] | None = None
@@ -115,7 +115,10 @@ def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
     return row, first
 
 
-def sweep_settings(sweep: dict[str, list]) -> list[dict]:
+def sweep_settings(sweep) -> list[dict]:
+    """Settings of a sweep: the cartesian product of a mapping, or an explicit list."""
+    if isinstance(sweep, list):
+        return [dict(s) for s in sweep]
     keys = list(sweep)
     return [dict(zip(keys, vals)) for vals in itertools.product(*(sweep[k] for k in keys))]
 
@@ -140,12 +143,12 @@ def plot_sweep(rows: list[dict], keys: list[str], metric: str, path: Path, title
     order = np.argsort(t[front])
     ax.plot(t[front][order], e[front][order], "o-", c="C3", label="Pareto front")
     for r, ti, ei in zip(ok, t, e):
-        ax.annotate(",".join(str(r["setting"][k]) for k in keys), (ti, ei), fontsize=6, xytext=(2, 2), textcoords="offset points")
+        ax.annotate(",".join(str(r["setting"].get(k, "-")) for k in keys), (ti, ei), fontsize=6, xytext=(2, 2), textcoords="offset points")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("warm median render time [s]")
     ax.set_ylabel(metric)
-    ax.set_title(title + "\nlabels: " + ", ".join(k.split(".")[-1] for k in keys), fontsize=9)
+    ax.set_title(title + "\nlabels: " + ", ".join(k.split(".")[-1] for k in keys) + " (- where a setting omits one)", fontsize=9)
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)

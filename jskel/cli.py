@@ -65,43 +65,54 @@ def cmd_bench(args) -> int:
             raise ConfigError([f"scenes[{i}]: file not found (got {scene!r})"])
         paths.append(p)
     # validate every experiment (and every sweep setting) before any compilation
+    groups = []  # (reference job or None, [(file, (exp, obj), setting)])
     if bench.sweep is None:
-        jobs = [(str(p), _load(p, common), None) for p in paths]
+        groups.append((None, [(str(p), _load(p, common), None) for p in paths]))
     else:
-        ref_job = _load(paths[0], common + bench.reference)
-        jobs = [(str(paths[0]), _load(paths[0], common + [f"{k}={json.dumps(v)}" for k, v in st.items()]), st)
-                for st in sweep_settings(bench.sweep)]
+        for p in paths:
+            ref_job = _load(p, common + bench.reference)
+            jobs = [(str(p), _load(p, common + [f"{k}={json.dumps(v)}" for k, v in st.items()]), st)
+                    for st in sweep_settings(bench.sweep)]
+            groups.append((ref_job, jobs))
+    from .metrics import compare
+    from .render import render
+
     rows = []
-    ref_hits = None
-    if bench.sweep is not None:
-        from .metrics import compare
-        from .render import render
-
-        ref_res = render(*ref_job, progress=False)
-        ref_hits = ref_res.hits
-        print(json.dumps({"reference": bench.reference, "render_s": round(ref_res.run["render_s"], 4)}), flush=True)
-    for file, (exp, obj), setting in jobs:
-        row, first = timed_render(exp, obj, runs, bench.warmup)
-        row["file"] = file
-        if setting is not None:
-            row["setting"] = setting
-            row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(first.hits, ref_hits).items()})
-        print(json.dumps(row), flush=True)
-        rows.append(row)
-    if bench.peer is not None and bench.sweep is not None:
-        from .bench import peer_embree_mesh
-
-        for row in peer_embree_mesh(bench, *ref_job, ref_hits, runs, rows):
+    for ref_job, jobs in groups:
+        ref_hits = None
+        if ref_job is not None:
+            ref_res = render(*ref_job, progress=False)
+            ref_hits = ref_res.hits
+            print(json.dumps({"reference": bench.reference, "scene": ref_job[0].name, "render_s": round(ref_res.run["render_s"], 4)}), flush=True)
+        group_rows = []
+        for file, (exp, obj), setting in jobs:
+            row, first = timed_render(exp, obj, runs, bench.warmup)
+            row["file"] = file
+            if setting is not None:
+                row["setting"] = setting
+                row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(first.hits, ref_hits).items()})
             print(json.dumps(row), flush=True)
-            rows.append(row)
+            group_rows.append(row)
+        if bench.peer is not None and ref_job is not None:
+            from .bench import peer_embree_mesh
+
+            for row in peer_embree_mesh(bench, *ref_job, ref_hits, runs, group_rows):
+                print(json.dumps(row), flush=True)
+                group_rows.append(row)
+        rows += group_rows
+        if args.out and ref_job is not None:
+            out = Path(args.out)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            png = out.with_name(f"{out.stem}_{ref_job[0].name}.png") if len(groups) > 1 else out.with_suffix(".png")
+            keys = list(dict.fromkeys(k for st in sweep_settings(bench.sweep) for k in st))
+            done = plot_sweep([r for r in group_rows if "setting" in r], keys, bench.metric, png,
+                              f"{ref_job[0].name}: {bench.metric} vs time ({group_rows[0]['device']})")
+            if done:
+                print(f"jskel: plot -> {done}")
     if args.out:
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text("".join(json.dumps(r) + "\n" for r in rows))
-        if bench.sweep is not None:
-            png = plot_sweep([r for r in rows if "setting" in r], list(bench.sweep), bench.metric, out.with_suffix(".png"), f"{rows[0]['scene']}: {bench.metric} vs time ({rows[0]['device']})")
-            if png:
-                print(f"jskel: plot -> {png}")
     return 0
 
 

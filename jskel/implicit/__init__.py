@@ -24,7 +24,7 @@ from ._trace import OVERFLOW as OVERFLOW
 from ._trace import STEP_CAP as STEP_CAP
 from ._trace import Quality as Quality
 from ._trace import Tuning as Tuning
-from ._trace import surface_one, trace_one
+from ._trace import cull, surface_one, trace_one
 
 
 class ImplicitScene(NamedTuple):
@@ -103,8 +103,9 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
 
 
 def intersect_one(scene: ImplicitScene, static: Quality, origin, direction, t_min, t_max) -> Hit:
-    t, flags = trace_one(scene.prims, scene.tune, origin, direction, t_min, t_max, static)
-    pos, n, prim = surface_one(scene.prims, scene.tune, origin, direction, t, static.capacity)
+    cand = cull(scene.prims, origin, direction, t_min, t_max, static.capacity)
+    t, flags = trace_one(cand, scene.tune, origin, direction, t_min, t_max, static)
+    pos, n, prim = surface_one(cand, origin, direction, t)
     hit = jnp.isfinite(t)
     inf = jnp.asarray(jnp.inf, origin.dtype)
     return Hit(

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from ..numerics import safe_div, safe_normalize
 from ..rays import FLAG_OVERFLOW as OVERFLOW
 from ..rays import FLAG_STEP_CAP as STEP_CAP
-from ._field import Prims, _dot, field, lipschitz
+from ._field import Prims, _dot, closest, field, kernel, lipschitz
 
 
 class Quality(NamedTuple):
@@ -64,8 +64,19 @@ def influence_spheres(prims: Prims):
     return c, half + jnp.maximum(prims.ra, prims.rb)
 
 
-def cull(prims: Prims, o, d, t_min, t_max, capacity: int):
-    """Candidates of one ray: (sub-prims (C,), t_lo, t_hi, any, overflow)."""
+class Candidates(NamedTuple):
+    """The culled primitives of one ray: sub (C,) with their ids (P for an empty slot)."""
+
+    sub: Prims
+    ids: jnp.ndarray
+    t_lo: jnp.ndarray
+    t_hi: jnp.ndarray
+    any: jnp.ndarray
+    overflow: jnp.ndarray
+
+
+def cull(prims: Prims, o, d, t_min, t_max, capacity: int) -> Candidates:
+    """Candidates of one ray (Sec. 4.2: discard primitives whose influence the ray misses)."""
     c, r = influence_spheres(prims)
     dd = _dot(d, d)
     oc = c - o
@@ -75,14 +86,18 @@ def cull(prims: Prims, o, d, t_min, t_max, capacity: int):
     t0 = jnp.maximum(tc - half, t_min)
     t1 = jnp.minimum(tc + half, t_max)
     hit = prims.valid & (dist2 < r * r) & (t0 < t1)
+    inf_ = jnp.asarray(jnp.inf, o.dtype)
     count = jnp.sum(hit.astype(jnp.int32))
     p = prims.a.shape[0]
-    idx = jnp.nonzero(hit, size=capacity, fill_value=p)[0]
+    # the `capacity` nearest entries, by top_k (faster than nonzero's scatter on CPU here)
+    score = jnp.where(hit, -t0, -inf_)
+    _, idx = jax.lax.top_k(score, min(capacity, p))  # a model smaller than the capacity cannot overflow
+    idx = jnp.where(jnp.take(hit, idx), idx, p)
     sub = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])[idx], prims)
     inf = jnp.asarray(jnp.inf, o.dtype)
     t_lo = jnp.min(jnp.where(hit, t0, inf))
     t_hi = jnp.max(jnp.where(hit, t1, -inf))
-    return sub, t_lo, t_hi, count > 0, count > capacity
+    return Candidates(sub, idx, t_lo, t_hi, count > 0, count > capacity)
 
 
 def _bisect(g, lo, hi, n: int):
@@ -118,10 +133,10 @@ def _inside_points(sub: Prims, o, d):
     return jnp.take_along_axis(cands, best[None, :], axis=0)[0]
 
 
-def trace_one(prims: Prims, tune: Tuning, o, d, t_min, t_max, q: Quality):
-    """(t, flags) of the first hit of one ray; t = inf on a miss."""
+def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
+    """(t, flags) of the first hit of one ray over its culled candidates; t = inf on a miss."""
     inf = jnp.asarray(jnp.inf, o.dtype)
-    sub, t_lo, t_hi, anyc, overflow = cull(prims, o, d, t_min, t_max, q.capacity)
+    sub, t_lo, t_hi, anyc, overflow = cand.sub, cand.t_lo, cand.t_hi, cand.any, cand.overflow
     T = tune.threshold
 
     def g(t):
@@ -177,17 +192,14 @@ def trace_one(prims: Prims, tune: Tuning, o, d, t_min, t_max, q: Quality):
     return jnp.where(found, t_hit, inf), flags
 
 
-def surface_one(prims: Prims, tune: Tuning, o, d, t, capacity: int):
-    """Position, outward unit normal -grad F / |grad F| (by jax.grad over the candidates), and
-    the id of the primitive contributing most at the hit (-1 on a miss)."""
+def surface_one(cand: Candidates, o, d, t):
+    """Position, outward unit normal -grad F / |grad F| (``jax.grad`` over the candidates, which
+    are every primitive non-zero on the ray), and the id of the primitive contributing most."""
     hit = jnp.isfinite(t)
     x = o + jnp.where(hit, t, 0.0) * d
-    sub, *_ = cull(prims, o, d, -jnp.inf, jnp.inf, capacity)
-    grad = jax.grad(lambda y: field(sub, y))(x)
+    grad = jax.grad(lambda y: field(cand.sub, y))(x)
     n = safe_normalize(-grad)
-    from ._field import closest, kernel
-
-    r2, R = closest(prims, x)
-    contrib = jnp.where(prims.valid, kernel(r2, R), -1.0)
-    prim = jnp.argmax(contrib).astype(jnp.int32)
+    r2, R = closest(cand.sub, x)
+    contrib = jnp.where(cand.sub.valid, kernel(r2, R), -1.0)
+    prim = cand.ids[jnp.argmax(contrib)].astype(jnp.int32)
     return x, n, prim
