@@ -18,6 +18,7 @@ import numpy as np
 
 from ..interface import Built
 from ..rays import Hit, Rays
+from ..textures import bilinear_wrap, load_texture
 from ._build import FrustaArrays as FrustaArrays
 from ._build import build_frusta as build_frusta
 from ._build import cutting_planes as cutting_planes
@@ -177,20 +178,6 @@ def _skeleton_arrays(sk: SkeletonConfig):
     return j, r * sk.scale, p, colors
 
 
-def _load_texture(path: str) -> np.ndarray:
-    import imageio.v3 as iio
-
-    try:
-        img = np.asarray(iio.imread(path))
-    except Exception as e:  # noqa: BLE001 - any reader failure is a bad config value
-        raise ValueError(f"object.texture: cannot read image {path!r}: {e}") from None
-    if img.ndim == 2:
-        img = np.stack([img] * 3, -1)
-    img = img[..., :3].astype(np.float64)
-    img = img / (255.0 if img.max() > 1.0 else 1.0)
-    return img**2.2  # sRGB-ish to linear
-
-
 RELIEF_TEXTURES = ("brick", "gravel", "grass")
 
 
@@ -275,7 +262,7 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         maps = ReliefMaps(jnp.asarray(height), jnp.asarray(rel.scale, dtype))
         info = dict(info, memory=relief_memory(arrays, height, rel.scale, relief_ids))
     seg_col = np.broadcast_to(np.asarray(cfg.color, np.float64), (s, 3)) if colors is None else colors[topo.seg_end]
-    tex = _load_texture(cfg.texture) if cfg.texture is not None else np.ones((1, 1, 3))
+    tex = load_texture(cfg.texture) if cfg.texture is not None else np.ones((1, 1, 3))
     scene = FrustaScene(
         plain=plain,
         relief=relief,
@@ -349,31 +336,10 @@ def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
     return out
 
 
-def _bilinear_wrap(tex, uv):
-    h, w = tex.shape[0], tex.shape[1]
-    x = uv[0] * w - 0.5
-    y = uv[1] * h - 0.5
-    x0 = jnp.floor(x)
-    y0 = jnp.floor(y)
-    fx, fy = x - x0, y - y0
-    x0 = x0.astype(jnp.int32)
-    y0 = y0.astype(jnp.int32)
-
-    def at(yy, xx):
-        return tex[jnp.mod(yy, h), jnp.mod(xx, w)]
-
-    return (
-        (1 - fx) * (1 - fy) * at(y0, x0)
-        + fx * (1 - fy) * at(y0, x0 + 1)
-        + (1 - fx) * fy * at(y0 + 1, x0)
-        + fx * fy * at(y0 + 1, x0 + 1)
-    )
-
-
 def albedo(scene: FrustaScene, static: Static, hit: Hit):
     """Base colour at one hit: the texture through (u, v) (wrapping), else the segment colour."""
     if static.has_texture:
-        return _bilinear_wrap(scene.texture, hit.uv * scene.tex_scale)
+        return bilinear_wrap(scene.texture, hit.uv * scene.tex_scale)
     return scene.colors[jnp.maximum(hit.prim, 0)]
 
 

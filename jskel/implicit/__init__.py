@@ -16,7 +16,9 @@ import numpy as np
 from ..interface import Built
 from ..rays import Hit
 from ._config import ImplicitConfig as ImplicitConfig
+from ..numerics import safe_div
 from ._field import Prims as Prims
+from ._field import _dot, kernel
 from ._field import field as field
 from ._field import gradient as gradient
 from ._field import lipschitz as lipschitz
@@ -27,10 +29,36 @@ from ._trace import Tuning as Tuning
 from ._trace import cull, surface_one, trace_one
 
 
+class Skin(NamedTuple):
+    """Texture skinning inputs for one frame (Sec. 6.1, Alg. 3): per bone the posed segment
+    (head, tail), its weight radius, and the rigid map from the posed to the rest pose."""
+
+    head: jnp.ndarray  # (B,3)
+    tail: jnp.ndarray  # (B,3)
+    influence: jnp.ndarray  # (B,)
+    to_rest: jnp.ndarray  # (B,3,4)
+
+
+class Projector(NamedTuple):
+    origin: jnp.ndarray  # (3,)
+    axis: jnp.ndarray  # (3,) unit
+    up: jnp.ndarray  # (3,) unit, perpendicular to axis
+    scale: jnp.ndarray  # (2,)
+
+
 class ImplicitScene(NamedTuple):
     prims: Prims
     tune: Tuning
     color: jnp.ndarray  # (3,)
+    skin: Skin
+    projector: Projector
+    texture: jnp.ndarray  # (H,W,3) linear RGB, (1,1,3) when unused
+
+
+class Static(NamedTuple):
+    quality: Quality
+    projector: str | None  # planar | cylindrical | spherical | None
+    has_texture: bool
 
 
 def _pad(x, n, fill=0.0):
@@ -57,29 +85,93 @@ def _max_field_estimate(a, b, ra, rb) -> float:
     return best
 
 
-def primitives(cfg: ImplicitConfig):
-    """Host float64 (a, b, ra, rb) in world units, after scale and offset."""
+def expand(cfg: ImplicitConfig) -> ImplicitConfig:
+    """A procedural model with a rig becomes explicit balls, tubes and bones (validated)."""
+    from ._models import RIGGED
+
+    if cfg.procedural in RIGGED:
+        extra = RIGGED[cfg.procedural](cfg.seed, dict(cfg.options))
+        data = cfg.model_dump()
+        data.update(procedural=None, **extra)
+        return ImplicitConfig.model_validate(data)
+    return cfg
+
+
+def primitives(cfg: ImplicitConfig, frame: float | None = None):
+    """Host float64 (a, b, ra, rb) in world units at ``frame`` (default ``cfg.frame``), plus the
+    rig: (heads, tails, influence, M (B,4,4) posed-from-rest) or None without bones."""
+    from ._anim import apply, bone_order, pose
+
+    frame = cfg.frame if frame is None else frame
+    rig = None
     if cfg.procedural is not None:
         from ._models import MODELS
 
         a, b, ra, rb = MODELS[cfg.procedural](cfg.seed, dict(cfg.options))
+        bone_of = -np.ones(a.shape[0], np.int64)
     else:
-        a = np.array([bl.center for bl in cfg.balls] + [t.a for t in cfg.tubes], np.float64).reshape(-1, 3)
-        b = np.array([bl.center for bl in cfg.balls] + [t.b for t in cfg.tubes], np.float64).reshape(-1, 3)
-        ra = np.array([bl.radius for bl in cfg.balls] + [t.radius_a for t in cfg.tubes], np.float64)
-        rb = np.array([bl.radius for bl in cfg.balls] + [t.radius_b for t in cfg.tubes], np.float64)
+        names = [bn.name for bn in cfg.bones]
+        order = bone_order(names, [bn.parent for bn in cfg.bones])
+        index = {n: i for i, n in enumerate(names)}
+        items = [(bl.center, bl.center, bl.radius, bl.radius, bl.bone, f"balls[{i}]") for i, bl in enumerate(cfg.balls)]
+        items += [(t.a, t.b, t.radius_a, t.radius_b, t.bone, f"tubes[{i}]") for i, t in enumerate(cfg.tubes)]
+        items += [(bn.head, bn.tail, bn.tube[0], bn.tube[1], bn.name, f"bones[{i}].tube") for i, bn in enumerate(cfg.bones) if bn.tube is not None]
+        for *_, bone, where in items:
+            if bone is not None and bone not in index:
+                raise ValueError(f"object.{where}.bone: unknown bone {bone!r} (bones: {', '.join(names) or 'none'})")
+        for i, (*_, where) in enumerate(items):
+            if items[i][2] == 0 and items[i][3] == 0:
+                raise ValueError(f"object.{where}: both radii are 0")
+        a = np.array([it[0] for it in items], np.float64).reshape(-1, 3)
+        b = np.array([it[1] for it in items], np.float64).reshape(-1, 3)
+        ra = np.array([it[2] for it in items], np.float64)
+        rb = np.array([it[3] for it in items], np.float64)
+        bone_of = np.array([-1 if it[4] is None else index[it[4]] for it in items], np.int64)
+        if cfg.bones:
+            heads = np.array([bn.head for bn in cfg.bones], np.float64)
+            tails = np.array([bn.tail for bn in cfg.bones], np.float64)
+            for i in range(len(names)):
+                if not np.linalg.norm(tails[i] - heads[i]) > 0:
+                    raise ValueError(f"object.bones[{i}].tail: equals its head (a bone needs a length)")
+            parents = [-1 if bn.parent is None else index[bn.parent] for bn in cfg.bones]
+            keys = [[(k.frame, k.rotate) for k in bn.keys] for bn in cfg.bones]
+            M = pose(heads, parents, order, keys, frame)
+            att = bone_of >= 0
+            a[att] = apply(M[bone_of[att]], a[att])
+            b[att] = apply(M[bone_of[att]], b[att])
+            infl = np.array([bn.influence or 0.75 * np.linalg.norm(t - h) for bn, h, t in zip(cfg.bones, heads, tails)])
+            rig = (apply(M, heads), apply(M, tails), infl, M)
     off = np.asarray(cfg.offset, np.float64)
-    return a * cfg.scale + off, b * cfg.scale + off, ra * cfg.scale, rb * cfg.scale
+    a, b, ra, rb = a * cfg.scale + off, b * cfg.scale + off, ra * cfg.scale, rb * cfg.scale
+    if rig is not None:
+        S = np.eye(4) * cfg.scale
+        S[3, 3] = 1.0
+        S[:3, 3] = off
+        Sinv = np.linalg.inv(S)
+        M = S @ rig[3] @ Sinv  # the same rigid motions, in scaled world units
+        rig = (rig[0] * cfg.scale + off, rig[1] * cfg.scale + off, rig[2] * cfg.scale, M)
+    return a, b, ra, rb, rig
+
+
+def _unit(v, path):
+    v = np.asarray(v, np.float64)
+    n = np.linalg.norm(v)
+    if not n > 0:
+        raise ValueError(f"{path}: the zero vector")
+    return v / n
 
 
 def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
-    """Validate, pad to a power of two (>= 8) so similar models share a compile, cast."""
-    a, b, ra, rb = primitives(cfg)
+    """Validate, pose at ``cfg.frame``, pad to a power of two (>= 8) so similar models share a
+    compile, cast. Every frame of an animation has the same shapes: one compile."""
+    cfg = expand(cfg)
+    a, b, ra, rb, rig = primitives(cfg)
     nb = len(cfg.balls) if cfg.procedural is None else 0
     if cfg.method == "lipschitz":
         for i in np.nonzero(np.minimum(ra, rb) <= 0)[0]:
             which = "radius_a" if ra[i] <= 0 else "radius_b"
-            raise ValueError(f"object.tubes[{i - nb}].{which}: the lipschitz method needs both tube radii > 0 (its slope bound is 8/(3 sqrt(3) R))")
+            where = f"tubes[{i - nb}].{which}" if i - nb < len(cfg.tubes) else f"bones[{i - nb - len(cfg.tubes)}].tube"
+            raise ValueError(f"object.{where}: the lipschitz method needs both tube radii > 0 (its slope bound is 8/(3 sqrt(3) R))")
     fmax = _max_field_estimate(a, b, ra, rb)
     if not cfg.threshold < fmax:
         raise ValueError(f"object.threshold: {cfg.threshold} is not below the field's maximum (about {fmax:.4g}): no surface")
@@ -96,33 +188,97 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     anchor = 0.5 * (lo + hi)
     prims = prims._replace(a=prims.a - jnp.asarray(anchor, dtype), b=prims.b - jnp.asarray(anchor, dtype))
     tune = Tuning(jnp.asarray(cfg.threshold, dtype), jnp.asarray(cfg.step, dtype), jnp.asarray(cfg.eps, dtype))
-    scene = ImplicitScene(prims, tune, jnp.asarray(cfg.color, dtype))
+    if rig is None:  # one static "bone" with the identity map
+        heads, tails, infl, M = np.zeros((1, 3)) + anchor, np.zeros((1, 3)) + anchor + [0, 1, 0], np.ones(1), np.eye(4)[None]
+    else:
+        heads, tails, infl, M = rig
+    # posed -> rest for points relative to the anchor: x_rest - anchor = Minv (x + anchor) - anchor
+    Minv = np.linalg.inv(M)
+    to_rest = Minv[:, :3, :].copy()
+    to_rest[:, :, 3] = to_rest[:, :, 3] + np.einsum("bij,j->bi", Minv[:, :3, :3], anchor) - anchor
+    skin = Skin(jnp.asarray(heads - anchor, dtype), jnp.asarray(tails - anchor, dtype), jnp.asarray(infl, dtype), jnp.asarray(to_rest, dtype))
+    pc = cfg.projector
+    if pc is not None:
+        ax = _unit(pc.axis, "object.projector.axis")
+        up = np.asarray(pc.up, np.float64) - np.dot(pc.up, ax) * ax
+        up = _unit(up, "object.projector.up (it is parallel to the axis)")
+        proj = Projector(jnp.asarray(np.asarray(pc.origin) - anchor, dtype), jnp.asarray(ax, dtype), jnp.asarray(up, dtype), jnp.asarray(pc.scale, dtype))
+    else:
+        proj = Projector(jnp.zeros(3, dtype), jnp.asarray([0, 1, 0], dtype), jnp.asarray([0, 0, 1], dtype), jnp.ones(2, dtype))
+    if cfg.texture is not None:
+        from ..textures import load_texture
+
+        tex = load_texture(cfg.texture)
+    else:
+        tex = np.ones((1, 1, 3))
+    scene = ImplicitScene(prims, tune, jnp.asarray(cfg.color, dtype), skin, proj, jnp.asarray(tex, dtype))
     q = Quality(cfg.method, cfg.steps, cfg.bisection, cfg.capacity, cfg.early_exit)
-    info = {"primitives": int(p), "padded_primitives": int(n), "max_field_estimate": fmax}
-    return Built(scene, q, anchor, (lo, hi), info)
+    static = Static(q, None if pc is None else pc.type, cfg.texture is not None)
+    info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_estimate": fmax}
+    return Built(scene, static, anchor, (lo, hi), info)
 
 
-def intersect_one(scene: ImplicitScene, static: Quality, origin, direction, t_min, t_max) -> Hit:
-    cand = cull(scene.prims, origin, direction, t_min, t_max, static.capacity)
-    t, flags = trace_one(cand, scene.tune, origin, direction, t_min, t_max, static)
+def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min, t_max) -> Hit:
+    """First hit of one ray; (u, v) from the projector applied at the rest-pose position."""
+    q = static.quality
+    cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity)
+    t, flags = trace_one(cand, scene.tune, origin, direction, t_min, t_max, q)
     pos, n, prim = surface_one(cand, origin, direction, t)
     hit = jnp.isfinite(t)
     inf = jnp.asarray(jnp.inf, origin.dtype)
+    uv = project(scene.projector, rest_position(scene.skin, pos), static.projector) if static.projector else jnp.zeros((2,), origin.dtype)
     return Hit(
         t=t,
         position=jnp.where(hit, pos, inf),
         normal=jnp.where(hit, n, 0.0),
-        uv=jnp.zeros((2,), origin.dtype),
+        uv=jnp.where(hit, uv, 0.0),
         prim=jnp.where(hit, prim, -1).astype(jnp.int32),
         flags=flags.astype(jnp.int32),
     )
 
 
-def albedo(scene: ImplicitScene, static: Quality, hit: Hit):
+def rest_position(skin: Skin, x):
+    """Alg. 3: the posed point x mapped to the rest pose, blending each bone's rigid inverse by
+    weights (1 - d^2 / I^2)^2 of the distance d to the posed bone (nearest bone if none reaches)."""
+    ab = skin.tail - skin.head
+    s = jnp.clip(safe_div(_dot(x - skin.head, ab), _dot(ab, ab), 0.0), 0.0, 1.0)
+    e = x - skin.head - s[:, None] * ab
+    d2 = _dot(e, e)
+    w = kernel(d2, skin.influence)
+    nearest = (jnp.arange(d2.shape[0]) == jnp.argmin(d2)).astype(x.dtype)
+    total = jnp.sum(w)
+    w = jnp.where(total > 0, safe_div(w, total, 0.0), nearest)
+    moved = jnp.einsum("bij,j->bi", skin.to_rest[:, :, :3], x) + skin.to_rest[:, :, 3]
+    return jnp.sum(w[:, None] * moved, axis=0)
+
+
+def project(pr: Projector, x, kind: str):
+    """(u, v) of a rest-pose point (relative to the anchor) for a planar, cylindrical or
+    spherical projector (Sec. 6)."""
+    p = x - pr.origin
+    side = jnp.cross(pr.axis, pr.up)
+    h = _dot(p, pr.axis)
+    pu, ps = _dot(p, pr.up), _dot(p, side)
+    if kind == "planar":
+        uv = jnp.stack([ps, pu])
+    elif kind == "cylindrical":
+        uv = jnp.stack([jnp.arctan2(ps, pu) / (2 * jnp.pi) + 0.5, h])
+    else:  # spherical
+        rho = jnp.sqrt(pu * pu + ps * ps)
+        uv = jnp.stack([jnp.arctan2(ps, pu) / (2 * jnp.pi) + 0.5, jnp.arctan2(rho, h) / jnp.pi])
+    return uv * pr.scale
+
+
+def albedo(scene: ImplicitScene, static: Static, hit: Hit):
+    """The texture through the skinned projector (u wraps, v wraps), else the model colour."""
+    if static.has_texture:
+        from ..textures import bilinear_wrap
+
+        return bilinear_wrap(scene.texture, hit.uv)
     return scene.color
 
 
-def inside(scene: ImplicitScene, static: Quality, point):
+def inside(scene: ImplicitScene, static: Static, point):
     return field(scene.prims, point) > scene.tune.threshold
 
 

@@ -12,10 +12,12 @@ Pos = Annotated[float, Field(gt=0.0)]
 
 
 class BallConfig(StrictModel):
-    """A metaball: centre and effective radius R (Rouiller 2011, Sec. 2.1.1 and 3)."""
+    """A metaball: centre and effective radius R (Rouiller 2011, Sec. 2.1.1 and 3); ``bone``
+    attaches it to a bone (Sec. 5, Fig. 8)."""
 
     center: Vec3
     radius: Pos
+    bone: str | None = None
 
 
 class TubeConfig(StrictModel):
@@ -25,12 +27,46 @@ class TubeConfig(StrictModel):
     b: Vec3
     radius_a: Annotated[float, Field(ge=0.0)]
     radius_b: Annotated[float, Field(ge=0.0)]
+    bone: str | None = None
 
     @model_validator(mode="after")
     def _not_both_zero(self):
         if self.radius_a == 0 and self.radius_b == 0:
             raise ValueError("a tube needs a positive radius at one end at least (both radii are 0)")
         return self
+
+
+class KeyConfig(StrictModel):
+    """A keyframe: XYZ Euler rotation (degrees) of a bone about its head at ``frame``."""
+
+    frame: float
+    rotate: Vec3 = (0.0, 0.0, 0.0)
+
+
+class BoneConfig(StrictModel):
+    """A bone of the rig (Sec. 5). ``tube: [ra, rb]`` makes the bone a metatube from head to tail
+    (the work-flow of Fig. 9). ``influence``: radius of its texture-skinning weight (Sec. 6.1),
+    by default 0.75 x its length."""
+
+    name: str
+    parent: str | None = None
+    head: Vec3
+    tail: Vec3
+    tube: tuple[Annotated[float, Field(ge=0.0)], Annotated[float, Field(ge=0.0)]] | None = None
+    influence: Pos | None = None
+    keys: list[KeyConfig] = []
+
+
+class ProjectorConfig(StrictModel):
+    """A texture projector applied in the rest pose (Sec. 6, 6.1): planar (u, v along two axes
+    perpendicular to ``axis``), cylindrical (angle about ``axis``, height along it) or
+    spherical (azimuth and polar angle about ``axis``); ``up`` fixes u = 0."""
+
+    type: Literal["planar", "cylindrical", "spherical"] = "cylindrical"
+    origin: Vec3 = (0.0, 0.0, 0.0)
+    axis: Vec3 = (0.0, 1.0, 0.0)
+    up: Vec3 = (0.0, 0.0, 1.0)
+    scale: tuple[Pos, Pos] = (1.0, 1.0)
 
 
 class ImplicitConfig(StrictModel):
@@ -40,7 +76,7 @@ class ImplicitConfig(StrictModel):
     threshold: Pos = 0.5
     balls: list[BallConfig] = []
     tubes: list[TubeConfig] = []
-    procedural: Literal["gecko", "blob_grid"] | None = None
+    procedural: Literal["gecko", "blob_grid", "spider", "dinosaur"] | None = None
     seed: int = 0
     options: dict[str, float] = {}
     scale: Pos = 1.0
@@ -53,9 +89,15 @@ class ImplicitConfig(StrictModel):
     capacity: Annotated[int, Field(ge=1, le=4096)] = 32
     early_exit: bool = True
     color: RGB = (0.75, 0.45, 0.3)
+    bones: list[BoneConfig] = []
+    frame: float = 0.0
+    texture: str | None = None
+    projector: ProjectorConfig | None = None
 
     @model_validator(mode="after")
     def _has_primitives(self):
-        if self.procedural is None and not (self.balls or self.tubes):
-            raise ValueError("give balls and/or tubes, or a procedural model")
+        if self.procedural is None and not (self.balls or self.tubes or any(b.tube for b in self.bones)):
+            raise ValueError("give balls and/or tubes (or tube bones), or a procedural model")
+        if self.texture is not None and self.projector is None:
+            raise ValueError("a texture needs a projector (planar, cylindrical or spherical)")
         return self

@@ -67,3 +67,63 @@ def blob_grid(seed: int, options: dict):
 
 
 MODELS = {"gecko": gecko, "blob_grid": blob_grid}
+
+
+def _tube_bone(name, parent, head, tail, ra, rb, keys=()):
+    return {"name": name, "parent": parent, "head": list(map(float, head)), "tail": list(map(float, tail)),
+            "tube": [float(ra), float(rb)], "keys": [{"frame": float(f), "rotate": list(map(float, r))} for f, r in keys]}
+
+
+def spider(seed: int, options: dict):
+    """A spider (Fig. 1) rigged the Fig. 9 way: 16 leg bones are metatubes; a body bone carries
+    three metaballs. Frames 0-48 walk: femurs swing about the vertical, tibias bend."""
+    _check("spider", options, {})
+    bones = [{"name": "body", "parent": None, "head": [0.0, 0.7, -0.8], "tail": [0.0, 0.7, 0.8],
+              "keys": [{"frame": f, "rotate": [0.0, 0.0, 4.0 * math.sin(f / 48 * 4 * math.pi)]} for f in range(0, 49, 6)]}]
+    balls = [{"center": [0.0, 0.75, -0.6], "radius": 1.0, "bone": "body"},
+             {"center": [0.0, 0.7, 0.45], "radius": 0.75, "bone": "body"},
+             {"center": [0.0, 0.72, 0.95], "radius": 0.45, "bone": "body"}]
+    for side in (-1, 1):
+        for i, z in enumerate((0.75, 0.35, -0.05, -0.45)):
+            hip = np.array([0.3 * side, 0.7, z])
+            out = np.array([side * 1.0, 0.0, (z - 0.15) * 0.9])
+            out /= np.linalg.norm(out)
+            knee = hip + 1.0 * out + np.array([0, 0.65, 0])
+            foot = knee + 1.1 * out + np.array([0, -1.35, 0])
+            phase = (i % 2) * math.pi + (side > 0) * math.pi
+            swing = [(f, (0.0, 18.0 * math.sin(f / 48 * 4 * math.pi + phase), 0.0)) for f in range(0, 49, 6)]
+            bend = [(f, (0.0, 0.0, side * 10.0 * math.cos(f / 48 * 4 * math.pi + phase))) for f in range(0, 49, 6)]
+            tag = f"{'l' if side < 0 else 'r'}{i}"
+            bones.append(_tube_bone(f"femur_{tag}", "body", hip, knee, 0.24, 0.17, swing))
+            bones.append(_tube_bone(f"tibia_{tag}", f"femur_{tag}", knee, foot, 0.17, 0.09, bend))
+    return {"balls": balls, "tubes": [], "bones": bones}
+
+
+def dinosaur(seed: int, options: dict):
+    """A biped dinosaur rigged the Fig. 9 way: spine, neck, tail, legs and arms are metatube
+    bones; metaballs give the head, belly and feet. Frames 0-48: a walk with a tail swing."""
+    _check("dinosaur", options, {})
+    def k(amp, axis, phase=0.0):
+        return [(f, tuple(amp * math.sin(f / 48 * 2 * math.pi * 2 + phase) if j == axis else 0.0 for j in range(3))) for f in range(0, 49, 6)]
+    bones = [
+        _tube_bone("hips", None, (0, 1.6, -0.3), (0, 1.8, 0.6), 0.55, 0.5),
+        _tube_bone("chest", "hips", (0, 1.8, 0.6), (0, 2.1, 1.3), 0.5, 0.4),
+        _tube_bone("neck", "chest", (0, 2.1, 1.3), (0, 2.7, 1.8), 0.32, 0.26, k(8, 0)),
+        _tube_bone("tail1", "hips", (0, 1.6, -0.3), (0, 1.5, -1.3), 0.45, 0.32, k(12, 1)),
+        _tube_bone("tail2", "tail1", (0, 1.5, -1.3), (0, 1.3, -2.3), 0.32, 0.2, k(12, 1, 0.5)),
+        _tube_bone("tail3", "tail2", (0, 1.3, -2.3), (0, 1.1, -3.2), 0.2, 0.08, k(12, 1, 1.0)),
+    ]
+    for side, ph in ((-1, 0.0), (1, math.pi)):
+        s = "l" if side < 0 else "r"
+        bones.append(_tube_bone(f"thigh_{s}", "hips", (0.45 * side, 1.5, 0.1), (0.55 * side, 0.8, 0.4), 0.3, 0.2, k(25, 0, ph)))
+        bones.append(_tube_bone(f"shin_{s}", f"thigh_{s}", (0.55 * side, 0.8, 0.4), (0.55 * side, 0.15, 0.1), 0.2, 0.14, k(15, 0, ph + 1.0)))
+        bones.append(_tube_bone(f"arm_{s}", "chest", (0.4 * side, 1.8, 1.2), (0.55 * side, 1.4, 1.6), 0.12, 0.08, k(20, 0, ph)))
+    balls = [{"center": [0, 2.85, 2.0], "radius": 0.55, "bone": "neck"},
+             {"center": [0, 2.7, 2.4], "radius": 0.4, "bone": "neck"},
+             {"center": [0, 1.55, 0.4], "radius": 0.8, "bone": "hips"},
+             {"center": [-0.55, 0.1, 0.3], "radius": 0.3, "bone": "shin_l"},
+             {"center": [0.55, 0.1, 0.3], "radius": 0.3, "bone": "shin_r"}]
+    return {"balls": balls, "tubes": [], "bones": bones}
+
+
+RIGGED = {"spider": spider, "dinosaur": dinosaur}

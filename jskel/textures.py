@@ -1,0 +1,56 @@
+"""Colour textures shared by the representations: loading and bilinear sampling."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+BUILTIN = ("checker", "brick", "gravel", "grass")
+
+
+def load_texture(name: str, path: str = "object.texture") -> np.ndarray:
+    """(H, W, 3) linear RGB in [0, 1] from an image file, ``checker`` (8 x 8 squares) or one of
+    scikit-image's texture photographs (``brick``, ``gravel``, ``grass``)."""
+    if name == "checker":
+        i = np.arange(64) // 8
+        c = ((i[:, None] + i[None, :]) % 2).astype(np.float64)
+        img = np.stack([0.9 * c + 0.1] * 3, -1) * np.array([1.0, 0.9, 0.75])
+        return img**2.2
+    if name in BUILTIN:
+        import skimage.data
+
+        img = np.asarray(getattr(skimage.data, name)(), np.float64)
+    else:
+        import imageio.v3 as iio
+
+        try:
+            img = np.asarray(iio.imread(name)).astype(np.float64)
+        except Exception as e:  # noqa: BLE001 - any reader failure is a bad config value
+            raise ValueError(f"{path}: cannot read image {name!r} (or name one of {', '.join(BUILTIN)}): {e}") from None
+    if img.ndim == 2:
+        img = np.stack([img] * 3, -1)
+    img = img[..., :3]
+    img = img / (255.0 if img.max() > 1.0 else 1.0)
+    return img**2.2  # sRGB-ish to linear
+
+
+def bilinear_wrap(tex, uv):
+    """Bilinear sample of (H, W, C) ``tex`` at ``uv`` (2,), both coordinates wrapping."""
+    h, w = tex.shape[0], tex.shape[1]
+    x = uv[0] * w - 0.5
+    y = uv[1] * h - 0.5
+    x0 = jnp.floor(x)
+    y0 = jnp.floor(y)
+    fx, fy = x - x0, y - y0
+    x0 = x0.astype(jnp.int32)
+    y0 = y0.astype(jnp.int32)
+
+    def at(yy, xx):
+        return tex[jnp.mod(yy, h), jnp.mod(xx, w)]
+
+    return (
+        (1 - fx) * (1 - fy) * at(y0, x0)
+        + fx * (1 - fy) * at(y0, x0 + 1)
+        + (1 - fx) * fy * at(y0 + 1, x0)
+        + fx * fy * at(y0 + 1, x0 + 1)
+    )
