@@ -18,6 +18,8 @@ from ..rays import Hit
 from ._config import ImplicitConfig as ImplicitConfig
 from ..numerics import safe_div
 from ._field import Prims as Prims
+from ._field import Shape as Shape
+from ._field import shaped_field as shaped_field
 from ._field import _dot, kernel
 from ._field import field as field
 from ._field import gradient as gradient
@@ -109,17 +111,18 @@ def primitives(cfg: ImplicitConfig, frame: float | None = None):
 
         a, b, ra, rb = MODELS[cfg.procedural](cfg.seed, dict(cfg.options))
         bone_of = -np.ones(a.shape[0], np.int64)
+        groups = [("main", f"procedural[{i}]") for i in range(a.shape[0])]
     else:
         names = [bn.name for bn in cfg.bones]
         order = bone_order(names, [bn.parent for bn in cfg.bones])
         index = {n: i for i, n in enumerate(names)}
-        items = [(bl.center, bl.center, bl.radius, bl.radius, bl.bone, f"balls[{i}]") for i, bl in enumerate(cfg.balls)]
-        items += [(t.a, t.b, t.radius_a, t.radius_b, t.bone, f"tubes[{i}]") for i, t in enumerate(cfg.tubes)]
-        items += [(bn.head, bn.tail, bn.tube[0], bn.tube[1], bn.name, f"bones[{i}].tube") for i, bn in enumerate(cfg.bones) if bn.tube is not None]
-        for *_, bone, where in items:
+        items = [(bl.center, bl.center, bl.radius, bl.radius, bl.bone, f"balls[{i}]", bl.group) for i, bl in enumerate(cfg.balls)]
+        items += [(t.a, t.b, t.radius_a, t.radius_b, t.bone, f"tubes[{i}]", t.group) for i, t in enumerate(cfg.tubes)]
+        items += [(bn.head, bn.tail, bn.tube[0], bn.tube[1], bn.name, f"bones[{i}].tube", bn.group) for i, bn in enumerate(cfg.bones) if bn.tube is not None]
+        for *_, bone, where, _g in items:
             if bone is not None and bone not in index:
                 raise ValueError(f"object.{where}.bone: unknown bone {bone!r} (bones: {', '.join(names) or 'none'})")
-        for i, (*_, where) in enumerate(items):
+        for i, (*_, where, _g) in enumerate(items):
             if items[i][2] == 0 and items[i][3] == 0:
                 raise ValueError(f"object.{where}: both radii are 0")
         a = np.array([it[0] for it in items], np.float64).reshape(-1, 3)
@@ -127,6 +130,7 @@ def primitives(cfg: ImplicitConfig, frame: float | None = None):
         ra = np.array([it[2] for it in items], np.float64)
         rb = np.array([it[3] for it in items], np.float64)
         bone_of = np.array([-1 if it[4] is None else index[it[4]] for it in items], np.int64)
+        groups = [(it[6], it[5]) for it in items]
         if cfg.bones:
             heads = np.array([bn.head for bn in cfg.bones], np.float64)
             tails = np.array([bn.tail for bn in cfg.bones], np.float64)
@@ -150,7 +154,30 @@ def primitives(cfg: ImplicitConfig, frame: float | None = None):
         Sinv = np.linalg.inv(S)
         M = S @ rig[3] @ Sinv  # the same rigid motions, in scaled world units
         rig = (rig[0] * cfg.scale + off, rig[1] * cfg.scale + off, rig[2] * cfg.scale, M)
-    return a, b, ra, rb, rig
+    return a, b, ra, rb, rig, groups
+
+
+def csg_shape(cfg: ImplicitConfig, groups) -> tuple[Shape, np.ndarray]:
+    """Static CSG tree over group indices, and each primitive's group index."""
+    disp = "none" if cfg.displace is None else cfg.displace.type
+    if cfg.csg is None:
+        return Shape(("group", 0), 1, disp), np.zeros(len(groups), np.int32)
+    names: list[str] = []
+
+    def conv(node):
+        if node.op == "group":
+            if node.group not in names:
+                names.append(node.group)
+            return ("group", names.index(node.group))
+        return (node.op, conv(node.children[0]), conv(node.children[1]))
+
+    tree = conv(cfg.csg)
+    gid = []
+    for g, where in groups:
+        if g not in names:
+            raise ValueError(f"object.{where}.group: group {g!r} is not in object.csg (groups there: {', '.join(names)})")
+        gid.append(names.index(g))
+    return Shape(tree, len(names), disp), np.asarray(gid, np.int32)
 
 
 def _unit(v, path):
@@ -165,7 +192,8 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     """Validate, pose at ``cfg.frame``, pad to a power of two (>= 8) so similar models share a
     compile, cast. Every frame of an animation has the same shapes: one compile."""
     cfg = expand(cfg)
-    a, b, ra, rb, rig = primitives(cfg)
+    a, b, ra, rb, rig, groups = primitives(cfg)
+    shape, gid = csg_shape(cfg, groups)
     nb = len(cfg.balls) if cfg.procedural is None else 0
     if cfg.method == "lipschitz":
         for i in np.nonzero(np.minimum(ra, rb) <= 0)[0]:
@@ -181,13 +209,16 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
         jnp.asarray(_pad(a, n), dtype), jnp.asarray(_pad(b, n), dtype),
         jnp.asarray(_pad(ra, n), dtype), jnp.asarray(_pad(rb, n), dtype),
         jnp.asarray(np.arange(n) < p),
+        jnp.asarray(_pad(gid, n, 0)),
     )
     rmax = np.maximum(ra, rb)[:, None]
     lo = np.min(np.minimum(a, b) - rmax, 0)
     hi = np.max(np.maximum(a, b) + rmax, 0)
     anchor = 0.5 * (lo + hi)
     prims = prims._replace(a=prims.a - jnp.asarray(anchor, dtype), b=prims.b - jnp.asarray(anchor, dtype))
-    tune = Tuning(jnp.asarray(cfg.threshold, dtype), jnp.asarray(cfg.step, dtype), jnp.asarray(cfg.eps, dtype))
+    amp, freq = (0.0, 1.0) if cfg.displace is None else (cfg.displace.amplitude, cfg.displace.frequency)
+    tune = Tuning(jnp.asarray(cfg.threshold, dtype), jnp.asarray(cfg.step, dtype), jnp.asarray(cfg.eps, dtype),
+                  jnp.asarray(amp, dtype), jnp.asarray(freq, dtype))
     if rig is None:  # one static "bone" with the identity map
         heads, tails, infl, M = np.zeros((1, 3)) + anchor, np.zeros((1, 3)) + anchor + [0, 1, 0], np.ones(1), np.eye(4)[None]
     else:
@@ -212,7 +243,7 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     else:
         tex = np.ones((1, 1, 3))
     scene = ImplicitScene(prims, tune, jnp.asarray(cfg.color, dtype), skin, proj, jnp.asarray(tex, dtype))
-    q = Quality(cfg.method, cfg.steps, cfg.bisection, cfg.capacity, cfg.early_exit)
+    q = Quality(cfg.method, cfg.steps, cfg.bisection, cfg.capacity, cfg.early_exit, shape)
     static = Static(q, None if pc is None else pc.type, cfg.texture is not None)
     info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_estimate": fmax}
     return Built(scene, static, anchor, (lo, hi), info)
@@ -223,7 +254,7 @@ def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min
     q = static.quality
     cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity)
     t, flags = trace_one(cand, scene.tune, origin, direction, t_min, t_max, q)
-    pos, n, prim = surface_one(cand, origin, direction, t)
+    pos, n, prim = surface_one(cand, scene.tune, origin, direction, t, q)
     hit = jnp.isfinite(t)
     inf = jnp.asarray(jnp.inf, origin.dtype)
     uv = project(scene.projector, rest_position(scene.skin, pos), static.projector) if static.projector else jnp.zeros((2,), origin.dtype)
@@ -279,7 +310,9 @@ def albedo(scene: ImplicitScene, static: Static, hit: Hit):
 
 
 def inside(scene: ImplicitScene, static: Static, point):
-    return field(scene.prims, point) > scene.tune.threshold
+    """F > T at ``point`` (3,), relative to the anchor (CSG and displacement included)."""
+    tn = scene.tune
+    return shaped_field(scene.prims, point, static.quality.shape, tn.threshold, tn.amp, tn.freq) > tn.threshold
 
 
 class _Implicit:

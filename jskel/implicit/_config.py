@@ -18,6 +18,7 @@ class BallConfig(StrictModel):
     center: Vec3
     radius: Pos
     bone: str | None = None
+    group: str = "main"
 
 
 class TubeConfig(StrictModel):
@@ -28,6 +29,7 @@ class TubeConfig(StrictModel):
     radius_a: Annotated[float, Field(ge=0.0)]
     radius_b: Annotated[float, Field(ge=0.0)]
     bone: str | None = None
+    group: str = "main"
 
     @model_validator(mode="after")
     def _not_both_zero(self):
@@ -55,6 +57,7 @@ class BoneConfig(StrictModel):
     tube: tuple[Annotated[float, Field(ge=0.0)], Annotated[float, Field(ge=0.0)]] | None = None
     influence: Pos | None = None
     keys: list[KeyConfig] = []
+    group: str = "main"
 
 
 class ProjectorConfig(StrictModel):
@@ -67,6 +70,35 @@ class ProjectorConfig(StrictModel):
     axis: Vec3 = (0.0, 1.0, 0.0)
     up: Vec3 = (0.0, 0.0, 1.0)
     scale: tuple[Pos, Pos] = (1.0, 1.0)
+
+
+class CSGNode(StrictModel):
+    """A node of the CSG tree over primitive groups (the thesis' future work, after Wyvill's
+    BlobTree): ``{group: name}`` is a leaf (the blended sum of that group's primitives); an
+    operation has ``op`` sum (blend), max (union), min (intersection) or diff (a minus b) and two
+    ``children``."""
+
+    op: Literal["group", "sum", "max", "min", "diff"] = "group"
+    group: str | None = None
+    children: list["CSGNode"] = []
+
+    @model_validator(mode="after")
+    def _shape(self):
+        if self.op == "group":
+            if self.group is None or self.children:
+                raise ValueError("a leaf names a 'group' and has no children")
+        elif len(self.children) != 2 or self.group is not None:
+            raise ValueError(f"operation {self.op!r} needs exactly two children and no 'group'")
+        return self
+
+
+class DisplaceConfig(StrictModel):
+    """Displacement (Sec. 6.2): F (1 + amplitude * noise(frequency * x)), a 3D value noise; the
+    Lipschitz tracer's bound grows to keep its guarantee."""
+
+    type: Literal["noise"] = "noise"
+    amplitude: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.2
+    frequency: Pos = 4.0
 
 
 class ImplicitConfig(StrictModel):
@@ -93,6 +125,8 @@ class ImplicitConfig(StrictModel):
     frame: float = 0.0
     texture: str | None = None
     projector: ProjectorConfig | None = None
+    csg: CSGNode | None = None
+    displace: DisplaceConfig | None = None
 
     @model_validator(mode="after")
     def _has_primitives(self):

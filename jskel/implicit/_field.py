@@ -31,6 +31,21 @@ class Prims(NamedTuple):
     ra: jnp.ndarray
     rb: jnp.ndarray
     valid: jnp.ndarray
+    group: jnp.ndarray  # (P,) int32 CSG group of each primitive (0 without CSG)
+
+
+class Shape(NamedTuple):
+    """Static description of how primitive fields combine (hashable).
+
+    tree: a CSG tree of tuples: ("group", k) a leaf (the sum of group k's kernels, Sec. 3), or
+      (op, left, right) with op "sum" (blend), "max" (union), "min" (intersection) or "diff"
+      (left minus right: min(F_l, 2T - F_r), inside iff inside left and outside right).
+    groups: number of groups. displace: "none" or "noise" (Sec. 6.2, a 3D value noise).
+    """
+
+    tree: tuple = ("group", 0)
+    groups: int = 1
+    displace: str = "none"
 
 
 def _dot(u, v):
@@ -57,14 +72,90 @@ def kernel(r2, R):
 
 
 def field(prims: Prims, x):
-    """F(x): the sum of every primitive's kernel at x (3,)."""
+    """F(x): the sum of every primitive's kernel at x (3,) (Sec. 3), ignoring CSG groups."""
     r2, R = closest(prims, x)
     return jnp.sum(jnp.where(prims.valid, kernel(r2, R), 0.0))
+
+
+def _hash3(i, j, k):
+    """A value in [-1, 1] per integer lattice point (32-bit integer hash, no float tricks)."""
+    h = (i.astype(jnp.uint32) * jnp.uint32(73856093)) ^ (j.astype(jnp.uint32) * jnp.uint32(19349663)) ^ (k.astype(jnp.uint32) * jnp.uint32(83492791))
+    h = h ^ (h >> 13)
+    h = h * jnp.uint32(0x5BD1E995)
+    h = h ^ (h >> 15)
+    return (h & jnp.uint32(0xFFFF)).astype(jnp.float32) / 32767.5 - 1.0
+
+
+def value_noise(x, freq):
+    """Smooth 3D value noise in [-1, 1]: lattice values trilinearly blended with smoothstep
+    weights. |grad| <= sqrt(3) * 1.5 * 2 * freq (smoothstep' <= 1.5, lattice range 2)."""
+    p = x * freq
+    p0 = jnp.floor(p)
+    f = p - p0
+    w = f * f * (3.0 - 2.0 * f)
+    i0 = p0.astype(jnp.int32)
+    acc = 0.0
+    for dx in (0, 1):  # 8 corners: a static unrolled loop, not over rays
+        for dy in (0, 1):
+            for dz in (0, 1):
+                v = _hash3(i0[0] + dx, i0[1] + dy, i0[2] + dz).astype(x.dtype)
+                wx = w[0] if dx else 1.0 - w[0]
+                wy = w[1] if dy else 1.0 - w[1]
+                wz = w[2] if dz else 1.0 - w[2]
+                acc = acc + v * wx * wy * wz
+    return acc
+
+
+NOISE_SLOPE = 3.0 * 1.7320508075688772  # sqrt(3) * 1.5 * 2, per unit frequency
+
+
+def combine(tree, groups_f, threshold):
+    """Evaluate a static CSG tree over per-group fields (G,)."""
+    op = tree[0]
+    if op == "group":
+        return groups_f[tree[1]]
+    left = combine(tree[1], groups_f, threshold)
+    right = combine(tree[2], groups_f, threshold)
+    if op == "sum":
+        return left + right
+    if op == "max":
+        return jnp.maximum(left, right)
+    if op == "min":
+        return jnp.minimum(left, right)
+    if op == "diff":
+        return jnp.minimum(left, 2.0 * threshold - right)
+    raise ValueError(f"object.csg: unknown operation {op!r}")  # pragma: no cover - validated
+
+
+def shaped_field(prims: Prims, x, shape: Shape, threshold, amp, freq):
+    """The model's field at x: kernels summed per group, the CSG tree, then the displacement
+    F (1 + amp * noise(x)) (Sec. 6.2; it vanishes wherever F does, so supports are unchanged)."""
+    r2, R = closest(prims, x)
+    vals = jnp.where(prims.valid, kernel(r2, R), 0.0)
+    if shape.groups == 1 and shape.tree == ("group", 0):
+        f = jnp.sum(vals)
+    else:
+        g = jnp.zeros((shape.groups,), x.dtype).at[prims.group].add(vals)
+        f = combine(shape.tree, g, threshold)
+    if shape.displace == "noise":
+        f = f * (1.0 + amp * value_noise(x, freq))
+    return f
 
 
 def gradient(prims: Prims, x):
     """dF/dx by ``jax.grad`` (Sec. 4: normals from the derivative of the field)."""
     return jax.grad(field, argnums=1)(prims, x)
+
+
+def lipschitz_total(prims: Prims, shape: Shape, amp, freq):
+    """A bound on |grad| of :func:`shaped_field` over the primitives given: the sum of the
+    per-primitive bounds holds for sum, max, min and 2T - F; the displacement multiplies it by
+    (1 + amp) and adds amp * |grad noise| * max|F| with max|F| <= the number of primitives."""
+    base = jnp.sum(lipschitz(prims))
+    if shape.displace == "noise":
+        n = jnp.sum(prims.valid.astype(base.dtype))
+        return base * (1.0 + amp) + amp * NOISE_SLOPE * freq * n
+    return base
 
 
 def lipschitz(prims: Prims):

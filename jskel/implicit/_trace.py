@@ -18,7 +18,8 @@ Methods (``Quality.method``):
   into the first sphere of influence the outside end. Fast, but it misses the Figure 7 case and
   may bracket a later crossing (Sec. 4.2.2).
 * ``lipschitz`` (guaranteed; not in the thesis): |F(x) - F(y)| <= L |x - y| with L the sum over
-  the candidates of each kernel's steepest slope (``_field.lipschitz``). From an outside point
+  the candidates of each kernel's steepest slope (``_field.lipschitz``), which also bounds the
+  CSG combinations, and grown for a displacement (``_field.lipschitz_total``). From an outside point
   with F < T no root lies closer than (T - F) / (L |d|) in t, so the march steps by that
   distance, but at least ``eps``. Guarantee: if the ray has no candidate overflow and does not
   exhaust ``steps`` (flag ``STEP_CAP``), the first interval of the ray inside the surface that is
@@ -36,7 +37,7 @@ import jax.numpy as jnp
 from ..numerics import safe_div, safe_normalize
 from ..rays import FLAG_OVERFLOW as OVERFLOW
 from ..rays import FLAG_STEP_CAP as STEP_CAP
-from ._field import Prims, _dot, closest, field, kernel, lipschitz
+from ._field import Prims, Shape, _dot, closest, kernel, lipschitz_total, shaped_field
 
 
 class Quality(NamedTuple):
@@ -47,14 +48,18 @@ class Quality(NamedTuple):
     bisection: int = 12
     capacity: int = 32  # candidate list per ray
     early_exit: bool = True
+    shape: Shape = Shape()
 
 
 class Tuning(NamedTuple):
-    """Traced knobs: threshold T, naive step length, Lipschitz minimum step (world units)."""
+    """Traced knobs: threshold T, naive step length, Lipschitz minimum step (world units),
+    displacement amplitude and noise frequency."""
 
     threshold: jnp.ndarray
     step: jnp.ndarray
     eps: jnp.ndarray
+    amp: jnp.ndarray
+    freq: jnp.ndarray
 
 
 def influence_spheres(prims: Prims):
@@ -140,7 +145,7 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
     T = tune.threshold
 
     def g(t):
-        return field(sub, o + t * d) - T
+        return shaped_field(sub, o + t * d, q.shape, T, tune.amp, tune.freq) - T
 
     flags = jnp.where(overflow, OVERFLOW, 0)
     if q.method == "bisection":
@@ -157,7 +162,7 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
         def advance(t, gv):
             return t + tune.step
     elif q.method == "lipschitz":
-        L = jnp.sum(lipschitz(sub)) * jnp.sqrt(_dot(d, d))
+        L = lipschitz_total(sub, q.shape, tune.amp, tune.freq) * jnp.sqrt(_dot(d, d))
 
         def advance(t, gv):
             return t + jnp.maximum(safe_div(-gv, L, 0.0), tune.eps)
@@ -192,12 +197,13 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
     return jnp.where(found, t_hit, inf), flags
 
 
-def surface_one(cand: Candidates, o, d, t):
-    """Position, outward unit normal -grad F / |grad F| (``jax.grad`` over the candidates, which
-    are every primitive non-zero on the ray), and the id of the primitive contributing most."""
+def surface_one(cand: Candidates, tune: Tuning, o, d, t, q: Quality):
+    """Position, outward unit normal -grad F / |grad F| (``jax.grad`` of the shaped field over
+    the candidates, which are every primitive non-zero on the ray; CSG and displacement
+    included), and the id of the primitive contributing most."""
     hit = jnp.isfinite(t)
     x = o + jnp.where(hit, t, 0.0) * d
-    grad = jax.grad(lambda y: field(cand.sub, y))(x)
+    grad = jax.grad(lambda y: shaped_field(cand.sub, y, q.shape, tune.threshold, tune.amp, tune.freq))(x)
     n = safe_normalize(-grad)
     r2, R = closest(cand.sub, x)
     contrib = jnp.where(cand.sub.valid, kernel(r2, R), -1.0)
