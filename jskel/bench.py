@@ -93,7 +93,7 @@ def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
     r = first.run
     row = {
         "scene": exp.name,
-        "segments": r["info"].get("segments"),
+        "primitives": r["info"].get("segments", r["info"].get("primitives")),
         "width": exp.camera.width,
         "height": exp.camera.height,
         "rays": r["rays"],

@@ -48,3 +48,7 @@ class Representation(Protocol):
 
     #: inside(params, static, point (3,)) -> bool
     inside: Callable
+
+    # Optional: intersect_batch(params, static, rays) -> Hit (leading ray axis), equal to
+    # vmap(intersect_one) but free to skip work at the batch level (block culling, compaction
+    # of (ray, primitive) pairs). The renderer uses it when present.

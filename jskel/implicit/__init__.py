@@ -69,12 +69,14 @@ def _pad(x, n, fill=0.0):
 
 
 def _max_field_estimate(a, b, ra, rb) -> float:
-    """max F over the skeleton (host, float64): F at 9 points along every primitive."""
+    """max F over the skeleton (host, float64): F at every ball's centre and 9 points along
+    every tube (a lower bound of the true maximum, used to reject T >= max F)."""
     s = np.linspace(0, 1, 9)
-    pts = (a[:, None, :] + s[None, :, None] * (b - a)[:, None, :]).reshape(-1, 3)
+    ball = np.all(a == b, axis=1)
+    pts = np.concatenate([a[ball], (a[~ball][:, None, :] + s[None, :, None] * (b - a)[~ball][:, None, :]).reshape(-1, 3)])
     best = 0.0
-    for i in range(0, pts.shape[0], 2048):
-        x = pts[i : i + 2048]
+    for i in range(0, pts.shape[0], 256):
+        x = pts[i : i + 256]
         ab = b - a
         ax = x[:, None, :] - a[None]
         den = np.sum(ab * ab, -1)
