@@ -57,9 +57,9 @@ def two_balls(op, **kw):
 @pytest.mark.parametrize("op", ["sum", "max", "min", "diff"])
 def test_csg_operations_against_numpy(op):
     rng = np.random.default_rng(11)
-    O, D = ref.random_rays(rng, [-1.2, -1.2, -1.2], [1.4, 1.2, 1.2], 6000, spread=1.0)
+    O, D = ref.random_rays(rng, [-1.2, -1.2, -1.2], [1.4, 1.2, 1.2], 3000, spread=1.0)
     O = O - 3.0 * D  # start well outside
-    t_ref, margin = np_first_root(lambda x: np_csg(op, x), O, D, 0.0, 12.0, 6000)
+    t_ref, margin = np_first_root(lambda x: np_csg(op, x), O, D, 0.0, 12.0, 2400)
     hit = cast(implicit.build(two_balls(op)), O, D)
     assert np.all(hit.flags == 0) and np.all(np.isfinite(hit.normal))
     clear = margin > 0.005
@@ -94,10 +94,10 @@ def _np_noise(x, freq):
 def test_displacement_keeps_the_lipschitz_guarantee():
     amp, freq = 0.4, 6.0
     rng = np.random.default_rng(12)
-    O, D = ref.random_rays(rng, [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], 4000, spread=0.9)
+    O, D = ref.random_rays(rng, [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], 2000, spread=0.9)
     O = O - 2.0 * D
     F = lambda x: _f(x, *A) * (1 + amp * _np_noise(x, freq))  # noqa: E731
-    t_ref, margin = np_first_root(F, O, D, 0.0, 10.0, 8000)
+    t_ref, margin = np_first_root(F, O, D, 0.0, 10.0, 4000)
     cfg = implicit.ImplicitConfig.model_validate({"type": "implicit", "threshold": T, "method": "lipschitz", "eps": 5e-4,
         "steps": 8192, "balls": [{"center": list(A[0]), "radius": A[1]}], "displace": {"amplitude": amp, "frequency": freq}})
     hit = cast(implicit.build(cfg), O, D)
