@@ -32,14 +32,62 @@ class BenchFile(StrictModel):
     sweep: dict[str, list[Any]] | list[dict[str, Any]] | None = None  # a grid, or explicit settings
     reference: list[str] = []
     metric: str = "depth_rmse"
-    peer: Literal["embree_mesh"] | None = None
-    peer_levels: list[Annotated[int, Field(ge=0, le=10)]] = [0, 1, 2, 3, 4, 5]
+    peer: Literal["embree_mesh", "marching_cubes"] | None = None
+    peer_levels: list[Annotated[int, Field(ge=0, le=4096)]] = [0, 1, 2, 3, 4, 5]
     peer_match: dict[str, Any] | None = None
 
 
 class _Depth(NamedTuple):
     t: Any
     normal: Any = None
+
+
+def _match_target(bench, rows):
+    if bench.peer_match is None:
+        return None
+    target = None
+    for r in rows:
+        if all(r.get("setting", {}).get(k) == v for k, v in bench.peer_match.items()):
+            target = r
+    return target
+
+
+def peer_marching_cubes(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[dict]):
+    """Implicit models polygonised by marching cubes at ``peer_levels`` (grid cells along the
+    longest side) and cast by Embree, against the same reference."""
+    import time
+
+    from .implicit import expand, primitives
+    from .metrics import compare
+    from .peers.implicit_mesh import marching_cubes_mesh
+    from .peers.relief_mesh import embree_cast
+    from .render import camera_of
+
+    cfg = expand(obj)
+    a, b, ra, rb, _, _ = primitives(cfg)
+    O, D = camera_of(exp).ray_arrays()
+    target = _match_target(bench, rows)
+    out = []
+    for n in bench.peer_levels:
+        t0 = time.perf_counter()
+        try:
+            V, F = marching_cubes_mesh(a, b, ra, rb, cfg.threshold, n)
+        except ValueError as e:  # e.g. a grid too coarse to contain the level set
+            out.append({"peer": "marching_cubes+embree", "scene": exp.name, "grid": n, "error": str(e)})
+            continue
+        mesh_s = time.perf_counter() - t0
+        t, build_s, med = embree_cast(V, F, O, D, runs)
+        row = {"peer": "marching_cubes+embree", "scene": exp.name, "grid": n, "vertices": int(V.shape[0]),
+               "triangles": int(F.shape[0]), "mesh_bytes": int(V.shape[0] * 12 + F.shape[0] * 12),
+               "polygonise_s": round(mesh_s, 4), "build_s": round(build_s, 4), "render_s_median": round(med, 4),
+               "runs": runs, "rays": int(O.shape[0])}
+        row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(_Depth(t), ref_hits).items()})
+        if target is not None:
+            row["matches_jskel_setting"] = bool(row["depth_rmse"] is not None and row["depth_rmse"] <= target["depth_rmse"]
+                                                and row["hit_miss_pct"] <= target["hit_miss_pct"])
+            row["jskel_setting"] = target["setting"]
+        out.append(row)
+    return out
 
 
 def peer_embree_mesh(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[dict]):

@@ -139,9 +139,10 @@ def cmd_bench(args) -> int:
             print(json.dumps(row), flush=True)
             group_rows.append(row)
         if bench.peer is not None and ref_job is not None:
-            from .bench import peer_embree_mesh
+            from .bench import peer_embree_mesh, peer_marching_cubes
 
-            for row in peer_embree_mesh(bench, *ref_job, ref_hits, runs, group_rows):
+            peer_fn = {"embree_mesh": peer_embree_mesh, "marching_cubes": peer_marching_cubes}[bench.peer]
+            for row in peer_fn(bench, *ref_job, ref_hits, runs, group_rows):
                 print(json.dumps(row), flush=True)
                 group_rows.append(row)
         rows += group_rows

@@ -93,12 +93,25 @@ class CSGNode(StrictModel):
 
 
 class DisplaceConfig(StrictModel):
-    """Displacement (Sec. 6.2): F (1 + amplitude * noise(frequency * x)), a 3D value noise; the
-    Lipschitz tracer's bound grows to keep its guarantee."""
+    """Displacement (Sec. 6.2): F (1 + amplitude * n(x)), n in [-1, 1] either a 3D value noise
+    of ``frequency`` or 2 h(uv) - 1 of a height ``map`` (an image file or brick/gravel/grass/
+    checker) through a planar ``projector`` (Fig. 14). The Lipschitz tracer's bound grows to keep
+    its guarantee (so only planar projection, whose uv gradient is bounded, is accepted)."""
 
-    type: Literal["noise"] = "noise"
+    type: Literal["noise", "image"] = "noise"
     amplitude: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.2
     frequency: Pos = 4.0
+    map: str | None = None
+    projector: ProjectorConfig | None = None
+
+    @model_validator(mode="after")
+    def _image_needs_map(self):
+        if self.type == "image":
+            if self.map is None or self.projector is None:
+                raise ValueError("an image displacement needs a 'map' and a planar 'projector'")
+            if self.projector.type != "planar":
+                raise ValueError(f"an image displacement needs a planar projector (got {self.projector.type!r}): its uv gradient is bounded")
+        return self
 
 
 class ImplicitConfig(StrictModel):

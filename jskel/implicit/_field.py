@@ -45,7 +45,22 @@ class Shape(NamedTuple):
 
     tree: tuple = ("group", 0)
     groups: int = 1
-    displace: str = "none"
+    displace: str = "none"  # none | noise | image
+
+
+class Displace(NamedTuple):
+    """Traced displacement parameters (Sec. 6.2). ``noise``: amplitude and frequency of the 3D
+    value noise. ``image``: a height map (H, W) in [0, 1] through a planar projector (origin,
+    unit side and up axes, scale), and ``grad``, a bound on |grad (h o uv)| (per world unit)."""
+
+    amp: jnp.ndarray
+    freq: jnp.ndarray
+    height: jnp.ndarray
+    origin: jnp.ndarray
+    side: jnp.ndarray
+    up: jnp.ndarray
+    scale: jnp.ndarray
+    grad: jnp.ndarray
 
 
 def _dot(u, v):
@@ -127,9 +142,30 @@ def combine(tree, groups_f, threshold):
     raise ValueError(f"object.csg: unknown operation {op!r}")  # pragma: no cover - validated
 
 
-def shaped_field(prims: Prims, x, shape: Shape, threshold, amp, freq):
+def _bilinear1(img, uu, vv):
+    h, w = img.shape
+    x = uu * w - 0.5
+    y = vv * h - 0.5
+    x0, y0 = jnp.floor(x), jnp.floor(y)
+    fx, fy = x - x0, y - y0
+    i, j = x0.astype(jnp.int32), y0.astype(jnp.int32)
+    g = lambda yy, xx: img[jnp.mod(yy, h), jnp.mod(xx, w)]  # noqa: E731
+    return (1 - fx) * (1 - fy) * g(j, i) + fx * (1 - fy) * g(j, i + 1) + (1 - fx) * fy * g(j + 1, i) + fx * fy * g(j + 1, i + 1)
+
+
+def displacement(x, shape: Shape, disp: Displace):
+    """The signed perturbation in [-1, 1] at x: the noise, or 2 h(uv) - 1 of a planar-projected
+    height map (both wrap)."""
+    if shape.displace == "noise":
+        return value_noise(x, disp.freq)
+    p = x - disp.origin
+    return 2.0 * _bilinear1(disp.height, _dot(p, disp.side) * disp.scale[0], _dot(p, disp.up) * disp.scale[1]) - 1.0
+
+
+def shaped_field(prims: Prims, x, shape: Shape, threshold, disp: Displace):
     """The model's field at x: kernels summed per group, the CSG tree, then the displacement
-    F (1 + amp * noise(x)) (Sec. 6.2; it vanishes wherever F does, so supports are unchanged)."""
+    F (1 + amp * n(x)) with n in [-1, 1] (Sec. 6.2; it vanishes wherever F does, so supports are
+    unchanged, and amp < 1 keeps the sign of F)."""
     r2, R = closest(prims, x)
     vals = jnp.where(prims.valid, kernel(r2, R), 0.0)
     if shape.groups == 1 and shape.tree == ("group", 0):
@@ -137,8 +173,8 @@ def shaped_field(prims: Prims, x, shape: Shape, threshold, amp, freq):
     else:
         g = jnp.zeros((shape.groups,), x.dtype).at[prims.group].add(vals)
         f = combine(shape.tree, g, threshold)
-    if shape.displace == "noise":
-        f = f * (1.0 + amp * value_noise(x, freq))
+    if shape.displace != "none":
+        f = f * (1.0 + disp.amp * displacement(x, shape, disp))
     return f
 
 
@@ -147,15 +183,17 @@ def gradient(prims: Prims, x):
     return jax.grad(field, argnums=1)(prims, x)
 
 
-def lipschitz_total(prims: Prims, shape: Shape, amp, freq):
+def lipschitz_total(prims: Prims, shape: Shape, disp: Displace):
     """A bound on |grad| of :func:`shaped_field` over the primitives given: the sum of the
-    per-primitive bounds holds for sum, max, min and 2T - F; the displacement multiplies it by
-    (1 + amp) and adds amp * |grad noise| * max|F| with max|F| <= the number of primitives."""
+    per-primitive bounds holds for sum, max, min and 2T - F; a displacement multiplies it by
+    (1 + amp) and adds amp * |grad n| * max|F| with max|F| <= the number of primitives and
+    |grad n| <= NOISE_SLOPE * freq (noise) or 2 * ``disp.grad`` (image)."""
     base = jnp.sum(lipschitz(prims))
-    if shape.displace == "noise":
-        n = jnp.sum(prims.valid.astype(base.dtype))
-        return base * (1.0 + amp) + amp * NOISE_SLOPE * freq * n
-    return base
+    if shape.displace == "none":
+        return base
+    n = jnp.sum(prims.valid.astype(base.dtype))
+    slope = NOISE_SLOPE * disp.freq if shape.displace == "noise" else 2.0 * disp.grad
+    return base * (1.0 + disp.amp) + disp.amp * slope * n
 
 
 def lipschitz(prims: Prims):

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 from ..numerics import safe_div, safe_normalize
 from ..rays import FLAG_OVERFLOW as OVERFLOW
 from ..rays import FLAG_STEP_CAP as STEP_CAP
-from ._field import Prims, Shape, _dot, closest, kernel, lipschitz_total, shaped_field
+from ._field import Displace, Prims, Shape, _dot, closest, kernel, lipschitz_total, shaped_field
 
 
 class Quality(NamedTuple):
@@ -52,14 +52,13 @@ class Quality(NamedTuple):
 
 
 class Tuning(NamedTuple):
-    """Traced knobs: threshold T, naive step length, Lipschitz minimum step (world units),
-    displacement amplitude and noise frequency."""
+    """Traced knobs: threshold T, naive step length, Lipschitz minimum step (world units), and
+    the displacement's parameters."""
 
     threshold: jnp.ndarray
     step: jnp.ndarray
     eps: jnp.ndarray
-    amp: jnp.ndarray
-    freq: jnp.ndarray
+    disp: Displace
 
 
 def influence_spheres(prims: Prims):
@@ -145,7 +144,7 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
     T = tune.threshold
 
     def g(t):
-        return shaped_field(sub, o + t * d, q.shape, T, tune.amp, tune.freq) - T
+        return shaped_field(sub, o + t * d, q.shape, T, tune.disp) - T
 
     flags = jnp.where(overflow, OVERFLOW, 0)
     if q.method == "bisection":
@@ -162,7 +161,7 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
         def advance(t, gv):
             return t + tune.step
     elif q.method == "lipschitz":
-        L = lipschitz_total(sub, q.shape, tune.amp, tune.freq) * jnp.sqrt(_dot(d, d))
+        L = lipschitz_total(sub, q.shape, tune.disp) * jnp.sqrt(_dot(d, d))
 
         def advance(t, gv):
             return t + jnp.maximum(safe_div(-gv, L, 0.0), tune.eps)
@@ -203,7 +202,7 @@ def surface_one(cand: Candidates, tune: Tuning, o, d, t, q: Quality):
     included), and the id of the primitive contributing most."""
     hit = jnp.isfinite(t)
     x = o + jnp.where(hit, t, 0.0) * d
-    grad = jax.grad(lambda y: shaped_field(cand.sub, y, q.shape, tune.threshold, tune.amp, tune.freq))(x)
+    grad = jax.grad(lambda y: shaped_field(cand.sub, y, q.shape, tune.threshold, tune.disp))(x)
     n = safe_normalize(-grad)
     r2, R = closest(cand.sub, x)
     contrib = jnp.where(cand.sub.valid, kernel(r2, R), -1.0)

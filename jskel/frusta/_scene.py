@@ -1,0 +1,356 @@
+"""Scene-level API of the frusta representation (re-exported by ``jskel.frusta``)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..interface import Built
+from ..rays import Hit, Rays
+from ..textures import bilinear_wrap, load_texture
+from ._build import FrustaArrays as FrustaArrays
+from ._build import build_frusta as build_frusta
+from ._build import cutting_planes as cutting_planes
+from ._build import minor_semi_axis as minor_semi_axis
+from ._config import FrustaConfig as FrustaConfig
+from ._config import SkeletonConfig as SkeletonConfig
+from ._intersect import FrustaParams as FrustaParams
+from ._intersect import Quality as Quality
+from ._intersect import inside_one as _inside_one
+from ._intersect import _finish, _segment_t, nearest_batch, nearest_batch_compact, nearest_one
+from ._relief import ReliefMaps as ReliefMaps
+from ._relief import ReliefQuality as ReliefQuality
+from ._relief import enters_shell, make_relief_finish, make_relief_t
+from ._skeleton import topology as topology
+from ._skeleton import validate_skeleton as validate_skeleton
+
+_SIDE_BRANCH_COLOR_PATH = "object.skeleton.colors"
+
+
+class Group(NamedTuple):
+    """Segments cast the same way, padded to blocks, with a bounding sphere per block."""
+
+    frusta: FrustaParams
+    block_c: jnp.ndarray  # (B,3) bounding sphere centre of each block of segments
+    block_r: jnp.ndarray  # (B,) its radius
+
+
+class FrustaScene(NamedTuple):
+    """Device pytree: plain and relief segments (either may be None) plus shading inputs.
+
+    Segments with relief are split from plain ones at build time, so each ray batch runs the
+    analytic test only over plain segments and the relief march only over relief segments:
+    compaction at build time instead of masking per segment under vmap.
+    """
+
+    plain: Group | None
+    relief: Group | None
+    maps: ReliefMaps | None
+    colors: jnp.ndarray  # (S, 3) linear RGB per segment id
+    texture: jnp.ndarray  # (H, W, 3) linear RGB, (1, 1, 3) when unused
+    tex_scale: jnp.ndarray  # (2,) repeats of the texture per unit u and v
+
+
+class Static(NamedTuple):
+    quality: Quality  # normals and the plain group's block size
+    has_texture: bool
+    relief: ReliefQuality | None = None
+    relief_block: int = 8
+
+
+def _pad(a: np.ndarray, n: int, fill) -> np.ndarray:
+    pad = n - a.shape[0]
+    if pad == 0:
+        return a
+    tail = np.broadcast_to(np.asarray(fill, a.dtype), (pad,) + a.shape[1:])
+    return np.concatenate([a, tail], axis=0)
+
+
+def to_params(arr: FrustaArrays, anchor: np.ndarray, block: int, dtype=np.float32, ids=None, shell=None) -> FrustaParams:
+    """Cast host arrays (the rows ``ids``) to a padded device ``FrustaParams`` relative to ``anchor``."""
+    ids = np.arange(arr.h.shape[0]) if ids is None else np.asarray(ids)
+    s = ids.shape[0]
+    n = max(-(-s // block) * block, block)
+    fields = {k: np.asarray(v)[ids] for k, v in arr._asdict().items()}
+    fields["c1"] = fields["c1"] - anchor[None, :]
+    fields["shell"] = np.zeros(s) if shell is None else np.asarray(shell, np.float64)[ids]
+    out = {}
+    for k, v in fields.items():
+        fill = {"m": (0.0, 1.0, 0.0), "u": (1.0, 0.0, 0.0), "w": (0.0, 0.0, 1.0), "h": 1.0, "nb": (0.0, 1.0, 0.0), "nt": (0.0, 1.0, 0.0), "dt": 1.0}.get(k, 0)
+        v = _pad(np.asarray(v), n, fill)
+        out[k] = jnp.asarray(v, dtype=jnp.bool_ if v.dtype == bool else dtype)
+    out["valid"] = jnp.asarray(np.arange(n) < s)
+    out["sid"] = jnp.asarray(_pad(ids.astype(np.int32), n, -1))
+    return FrustaParams(**out)
+
+
+def _block_size(cfg_block: int, count: int) -> int:
+    """A small group gets a smaller block, so a well of 8 segments is not padded to 64."""
+    return int(min(cfg_block, max(8, 1 << int(np.ceil(np.log2(max(count, 1)))))))
+
+
+def make_group(arr: FrustaArrays, ids, anchor, cfg_block: int, dtype, shell=None) -> tuple[Group, int]:
+    block = _block_size(cfg_block, len(ids))
+    params = to_params(arr, anchor, block, dtype, ids, shell)
+    sub = FrustaArrays(*(np.asarray(v)[ids] for v in arr))
+    if shell is not None:  # bound the outer frusta of the shell
+        t = np.asarray(shell)[ids]
+        sub = sub._replace(r1=sub.r1 + t, r2=sub.r2 + t)
+    bc, br = block_spheres(sub, anchor, block)
+    if bc.shape[0] == 0:
+        bc, br = np.zeros((1, 3)), np.full(1, -1.0)
+    return Group(params, jnp.asarray(bc, dtype), jnp.asarray(br, dtype)), block
+
+
+def rim_points(arr: FrustaArrays, n_ang: int = 64) -> np.ndarray:
+    """(S, 2*n_ang, 3) points where generators meet the two cutting planes (host, float64).
+
+    The clipped frustum is the convex hull of its two elliptical cuts, so bounds of these points
+    (grown by the chord sag 1 - cos(pi / n_ang)) bound the frustum (Sec. 2.6 uses pyramids).
+    """
+    ang = np.linspace(0, 2 * np.pi, n_ang, endpoint=False)
+    rad = np.cos(ang)[None, :, None] * arr.u[:, None, :] + np.sin(ang)[None, :, None] * arr.w[:, None, :]
+    k = (arr.r2 - arr.r1) / arr.h
+    base = arr.c1[:, None, :] + arr.r1[:, None, None] * rad
+    dirn = arr.m[:, None, :] + k[:, None, None] * rad
+    out = []
+    for n, dist in ((arr.nb, arr.db), (arr.nt, arr.dt)):
+        den = np.einsum("sk,sak->sa", n, dirn)
+        y = (dist[:, None] - np.einsum("sk,sak->sa", n, base - arr.c1[:, None, :])) / np.where(den == 0, 1.0, den)
+        out.append(base + y[..., None] * dirn)
+    return np.concatenate(out, axis=1)
+
+
+def block_spheres(arr: FrustaArrays, anchor: np.ndarray, block: int):
+    """Bounding sphere (centre relative to anchor, radius) of each block of segments."""
+    pts = rim_points(arr) - anchor
+    s = pts.shape[0]
+    n = -(-s // block) * block
+    sag = 1.0 - np.cos(np.pi / 64)
+    rmax = np.maximum(arr.r1, arr.r2)
+    cs, rs = [], []
+    for i in range(0, n, block):  # host loop over blocks at build time
+        p = pts[i : i + block].reshape(-1, 3)
+        if p.shape[0] == 0:
+            cs.append(np.zeros(3))
+            rs.append(-1.0)  # padding block: no ray touches it
+            continue
+        lo, hi = p.min(0), p.max(0)
+        c = 0.5 * (lo + hi)
+        r = np.sqrt(np.max(np.sum((p - c) ** 2, -1))) + 2 * sag * float(np.max(rmax[i : i + block])) + 1e-6 * (1 + np.linalg.norm(c))
+        cs.append(c)
+        rs.append(r)
+    return np.array(cs), np.array(rs)
+
+
+def frusta_from_skeleton(joints, radii, parents, *, twist_deg=0.0, match_minor_axes=False, path="object.skeleton"):
+    """Validate a skeleton and build its frusta on the host (float64). Returns (arrays, topo, info)."""
+    j, r, p = validate_skeleton(joints, radii, parents, path)
+    topo = topology(j, p, path)
+    arrays, info = build_frusta(j, r, topo, twist_turns=twist_deg / 360.0, match_minor_axes=match_minor_axes)
+    return arrays, topo, info
+
+
+def _skeleton_arrays(sk: SkeletonConfig):
+    if sk.procedural is not None:
+        from ..scenes import generate
+
+        j, r, p, colors = generate(sk.procedural, sk.seed, dict(sk.options))
+    else:
+        j = np.asarray(sk.joints, np.float64)
+        r = np.asarray(sk.radii, np.float64)
+        p = np.asarray(sk.parents, np.int64)
+        colors = None if sk.colors is None else np.asarray(sk.colors, np.float64)
+        if colors is not None and colors.shape[0] != j.shape[0]:
+            raise ValueError(f"{_SIDE_BRANCH_COLOR_PATH}: has {colors.shape[0]} entries for {j.shape[0]} joints")
+    j = j * sk.scale + np.asarray(sk.offset, np.float64)
+    return j, r * sk.scale, p, colors
+
+
+RELIEF_TEXTURES = ("brick", "gravel", "grass")
+
+
+def load_height_map(name: str) -> np.ndarray:
+    """An 8-bit height map: a scikit-image texture photograph by name, or an image file."""
+    if name in RELIEF_TEXTURES:
+        import skimage.data
+
+        img = np.asarray(getattr(skimage.data, name)())
+    else:
+        import imageio.v3 as iio
+
+        try:
+            img = np.asarray(iio.imread(name))
+        except Exception as e:  # noqa: BLE001 - any reader failure is a bad config value
+            raise ValueError(f"object.relief.map: cannot read image {name!r} (or name one of {', '.join(RELIEF_TEXTURES)}): {e}") from None
+    if img.ndim == 3:
+        img = img[..., :3].mean(-1)
+    if img.dtype != np.uint8:
+        img = img.astype(np.float64)
+        hi = img.max()
+        img = np.round(255.0 * img / (hi if hi > 1.0 else 1.0))
+    if img.ndim != 2 or min(img.shape) < 2:
+        raise ValueError(f"object.relief.map: need a 2D image of at least 2x2 texels (got shape {img.shape})")
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def relief_memory(arr: FrustaArrays, height: np.ndarray, scale, relief_ids, dtype_bytes: int = 4) -> dict:
+    """Bytes of the representation beside an equivalent displaced triangle mesh (Sec. 4).
+
+    The mesh samples each relief segment at the height map's texel density (one vertex per
+    texel of the tiled map over the segment: W * scale_u by H * scale_v), with float32
+    positions (12 B) and two triangles per vertex (24 B of int32 indices).
+    """
+    s = arr.h.shape[0]
+    per_seg = 3 + 3 + 3 + 3 + 1 + 1 + 1 + 3 + 1 + 3 + 1 + 1 + 1 + 1  # floats in FrustaParams
+    frusta_b = s * per_seg * dtype_bytes
+    maps_b = int(height.size)  # uint8
+    hh, ww = height.shape
+    verts = len(relief_ids) * (ww * float(scale[0])) * (hh * float(scale[1]))
+    mesh_b = int(verts * 12 + 2 * verts * 12)
+    return {"frusta_bytes": int(frusta_b), "relief_map_bytes": maps_b, "representation_bytes": int(frusta_b + maps_b),
+            "mesh_vertices": int(verts), "mesh_triangles": int(2 * verts), "mesh_bytes": mesh_b}
+
+
+def host_frusta(cfg: FrustaConfig):
+    """World-space float64 frusta of an object config: (arrays, topo, info, joints, radii, colors)."""
+    j, r, p, colors = _skeleton_arrays(cfg.skeleton)
+    arrays, topo, info = frusta_from_skeleton(j, r, p, twist_deg=cfg.twist_deg, match_minor_axes=cfg.match_minor_axes)
+    return arrays, topo, info, j, r, colors
+
+
+def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
+    """Host-side build: validate, cut, frame, split plain/relief, pad, cast. ValueError names the field."""
+    arrays, topo, info, j, r, colors = host_frusta(cfg)
+    s = arrays.h.shape[0]
+    rel = cfg.relief
+    grow = rel.thickness if rel is not None else 0.0
+    rmax = r[:, None] + grow
+    lo = np.min(j - rmax, axis=0)
+    hi = np.max(j + rmax, axis=0)
+    anchor = 0.5 * (lo + hi)
+    shell = np.zeros(s)
+    relief_ids = np.zeros(0, np.int64)
+    if rel is not None:
+        if rel.segments is None:
+            relief_ids = np.arange(s)
+        else:
+            for i, sid in enumerate(rel.segments):
+                if sid >= s:
+                    raise ValueError(f"object.relief.segments[{i}]: no segment {sid} (the skeleton has {s})")
+            relief_ids = np.unique(np.asarray(rel.segments, np.int64))
+        shell[relief_ids] = rel.thickness
+    plain_ids = np.setdiff1d(np.arange(s), relief_ids)
+    plain = relief = maps = None
+    plain_block = relief_block = 8
+    if plain_ids.size:
+        plain, plain_block = make_group(arrays, plain_ids, anchor, cfg.block, dtype)
+    if relief_ids.size:
+        relief, relief_block = make_group(arrays, relief_ids, anchor, cfg.block, dtype, shell)
+        height = load_height_map(rel.map)
+        maps = ReliefMaps(jnp.asarray(height), jnp.asarray(rel.scale, dtype))
+        info = dict(info, memory=relief_memory(arrays, height, rel.scale, relief_ids))
+    seg_col = np.broadcast_to(np.asarray(cfg.color, np.float64), (s, 3)) if colors is None else colors[topo.seg_end]
+    tex = load_texture(cfg.texture) if cfg.texture is not None else np.ones((1, 1, 3))
+    scene = FrustaScene(
+        plain=plain,
+        relief=relief,
+        maps=maps,
+        colors=jnp.asarray(seg_col, dtype),
+        texture=jnp.asarray(tex, dtype),
+        tex_scale=jnp.asarray(cfg.texture_scale, dtype),
+    )
+    rq = None
+    if rel is not None:
+        uv = rel.uv
+        if uv == "auto":
+            par = np.abs(np.sum(arrays.nb[relief_ids] * arrays.nt[relief_ids], -1)) >= 1.0 - 1e-12
+            uv = "approximate" if np.all(par) else "exact"
+        rq = ReliefQuality(rel.steps, rel.bisection, uv, rel.early_exit, rel.v_mode)
+        info = dict(info, relief_uv=uv)
+    static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block)
+    info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size))
+    return Built(scene, static, anchor, (lo, hi), info)
+
+
+def _nearest_hit(a: Hit, b: Hit) -> Hit:
+    closer = b.t < a.t
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(closer.reshape(closer.shape + (1,) * (x.ndim - closer.ndim)), y, x), a, b)
+
+
+def intersect_one(scene: FrustaScene, static: Static, origin, direction, t_min, t_max) -> Hit:
+    """Nearest hit of one ray with the plain and relief frusta of ``scene`` (brute force)."""
+    hits = []
+    if scene.plain is not None:
+        f = scene.plain.frusta
+        t, s, c, i = nearest_one(f, _segment_t, origin, direction, t_min, t_max, static.quality.block)
+        hits.append(_finish(f, origin, direction, t, s, c, i, static.quality.normals))
+    if scene.relief is not None:
+        f = scene.relief.frusta
+        seg_fn = make_relief_t(scene.maps, static.relief)
+        t, s, c, i = nearest_one(f, seg_fn, origin, direction, t_min, t_max, static.relief_block)
+        hits.append(make_relief_finish(scene.maps, static.relief)(f, origin, direction, t, s, c, i))
+    out = hits[0]
+    for h in hits[1:]:
+        out = _nearest_hit(out, h)
+    return out
+
+
+def intersect(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
+    """Batched :func:`intersect_one` (vmap over the ray axis)."""
+    f = jax.vmap(lambda o, d, a, b: intersect_one(scene, static, o, d, a, b))
+    return f(rays.origins, rays.directions, rays.t_min, rays.t_max)
+
+
+def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
+    """Like :func:`intersect`, but skips blocks of segments that no ray of the batch reaches, and
+    marches relief only for the (ray, segment) pairs whose ray enters that segment's shell."""
+    o, d, a, b = rays
+    hits = []
+    if scene.plain is not None:
+        g = scene.plain
+        t, s, c, i = nearest_batch(g.frusta, g.block_c, g.block_r, _segment_t, o, d, a, b, static.quality.block)
+        fin = jax.vmap(_finish, in_axes=(None, 0, 0, 0, 0, 0, 0, None))
+        hits.append(fin(g.frusta, o, d, t, s, c, i, static.quality.normals))
+    if scene.relief is not None:
+        g = scene.relief
+        seg_fn = make_relief_t(scene.maps, static.relief)
+        cap = min(o.shape[0], 4096)
+        t, s, c, i = nearest_batch_compact(g.frusta, g.block_c, g.block_r, enters_shell, seg_fn, o, d, a, b, static.relief_block, cap)
+        fin = jax.vmap(make_relief_finish(scene.maps, static.relief), in_axes=(None, 0, 0, 0, 0, 0, 0))
+        hits.append(fin(g.frusta, o, d, t, s, c, i))
+    out = hits[0]
+    for h in hits[1:]:
+        out = _nearest_hit(out, h)
+    return out
+
+
+def albedo(scene: FrustaScene, static: Static, hit: Hit):
+    """Base colour at one hit: the texture through (u, v) (wrapping), else the segment colour."""
+    if static.has_texture:
+        return bilinear_wrap(scene.texture, hit.uv * scene.tex_scale)
+    return scene.colors[jnp.maximum(hit.prim, 0)]
+
+
+def inside(scene: FrustaScene, static: Static, point):
+    """True when ``point`` (3,), relative to the anchor, is inside the skinned skeleton.
+
+    For relief segments this is the inner frustum (the relief itself is not tested)."""
+    groups = [g.frusta for g in (scene.plain, scene.relief) if g is not None]
+    return jnp.any(jnp.stack([_inside_one(f, point) for f in groups]))
+
+
+class _Frusta:
+    name = "frusta"
+    Config = FrustaConfig
+    build = staticmethod(build)
+    intersect_one = staticmethod(intersect_one)
+    intersect_batch = staticmethod(intersect_batch)
+    albedo = staticmethod(albedo)
+    inside = staticmethod(inside)
+
+
+REPRESENTATION = _Frusta()

@@ -1,0 +1,351 @@
+"""Scene-level API of the implicit representation (re-exported by ``jskel.implicit``)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..interface import Built
+from ..rays import Hit
+from ._config import ImplicitConfig as ImplicitConfig
+from ..numerics import safe_div
+from ._field import Displace as Displace
+from ._field import Prims as Prims
+from ._field import Shape as Shape
+from ._field import shaped_field as shaped_field
+from ._field import _dot, kernel
+from ._field import field as field
+from ._field import gradient as gradient
+from ._field import lipschitz as lipschitz
+from ._trace import OVERFLOW as OVERFLOW
+from ._trace import STEP_CAP as STEP_CAP
+from ._trace import Quality as Quality
+from ._trace import Tuning as Tuning
+from ._trace import cull, surface_one, trace_one
+
+
+class Skin(NamedTuple):
+    """Texture skinning inputs for one frame (Sec. 6.1, Alg. 3): per bone the posed segment
+    (head, tail), its weight radius, and the rigid map from the posed to the rest pose."""
+
+    head: jnp.ndarray  # (B,3)
+    tail: jnp.ndarray  # (B,3)
+    influence: jnp.ndarray  # (B,)
+    to_rest: jnp.ndarray  # (B,3,4)
+
+
+class Projector(NamedTuple):
+    origin: jnp.ndarray  # (3,)
+    axis: jnp.ndarray  # (3,) unit
+    up: jnp.ndarray  # (3,) unit, perpendicular to axis
+    scale: jnp.ndarray  # (2,)
+
+
+class ImplicitScene(NamedTuple):
+    prims: Prims
+    tune: Tuning
+    color: jnp.ndarray  # (3,)
+    skin: Skin
+    projector: Projector
+    texture: jnp.ndarray  # (H,W,3) linear RGB, (1,1,3) when unused
+
+
+class Static(NamedTuple):
+    quality: Quality
+    projector: str | None  # planar | cylindrical | spherical | None
+    has_texture: bool
+
+
+def _pad(x, n, fill=0.0):
+    pad = n - x.shape[0]
+    return x if pad == 0 else np.concatenate([x, np.broadcast_to(np.asarray(fill, x.dtype), (pad,) + x.shape[1:])])
+
+
+def _max_field_estimate(a, b, ra, rb) -> float:
+    """max F over the skeleton (host, float64): F at every ball's centre and 9 points along
+    every tube (a lower bound of the true maximum, used to reject T >= max F)."""
+    s = np.linspace(0, 1, 9)
+    ball = np.all(a == b, axis=1)
+    pts = np.concatenate([a[ball], (a[~ball][:, None, :] + s[None, :, None] * (b - a)[~ball][:, None, :]).reshape(-1, 3)])
+    best = 0.0
+    for i in range(0, pts.shape[0], 256):
+        x = pts[i : i + 256]
+        ab = b - a
+        ax = x[:, None, :] - a[None]
+        den = np.sum(ab * ab, -1)
+        t = np.clip(np.where(den > 0, np.sum(ax * ab[None], -1) / np.where(den > 0, den, 1), 0), 0, 1)
+        d = ax - t[..., None] * ab[None]
+        r2 = np.sum(d * d, -1)
+        R = ra[None] + (rb - ra)[None] * t
+        q = np.where(R > 0, r2 / np.where(R > 0, R * R, 1), 1)
+        best = max(best, float(np.max(np.sum(np.where(q < 1, (1 - q) ** 2, 0), -1))))
+    return best
+
+
+def expand(cfg: ImplicitConfig) -> ImplicitConfig:
+    """A procedural model with a rig becomes explicit balls, tubes and bones (validated)."""
+    from ._models import RIGGED
+
+    if cfg.procedural in RIGGED:
+        extra = RIGGED[cfg.procedural](cfg.seed, dict(cfg.options))
+        data = cfg.model_dump()
+        data.update(procedural=None, **extra)
+        return ImplicitConfig.model_validate(data)
+    return cfg
+
+
+def primitives(cfg: ImplicitConfig, frame: float | None = None):
+    """Host float64 (a, b, ra, rb) in world units at ``frame`` (default ``cfg.frame``), plus the
+    rig: (heads, tails, influence, M (B,4,4) posed-from-rest) or None without bones."""
+    from ._anim import apply, bone_order, pose
+
+    frame = cfg.frame if frame is None else frame
+    rig = None
+    if cfg.procedural is not None:
+        from ._models import MODELS
+
+        a, b, ra, rb = MODELS[cfg.procedural](cfg.seed, dict(cfg.options))
+        bone_of = -np.ones(a.shape[0], np.int64)
+        groups = [("main", f"procedural[{i}]") for i in range(a.shape[0])]
+    else:
+        names = [bn.name for bn in cfg.bones]
+        order = bone_order(names, [bn.parent for bn in cfg.bones])
+        index = {n: i for i, n in enumerate(names)}
+        items = [(bl.center, bl.center, bl.radius, bl.radius, bl.bone, f"balls[{i}]", bl.group) for i, bl in enumerate(cfg.balls)]
+        items += [(t.a, t.b, t.radius_a, t.radius_b, t.bone, f"tubes[{i}]", t.group) for i, t in enumerate(cfg.tubes)]
+        items += [(bn.head, bn.tail, bn.tube[0], bn.tube[1], bn.name, f"bones[{i}].tube", bn.group) for i, bn in enumerate(cfg.bones) if bn.tube is not None]
+        for *_, bone, where, _g in items:
+            if bone is not None and bone not in index:
+                raise ValueError(f"object.{where}.bone: unknown bone {bone!r} (bones: {', '.join(names) or 'none'})")
+        for i, (*_, where, _g) in enumerate(items):
+            if items[i][2] == 0 and items[i][3] == 0:
+                raise ValueError(f"object.{where}: both radii are 0")
+        a = np.array([it[0] for it in items], np.float64).reshape(-1, 3)
+        b = np.array([it[1] for it in items], np.float64).reshape(-1, 3)
+        ra = np.array([it[2] for it in items], np.float64)
+        rb = np.array([it[3] for it in items], np.float64)
+        bone_of = np.array([-1 if it[4] is None else index[it[4]] for it in items], np.int64)
+        groups = [(it[6], it[5]) for it in items]
+        if cfg.bones:
+            heads = np.array([bn.head for bn in cfg.bones], np.float64)
+            tails = np.array([bn.tail for bn in cfg.bones], np.float64)
+            for i in range(len(names)):
+                if not np.linalg.norm(tails[i] - heads[i]) > 0:
+                    raise ValueError(f"object.bones[{i}].tail: equals its head (a bone needs a length)")
+            parents = [-1 if bn.parent is None else index[bn.parent] for bn in cfg.bones]
+            keys = [[(k.frame, k.rotate) for k in bn.keys] for bn in cfg.bones]
+            M = pose(heads, parents, order, keys, frame)
+            att = bone_of >= 0
+            a[att] = apply(M[bone_of[att]], a[att])
+            b[att] = apply(M[bone_of[att]], b[att])
+            infl = np.array([bn.influence or 0.75 * np.linalg.norm(t - h) for bn, h, t in zip(cfg.bones, heads, tails)])
+            rig = (apply(M, heads), apply(M, tails), infl, M)
+    off = np.asarray(cfg.offset, np.float64)
+    a, b, ra, rb = a * cfg.scale + off, b * cfg.scale + off, ra * cfg.scale, rb * cfg.scale
+    if rig is not None:
+        S = np.eye(4) * cfg.scale
+        S[3, 3] = 1.0
+        S[:3, 3] = off
+        Sinv = np.linalg.inv(S)
+        M = S @ rig[3] @ Sinv  # the same rigid motions, in scaled world units
+        rig = (rig[0] * cfg.scale + off, rig[1] * cfg.scale + off, rig[2] * cfg.scale, M)
+    return a, b, ra, rb, rig, groups
+
+
+def csg_shape(cfg: ImplicitConfig, groups) -> tuple[Shape, np.ndarray]:
+    """Static CSG tree over group indices, and each primitive's group index."""
+    disp = "none" if cfg.displace is None else cfg.displace.type
+    if cfg.csg is None:
+        return Shape(("group", 0), 1, disp), np.zeros(len(groups), np.int32)
+    names: list[str] = []
+
+    def conv(node):
+        if node.op == "group":
+            if node.group not in names:
+                names.append(node.group)
+            return ("group", names.index(node.group))
+        return (node.op, conv(node.children[0]), conv(node.children[1]))
+
+    tree = conv(cfg.csg)
+    gid = []
+    for g, where in groups:
+        if g not in names:
+            raise ValueError(f"object.{where}.group: group {g!r} is not in object.csg (groups there: {', '.join(names)})")
+        gid.append(names.index(g))
+    return Shape(tree, len(names), disp), np.asarray(gid, np.int32)
+
+
+def _unit(v, path):
+    v = np.asarray(v, np.float64)
+    n = np.linalg.norm(v)
+    if not n > 0:
+        raise ValueError(f"{path}: the zero vector")
+    return v / n
+
+
+def displace_params(cfg: ImplicitConfig, anchor, dtype) -> Displace:
+    """Traced displacement inputs; for an image, the bound on |grad (h o uv)| is the largest
+    neighbouring-texel difference per texel size times the projector's scale (bilinear
+    interpolation never exceeds its texels' finite differences)."""
+    dc = cfg.displace
+    z3 = np.zeros(3)
+    if dc is None or dc.type == "noise":
+        amp, freq = (0.0, 1.0) if dc is None else (dc.amplitude, dc.frequency)
+        return Displace(jnp.asarray(amp, dtype), jnp.asarray(freq, dtype), jnp.zeros((1, 1), dtype), jnp.asarray(z3, dtype),
+                        jnp.asarray([1.0, 0, 0], dtype), jnp.asarray([0, 1.0, 0], dtype), jnp.ones(2, dtype), jnp.asarray(0.0, dtype))
+    from ..frusta import load_height_map
+
+    try:
+        hmap = load_height_map(dc.map).astype(np.float64) / 255.0
+    except ValueError as e:
+        raise ValueError(str(e).replace("object.relief.map", "object.displace.map")) from None
+    pc = dc.projector
+    ax = _unit(pc.axis, "object.displace.projector.axis")
+    up = _unit(np.asarray(pc.up, np.float64) - np.dot(pc.up, ax) * ax, "object.displace.projector.up (it is parallel to the axis)")
+    side = np.cross(ax, up)
+    hh, ww = hmap.shape
+    gu = np.max(np.abs(np.diff(hmap, axis=1, append=hmap[:, :1]))) * ww * pc.scale[0]
+    gv = np.max(np.abs(np.diff(hmap, axis=0, append=hmap[:1, :]))) * hh * pc.scale[1]
+    return Displace(jnp.asarray(dc.amplitude, dtype), jnp.asarray(1.0, dtype), jnp.asarray(hmap, dtype),
+                    jnp.asarray(np.asarray(pc.origin) - anchor, dtype), jnp.asarray(side, dtype), jnp.asarray(up, dtype),
+                    jnp.asarray(pc.scale, dtype), jnp.asarray(float(np.hypot(gu, gv)), dtype))
+
+
+def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
+    """Validate, pose at ``cfg.frame``, pad to a power of two (>= 8) so similar models share a
+    compile, cast. Every frame of an animation has the same shapes: one compile."""
+    cfg = expand(cfg)
+    a, b, ra, rb, rig, groups = primitives(cfg)
+    shape, gid = csg_shape(cfg, groups)
+    nb = len(cfg.balls) if cfg.procedural is None else 0
+    if cfg.method == "lipschitz":
+        for i in np.nonzero(np.minimum(ra, rb) <= 0)[0]:
+            which = "radius_a" if ra[i] <= 0 else "radius_b"
+            where = f"tubes[{i - nb}].{which}" if i - nb < len(cfg.tubes) else f"bones[{i - nb - len(cfg.tubes)}].tube"
+            raise ValueError(f"object.{where}: the lipschitz method needs both tube radii > 0 (its slope bound is 8/(3 sqrt(3) R))")
+    fmax = _max_field_estimate(a, b, ra, rb)
+    if not cfg.threshold < fmax:
+        raise ValueError(f"object.threshold: {cfg.threshold} is not below the field's maximum (about {fmax:.4g}): no surface")
+    p = a.shape[0]
+    n = max(8, 1 << int(np.ceil(np.log2(p))))
+    prims = Prims(
+        jnp.asarray(_pad(a, n), dtype), jnp.asarray(_pad(b, n), dtype),
+        jnp.asarray(_pad(ra, n), dtype), jnp.asarray(_pad(rb, n), dtype),
+        jnp.asarray(np.arange(n) < p),
+        jnp.asarray(_pad(gid, n, 0)),
+    )
+    rmax = np.maximum(ra, rb)[:, None]
+    lo = np.min(np.minimum(a, b) - rmax, 0)
+    hi = np.max(np.maximum(a, b) + rmax, 0)
+    anchor = 0.5 * (lo + hi)
+    prims = prims._replace(a=prims.a - jnp.asarray(anchor, dtype), b=prims.b - jnp.asarray(anchor, dtype))
+    tune = Tuning(jnp.asarray(cfg.threshold, dtype), jnp.asarray(cfg.step, dtype), jnp.asarray(cfg.eps, dtype),
+                  displace_params(cfg, anchor, dtype))
+    if rig is None:  # one static "bone" with the identity map
+        heads, tails, infl, M = np.zeros((1, 3)) + anchor, np.zeros((1, 3)) + anchor + [0, 1, 0], np.ones(1), np.eye(4)[None]
+    else:
+        heads, tails, infl, M = rig
+    # posed -> rest for points relative to the anchor: x_rest - anchor = Minv (x + anchor) - anchor
+    Minv = np.linalg.inv(M)
+    to_rest = Minv[:, :3, :].copy()
+    to_rest[:, :, 3] = to_rest[:, :, 3] + np.einsum("bij,j->bi", Minv[:, :3, :3], anchor) - anchor
+    skin = Skin(jnp.asarray(heads - anchor, dtype), jnp.asarray(tails - anchor, dtype), jnp.asarray(infl, dtype), jnp.asarray(to_rest, dtype))
+    pc = cfg.projector
+    if pc is not None:
+        ax = _unit(pc.axis, "object.projector.axis")
+        up = np.asarray(pc.up, np.float64) - np.dot(pc.up, ax) * ax
+        up = _unit(up, "object.projector.up (it is parallel to the axis)")
+        proj = Projector(jnp.asarray(np.asarray(pc.origin) - anchor, dtype), jnp.asarray(ax, dtype), jnp.asarray(up, dtype), jnp.asarray(pc.scale, dtype))
+    else:
+        proj = Projector(jnp.zeros(3, dtype), jnp.asarray([0, 1, 0], dtype), jnp.asarray([0, 0, 1], dtype), jnp.ones(2, dtype))
+    if cfg.texture is not None:
+        from ..textures import load_texture
+
+        tex = load_texture(cfg.texture)
+    else:
+        tex = np.ones((1, 1, 3))
+    scene = ImplicitScene(prims, tune, jnp.asarray(cfg.color, dtype), skin, proj, jnp.asarray(tex, dtype))
+    q = Quality(cfg.method, cfg.steps, cfg.bisection, cfg.capacity, cfg.early_exit, shape)
+    static = Static(q, None if pc is None else pc.type, cfg.texture is not None)
+    info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_estimate": fmax}
+    return Built(scene, static, anchor, (lo, hi), info)
+
+
+def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min, t_max) -> Hit:
+    """First hit of one ray; (u, v) from the projector applied at the rest-pose position."""
+    q = static.quality
+    cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity)
+    t, flags = trace_one(cand, scene.tune, origin, direction, t_min, t_max, q)
+    pos, n, prim = surface_one(cand, scene.tune, origin, direction, t, q)
+    hit = jnp.isfinite(t)
+    inf = jnp.asarray(jnp.inf, origin.dtype)
+    uv = project(scene.projector, rest_position(scene.skin, pos), static.projector) if static.projector else jnp.zeros((2,), origin.dtype)
+    return Hit(
+        t=t,
+        position=jnp.where(hit, pos, inf),
+        normal=jnp.where(hit, n, 0.0),
+        uv=jnp.where(hit, uv, 0.0),
+        prim=jnp.where(hit, prim, -1).astype(jnp.int32),
+        flags=flags.astype(jnp.int32),
+    )
+
+
+def rest_position(skin: Skin, x):
+    """Alg. 3: the posed point x mapped to the rest pose, blending each bone's rigid inverse by
+    weights (1 - d^2 / I^2)^2 of the distance d to the posed bone (nearest bone if none reaches)."""
+    ab = skin.tail - skin.head
+    s = jnp.clip(safe_div(_dot(x - skin.head, ab), _dot(ab, ab), 0.0), 0.0, 1.0)
+    e = x - skin.head - s[:, None] * ab
+    d2 = _dot(e, e)
+    w = kernel(d2, skin.influence)
+    nearest = (jnp.arange(d2.shape[0]) == jnp.argmin(d2)).astype(x.dtype)
+    total = jnp.sum(w)
+    w = jnp.where(total > 0, safe_div(w, total, 0.0), nearest)
+    moved = jnp.einsum("bij,j->bi", skin.to_rest[:, :, :3], x) + skin.to_rest[:, :, 3]
+    return jnp.sum(w[:, None] * moved, axis=0)
+
+
+def project(pr: Projector, x, kind: str):
+    """(u, v) of a rest-pose point (relative to the anchor) for a planar, cylindrical or
+    spherical projector (Sec. 6)."""
+    p = x - pr.origin
+    side = jnp.cross(pr.axis, pr.up)
+    h = _dot(p, pr.axis)
+    pu, ps = _dot(p, pr.up), _dot(p, side)
+    if kind == "planar":
+        uv = jnp.stack([ps, pu])
+    elif kind == "cylindrical":
+        uv = jnp.stack([jnp.arctan2(ps, pu) / (2 * jnp.pi) + 0.5, h])
+    else:  # spherical
+        rho = jnp.sqrt(pu * pu + ps * ps)
+        uv = jnp.stack([jnp.arctan2(ps, pu) / (2 * jnp.pi) + 0.5, jnp.arctan2(rho, h) / jnp.pi])
+    return uv * pr.scale
+
+
+def albedo(scene: ImplicitScene, static: Static, hit: Hit):
+    """The texture through the skinned projector (u wraps, v wraps), else the model colour."""
+    if static.has_texture:
+        from ..textures import bilinear_wrap
+
+        return bilinear_wrap(scene.texture, hit.uv)
+    return scene.color
+
+
+def inside(scene: ImplicitScene, static: Static, point):
+    """F > T at ``point`` (3,), relative to the anchor (CSG and displacement included)."""
+    tn = scene.tune
+    return shaped_field(scene.prims, point, static.quality.shape, tn.threshold, tn.disp) > tn.threshold
+
+
+class _Implicit:
+    name = "implicit"
+    Config = ImplicitConfig
+    build = staticmethod(build)
+    intersect_one = staticmethod(intersect_one)
+    albedo = staticmethod(albedo)
+    inside = staticmethod(inside)
+
+
+REPRESENTATION = _Implicit()
