@@ -10,7 +10,6 @@ per setting and plots error against time (log axes, Pareto front marked).
 from __future__ import annotations
 
 import itertools
-import json
 import statistics
 from pathlib import Path
 from typing import Annotated, Any, Literal, NamedTuple
@@ -42,6 +41,18 @@ class _Depth(NamedTuple):
     normal: Any = None
 
 
+def _score_peer(row: dict, t, ref_hits, target: dict | None) -> dict:
+    """Add the error metrics of a peer's depths ``t`` and whether it matches jskel's target."""
+    from .metrics import compare
+
+    row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(_Depth(t), ref_hits).items()})
+    if target is not None:
+        row["matches_jskel_setting"] = bool(row["depth_rmse"] is not None and row["depth_rmse"] <= target["depth_rmse"]
+                                            and row["hit_miss_pct"] <= target["hit_miss_pct"])
+        row["jskel_setting"] = target["setting"]
+    return row
+
+
 def _match_target(bench, rows):
     if bench.peer_match is None:
         return None
@@ -58,7 +69,6 @@ def peer_marching_cubes(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows:
     import time
 
     from .implicit import expand, primitives
-    from .metrics import compare
     from .peers.implicit_mesh import marching_cubes_mesh
     from .peers.relief_mesh import embree_cast
     from .render import camera_of
@@ -81,12 +91,7 @@ def peer_marching_cubes(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows:
                "triangles": int(F.shape[0]), "mesh_bytes": int(V.shape[0] * 12 + F.shape[0] * 12),
                "polygonise_s": round(mesh_s, 4), "build_s": round(build_s, 4), "render_s_median": round(med, 4),
                "runs": runs, "rays": int(O.shape[0])}
-        row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(_Depth(t), ref_hits).items()})
-        if target is not None:
-            row["matches_jskel_setting"] = bool(row["depth_rmse"] is not None and row["depth_rmse"] <= target["depth_rmse"]
-                                                and row["hit_miss_pct"] <= target["hit_miss_pct"])
-            row["jskel_setting"] = target["setting"]
-        out.append(row)
+        out.append(_score_peer(row, t, ref_hits, target))
     return out
 
 
@@ -95,7 +100,6 @@ def peer_embree_mesh(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: li
     import numpy as np
 
     from .frusta import host_frusta, load_height_map
-    from .metrics import compare
     from .peers.relief_mesh import displaced_mesh, embree_cast
     from .render import camera_of
 
@@ -106,11 +110,7 @@ def peer_embree_mesh(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: li
     height = load_height_map(rel.map)
     cam = camera_of(exp)
     O, D = cam.ray_arrays()
-    target = None
-    if bench.peer_match is not None:
-        for r in rows:
-            if all(r.get("setting", {}).get(k) == v for k, v in bench.peer_match.items()):
-                target = r
+    target = _match_target(bench, rows)
     out = []
     for level in bench.peer_levels:
         nu, nv = 16 * 2**level, 4 * 2**level
@@ -119,12 +119,7 @@ def peer_embree_mesh(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: li
         row = {"peer": "embree_mesh", "scene": exp.name, "level": level, "grid": [nu, nv], "vertices": int(V.shape[0]),
                "triangles": int(F.shape[0]), "mesh_bytes": int(V.shape[0] * 12 + F.shape[0] * 12),
                "build_s": round(build_s, 4), "render_s_median": round(med, 4), "runs": runs, "rays": int(O.shape[0])}
-        row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(_Depth(t), ref_hits).items()})
-        if target is not None:
-            row["matches_jskel_setting"] = bool(row["depth_rmse"] is not None and row["depth_rmse"] <= target["depth_rmse"]
-                                                and row["hit_miss_pct"] <= target["hit_miss_pct"])
-            row["jskel_setting"] = target["setting"]
-        out.append(row)
+        out.append(_score_peer(row, t, ref_hits, target))
     return out
 
 

@@ -164,7 +164,7 @@ def _surface(seg: FrustaParams, o, d, s, code, normals: str):
     """
     t0, e = recentre(seg, o, d)
     p = e + s * d  # relative to C1
-    x, y, z = _dot(p, seg.u), _dot(p, seg.m), _dot(p, seg.w)
+    x, z = _dot(p, seg.u), _dot(p, seg.w)
     rho = safe_sqrt(x * x + z * z)
     radial = safe_div(x * seg.u + z * seg.w, rho, 0.0)
     k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
@@ -260,6 +260,25 @@ def nearest_one(params: FrustaParams, seg_fn, origin, direction, t_min, t_max, b
     return out
 
 
+def _rays_touch_sphere(origins, directions, dd, t_min, t_max, c, r):
+    """(N,) whether each ray's (t_min, t_max] passes within r of c (a bounding-sphere test)."""
+    oc = c[None, :] - origins
+    tc = safe_div(_dot(oc, directions), dd, 0.0)
+    dist2 = _dot(oc, oc) - tc * tc * dd
+    rt = r / jnp.sqrt(dd)
+    return (dist2 <= r * r) & (tc + rt > t_min) & (tc - rt <= t_max)
+
+
+def _no_hits(n: int, dtype):
+    """Running best (t, s, code, index) of n rays before any segment is tested."""
+    return (
+        jnp.full((n,), jnp.inf, dtype),
+        jnp.zeros((n,), dtype),
+        jnp.full((n,), SIDE, jnp.int32),
+        jnp.full((n,), -1, jnp.int32),
+    )
+
+
 def nearest_batch(params: FrustaParams, block_c, block_r, seg_fn, origins, directions, t_min, t_max, block: int):
     """Batched :func:`nearest_one` that skips whole blocks no ray of the batch can reach.
 
@@ -275,11 +294,7 @@ def nearest_batch(params: FrustaParams, block_c, block_r, seg_fn, origins, direc
     dd = _dot(directions, directions)
 
     def touches(c, r):
-        oc = c[None, :] - origins
-        tc = safe_div(_dot(oc, directions), dd, 0.0)
-        dist2 = _dot(oc, oc) - tc * tc * dd
-        rt = r / jnp.sqrt(dd)
-        return (dist2 <= r * r) & (tc + rt > t_min) & (tc - rt <= t_max)
+        return _rays_touch_sphere(origins, directions, dd, t_min, t_max, c, r)
 
     def step(carry, xs):
         blk, base, c, r = xs
@@ -290,12 +305,7 @@ def nearest_batch(params: FrustaParams, block_c, block_r, seg_fn, origins, direc
 
         return jax.lax.cond(jnp.any(touches(c, r)), work, lambda c_: c_, carry), None
 
-    init = (
-        jnp.full((n,), jnp.inf, dtype),
-        jnp.zeros((n,), dtype),
-        jnp.full((n,), SIDE, jnp.int32),
-        jnp.full((n,), -1, jnp.int32),
-    )
+    init = _no_hits(n, dtype)
     nblk = params.h.shape[0] // block
     bases = jnp.arange(nblk, dtype=jnp.int32) * block
     out, _ = jax.lax.scan(step, init, (_blocks(params, block), bases, block_c, block_r))
@@ -319,11 +329,7 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
     vseg = jax.vmap(seg_fn, in_axes=(0, 0, 0, 0, 0))
 
     def touches(c, r):
-        oc = c[None, :] - origins
-        tc = safe_div(_dot(oc, directions), dd, 0.0)
-        dist2 = _dot(oc, oc) - tc * tc * dd
-        rt = r / jnp.sqrt(dd)
-        return (dist2 <= r * r) & (tc + rt > t_min) & (tc - rt <= t_max)
+        return _rays_touch_sphere(origins, directions, dd, t_min, t_max, c, r)
 
     def step(carry, xs):
         blk, base, c, r = xs
@@ -358,12 +364,7 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
 
         return jax.lax.cond(jnp.any(touches(c, r)), work, lambda c_: c_, carry), None
 
-    init = (
-        jnp.full((n,), jnp.inf, dtype),
-        jnp.zeros((n,), dtype),
-        jnp.full((n,), SIDE, jnp.int32),
-        jnp.full((n,), -1, jnp.int32),
-    )
+    init = _no_hits(n, dtype)
     nblk = params.h.shape[0] // block
     bases = jnp.arange(nblk, dtype=jnp.int32) * block
     out, _ = jax.lax.scan(step, init, (_blocks(params, block), bases, block_c, block_r))
