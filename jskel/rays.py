@@ -66,6 +66,21 @@ class Hit(NamedTuple):
     flags: jnp.ndarray | None = None
 
 
+def masked_hit(t, position, normal, uv, prim, flags=None) -> Hit:
+    """A ``Hit`` with the miss sentinels applied wherever ``t`` is not finite: position +inf,
+    normal and uv 0, prim -1. Shared by every representation's finishing step."""
+    hit = jnp.isfinite(t)
+    inf = jnp.asarray(jnp.inf, t.dtype)
+    return Hit(
+        t=t,
+        position=jnp.where(hit, position, inf),
+        normal=jnp.where(hit, normal, 0.0),
+        uv=jnp.where(hit, uv, 0.0),
+        prim=jnp.where(hit, prim, -1).astype(jnp.int32),
+        flags=None if flags is None else flags.astype(jnp.int32),
+    )
+
+
 def make_rays(origins, directions, t_min=0.0, t_max=np.inf, dtype=np.float32) -> Rays:
     """Build a ``Rays`` batch from array-likes, broadcasting ``t_min``/``t_max`` to (N,)."""
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)

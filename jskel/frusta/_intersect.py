@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 
 from ..numerics import eps_of, safe_div, safe_normalize, safe_sqrt, stable_quadratic
-from ..rays import Hit
+from ..rays import Hit, masked_hit
 
 _TWO_PI = 2.0 * jnp.pi
 
@@ -198,22 +198,10 @@ def _surface(seg: FrustaParams, o, d, s, code, normals: str):
 
 def _finish(params: FrustaParams, origin, direction, t, s, code, idx, normals: str) -> Hit:
     """Hit attributes for the winning segment of one ray (gathered once, not per segment)."""
-    inf = jnp.asarray(jnp.inf, origin.dtype)
     hit = jnp.isfinite(t)
     seg = jax.tree_util.tree_map(lambda a: a[jnp.maximum(idx, 0)], params)
     pos, normal, uv = _surface(seg, origin, direction, jnp.where(hit, s, 0.0), code, normals)
-    return make_hit(t, pos, normal, uv, seg.sid, inf)
-
-
-def make_hit(t, pos, normal, uv, sid, inf) -> Hit:
-    hit = jnp.isfinite(t)
-    return Hit(
-        t=t,
-        position=jnp.where(hit, pos, inf),
-        normal=jnp.where(hit, normal, 0.0),
-        uv=jnp.where(hit, uv, 0.0),
-        prim=jnp.where(hit, sid, -1).astype(jnp.int32),
-    )
+    return masked_hit(t, pos, normal, uv, seg.sid)
 
 
 def _blocks(params, b: int):
@@ -279,6 +267,14 @@ def _no_hits(n: int, dtype):
     )
 
 
+def _scan_blocks(step, params, block: int, block_c, block_r, init):
+    """Run ``step(carry, (block params, base index, sphere centre, radius))`` over the blocks."""
+    nblk = params.h.shape[0] // block
+    bases = jnp.arange(nblk, dtype=jnp.int32) * block
+    out, _ = jax.lax.scan(step, init, (_blocks(params, block), bases, block_c, block_r))
+    return out
+
+
 def nearest_batch(params: FrustaParams, block_c, block_r, seg_fn, origins, directions, t_min, t_max, block: int):
     """Batched :func:`nearest_one` that skips whole blocks no ray of the batch can reach.
 
@@ -305,11 +301,7 @@ def nearest_batch(params: FrustaParams, block_c, block_r, seg_fn, origins, direc
 
         return jax.lax.cond(jnp.any(touches(c, r)), work, lambda c_: c_, carry), None
 
-    init = _no_hits(n, dtype)
-    nblk = params.h.shape[0] // block
-    bases = jnp.arange(nblk, dtype=jnp.int32) * block
-    out, _ = jax.lax.scan(step, init, (_blocks(params, block), bases, block_c, block_r))
-    return out
+    return _scan_blocks(step, params, block, block_c, block_r, _no_hits(n, dtype))
 
 
 def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn, origins, directions, t_min, t_max, block: int, cap: int):
@@ -364,11 +356,7 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
 
         return jax.lax.cond(jnp.any(touches(c, r)), work, lambda c_: c_, carry), None
 
-    init = _no_hits(n, dtype)
-    nblk = params.h.shape[0] // block
-    bases = jnp.arange(nblk, dtype=jnp.int32) * block
-    out, _ = jax.lax.scan(step, init, (_blocks(params, block), bases, block_c, block_r))
-    return out
+    return _scan_blocks(step, params, block, block_c, block_r, _no_hits(n, dtype))
 
 
 def inside_one(params: FrustaParams, point) -> jnp.ndarray:

@@ -34,7 +34,8 @@ import jax
 import jax.numpy as jnp
 
 from ..numerics import eps_of, safe_div, safe_normalize, safe_sqrt
-from ._intersect import CAP_BOTTOM, CAP_TOP, FrustaParams, _dot, make_hit, recentre, side_roots
+from ..rays import masked_hit
+from ._intersect import CAP_BOTTOM, CAP_TOP, FrustaParams, _dot, recentre, side_roots
 
 RELIEF = 3
 _TWO_PI = 2.0 * jnp.pi
@@ -227,7 +228,6 @@ def make_relief_finish(maps: ReliefMaps, q: ReliefQuality):
     """Hit attributes at a relief hit (exact uv at the hit; normal from the height gradient)."""
 
     def finish(params: FrustaParams, origin, direction, t, s, code, idx):
-        inf = jnp.asarray(jnp.inf, origin.dtype)
         hit = jnp.isfinite(t)
         seg = jax.tree_util.tree_map(lambda a: a[jnp.maximum(idx, 0)], params)
         t0, e = recentre(seg, origin, direction)
@@ -248,6 +248,6 @@ def make_relief_finish(maps: ReliefMaps, q: ReliefQuality):
         n = jnp.where(_dot(n, radial) < 0, -n, n)
         n = jnp.where(code == CAP_BOTTOM, -seg.nb, jnp.where(code == CAP_TOP, seg.nt, n))
         n = jnp.where(_dot(n, n) > 0.5, n, radial)
-        return make_hit(t, seg.c1 + p, n, jnp.stack([u, v]), seg.sid, inf)
+        return masked_hit(t, seg.c1 + p, n, jnp.stack([u, v]), seg.sid)
 
     return finish

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..interface import Built
-from ..rays import Hit
+from ..rays import Hit, masked_hit
 from ._config import ImplicitConfig as ImplicitConfig
 from ..numerics import safe_div
 from ._field import Displace as Displace
@@ -279,17 +279,8 @@ def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min
     cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity)
     t, flags = trace_one(cand, scene.tune, origin, direction, t_min, t_max, q)
     pos, n, prim = surface_one(cand, scene.tune, origin, direction, t, q)
-    hit = jnp.isfinite(t)
-    inf = jnp.asarray(jnp.inf, origin.dtype)
     uv = project(scene.projector, rest_position(scene.skin, pos), static.projector) if static.projector else jnp.zeros((2,), origin.dtype)
-    return Hit(
-        t=t,
-        position=jnp.where(hit, pos, inf),
-        normal=jnp.where(hit, n, 0.0),
-        uv=jnp.where(hit, uv, 0.0),
-        prim=jnp.where(hit, prim, -1).astype(jnp.int32),
-        flags=flags.astype(jnp.int32),
-    )
+    return masked_hit(t, pos, n, uv, prim, flags)
 
 
 def rest_position(skin: Skin, x):
