@@ -73,3 +73,13 @@ def stable_quadratic(a, half_b, c):
     t_lo = jnp.where(lo_f, lo, hi)
     t_hi = jnp.where(lo_f, hi, inf)
     return t_lo, t_hi
+
+
+def line_dist2(oc, d, tc):
+    """Squared distance from a point to the line through the origin along ``d``, given the
+    point relative to the ray origin ``oc`` (..., 3) and its projection parameter ``tc``
+    (``oc . d / d . d``). Formed as |oc - tc d|^2, not |oc|^2 - tc^2 |d|^2: the difference form
+    cancels catastrophically for a far origin (in float32, a sphere 70 units away was misjudged
+    by 1 % of its radius)."""
+    e = oc - tc[..., None] * d
+    return jnp.sum(e * e, axis=-1)

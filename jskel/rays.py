@@ -178,6 +178,32 @@ def _pad_to(x: jnp.ndarray, n: int) -> jnp.ndarray:
     return jnp.concatenate([x, filler], axis=0)
 
 
+def compact_map(fn: Callable, need: jnp.ndarray, rays: Rays, base, lanes: int):
+    """``base`` with the entries where ``need`` (N,) holds replaced by ``fn(rays_sub)``, where
+    ``fn`` maps a Rays batch of ``lanes`` rays to a pytree like ``base``'s rows.
+
+    Compaction, not masking (wavefront style): the needed rays are gathered into dense
+    sub-batches of ``lanes`` and a ``while_loop`` runs only as many sub-batches as there are
+    needed rays (none when none is needed), then the results are scattered back. Under vmap a
+    per-ray ``cond`` would run ``fn`` on every ray."""
+    n = need.shape[0]
+    lanes = min(lanes, n)
+    count = jnp.sum(need.astype(jnp.int32))
+    order = jnp.nonzero(need, size=n, fill_value=0)[0].astype(jnp.int32)
+    order = jnp.concatenate([order, jnp.zeros((lanes,), jnp.int32)])
+
+    def body(state):
+        j, acc = state
+        lane = j * lanes + jnp.arange(lanes, dtype=jnp.int32)
+        idx = jax.lax.dynamic_slice(order, (j * lanes,), (lanes,))
+        out = fn(Rays(*(a[idx] for a in rays)))
+        dst = jnp.where(lane < count, idx, n)  # n: dropped by the scatter
+        acc = jax.tree_util.tree_map(lambda a, o: a.at[dst].set(o.astype(a.dtype), mode="drop"), acc, out)
+        return j + 1, acc
+
+    return jax.lax.while_loop(lambda st: st[0] * lanes < count, body, (jnp.int32(0), base))[1]
+
+
 class ChunkedResult(NamedTuple):
     """Outputs of :func:`map_chunks` (NumPy pytree) with its timings in seconds."""
 

@@ -31,7 +31,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..numerics import eps_of, safe_div, safe_normalize, safe_sqrt, stable_quadratic
+from ..numerics import eps_of, line_dist2, safe_div, safe_normalize, safe_sqrt, stable_quadratic
 from ..rays import Hit, masked_hit
 
 _TWO_PI = 2.0 * jnp.pi
@@ -252,7 +252,7 @@ def _rays_touch_sphere(origins, directions, dd, t_min, t_max, c, r):
     """(N,) whether each ray's (t_min, t_max] passes within r of c (a bounding-sphere test)."""
     oc = c[None, :] - origins
     tc = safe_div(_dot(oc, directions), dd, 0.0)
-    dist2 = _dot(oc, oc) - tc * tc * dd
+    dist2 = line_dist2(oc, directions, tc)
     rt = r / jnp.sqrt(dd)
     return (dist2 <= r * r) & (tc + rt > t_min) & (tc - rt <= t_max)
 

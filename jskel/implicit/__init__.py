@@ -1,9 +1,10 @@
 """Skeletal implicit surfaces, Rouiller 2011 (seeds 002 and 003): metaballs and metatubes.
 
-Public API: :func:`build` (host: validate, pad, cast) and :func:`intersect_one` (pure, one ray)
-with the tracers of ``_trace`` selected by ``object.method``; ``REPRESENTATION`` for the
-registry. Animation (bones), texture projectors, displacement and CSG are not implemented yet
-(issue 4 lists them); (u, v) is 0 until texture projectors exist."""
+Public API: :func:`build` (host: validate, pose, Morton-sort, pad, cast), :func:`intersect_one`
+(pure, one ray) with the tracers of ``_trace`` selected by ``object.method``,
+:func:`intersect_batch` (the same over a batch, retracing culling overflows with flat culling,
+compacted), bones (``_anim``), texture projectors with rest-pose skinning, displacement and CSG
+(``_field``); ``REPRESENTATION`` for the registry."""
 
 from ._scene import Displace as Displace
 from ._scene import ImplicitConfig as ImplicitConfig
@@ -26,6 +27,7 @@ from ._scene import expand as expand
 from ._scene import field as field
 from ._scene import gradient as gradient
 from ._scene import inside as inside
+from ._scene import intersect_batch as intersect_batch
 from ._scene import intersect_one as intersect_one
 from ._scene import lipschitz as lipschitz
 from ._scene import primitives as primitives

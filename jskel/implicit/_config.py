@@ -132,6 +132,8 @@ class ImplicitConfig(StrictModel):
     steps: Annotated[int, Field(ge=1, le=1 << 20)] = 2048
     bisection: Annotated[int, Field(ge=0, le=64)] = 12
     capacity: Annotated[int, Field(ge=1, le=4096)] = 32
+    block_size: Annotated[int, Field(ge=0, le=1024)] = 16  # primitives per culling block; 0: flat culling
+    block_capacity: Annotated[int, Field(ge=1, le=4096)] = 32  # culling blocks kept per ray
     early_exit: bool = True
     color: RGB = (0.75, 0.45, 0.3)
     bones: list[BoneConfig] = []

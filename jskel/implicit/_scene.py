@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..interface import Built
-from ..rays import Hit, masked_hit
+from ..rays import Hit, Rays, compact_map, masked_hit
 from ._config import ImplicitConfig as ImplicitConfig
 from ..numerics import safe_div
 from ._field import Displace as Displace
@@ -23,7 +24,7 @@ from ._trace import OVERFLOW as OVERFLOW
 from ._trace import STEP_CAP as STEP_CAP
 from ._trace import Quality as Quality
 from ._trace import Tuning as Tuning
-from ._trace import cull, surface_one, trace_one
+from ._trace import blocks_used, cull, surface_one, trace_one
 
 
 class Skin(NamedTuple):
@@ -50,6 +51,7 @@ class ImplicitScene(NamedTuple):
     skin: Skin
     projector: Projector
     texture: jnp.ndarray  # (H,W,3) linear RGB, (1,1,3) when unused
+    prim_id: jnp.ndarray  # (N+1,) the config's index of each (Morton-sorted) primitive; -1: padding
 
 
 class Static(NamedTuple):
@@ -82,6 +84,21 @@ def _max_field_estimate(a, b, ra, rb) -> float:
         q = np.where(R > 0, r2 / np.where(R > 0, R * R, 1), 1)
         best = max(best, float(np.max(np.sum(np.where(q < 1, (1 - q) ** 2, 0), -1))))
     return best
+
+
+def morton_order(points: np.ndarray) -> np.ndarray:
+    """Stable order of points (N,3) along a 30-bit Morton curve over their bounding cube (host):
+    neighbours in the order are neighbours in space, so blocks of consecutive primitives have
+    tight bounding spheres (``_trace.block_spheres``). One scale for all axes: a thin slab must
+    not spend the curve's leading bits on its thin axis."""
+    lo = points.min(0)
+    ext = float(np.max(points.max(0) - lo))
+    q = np.clip((points - lo) / max(ext, 1e-300) * 1023, 0, 1023).astype(np.uint64)
+    code = np.zeros(len(points), np.uint64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")
 
 
 def expand(cfg: ImplicitConfig) -> ImplicitConfig:
@@ -229,7 +246,11 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     if not cfg.threshold < fmax:
         raise ValueError(f"object.threshold: {cfg.threshold} is not below the field's maximum (about {fmax:.4g}): no surface")
     p = a.shape[0]
+    order = morton_order(0.5 * (a + b))
+    a, b, ra, rb, gid = a[order], b[order], ra[order], rb[order], gid[order]
     n = max(8, 1 << int(np.ceil(np.log2(p))))
+    if cfg.block_size:
+        n = -(-n // cfg.block_size) * cfg.block_size
     prims = Prims(
         jnp.asarray(_pad(a, n), dtype), jnp.asarray(_pad(b, n), dtype),
         jnp.asarray(_pad(ra, n), dtype), jnp.asarray(_pad(rb, n), dtype),
@@ -266,8 +287,11 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
         tex = load_texture(cfg.texture)
     else:
         tex = np.ones((1, 1, 3))
-    scene = ImplicitScene(prims, tune, jnp.asarray(cfg.color, dtype), skin, proj, jnp.asarray(tex, dtype))
-    q = Quality(cfg.method, cfg.steps, cfg.bisection, cfg.capacity, cfg.early_exit, shape)
+    prim_id = np.full(n + 1, -1, np.int32)
+    prim_id[:p] = order
+    scene = ImplicitScene(prims, tune, jnp.asarray(cfg.color, dtype), skin, proj, jnp.asarray(tex, dtype), jnp.asarray(prim_id))
+    q = Quality(cfg.method, cfg.steps, cfg.bisection, cfg.capacity, early_exit=cfg.early_exit, shape=shape,
+                block=cfg.block_size, block_capacity=cfg.block_capacity)
     static = Static(q, None if pc is None else pc.type, cfg.texture is not None)
     info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_estimate": fmax}
     return Built(scene, static, anchor, (lo, hi), info)
@@ -276,11 +300,29 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
 def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min, t_max) -> Hit:
     """First hit of one ray; (u, v) from the projector applied at the rest-pose position."""
     q = static.quality
-    cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity)
+    cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity, q.block, q.block_capacity)
     t, flags = trace_one(cand, scene.tune, origin, direction, t_min, t_max, q)
     pos, n, prim = surface_one(cand, scene.tune, origin, direction, t, q)
+    prim = scene.prim_id[prim]
     uv = project(scene.projector, rest_position(scene.skin, pos), static.projector) if static.projector else jnp.zeros((2,), origin.dtype)
     return masked_hit(t, pos, n, uv, prim, flags)
+
+
+def intersect_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int = 256) -> Hit:
+    """vmap of :func:`intersect_one`, then the rays whose culling overflowed (too many blocks
+    or candidates) are traced again with flat culling (every primitive tested, no block list),
+    gathered into dense sub-batches (``rays.compact_map``): a grazing ray through a large model
+    costs P sphere tests only where it needs them. With the block level off it is the vmap."""
+    q = static.quality
+    hits = jax.vmap(lambda o, d, a, b: intersect_one(scene, static, o, d, a, b))(*rays)
+    if not blocks_used(scene.prims.a.shape[0], q.block, q.block_capacity):
+        return hits
+    flat = static._replace(quality=q._replace(block=0))
+
+    def redo(sub: Rays) -> Hit:
+        return jax.vmap(lambda o, d, a, b: intersect_one(scene, flat, o, d, a, b))(*sub)
+
+    return compact_map(redo, (hits.flags & OVERFLOW) != 0, rays, hits, lanes)
 
 
 def rest_position(skin: Skin, x):
@@ -335,6 +377,7 @@ class _Implicit:
     Config = ImplicitConfig
     build = staticmethod(build)
     intersect_one = staticmethod(intersect_one)
+    intersect_batch = staticmethod(intersect_batch)
     albedo = staticmethod(albedo)
     inside = staticmethod(inside)
 

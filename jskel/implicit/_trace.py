@@ -7,6 +7,13 @@ dropped) and its result is not trusted. Field evaluations along the ray then cos
 O(P): cost grows with overlap, not with model size. The ray interval is the union of the
 candidates' sphere intervals.
 
+Culling itself is two-level when the model is large (``Quality.block``): the build sorts the
+primitives along a Morton curve so that each run of ``block`` consecutive primitives is compact
+in space, and ``block_spheres`` bounds each run. A ray tests the P / block block spheres, keeps
+the ``block_capacity`` nearest it crosses (more sets ``OVERFLOW`` too) and tests only their
+primitives: per-ray culling costs P / block + block_capacity * block sphere tests instead of P
+(5,000 blobs: 313 + 512 instead of 8,192 padded).
+
 Methods (``Quality.method``):
 
 * ``naive``: Algorithm 1, constant steps of ``step`` (world units) until F > T, then
@@ -34,7 +41,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..numerics import safe_div, safe_normalize
+from ..numerics import line_dist2, safe_div, safe_normalize
 from ..rays import FLAG_OVERFLOW as OVERFLOW
 from ..rays import FLAG_STEP_CAP as STEP_CAP
 from ._field import Displace, Prims, Shape, _dot, closest, kernel, lipschitz_total, shaped_field
@@ -47,6 +54,8 @@ class Quality(NamedTuple):
     steps: int = 256  # step cap of the naive and Lipschitz marches
     bisection: int = 12
     capacity: int = 32  # candidate list per ray
+    block: int = 16  # primitives per culling block (0: test every primitive)
+    block_capacity: int = 32  # blocks kept per ray
     early_exit: bool = True
     shape: Shape = Shape()
 
@@ -79,29 +88,79 @@ class Candidates(NamedTuple):
     overflow: jnp.ndarray
 
 
-def cull(prims: Prims, o, d, t_min, t_max, capacity: int) -> Candidates:
-    """Candidates of one ray (Sec. 4.2: discard primitives whose influence the ray misses)."""
-    c, r = influence_spheres(prims)
+def _sphere_interval(c, r, o, d, t_min, t_max):
+    """(t0, t1, crossed) of the ray o + t d against spheres (c (N,3), r (N,)), clipped to the
+    ray's (t_min, t_max]."""
     dd = _dot(d, d)
     oc = c - o
     tc = safe_div(_dot(oc, d), dd, 0.0)
-    dist2 = _dot(oc, oc) - tc * tc * dd
+    dist2 = line_dist2(oc, d, tc)
     half = jnp.sqrt(jnp.maximum(r * r - dist2, 0.0) / dd)
     t0 = jnp.maximum(tc - half, t_min)
     t1 = jnp.minimum(tc + half, t_max)
-    hit = prims.valid & (dist2 < r * r) & (t0 < t1)
-    inf_ = jnp.asarray(jnp.inf, o.dtype)
-    count = jnp.sum(hit.astype(jnp.int32))
+    return t0, t1, (dist2 < r * r) & (t0 < t1)
+
+
+def block_spheres(prims: Prims, block: int):
+    """Bounding sphere (centre (B,3), radius (B,), any valid (B,)) of each run of ``block``
+    consecutive primitives' influence spheres. Computed from the (traced) primitives, so an
+    animated or fitted model is bounded afresh; under vmap over rays it is not batched."""
+    c, r = influence_spheres(prims)
+    nb = c.shape[0] // block
+    c, r, v = c.reshape(nb, block, 3), r.reshape(nb, block), prims.valid.reshape(nb, block)
+    inf = jnp.asarray(jnp.inf, c.dtype)
+    lo = jnp.min(jnp.where(v[..., None], c - r[..., None], inf), axis=1)
+    hi = jnp.max(jnp.where(v[..., None], c + r[..., None], -inf), axis=1)
+    anyv = jnp.any(v, axis=1)
+    cb = jnp.where(anyv[:, None], 0.5 * (lo + hi), 0.0)
+    e = c - cb[:, None, :]
+    rb = jnp.max(jnp.where(v, jnp.sqrt(_dot(e, e)) + r, 0.0), axis=1)
+    # rounding: grow by a few ulps of the coordinates so no member pokes out in float32
+    scale = jnp.max(jnp.abs(cb), axis=1) + rb
+    return cb, rb + 8 * jnp.finfo(c.dtype).eps * scale, anyv
+
+
+def _nearest(hit, t0, k: int):
+    """Indices of the k entries with the smallest t0 among ``hit`` (top_k: faster than
+    nonzero's scatter on CPU here), and whether each chosen slot is a real hit."""
+    score = jnp.where(hit, -t0, -jnp.asarray(jnp.inf, t0.dtype))
+    _, idx = jax.lax.top_k(score, k)
+    return idx, jnp.take(hit, idx)
+
+
+def blocks_used(p: int, block: int, block_capacity: int) -> bool:
+    """Static: whether culling goes through the block level (more blocks than a ray keeps)."""
+    return bool(block) and p % block == 0 and p // block > block_capacity
+
+
+def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_capacity: int = 0) -> Candidates:
+    """Candidates of one ray (Sec. 4.2: discard primitives whose influence the ray misses),
+    through the block level first when the model has more blocks than ``block_capacity``."""
     p = prims.a.shape[0]
-    # the `capacity` nearest entries, by top_k (faster than nonzero's scatter on CPU here)
-    score = jnp.where(hit, -t0, -inf_)
-    _, idx = jax.lax.top_k(score, min(capacity, p))  # a model smaller than the capacity cannot overflow
-    idx = jnp.where(jnp.take(hit, idx), idx, p)
+    ids = None
+    block_overflow = jnp.asarray(False)
+    if blocks_used(p, block, block_capacity):
+        cb, rb, vb = block_spheres(prims, block)
+        b0, _, bhit = _sphere_interval(cb, rb, o, d, t_min, t_max)
+        bhit = bhit & vb
+        bidx, bok = _nearest(bhit, b0, block_capacity)
+        block_overflow = jnp.sum(bhit.astype(jnp.int32)) > block_capacity
+        ids = (bidx[:, None] * block + jnp.arange(block)[None, :]).reshape(-1)
+        prims = jax.tree_util.tree_map(lambda x: x[ids], prims)
+        prims = prims._replace(valid=prims.valid & jnp.repeat(bok, block))
+    c, r = influence_spheres(prims)
+    t0, t1, hit = _sphere_interval(c, r, o, d, t_min, t_max)
+    hit = prims.valid & hit
+    count = jnp.sum(hit.astype(jnp.int32))
+    n = prims.a.shape[0]
+    idx, ok = _nearest(hit, t0, min(capacity, n))  # fewer entries than the capacity cannot overflow
+    idx = jnp.where(ok, idx, n)
     sub = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])[idx], prims)
+    gid = idx if ids is None else jnp.where(ok, ids[jnp.minimum(idx, n - 1)], p)
     inf = jnp.asarray(jnp.inf, o.dtype)
     t_lo = jnp.min(jnp.where(hit, t0, inf))
     t_hi = jnp.max(jnp.where(hit, t1, -inf))
-    return Candidates(sub, idx, t_lo, t_hi, count > 0, count > capacity)
+    return Candidates(sub, gid, t_lo, t_hi, count > 0, (count > capacity) | block_overflow)
 
 
 def _bisect(g, lo, hi, n: int):
