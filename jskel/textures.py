@@ -34,9 +34,10 @@ def load_texture(name: str, path: str = "object.texture") -> np.ndarray:
     return img**2.2  # sRGB-ish to linear
 
 
-def bilinear_wrap(tex, uv):
-    """Bilinear sample of (H, W, C) ``tex`` at ``uv`` (2,), both coordinates wrapping."""
-    h, w = tex.shape[0], tex.shape[1]
+def bilinear_wrap(tex, uv, size=None):
+    """Bilinear sample of (H, W, C) ``tex`` at ``uv`` (2,), both coordinates wrapping; ``size``
+    (2,) int (h, w) samples only the top-left h x w texels (a texture padded into a stack)."""
+    h, w = (tex.shape[0], tex.shape[1]) if size is None else (size[0], size[1])
     x = uv[0] * w - 0.5
     y = uv[1] * h - 0.5
     x0 = jnp.floor(x)

@@ -72,6 +72,22 @@ class ProjectorConfig(StrictModel):
     scale: tuple[Pos, Pos] = (1.0, 1.0)
 
 
+class RegionConfig(StrictModel):
+    """A ball of the rest pose (world units) where a local projector applies."""
+
+    center: Vec3
+    radius: Pos
+
+
+class LocalProjectorConfig(ProjectorConfig):
+    """A local projector (Sec. 6.1: "an arbitrary number of projectors with different
+    projections"): used at rest-pose points inside ``region``, with its own ``texture``
+    (default: the model's)."""
+
+    region: RegionConfig
+    texture: str | None = None
+
+
 class CSGNode(StrictModel):
     """A node of the CSG tree over primitive groups (the thesis' future work, after Wyvill's
     BlobTree): ``{group: name}`` is a leaf (the blended sum of that group's primitives); an
@@ -140,6 +156,7 @@ class ImplicitConfig(StrictModel):
     frame: float = 0.0
     texture: str | None = None
     projector: ProjectorConfig | None = None
+    projectors: list[LocalProjectorConfig] = []
     csg: CSGNode | None = None
     displace: DisplaceConfig | None = None
 
@@ -147,6 +164,9 @@ class ImplicitConfig(StrictModel):
     def _has_primitives(self):
         if self.procedural is None and not (self.balls or self.tubes or any(b.tube for b in self.bones)):
             raise ValueError("give balls and/or tubes (or tube bones), or a procedural model")
-        if self.texture is not None and self.projector is None:
+        if self.texture is not None and self.projector is None and not self.projectors:
             raise ValueError("a texture needs a projector (planar, cylindrical or spherical)")
+        for i, p in enumerate(self.projectors):
+            if p.texture is None and self.texture is None:
+                raise ValueError(f"projectors[{i}]: has no texture and the model has none")
         return self

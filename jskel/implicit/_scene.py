@@ -38,10 +38,15 @@ class Skin(NamedTuple):
 
 
 class Projector(NamedTuple):
-    origin: jnp.ndarray  # (3,)
-    axis: jnp.ndarray  # (3,) unit
-    up: jnp.ndarray  # (3,) unit, perpendicular to axis
-    scale: jnp.ndarray  # (2,)
+    """K texture projectors (Sec. 6, 6.1): the local ones in config order, then the model's
+    global one (region radius inf). A rest-pose point takes the first whose region holds it."""
+
+    origin: jnp.ndarray  # (K,3)
+    axis: jnp.ndarray  # (K,3) unit
+    up: jnp.ndarray  # (K,3) unit, perpendicular to axis
+    scale: jnp.ndarray  # (K,2)
+    region_c: jnp.ndarray  # (K,3) rest-pose region centre (relative to the anchor)
+    region_r: jnp.ndarray  # (K,) its radius; inf: everywhere
 
 
 class ImplicitScene(NamedTuple):
@@ -50,14 +55,15 @@ class ImplicitScene(NamedTuple):
     color: jnp.ndarray  # (3,)
     skin: Skin
     projector: Projector
-    texture: jnp.ndarray  # (H,W,3) linear RGB, (1,1,3) when unused
+    texture: jnp.ndarray  # (K,H,W,3) linear RGB per projector, zero-padded to the largest
+    tex_size: jnp.ndarray  # (K,2) int32 (H, W) of each projector's texture
     prim_id: jnp.ndarray  # (N+1,) the config's index of each (Morton-sorted) primitive; -1: padding
 
 
 class Static(NamedTuple):
     quality: Quality
-    projector: str | None  # planar | cylindrical | spherical | None
-    has_texture: bool
+    projector: tuple[str, ...]  # planar | cylindrical | spherical per projector; () for none
+    textured: tuple[bool, ...]  # per projector: it carries a texture (else the model colour)
 
 
 def _pad(x, n, fill=0.0):
@@ -230,6 +236,38 @@ def displace_params(cfg: ImplicitConfig, anchor, dtype) -> Displace:
                     jnp.asarray(pc.scale, dtype), jnp.asarray(float(np.hypot(gu, gv)), dtype))
 
 
+def projector_arrays(cfg: ImplicitConfig, anchor, dtype):
+    """Projector (K entries: local ones, then the global one), (textures (K,H,W,3), sizes
+    (K,2)), the static kinds and whether each is textured."""
+    from ..textures import load_texture
+
+    entries = [(pc, pc.region.center, pc.region.radius, pc.texture or cfg.texture, f"object.projectors[{i}]")
+               for i, pc in enumerate(cfg.projectors)]
+    if cfg.projector is not None:
+        entries.append((cfg.projector, (0.0, 0.0, 0.0), np.inf, cfg.texture, "object.projector"))
+    cols = {k: [] for k in ("origin", "axis", "up", "scale", "rc", "rr")}
+    images = []
+    for pc, centre, radius, texture, where in entries:
+        ax = _unit(pc.axis, f"{where}.axis")
+        up = _unit(np.asarray(pc.up, np.float64) - np.dot(pc.up, ax) * ax, f"{where}.up (it is parallel to the axis)")
+        for k, v in zip(cols, (np.asarray(pc.origin) - anchor, ax, up, pc.scale, np.asarray(centre) - anchor, radius)):
+            cols[k].append(v)
+        images.append(None if texture is None else load_texture(texture, "object.texture" if texture == cfg.texture else f"{where}.texture"))
+    kinds = tuple(pc.type for pc, *_ in entries)
+    textured = tuple(im is not None for im in images)
+    if not entries:  # one unused projector keeps the shapes non-empty
+        cols = {"origin": [np.zeros(3)], "axis": [[0, 1.0, 0]], "up": [[0, 0, 1.0]], "scale": [[1.0, 1]], "rc": [np.zeros(3)], "rr": [0.0]}
+        images = [None]
+    images = [np.ones((1, 1, 3)) if im is None else im for im in images]
+    hmax, wmax = max(im.shape[0] for im in images), max(im.shape[1] for im in images)
+    stack = np.zeros((len(images), hmax, wmax, 3))
+    for k, im in enumerate(images):
+        stack[k, : im.shape[0], : im.shape[1]] = im
+    sizes = np.array([im.shape[:2] for im in images], np.int32)
+    proj = Projector(*(jnp.asarray(np.asarray(cols[k], np.float64), dtype) for k in cols))
+    return proj, (jnp.asarray(stack, dtype), jnp.asarray(sizes)), kinds, textured
+
+
 def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     """Validate, pose at ``cfg.frame``, pad to a power of two (>= 8) so similar models share a
     compile, cast. Every frame of an animation has the same shapes: one compile."""
@@ -273,26 +311,13 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     to_rest = Minv[:, :3, :].copy()
     to_rest[:, :, 3] = to_rest[:, :, 3] + np.einsum("bij,j->bi", Minv[:, :3, :3], anchor) - anchor
     skin = Skin(jnp.asarray(heads - anchor, dtype), jnp.asarray(tails - anchor, dtype), jnp.asarray(infl, dtype), jnp.asarray(to_rest, dtype))
-    pc = cfg.projector
-    if pc is not None:
-        ax = _unit(pc.axis, "object.projector.axis")
-        up = np.asarray(pc.up, np.float64) - np.dot(pc.up, ax) * ax
-        up = _unit(up, "object.projector.up (it is parallel to the axis)")
-        proj = Projector(jnp.asarray(np.asarray(pc.origin) - anchor, dtype), jnp.asarray(ax, dtype), jnp.asarray(up, dtype), jnp.asarray(pc.scale, dtype))
-    else:
-        proj = Projector(jnp.zeros(3, dtype), jnp.asarray([0, 1, 0], dtype), jnp.asarray([0, 0, 1], dtype), jnp.ones(2, dtype))
-    if cfg.texture is not None:
-        from ..textures import load_texture
-
-        tex = load_texture(cfg.texture)
-    else:
-        tex = np.ones((1, 1, 3))
+    projs, tex, kinds, textured = projector_arrays(cfg, anchor, dtype)
     prim_id = np.full(n + 1, -1, np.int32)
     prim_id[:p] = order
-    scene = ImplicitScene(prims, tune, jnp.asarray(cfg.color, dtype), skin, proj, jnp.asarray(tex, dtype), jnp.asarray(prim_id))
+    scene = ImplicitScene(prims, tune, jnp.asarray(cfg.color, dtype), skin, projs, *tex, jnp.asarray(prim_id))
     q = Quality(cfg.method, cfg.steps, cfg.bisection, cfg.capacity, early_exit=cfg.early_exit, shape=shape,
                 block=cfg.block_size, block_capacity=cfg.block_capacity)
-    static = Static(q, None if pc is None else pc.type, cfg.texture is not None)
+    static = Static(q, kinds, textured)
     info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_estimate": fmax}
     return Built(scene, static, anchor, (lo, hi), info)
 
@@ -304,7 +329,7 @@ def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min
     t, flags = trace_one(cand, scene.tune, origin, direction, t_min, t_max, q)
     pos, n, prim = surface_one(cand, scene.tune, origin, direction, t, q)
     prim = scene.prim_id[prim]
-    uv = project(scene.projector, rest_position(scene.skin, pos), static.projector) if static.projector else jnp.zeros((2,), origin.dtype)
+    uv = choose_uv(scene, static, pos)[1]
     return masked_hit(t, pos, n, uv, prim, flags)
 
 
@@ -340,9 +365,23 @@ def rest_position(skin: Skin, x):
     return jnp.sum(w[:, None] * moved, axis=0)
 
 
+def choose_uv(scene: ImplicitScene, static: Static, pos):
+    """(projector index, (u, v)) at a posed point: Alg. 3 maps it to the rest pose, the first
+    projector whose region holds it is used (index -1 and uv 0 where none does)."""
+    if not static.projector:
+        return jnp.int32(-1), jnp.zeros((2,), pos.dtype)
+    x = rest_position(scene.skin, pos)
+    pr = scene.projector
+    e = x - pr.region_c
+    holds = _dot(e, e) <= pr.region_r * pr.region_r
+    k = jnp.where(jnp.any(holds), jnp.argmax(holds), -1).astype(jnp.int32)
+    uvs = jnp.stack([project(jax.tree_util.tree_map(lambda a, i=i: a[i], pr), x, kind) for i, kind in enumerate(static.projector)])
+    return k, jnp.where(k >= 0, uvs[jnp.maximum(k, 0)], 0.0)
+
+
 def project(pr: Projector, x, kind: str):
-    """(u, v) of a rest-pose point (relative to the anchor) for a planar, cylindrical or
-    spherical projector (Sec. 6)."""
+    """(u, v) of a rest-pose point (relative to the anchor) for one planar, cylindrical or
+    spherical projector (Sec. 6): ``pr`` holds one projector's fields (no leading K axis)."""
     p = x - pr.origin
     side = jnp.cross(pr.axis, pr.up)
     h = _dot(p, pr.axis)
@@ -358,12 +397,17 @@ def project(pr: Projector, x, kind: str):
 
 
 def albedo(scene: ImplicitScene, static: Static, hit: Hit):
-    """The texture through the skinned projector (u wraps, v wraps), else the model colour."""
-    if static.has_texture:
-        from ..textures import bilinear_wrap
+    """The texture of the projector chosen at the hit, through the skinned projection (u and
+    v wrap), else the model colour."""
+    if not any(static.textured):
+        return scene.color
+    from ..textures import bilinear_wrap
 
-        return bilinear_wrap(scene.texture, hit.uv)
-    return scene.color
+    k, _ = choose_uv(scene, static, jnp.where(jnp.isfinite(hit.t), hit.position, 0.0))
+    kk = jnp.maximum(k, 0)
+    rgb = bilinear_wrap(scene.texture[kk], hit.uv, scene.tex_size[kk])
+    use = (k >= 0) & jnp.asarray(static.textured)[kk]
+    return jnp.where(use, rgb, scene.color)
 
 
 def inside(scene: ImplicitScene, static: Static, point):
