@@ -12,6 +12,7 @@ import importlib
 _ENTRIES = {
     "frusta": "jskel.frusta:REPRESENTATION",
     "implicit": "jskel.implicit:REPRESENTATION",
+    "cells": "jskel.cells:REPRESENTATION",
 }
 
 

@@ -1,2 +1,16 @@
-"""Cell-based objects, Nürnberg 2011 (seed 004): tileable cell tiles, split cells, membership
-maps and a ray tracer for first hit, self-reflection and refraction."""
+"""Cell-based objects, Nürnberg 2011 (seed 004): tileable cell tiles (``_tiles``), membership
+maps (``_membership``), a ray tracer for first hit, self-reflection and refraction (``_trace``);
+``build`` precomputes (and caches) an object from a ``type: cells`` section."""
+
+from ._scene import REPRESENTATION as REPRESENTATION
+from ._scene import CellsConfig as CellsConfig
+from ._scene import Static as Static
+from ._scene import albedo as albedo
+from ._scene import base_inside as base_inside
+from ._scene import build as build
+from ._scene import inside as inside
+from ._scene import intersect_one as intersect_one
+from ._scene import normal_map as normal_map
+from ._scene import precompute as precompute
+from ._trace import CellParams as CellParams
+from ._trace import TraceOptions as TraceOptions

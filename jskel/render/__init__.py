@@ -51,7 +51,10 @@ def pixel_fn(rep_name: str, static):
             hits = rep.intersect_batch(scene, static, rays)
         else:
             hits = jax.vmap(one_hit, in_axes=(None, 0, 0, 0, 0))(scene, *rays)
-        rgb = jax.vmap(colour, in_axes=(None, None, None, 0, 0))(scene, lights, sh, hits, rays.directions)
+        if hasattr(rep, "shade_batch"):  # a representation with its own secondary rays (cells)
+            rgb = rep.shade_batch(scene, static, rays, hits, lights, sh)
+        else:
+            rgb = jax.vmap(colour, in_axes=(None, None, None, 0, 0))(scene, lights, sh, hits, rays.directions)
         return hits, rgb
 
     return batch

@@ -1,0 +1,408 @@
+"""Scene-level API of the cell representation (re-exported by ``jskel.cells``): precompute (and
+cache on disk) a cell object, then trace it."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..interface import Built
+from ..rays import Hit, masked_hit
+from ._config import CellsConfig as CellsConfig
+from ._membership import INSIDE, memory_table, membership, unpack, words_for
+from ._tiles import OFFSETS, SplitCells, part_links, part_offsets, sphere_tile, split_cells, validate_tile_map, voronoi_tile
+from ._trace import (TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, TraceOptions, cell_id, color_at, first_hit, march,
+                     membership_at, normal_at, object_interval, reflect, refract)
+
+CACHE_VERSION = 1
+
+
+class Static(NamedTuple):
+    options: TraceOptions
+    mode: str
+    bounces: int
+
+
+# ---------------------------------------------------------------- tile map, normals, colours
+
+
+def tile_map_of(cfg: CellsConfig) -> np.ndarray:
+    tm = cfg.tile_map
+    if tm.type == "voronoi":
+        return voronoi_tile(tm.resolution, tm.cells, tm.seed)
+    if tm.type == "spheres":
+        return sphere_tile(tm.resolution, tm.cells, tm.radius, tm.seed)
+    try:
+        arr = np.load(tm.path, allow_pickle=False)
+    except Exception as e:  # noqa: BLE001 - any reader failure is a bad config value
+        raise ValueError(f"object.tile_map.path: cannot read {tm.path!r} as a .npy array: {e}") from None
+    return validate_tile_map(arr, "object.tile_map.path")
+
+
+def normal_map(tile: np.ndarray) -> np.ndarray:
+    """Alg. 4.8: per voxel, the normalized sum of unit vectors towards the 26 neighbours (the
+    tile wraps) holding another cell index; 0 where all neighbours share the voxel's cell."""
+    out = np.zeros(tile.shape + (3,))
+    for o in OFFSETS:
+        nb = np.roll(tile, shift=tuple(-o), axis=(0, 1, 2))
+        out += (nb != tile)[..., None] * (o / np.linalg.norm(o))
+    n = np.linalg.norm(out, axis=-1, keepdims=True)
+    return np.where(n > 0, out / np.where(n > 0, n, 1), 0.0)
+
+
+def worley_colors(tile: np.ndarray, normals: np.ndarray, seed: int) -> np.ndarray:
+    """A tileable 3D colour map (Sec. 3.1.7) in the cells' own structure: one seeded colour per
+    cell, darkened on the cell boundary voxels (where Alg. 4.8 gives a normal); empty space grey."""
+    rng = np.random.default_rng(seed + 7919)
+    hue = rng.random(int(tile.max()) + 1)
+    pal = 0.35 + 0.5 * np.stack([0.5 + 0.5 * np.cos(2 * np.pi * (hue + k / 3)) for k in range(3)], -1)
+    pal[0] = 0.5
+    col = pal[tile.astype(np.int64)]
+    edge = np.sum(normals * normals, -1) > 0
+    return np.where(edge[..., None], 0.6 * col, col) ** 2.2
+
+
+# ---------------------------------------------------------------- base shapes
+
+
+def base_inside(cfg: CellsConfig) -> tuple[Callable, np.ndarray, np.ndarray, str]:
+    """(inside(points (M,3) world float64) -> (M,) bool, lo, hi, a digest of the shape's inputs)."""
+    b = cfg.base
+    c = np.asarray(b.center, np.float64)
+    if b.type == "torus":
+        def inside(p):
+            q = np.hypot(p[:, 0] - c[0], p[:, 2] - c[2]) - b.major
+            return q * q + (p[:, 1] - c[1]) ** 2 < b.minor * b.minor
+
+        ext = np.array([b.major + b.minor, b.minor, b.major + b.minor])
+        return inside, c - ext, c + ext, ""
+    if b.type == "sphere":
+        def inside(p):
+            return np.sum((p - c) ** 2, 1) < b.radius * b.radius
+
+        return inside, c - b.radius, c + b.radius, ""
+    if b.type == "mesh":
+        import trimesh
+
+        try:
+            mesh = trimesh.load(b.path, force="mesh")
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"object.base.path: cannot read mesh {b.path!r}: {e}") from None
+        if not mesh.is_watertight:
+            raise ValueError(f"object.base.path: mesh {b.path!r} is not watertight (the inside/outside voxelization of Sec. 3.1.4 needs a closed mesh)")
+        digest = hashlib.sha256(Path(b.path).read_bytes()).hexdigest()
+        return (lambda p: mesh.contains(p)), mesh.bounds[0] + c, mesh.bounds[1] + c, digest
+    # another representation's object: its own inside test, jitted over point batches
+    from .. import registry
+
+    kind = (b.object or {}).get("type")
+    if kind not in ("frusta", "implicit"):
+        raise ValueError(f"object.base.object.type: must be frusta or implicit (got {kind!r})")
+    rep = registry.get(kind)
+    try:
+        ocfg = rep.Config.model_validate(b.object)
+    except Exception as e:  # noqa: BLE001 - reported with its path
+        first = str(e).splitlines()
+        raise ValueError(f"object.base.object: {first[1] if len(first) > 1 else first[0]}") from None
+    built = rep.build(ocfg, np.float32)
+    fn = jax.jit(jax.vmap(lambda x: rep.inside(built.params, built.static, x)))
+    anchor = built.anchor
+
+    def inside(p):
+        out = np.empty(len(p), bool)
+        for i in range(0, len(p), 1 << 18):
+            q = p[i : i + (1 << 18)]
+            pad = (1 << 18) - len(q)
+            x = np.concatenate([q, np.repeat(q[-1:], pad, 0)]) - anchor - c
+            out[i : i + len(q)] = np.asarray(fn(np.float32(x)))[: len(q)]
+        return out
+
+    lo, hi = (np.asarray(v, np.float64) + c for v in built.bounds)
+    return inside, lo, hi, json.dumps(b.object, sort_keys=True)
+
+
+# ---------------------------------------------------------------- precompute + cache
+
+
+class CellObject(NamedTuple):
+    """Host arrays of a precomputed cell object."""
+
+    split: np.ndarray
+    split_face: np.ndarray
+    split_cell: np.ndarray
+    offsets: np.ndarray
+    words: np.ndarray
+    normals: np.ndarray
+    colors: np.ndarray
+    lo: np.ndarray
+    size: float
+    info: dict
+
+
+def _cache_key(cfg: CellsConfig, digest: str) -> str:
+    keep = cfg.model_dump(mode="json", include={"base", "tile_map", "tiles", "margin", "coarse", "color_map"})
+    if cfg.tile_map.type == "file":
+        keep["tile_map_bytes"] = hashlib.sha256(Path(cfg.tile_map.path).read_bytes()).hexdigest()
+    if cfg.color_map != "worley":
+        keep["color_bytes"] = hashlib.sha256(Path(cfg.color_map).read_bytes()).hexdigest()
+    keep["digest"], keep["version"] = digest, CACHE_VERSION
+    return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:24]
+
+
+def precompute(cfg: CellsConfig) -> CellObject:
+    """Tile map, split cells, part offsets, membership (packed), normal and colour maps; from
+    the cache folder when the same inputs were computed before."""
+    inside, lo, hi, digest = base_inside(cfg)
+    key = _cache_key(cfg, digest)
+    path = Path(cfg.cache) / f"{key}.npz" if cfg.cache else None
+    if path is not None and path.exists():
+        z = np.load(path, allow_pickle=False)
+        info = json.loads(str(z["info"]))
+        info["cache"] = "hit"
+        return CellObject(z["split"], z["split_face"], z["split_cell"], z["offsets"], z["words"], z["normals"],
+                          z["colors"], z["lo"], float(z["size"]), info)
+    t0 = time.perf_counter()
+    tile = tile_map_of(cfg)
+    sc: SplitCells = split_cells(tile)
+    offsets = part_offsets(sc, part_links(sc), "object.tile_map")
+    slots = len(sc.split_cell) - 1
+    t1 = time.perf_counter()
+    extent = float(np.max(hi - lo)) * (1 + 2 * cfg.margin)
+    centre = 0.5 * (lo + hi)
+    corner = centre - 0.5 * extent
+    size = extent / cfg.tiles
+    mem = membership(sc, offsets, inside, corner, size, cfg.tiles, coarse=cfg.coarse)
+    t2 = time.perf_counter()
+    normals = normal_map(sc.tile)
+    if cfg.color_map == "worley":
+        colors = worley_colors(sc.tile, normals, cfg.tile_map.seed)
+    else:
+        try:
+            colors = np.asarray(np.load(cfg.color_map, allow_pickle=False), np.float64)
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"object.color_map: cannot read {cfg.color_map!r} as a .npy array: {e}") from None
+        if colors.ndim != 4 or colors.shape[3] != 3 or len(set(colors.shape[:3])) != 1:
+            raise ValueError(f"object.color_map: a colour map must be a (c, c, c, 3) array (got shape {colors.shape})")
+    codes = unpack(mem.words, slots)
+    info = {
+        "tile_resolution": int(tile.shape[0]), "cells_per_tile": int(sc.cells), "split_cells": int(np.count_nonzero(sc.split_cell)),
+        "tiles": cfg.tiles, "tile_size": size, "active_tiles": mem.active_tiles, "voxels_tested": mem.voxels_tested,
+        "coarse_samples": mem.coarse_tested, "tile_map_s": t1 - t0, "membership_s": t2 - t1, "precompute_s": time.perf_counter() - t0,
+        "inside_split_cells": int(np.sum(codes == INSIDE)), "intersected_split_cells": int(np.sum(codes == 2)),
+        "memory_bytes": {"split_map": int(sc.split.nbytes), "membership_map": int(mem.words.nbytes),
+                         "normal_map": int(np.float32(normals).nbytes), "color_map": int(np.float32(colors).nbytes)},
+        "memory_table_5_1_bytes": memory_table(int(tile.shape[0]), cfg.tiles, int(colors.shape[0])),
+        "cache": "miss" if path is not None else "off",
+    }
+    obj = CellObject(sc.split, sc.split_face, sc.split_cell, offsets, mem.words, normals, colors, corner, size, info)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez_compressed(tmp, **{k: v for k, v in obj._asdict().items() if k != "info"}, info=json.dumps(info))
+        tmp.replace(path)
+    return obj
+
+
+def environment_map(name: str) -> np.ndarray:
+    """(1,1,3) placeholder for the procedural ``sky``, else an equirectangular image (linear)."""
+    if name == "sky":
+        return np.ones((1, 1, 3))
+    from ..textures import load_texture
+
+    return load_texture(name, "object.environment")
+
+
+def tile_flags(words: np.ndarray, slots: int, present: np.ndarray) -> np.ndarray:
+    codes = unpack(words, slots)
+    has = np.any(codes == INSIDE, axis=-1)
+    full = np.all((codes == INSIDE) | ~present, axis=-1)
+    return (has * TILE_HAS_INSIDE + full * TILE_ALL_INSIDE).astype(np.int32)
+
+
+def build(cfg: CellsConfig, dtype=np.float32) -> Built:
+    obj = precompute(cfg)
+    slots = len(obj.split_cell) - 1
+    present = np.zeros(slots, bool)
+    present[np.unique(obj.split[obj.split > 0]).astype(np.int64) - 1] = True
+    extent = obj.size * cfg.tiles
+    lo = np.asarray(obj.lo, np.float64)
+    anchor = lo + 0.5 * extent
+    params = CellParams(
+        jnp.asarray(obj.split.astype(np.int32)), jnp.asarray(obj.words), jnp.asarray(tile_flags(obj.words, slots, present)),
+        jnp.asarray(obj.normals, dtype), jnp.asarray(obj.colors, dtype), jnp.asarray(lo - anchor, dtype),
+        jnp.asarray(obj.size, dtype), jnp.asarray(1.0 / cfg.steps_per_tile, dtype),
+        jnp.asarray(obj.offsets.astype(np.int32)), jnp.asarray(obj.split_cell.astype(np.int32)),
+        jnp.asarray(environment_map(cfg.environment), dtype), jnp.asarray(cfg.ior, dtype), jnp.asarray(cfg.reflectivity, dtype),
+    )
+    static = Static(TraceOptions(cfg.max_steps, cfg.bisection, cfg.skip), cfg.mode, cfg.bounces)
+    info = dict(obj.info)
+    info["words_per_tile"] = words_for(slots)
+    info["primitives"] = info["inside_split_cells"]
+    return Built(params, static, anchor, (lo, lo + extent), info)
+
+
+# ---------------------------------------------------------------- tracing
+
+
+def intersect_one(p: CellParams, static: Static, origin, direction, t_min, t_max) -> Hit:
+    """First hit (Alg. 3.1): t on the inside cell's boundary, Alg. 4.8 normal, uv 0, prim = the
+    whole cell's global id (also written as ``cell.npy``)."""
+    m = first_hit(p, origin, direction, t_min, t_max, static.options)
+    t = m.t
+    x_in = origin + jnp.where(jnp.isfinite(t), t, 0.0) * direction
+    n = normal_at(p, x_in, direction)
+    cid = cell_id(p, x_in)
+    return masked_hit(t, x_in, n, jnp.zeros((2,), origin.dtype), cid, jnp.zeros((), jnp.int32))
+
+
+def albedo(p: CellParams, static: Static, hit: Hit):
+    return color_at(p, jnp.where(jnp.isfinite(hit.t), hit.position, 0.0))
+
+
+def inside(p: CellParams, static: Static, point):
+    return membership_at(p, point)[0] == INSIDE
+
+
+# ---------------------------------------------------------------- secondary rays
+
+
+def environment(env: jnp.ndarray, d):
+    """Radiance for an escaping direction: an equirectangular map (H,W,3), or, for the (1,1,3)
+    placeholder of ``sky``, a procedural sky (horizon to zenith, dark ground)."""
+    d = d / jnp.sqrt(jnp.sum(d * d))
+    if env.shape[0] == 1:
+        up = jnp.clip(d[1], -1.0, 1.0)
+        sky = jnp.where(up >= 0, (1 - up) * jnp.array([0.85, 0.9, 1.0]) + up * jnp.array([0.25, 0.45, 0.85]),
+                        jnp.array([0.3, 0.27, 0.24]) * (1 + up) + jnp.array([0.12, 0.1, 0.08]) * (-up))
+        return sky.astype(d.dtype)
+    h, w = env.shape[0], env.shape[1]
+    u = jnp.arctan2(d[0], -d[2]) / (2 * jnp.pi) + 0.5
+    v = jnp.arccos(jnp.clip(d[1], -1.0, 1.0)) / jnp.pi
+    i = jnp.clip(jnp.floor(v * h), 0, h - 1).astype(jnp.int32)
+    j = jnp.clip(jnp.floor(u * w), 0, w - 1).astype(jnp.int32) % w
+    return env[i, j]
+
+
+class Segment(NamedTuple):
+    """One traced segment of a secondary ray: boundary found, the sample just before it (on the
+    starting side) and just after it (across), and the Alg. 4.8 normal there (unit, pointing out of
+    the inside cell)."""
+
+    found: jnp.ndarray
+    x_before: jnp.ndarray
+    x_after: jnp.ndarray
+    normal: jnp.ndarray
+
+
+def trace_segment(p: CellParams, opt: TraceOptions, o, d, from_inside: bool) -> Segment:
+    """From o along d to the next boundary: into an INSIDE cell (``from_inside`` False, Alg. 3.2
+    with empty-tile skipping) or out of one (True, Alg. 3.3 skipping all-inside tiles)."""
+    t0, t1 = object_interval(p, o, d, jnp.asarray(0.0, o.dtype), jnp.asarray(jnp.inf, o.dtype))
+    t0 = jnp.maximum(t0, 0.0)
+    m = march(p, o, d, t0, t1, not from_inside, opt, TILE_ALL_INSIDE if from_inside else TILE_HAS_INSIDE)
+    tb, ta = jnp.where(m.found, m.t_out, 0.0), jnp.where(m.found, m.t, 0.0)
+    x_before, x_after = o + tb * d, o + ta * d
+    x_in = x_before if from_inside else x_after
+    return Segment(m.found & (t0 <= t1), x_before, x_after, normal_at(p, x_in, d))
+
+
+def shade_batch(p: CellParams, static: Static, rays, hits: Hit, lights, sh):
+    """Colours of a ray batch by mode. First hit: local shading (Lambert + Blinn-Phong with the
+    cell colour map). Reflection (Sec. 3.2.3, Alg. 3.2): c = (1 - k) local + k c_reflected for
+    ``bounces`` bounces, the environment where a ray escapes. Refraction (Sec. 3.2.4, Alg. 3.3):
+    Snell's law at every boundary (eta = 1/ior entering, ior leaving; total internal reflection
+    keeps the ray inside), tinted by 0.5 + 0.5 x each entered cell's colour, up to ``bounces`` boundary
+    events; c = 0.15 local + 0.85 tint x environment(final direction). Secondary rays run only for
+    the rays that need them, gathered into dense sub-batches (``rays.compact_map``): compaction,
+    not masking, so the cost follows the number of live rays."""
+    from ..rays import Rays, compact_map
+    from ..render._shade import shade_one
+
+    d0 = rays.directions / jnp.sqrt(jnp.sum(rays.directions**2, -1, keepdims=True))
+    env0 = jax.vmap(lambda d: environment(p.env, d))(d0)
+    base = jax.vmap(lambda h: albedo(p, static, h))(hits)
+    local = jax.vmap(lambda h, d, b: shade_one(h, d, b, lights, sh))(hits, d0, base)
+    hit = jnp.isfinite(hits.t)
+    if static.mode == "first_hit" or static.bounces == 0:
+        return jnp.where(hit[:, None], local, env0)
+    n = d0.shape[0]
+    opt = static.options
+    zeros = jnp.zeros((n,), d0.dtype)
+
+    def seg_fn(from_inside):
+        def f(sub):
+            seg = jax.vmap(lambda o, d: trace_segment(p, opt, o, d, from_inside))(sub.origins, sub.directions)
+            return seg
+        return f
+
+    empty_seg = Segment(jnp.zeros((n,), bool), jnp.zeros((n, 3), d0.dtype), jnp.zeros((n, 3), d0.dtype), jnp.zeros((n, 3), d0.dtype))
+    lanes = 256
+    if static.mode == "reflection":
+        k = p.reflectivity
+        acc = jnp.where(hit[:, None], (1 - k) * local, env0)
+        w = jnp.where(hit, k, 0.0)
+        alive = hit
+        # first bounce starts from the outside end of the first hit's bracket
+        voxel = p.size / p.split.shape[0]
+        o, d, nrm = jnp.where(hit[:, None], hits.position, 0.0), jax.vmap(reflect)(d0, hits.normal), hits.normal
+        for b in range(static.bounces):
+            o = o + voxel * nrm  # out of the hit cell along its Alg. 4.8 normal
+            seg = compact_map(seg_fn(False), alive, Rays(o, d, zeros, zeros + jnp.inf), empty_seg, lanes)
+            got = alive & seg.found
+            esc = alive & ~seg.found
+            acc = acc + jnp.where(esc[:, None], w[:, None] * jax.vmap(lambda dd: environment(p.env, dd))(d), 0.0)
+            hh = Hit(jnp.where(got, 1.0, jnp.inf), seg.x_after, seg.normal, jnp.zeros((n, 2), d0.dtype), zeros.astype(jnp.int32))
+            loc = jax.vmap(lambda h, dd: shade_one(h, dd, albedo(p, static, h), lights, sh))(hh, d)
+            last = b == static.bounces - 1
+            acc = acc + jnp.where(got[:, None], w[:, None] * (loc if last else (1 - k) * loc), 0.0)
+            w = jnp.where(got, w * k, 0.0)
+            alive = got
+            o, d, nrm = seg.x_before, jax.vmap(reflect)(d, seg.normal), seg.normal
+        return acc
+    # refraction
+    eta_in = 1.0 / p.ior
+    d1, _ = jax.vmap(lambda d, nn: refract(d, nn, eta_in))(d0, hits.normal)
+    tint = jnp.where(hit[:, None], 0.5 + 0.5 * base, 1.0)
+    inside_now = hit
+    o = jnp.where(hit[:, None], hits.position, 0.0)
+    d = jnp.where(hit[:, None], d1, d0)
+    alive = hit
+    for b in range(static.bounces):
+        seg_in = compact_map(seg_fn(True), alive & inside_now, Rays(o, d, zeros, zeros + jnp.inf), empty_seg, lanes)
+        seg_out = compact_map(seg_fn(False), alive & ~inside_now, Rays(o, d, zeros, zeros + jnp.inf), empty_seg, lanes)
+        seg = jax.tree_util.tree_map(lambda a, c: jnp.where(inside_now.reshape((-1,) + (1,) * (a.ndim - 1)), a, c), seg_in, seg_out)
+        got = alive & seg.found
+        # leaving (inside -> out): normal faces against d is -n, eta = ior; entering: n, 1/ior
+        nn = jnp.where(inside_now[:, None], -seg.normal, seg.normal)
+        eta = jnp.where(inside_now, p.ior, eta_in)
+        nd, tir = jax.vmap(refract)(d, nn, eta)
+        cross = got & ~tir
+        new_inside = jnp.where(cross, ~inside_now, inside_now)
+        entering = cross & ~inside_now
+        tint = jnp.where(entering[:, None], tint * (0.5 + 0.5 * jax.vmap(lambda x: color_at(p, x))(seg.x_after)), tint)
+        o = jnp.where(got[:, None], jnp.where(cross[:, None], seg.x_after, seg.x_before), o)
+        d = jnp.where(got[:, None], nd, d)
+        inside_now = jnp.where(got, new_inside, inside_now)
+        alive = got
+    final = jax.vmap(lambda dd: environment(p.env, dd))(d)
+    return jnp.where(hit[:, None], 0.15 * local + 0.85 * tint * final, env0)
+
+
+class _Cells:
+    name = "cells"
+    Config = CellsConfig
+    build = staticmethod(build)
+    intersect_one = staticmethod(intersect_one)
+    albedo = staticmethod(albedo)
+    inside = staticmethod(inside)
+    shade_batch = staticmethod(shade_batch)
+
+
+REPRESENTATION = _Cells()

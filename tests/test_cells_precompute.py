@@ -1,0 +1,119 @@
+"""Cell precomputation (Nürnberg 2011, Ch. 4) against brute force written here: split cells by
+connected components of each cell in the tile, memberships by explicit periodic tiling of the
+whole object space and per-cell min / max of the inside flag; packing; Table 5.1."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from jskel.cells._membership import INSIDE, INTERSECTED, OUTSIDE, UNSET, memory_table, membership, pack, unpack
+from jskel.cells._tiles import part_links, part_offsets, sphere_tile, split_cells, voronoi_tile
+
+FULL = np.ones((3, 3, 3))
+
+
+def torus_inside(p, R=1.0, r=0.45):
+    q = np.hypot(p[:, 0], p[:, 2]) - R
+    return q * q + p[:, 1] ** 2 < r * r
+
+
+def brute_membership(tile, split, slots, n, inside, lo, size):
+    """(N,N,N,S) codes: tile the map over the whole object space, label each cell index's
+    connected regions (26-neighbourhood), min / max of the inside flag per region (Table 4.2)."""
+    res = tile.shape[0]
+    big = np.tile(tile, (n, n, n))
+    bsplit = np.tile(split, (n, n, n)).astype(np.int64)
+    g = (np.arange(n * res) + 0.5) / res
+    pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3) * size + lo
+    flag = inside(pts).reshape(big.shape).astype(np.int64)
+    want = np.full((n, n, n, slots), UNSET, np.uint8)
+    for c in range(1, int(tile.max()) + 1):
+        lab, count = ndimage.label(big == c, structure=FULL)
+        idx = np.arange(1, count + 1)
+        mn = np.asarray(ndimage.minimum(flag, lab, idx), np.int64)
+        mx = np.asarray(ndimage.maximum(flag, lab, idx), np.int64)
+        code = np.where(mn == mx, mn, INTERSECTED)
+        vox = np.argwhere(big == c)
+        t = vox // res
+        want[t[:, 0], t[:, 1], t[:, 2], bsplit[tuple(vox.T)] - 1] = code[lab[tuple(vox.T)] - 1]
+    return want
+
+
+CASES = [  # tile resolution, cells, tiles per axis, seed, coarse samples per tile edge, map kind
+    (8, 8, 4, 0, 8, "voronoi"),
+    (12, 8, 5, 1, 2, "voronoi"),
+    (10, 12, 6, 2, 2, "voronoi"),
+    (16, 6, 5, 3, 3, "spheres"),
+]
+
+
+@pytest.mark.parametrize("res,cells,n,seed,coarse,kind", CASES)
+def test_membership_equals_brute_force_tiling(res, cells, n, seed, coarse, kind):
+    tile = voronoi_tile(res, cells, seed) if kind == "voronoi" else sphere_tile(res, cells, 0.3, seed)
+    sc = split_cells(tile)
+    off = part_offsets(sc, part_links(sc))
+    lo, size = np.full(3, -1.6), 3.2 / n
+    mem = membership(sc, off, torus_inside, lo, size, n, coarse=coarse)
+    got = unpack(mem.words, len(sc.split_cell) - 1)
+    want = brute_membership(sc.tile, sc.split, 8 * cells, n, torus_inside, lo, size)
+    assert np.array_equal(got, want)
+    assert {OUTSIDE, INSIDE, INTERSECTED} <= set(np.unique(got).tolist())  # a case with all three
+
+
+@pytest.mark.parametrize("res,cells,seed", [(16, 8, 0), (20, 8, 5)])
+def test_split_cells_are_the_parts_of_each_cell_in_the_tile(res, cells, seed):
+    tile = voronoi_tile(res, cells, seed)
+    sc = split_cells(tile)
+    i = np.arange(res)
+    faces = np.zeros_like(tile, np.int64)  # Fig. 4.3 bits, written independently
+    for a in range(3):
+        sh = [1, 1, 1]
+        sh[a] = res
+        faces |= ((i == 0).reshape(sh) << (2 * a)) | ((i == res - 1).reshape(sh) << (2 * a + 1))
+    seen = {}
+    for c in range(1, cells + 1):
+        lab, count = ndimage.label(tile == c, structure=FULL)
+        codes = []
+        for k in range(1, count + 1):
+            part = lab == k
+            code = int(np.bitwise_or.reduce(faces[part]))
+            s = np.unique(sc.split[part])
+            assert len(s) == 1 and s[0] > 0  # one split index per part
+            assert sc.split_face[s[0]] == code and sc.split_cell[s[0]] == c
+            seen.setdefault((c, code), set()).add(int(s[0]))
+            codes.append(code)
+        ranks = sorted(set(codes))  # Sec. 4.3: ascending face codes get ascending indices 8(c-1)+1..
+        for r, code in enumerate(ranks):
+            assert seen[(c, code)] == {8 * (c - 1) + r + 1}
+    assert np.all((sc.split == 0) == (tile == 0))
+
+
+def test_pack_unpack_round_trip_for_every_code_and_slot():
+    rng = np.random.default_rng(0)
+    codes = rng.integers(0, 4, size=(50, 64)).astype(np.uint8)
+    codes[0] = np.arange(64) % 4  # every code at every residue
+    for c in range(4):
+        codes[1 + c] = c
+    words = pack(codes)
+    assert words.shape == (50, 4) and words.dtype == np.uint32  # 64 split cells in 128 bits (Fig. 4.9)
+    assert np.array_equal(unpack(words, 64), codes)
+    # Alg. 4.5 read by hand: slot s sits in word s >> 4 at bit 2 (s & 15)
+    for s in (0, 15, 16, 37, 63):
+        assert (int(words[0, s >> 4]) >> (2 * (s & 15))) & 3 == s % 4
+    assert np.array_equal(unpack(pack(codes[:, :10]), 10), codes[:, :10])  # fewer slots: padded UNSET
+
+
+def test_memory_table_reproduces_table_5_1():
+    mb, kb = 1024 * 1024, 1024
+    rows = [  # cell map res, tiles, then Table 5.1: cell, colour, normal, membership, total
+        (256, 32, 16 * mb, 8 * mb, 256 * mb, 512 * kb, 280),
+        (128, 64, 2 * mb, 8 * mb, 32 * mb, 4 * mb, 46),
+        (64, 128, 256 * kb, 8 * mb, 4 * mb, 32 * mb, 44),
+        (32, 256, 32 * kb, 8 * mb, 512 * kb, 256 * mb, 264),
+    ]
+    for res, tiles, cell, color, normal, member, total_mb in rows:
+        m = memory_table(res, tiles, color_res=128)
+        assert (m["cell_map"], m["color_map"], m["normal_map"], m["membership_map"]) == (cell, color, normal, member)
+        assert int(m["total"] / mb) == total_mb  # the table rounds 280.5 MB to 280, 44.25 to 44

@@ -1,0 +1,222 @@
+"""Ray tracing cell objects (Nürnberg 2011, Sec. 3.2) against a fine-step float64 NumPy march
+written here; tile skipping; the laws of reflection and refraction; modes; bad input."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import reference as ref
+from jskel import cells, cli, rays
+from jskel.cells._membership import INSIDE, unpack
+from jskel.cells._trace import first_hit, reflect, refract
+from jskel.rays import make_rays, map_chunks
+
+N_RAYS = 1000
+
+
+def cell_cfg(tmp, **kw):
+    base = {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45},
+            "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "tiles": 6,
+            "steps_per_tile": 256, "bisection": 10, "cache": str(tmp / "cache")}
+    base.update(kw)
+    return cells.CellsConfig.model_validate(base)
+
+
+@pytest.fixture(scope="module")
+def obj(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("cells")
+    built = cells.build(cell_cfg(tmp))
+    rng = np.random.default_rng(2)
+    lo, hi = built.bounds
+    O, D = ref.random_rays(rng, lo, hi, N_RAYS, spread=0.8)
+    return tmp, built, O, D
+
+
+_FN = {}
+
+
+def trace(built, O, D):
+    key = built.static
+    if key not in _FN:
+        def f(p, r, st=key):
+            def one(o, d, a, b):
+                m = first_hit(p, o, d, a, b, st.options)
+                return cells.intersect_one(p, st, o, d, a, b), m.steps
+            return jax.vmap(one)(*r)
+        _FN[key] = f
+    out = map_chunks(_FN[key], built.params, make_rays(O - built.anchor, D), chunk=N_RAYS, progress=False).out
+    return out
+
+
+def reference_first_cell(built, O, D, sub=4096):
+    """Float64 NumPy march at 1/sub of a tile from the box entry: the first sample in an INSIDE
+    split cell; returns (t, whole-cell id) with the documented key (tile - offset, cell)."""
+    p = built.params
+    n = p.words.shape[0]
+    r = p.split.shape[0]
+    split = np.asarray(p.split)
+    codes = unpack(np.asarray(p.words), split.max())
+    off = np.asarray(p.owner_off)
+    cell_of = np.asarray(p.split_cell)
+    lo = np.asarray(built.bounds[0], np.float64)
+    size = float((built.bounds[1][0] - built.bounds[0][0]) / n)
+    hi = lo + n * size
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (lo - O) / D, (hi - O) / D
+    t0 = np.max(np.minimum(ta, tb), 1).clip(0)
+    t1 = np.min(np.maximum(ta, tb), 1)
+    h = size / sub
+    t_hit = np.full(len(O), np.inf)
+    cid = np.full(len(O), -1, np.int64)
+    todo = np.nonzero(t0 < t1)[0]
+    k0 = 0
+    block = 2048
+    while todo.size:
+        ks = k0 + np.arange(block)
+        t = t0[todo, None] + ks[None, :] * h
+        x = O[todo, None, :] + t[..., None] * D[todo, None, :]
+        u = (x - lo) / size
+        tile = np.floor(u).astype(np.int64)
+        ok = np.all((tile >= 0) & (tile < n), -1) & (t <= t1[todo, None])
+        tile = np.clip(tile, 0, n - 1)
+        vox = np.clip(np.floor((u - np.floor(u)) * r).astype(np.int64), 0, r - 1)
+        s = split[vox[..., 0], vox[..., 1], vox[..., 2]]
+        code = codes[tile[..., 0], tile[..., 1], tile[..., 2], np.maximum(s - 1, 0)]
+        inside = ok & (s > 0) & (code == INSIDE)
+        first = np.argmax(inside, 1)
+        found = inside[np.arange(len(todo)), first]
+        rows = todo[found]
+        t_hit[rows] = t[found, first[found]]
+        tt = tile[found, first[found]]
+        ss = s[found, first[found]]
+        owner = tt - off[ss] + 2
+        m = n + 4
+        cid[rows] = ((owner[:, 0] * m + owner[:, 1]) * m + owner[:, 2]) * (cell_of.shape[0] // 8 + 1) + cell_of[ss]
+        alive = ~found & (t0[todo] + (k0 + block) * h <= t1[todo])
+        todo = todo[alive]
+        k0 += block
+    return t_hit, cid
+
+
+def test_first_hit_cell_agrees_with_a_fine_float64_march(obj):
+    tmp, built, O, D = obj
+    hit, steps = trace(built, O, D)
+    t_ref, id_ref = reference_first_cell(built, O, D)
+    assert np.isfinite(t_ref).mean() > 0.3  # the rays do hit the torus's cells
+    got = np.where(np.isfinite(hit.t), np.asarray(hit.prim), -1)
+    agree = np.mean(got == id_ref)
+    assert agree >= 0.995, agree
+    both = np.isfinite(hit.t) & np.isfinite(t_ref) & (got == id_ref)
+    size = float((built.bounds[1][0] - built.bounds[0][0]) / 6)
+    err = np.abs(hit.t[both] - t_ref[both])
+    # within one coarse step but where the coarse march stepped over a sliver of the same cell
+    assert np.quantile(err, 0.99) < size / 256 + 1e-4, np.quantile(err, 0.99)
+    assert np.median(err) < size / 256 / 2**8 + 1e-4  # bisection: step / 2^10, plus float32 at t ~ 8
+
+
+def test_tile_skipping_changes_no_pixel_and_saves_steps(obj):
+    tmp, built, O, D = obj
+    plain = cells.build(cell_cfg(tmp, skip=False))
+    a, steps_a = trace(built, O, D)
+    b, steps_b = trace(plain, O, D)
+    np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_array_equal(a.prim, b.prim)
+    np.testing.assert_array_equal(a.normal, b.normal)
+    assert np.sum(steps_a) < 0.8 * np.sum(steps_b), (np.sum(steps_a), np.sum(steps_b))
+
+
+def test_cache_returns_the_same_object_without_recomputing(obj):
+    tmp, built, O, D = obj
+    again = cells.build(cell_cfg(tmp))
+    assert built.info["cache"] == "miss" and again.info["cache"] == "hit"
+    for x, y in zip(jax.tree_util.tree_leaves(built.params), jax.tree_util.tree_leaves(again.params)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_reflection_and_snell_laws_hold_with_no_nan():
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    n = rng.normal(size=(4000, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.where((np.sum(d * n, 1) > 0)[:, None], -n, n)  # facing against d
+    d[:5] = np.cross(n[:5], [0.3, 0.5, 0.81])  # grazing: d . n = 0
+    d[:5] /= np.linalg.norm(d[:5], axis=1, keepdims=True)
+    r = np.asarray(jax.vmap(reflect)(jnp.float32(d), jnp.float32(n)), np.float64)
+    assert np.all(np.isfinite(r))
+    np.testing.assert_allclose(np.sum(r * n, 1), -np.sum(d * n, 1), atol=1e-5)  # equal angles
+    np.testing.assert_allclose(np.linalg.norm(r, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", np.cross(d, n), r), 0.0, atol=1e-5)  # coplanar
+    for eta in (1 / 1.5, 1.5):
+        t, tir = jax.vmap(lambda a, b: refract(a, b, eta))(jnp.float32(d), jnp.float32(n))
+        t, tir = np.asarray(t, np.float64), np.asarray(tir)
+        assert np.all(np.isfinite(t))
+        cos_i = -np.sum(d * n, 1)
+        sin_i = np.sqrt(np.maximum(0, 1 - cos_i**2))
+        want_tir = eta * sin_i > 1
+        ok = ~want_tir & (np.abs(eta * sin_i - 1) > 1e-4)
+        np.testing.assert_array_equal(tir[ok], want_tir[ok])
+        sin_t = np.linalg.norm(np.cross(t, n), axis=1)
+        np.testing.assert_allclose(sin_t[ok], eta * sin_i[ok], atol=1e-5)  # Snell: sin t = eta sin i
+        np.testing.assert_allclose(np.einsum("ij,ij->i", np.cross(d, n), t)[ok], 0.0, atol=1e-5)
+        assert np.all(np.sum(t[ok] * n[ok], 1) < 1e-6)  # goes through the surface
+        if want_tir.any():  # total internal reflection returns the mirror direction
+            np.testing.assert_allclose(t[want_tir & (eta * sin_i > 1 + 1e-4)], r[want_tir & (eta * sin_i > 1 + 1e-4)], atol=1e-5)
+    assert (1.5 * np.sqrt(np.maximum(0, 1 - np.sum(d * n, 1) ** 2)) > 1).any()  # TIR was exercised
+
+
+@pytest.mark.parametrize("mode", ["reflection", "refraction"])
+def test_modes_render_finite_colours_and_escaping_rays_see_the_environment(obj, mode):
+    from jskel.cells._scene import environment
+    from jskel.render import pixel_fn
+    from jskel.render._shade import Lights, Shading
+
+    tmp, built, O, D = obj
+    b = cells.build(cell_cfg(tmp, mode=mode, bounces=2))
+    lights = Lights(jnp.float32([[0.4, 0.9, 0.5]]) / np.linalg.norm([0.4, 0.9, 0.5]), jnp.ones((1, 3), jnp.float32))
+    sh = Shading(*(jnp.float32(x) for x in (0.1, 0.3, 32.0)), jnp.float32([0.8, 0.8, 0.8]))
+    fn = pixel_fn("cells", b.static)
+    hits, rgb = map_chunks(fn, (b.params, lights, sh), make_rays(O - b.anchor, D), chunk=N_RAYS, progress=False).out
+    assert np.all(np.isfinite(rgb))
+    miss = ~np.isfinite(hits.t)
+    want = np.asarray(jax.vmap(lambda d: environment(b.params.env, d))(jnp.float32(D[miss])))
+    np.testing.assert_allclose(rgb[miss], want, atol=1e-6)
+    assert np.std(rgb[~miss], axis=0).max() > 0.01  # the secondary rays shade something
+
+
+@pytest.mark.parametrize(
+    "obj_yaml, needle",
+    [
+        ("tiles: 0", ["object.tiles", "0"]),
+        ("steps_per_tile: 0", ["object.steps_per_tile", "0"]),
+        ("ior: 0", ["object.ior", "0"]),
+        ("ior: -1.5", ["object.ior", "-1.5"]),
+        ("tile_map: {type: file, path: TMP/flat.npy}", ["object.tile_map.path", "3D"]),
+        ("tile_map: {type: file, path: TMP/float.npy}", ["object.tile_map.path", "integers"]),
+        ("base: {type: mesh, path: TMP/open.stl}", ["object.base.path", "not watertight"]),
+    ],
+    ids=["tiles", "step", "ior0", "ior_neg", "not_3d", "not_int", "open_mesh"],
+)
+def test_bad_input_one_line_exit_2(tmp_path, capsys, monkeypatch, obj_yaml, needle):
+    import trimesh
+
+    np.save(tmp_path / "flat.npy", np.ones((8, 8), np.int32))
+    np.save(tmp_path / "float.npy", np.ones((8, 8, 8), np.float32))
+    box = trimesh.creation.box()
+    trimesh.Trimesh(box.vertices, box.faces[:-1]).export(tmp_path / "open.stl")
+
+    def boom(*a, **k):
+        raise AssertionError("compiled despite bad input")
+
+    monkeypatch.setattr(rays, "compile_batch_fn", boom)
+    body = f"object: {{type: cells, cache: null, {obj_yaml.replace('TMP', str(tmp_path))}}}\ncamera: {{width: 8, height: 8}}\n"
+    p = tmp_path / "exp.yaml"
+    p.write_text(body)
+    rc = cli.main(["render", str(p), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    for n in needle:
+        assert n in err[0], (n, err[0])
