@@ -153,8 +153,10 @@ def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
         "jax": r["jax"],
         "jskel": r["jskel"],
     }
-    if "memory" in r["info"]:
-        row["memory"] = r["info"]["memory"]
+    row["build_s"] = round(r["build_s"], 4)
+    for k in ("memory", "memory_bytes", "precompute_s", "cache"):
+        if k in r["info"]:
+            row[k] = r["info"][k]
     return row, first
 
 

@@ -124,10 +124,10 @@ def cmd_bench(args) -> int:
 
     rows = []
     for ref_job, jobs in groups:
-        ref_hits = None
+        ref_hits = ref_rgb = None
         if ref_job is not None:
             ref_res = render(*ref_job, progress=False)
-            ref_hits = ref_res.hits
+            ref_hits, ref_rgb = ref_res.hits, ref_res.rgb
             print(json.dumps({"reference": bench.reference, "scene": ref_job[0].name, "render_s": round(ref_res.run["render_s"], 4)}), flush=True)
         group_rows = []
         for file, (exp, obj), setting in jobs:
@@ -135,7 +135,7 @@ def cmd_bench(args) -> int:
             row["file"] = file
             if setting is not None:
                 row["setting"] = setting
-                row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(first.hits, ref_hits).items()})
+                row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(first.hits, ref_hits, first.rgb, ref_rgb).items()})
             print(json.dumps(row), flush=True)
             group_rows.append(row)
         if bench.peer is not None and ref_job is not None:

@@ -117,3 +117,38 @@ def test_memory_table_reproduces_table_5_1():
         m = memory_table(res, tiles, color_res=128)
         assert (m["cell_map"], m["color_map"], m["normal_map"], m["membership_map"]) == (cell, color, normal, member)
         assert int(m["total"] / mb) == total_mb  # the table rounds 280.5 MB to 280, 44.25 to 44
+
+
+def _codes(base, tiles=8, seed=1):
+    from jskel import cells
+
+    cfg = cells.CellsConfig.model_validate({"type": "cells", "base": base, "tiles": tiles, "cache": None, "margin": 0.1,
+                                            "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": seed}})
+    obj = cells.precompute(cfg)
+    return unpack(obj.words, len(obj.split_cell) - 1), obj
+
+
+@pytest.mark.parametrize("kind", ["mesh", "implicit"])
+def test_mesh_and_implicit_base_shapes_match_the_analytic_sphere(tmp_path, kind):
+    """An icosphere mesh (trimesh) of radius 1, and a lone metaball whose surface is the sphere of
+    radius R sqrt(1 - sqrt(T)), give the memberships of the analytic sphere except next to its
+    surface (where the polygon or float32 field decides a boundary voxel)."""
+    import trimesh
+
+    if kind == "mesh":
+        path = tmp_path / "sphere.stl"
+        trimesh.creation.icosphere(subdivisions=5, radius=1.0).export(path)
+        base, rho = {"type": "mesh", "path": str(path)}, 1.0
+    else:
+        base = {"type": "object", "object": {"type": "implicit", "threshold": 0.5, "balls": [{"center": [0, 0, 0], "radius": 1.0}]}}
+        rho = float(np.sqrt(1 - np.sqrt(0.5)))
+    got, obj = _codes(base)
+    want, obj2 = _codes({"type": "sphere", "radius": rho})
+    np.testing.assert_allclose(obj.lo, obj2.lo, atol=2e-3 * rho)  # the same object box
+    present = got != UNSET
+    assert np.array_equal(present, want != UNSET)
+    same = np.mean(got[present] == want[present])
+    assert same > 0.99, same
+    diff = present & (got != want)
+    assert np.all((got[diff] == INTERSECTED) | (want[diff] == INTERSECTED))  # never inside vs outside
+    assert np.sum(want == INSIDE) > 50

@@ -220,3 +220,24 @@ def test_bad_input_one_line_exit_2(tmp_path, capsys, monkeypatch, obj_yaml, need
     assert rc == 2 and len(err) == 1, err
     for n in needle:
         assert n in err[0], (n, err[0])
+
+
+def test_cli_render_writes_the_cell_aov_from_the_cache(obj, tmp_path):
+    import json
+
+    tmp, built, O, D = obj
+    body = f"""object: {{type: cells, base: {{type: torus, major: 1.0, minor: 0.45}}, tiles: 6, steps_per_tile: 256, bisection: 10,
+  tile_map: {{type: voronoi, resolution: 16, cells: 8, seed: 0}}, cache: {tmp / 'cache'}}}
+camera: {{eye: [0, 2, 2.5], target: [0, 0, 0], width: 32, height: 24}}
+render: {{progress: false}}
+"""
+    p = tmp_path / "exp.yaml"
+    p.write_text(body)
+    assert cli.main(["render", str(p), "--out", str(tmp_path / "o")]) == 0
+    cell = np.load(tmp_path / "o" / "cell.npy")
+    prim = np.load(tmp_path / "o" / "prim.npy")
+    depth = np.load(tmp_path / "o" / "depth.npy")
+    np.testing.assert_array_equal(cell, prim)
+    assert cell.shape == (24, 32) and np.all((cell >= 0) == np.isfinite(depth)) and np.isfinite(depth).mean() > 0.2
+    run = json.loads((tmp_path / "o" / "run.json").read_text())
+    assert run["info"]["cache"] == "hit" and run["info"]["precompute_s"] > 0

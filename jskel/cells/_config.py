@@ -69,7 +69,7 @@ class CellsConfig(StrictModel):
     reflectivity: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
     steps_per_tile: Annotated[int, Field(ge=1, le=65536)] = 256  # linear step = 1/steps_per_tile of a tile
     bisection: Annotated[int, Field(ge=0, le=40)] = 10
-    max_steps: Annotated[int, Field(ge=1, le=1 << 22)] = 16384
+    max_steps: Annotated[int, Field(ge=1, le=1 << 24)] = 1 << 18  # samples per ray segment (a capped ray is flagged)
     skip: bool = True  # empty / full tile skipping (Alg. 3.2, 3.3)
     color_map: str = "worley"  # worley | path to an (c,c,c,3) .npy in [0, 1]
     environment: str = "sky"  # sky | path to an equirectangular image

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..interface import Built
-from ..rays import Hit, masked_hit
+from ..rays import FLAG_STEP_CAP, Hit, masked_hit
 from ._config import CellsConfig as CellsConfig
 from ._membership import INSIDE, memory_table, membership, unpack, words_for
 from ._tiles import OFFSETS, SplitCells, part_links, part_offsets, sphere_tile, split_cells, validate_tile_map, voronoi_tile
@@ -253,13 +253,15 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
 
 def intersect_one(p: CellParams, static: Static, origin, direction, t_min, t_max) -> Hit:
     """First hit (Alg. 3.1): t on the inside cell's boundary, Alg. 4.8 normal, uv 0, prim = the
-    whole cell's global id (also written as ``cell.npy``)."""
+    whole cell's global id (also written as ``cell.npy``); flags STEP_CAP where ``max_steps``
+    samples ran out before the ray left the object."""
     m = first_hit(p, origin, direction, t_min, t_max, static.options)
     t = m.t
     x_in = origin + jnp.where(jnp.isfinite(t), t, 0.0) * direction
     n = normal_at(p, x_in, direction)
     cid = cell_id(p, x_in)
-    return masked_hit(t, x_in, n, jnp.zeros((2,), origin.dtype), cid, jnp.zeros((), jnp.int32))
+    capped = (~m.found) & (m.steps >= static.options.steps)  # stopped by max_steps: counted, not silent
+    return masked_hit(t, x_in, n, jnp.zeros((2,), origin.dtype), cid, jnp.where(capped, FLAG_STEP_CAP, 0))
 
 
 def albedo(p: CellParams, static: Static, hit: Hit):
