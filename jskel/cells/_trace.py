@@ -6,7 +6,9 @@ tile map, split index from the split map, code from the tile's packed words (Alg
 
 Linear search (Alg. 3.1 rows 6-13): samples t_k = t_0 + k h along the ray from its entry into
 the object's box, h = ``step`` x tile edge (world units) divided by |d|, until a sample lies in an
-INSIDE cell; then ``bisection`` halvings of the last bracket (rows 19-28) put the hit on the
+INSIDE cell. (Sec. 3.2.2 scales the initial step by the angle to the basic mesh's normal so that
+grazing rays keep their 3D resolution in a depth-parametrized search; a step of fixed world
+length along the ray has that resolution at every angle.) then ``bisection`` halvings of the last bracket (rows 19-28) put the hit on the
 cell's boundary to h / 2^bisection. Deviation: the thesis enters at the rasterized basic mesh and
 discards a ray that meets an OUTSIDE cell (Fig. 3.13) because the rasterizer supplies the next
 entry; here the ray enters at the box and steps on through outside cells, which finds the same

@@ -21,6 +21,7 @@ from ._intersect import FrustaParams as FrustaParams
 from ._intersect import Quality as Quality
 from ._intersect import inside_one as _inside_one
 from ._intersect import _finish, _segment_t, nearest_batch, nearest_batch_compact, nearest_one
+from ._accel import build_bvh, nearest_groups
 from ._relief import ReliefMaps as ReliefMaps
 from ._relief import ReliefQuality as ReliefQuality
 from ._relief import enters_shell, make_relief_finish, make_relief_t
@@ -36,6 +37,7 @@ class Group(NamedTuple):
     frusta: FrustaParams
     block_c: jnp.ndarray  # (B,3) bounding sphere centre of each block of segments
     block_r: jnp.ndarray  # (B,) its radius
+    bvh: object = None  # accel.BVH over the group's segments when ``accel: bvh``
 
 
 class FrustaScene(NamedTuple):
@@ -59,6 +61,9 @@ class Static(NamedTuple):
     has_texture: bool
     relief: ReliefQuality | None = None
     relief_block: int = 8
+    accel: str = "blocks"  # blocks | bvh (plain segments)
+    leaf: int = 4
+    group: int = 64
 
 
 def _pad(a: np.ndarray, n: int, fill) -> np.ndarray:
@@ -248,6 +253,8 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
     plain_block = relief_block = 8
     if plain_ids.size:
         plain, plain_block = make_group(arrays, plain_ids, anchor, cfg.block, dtype)
+        if cfg.accel == "bvh":
+            plain = plain._replace(bvh=_build_bvh_jit(plain.frusta, cfg.leaf))
     if relief_ids.size:
         relief, relief_block = make_group(arrays, relief_ids, anchor, cfg.block, dtype, shell)
         height = load_height_map(rel.map)
@@ -271,9 +278,13 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
             uv = "approximate" if np.all(par) else "exact"
         rq = ReliefQuality(rel.steps, rel.bisection, uv, rel.early_exit, rel.v_mode)
         info = dict(info, relief_uv=uv)
-    static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block)
+    static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block,
+                    cfg.accel, cfg.leaf, cfg.group)
     info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size))
     return Built(scene, static, anchor, (lo, hi), info)
+
+
+_build_bvh_jit = jax.jit(build_bvh, static_argnums=1)
 
 
 def _nearest_hit(a: Hit, b: Hit) -> Hit:
@@ -306,13 +317,17 @@ def intersect(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
 
 
 def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
-    """Like :func:`intersect`, but skips blocks of segments that no ray of the batch reaches, and
-    marches relief only for the (ray, segment) pairs whose ray enters that segment's shell."""
+    """Like :func:`intersect`, but skips work at the batch level: plain segments through the
+    linear BVH (``accel: bvh``) or by skipping blocks that no ray of the batch reaches
+    (``blocks``); relief marched only for the (ray, segment) pairs whose ray enters a shell."""
     o, d, a, b = rays
     hits = []
     if scene.plain is not None:
         g = scene.plain
-        t, s, c, i = nearest_batch(g.frusta, g.block_c, g.block_r, _segment_t, o, d, a, b, static.quality.block)
+        if static.accel == "bvh":
+            t, s, c, i, _, _ = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, o, d, a, b)
+        else:
+            t, s, c, i = nearest_batch(g.frusta, g.block_c, g.block_r, _segment_t, o, d, a, b, static.quality.block)
         fin = jax.vmap(_finish, in_axes=(None, 0, 0, 0, 0, 0, 0, None))
         hits.append(fin(g.frusta, o, d, t, s, c, i, static.quality.normals))
     if scene.relief is not None:

@@ -1,0 +1,11 @@
+"""Acceleration structures shared by the representations (issue 6): a linear BVH built in JAX
+per frame (``_lbvh``), traversed stacklessly under vmap."""
+
+from ._lbvh import BVH as BVH
+from ._lbvh import Best as Best
+from ._lbvh import build as build
+from ._lbvh import escape as escape
+from ._lbvh import leaves_for as leaves_for
+from ._lbvh import morton_codes as morton_codes
+from ._lbvh import nearest as nearest
+from ._lbvh import ray_box as ray_box

@@ -1,0 +1,82 @@
+"""Frusta through the linear BVH of ``jskel.accel`` (issue 6).
+
+Bounds (Sec. 2.6 bounds each frustum by a pyramid): a clipped frustum is the convex hull of its
+two elliptical cuts (every generator runs straight from one cut to the other), so the box of
+``n_ang`` points on each cut, grown by the chord sag of the polygon, bounds it. Computed in JAX
+from the segment parameters, so the tree is rebuilt from the frame's own frusta.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+from ..accel import Best, build, nearest
+from ._intersect import SIDE, FrustaParams, _segment_t
+
+
+def segment_boxes(f: FrustaParams, n_ang: int = 32):
+    """(lo, hi) (S,3) boxes of each frustum (relative to the anchor)."""
+    ang = jnp.linspace(0.0, 2 * math.pi, n_ang, endpoint=False).astype(f.h.dtype)
+    rad = jnp.cos(ang)[None, :, None] * f.u[:, None, :] + jnp.sin(ang)[None, :, None] * f.w[:, None, :]
+    k = jnp.where(f.h > 0, (f.r2 - f.r1) / jnp.where(f.h > 0, f.h, 1.0), 0.0)
+    base = f.c1[:, None, :] + f.r1[:, None, None] * rad
+    dirn = f.m[:, None, :] + k[:, None, None] * rad
+    pts = []
+    for n, dist in ((f.nb, f.db), (f.nt, f.dt)):
+        den = jnp.sum(n[:, None, :] * dirn, -1)
+        y = (dist[:, None] - jnp.sum(n[:, None, :] * (base - f.c1[:, None, :]), -1)) / jnp.where(den == 0, 1.0, den)
+        pts.append(base + y[..., None] * dirn)
+    pts = jnp.concatenate(pts, axis=1)
+    lo, hi = pts.min(1), pts.max(1)
+    # the polygon of n_ang points inside a convex cut misses at most its sag; grow by twice the
+    # sag of the widest cut, plus float rounding of the coordinates
+    size = jnp.max(hi - lo, axis=-1)
+    grow = 2.0 * (1.0 - math.cos(2 * math.pi / n_ang)) * size + 64 * jnp.finfo(f.h.dtype).eps * (jnp.max(jnp.abs(pts), axis=(1, 2)) + size)
+    return lo - grow[:, None], hi + grow[:, None]
+
+
+def build_bvh(f: FrustaParams, leaf: int):
+    lo, hi = segment_boxes(f)
+    return build(lo, hi, f.valid, leaf)
+
+
+def nearest_bvh(f: FrustaParams, bvh, leaf: int, o, d, t_min, t_max):
+    """(t, s, code, idx, visits, leaves) of one ray through the tree; idx indexes ``f``."""
+    order = bvh.order
+
+    def leaf_fn(slots, o, d, t_min, t_hi):
+        ids = order[slots]
+        seg = jax.tree_util.tree_map(lambda a: a[jnp.maximum(ids, 0)], f)
+        seg = seg._replace(valid=seg.valid & (ids >= 0))
+        ts, ss, cs = jax.vmap(_segment_t, in_axes=(0, None, None, None, None))(seg, o, d, t_min, t_hi)
+        tm = jnp.min(ts)
+        i = jnp.min(jnp.where(ts == tm, jnp.arange(leaf), leaf))
+        sel = jnp.arange(leaf) == i
+        return Best(tm, jnp.sum(jnp.where(sel, ss, 0.0)), jnp.sum(jnp.where(sel, cs, 0)).astype(jnp.int32),
+                    jnp.where(jnp.isfinite(tm), jnp.sum(jnp.where(sel, ids, 0)), -1).astype(jnp.int32))
+
+    inf = jnp.asarray(jnp.inf, o.dtype)
+    init = Best(inf, jnp.zeros((), o.dtype), jnp.int32(SIDE), jnp.int32(-1))
+    best, visits, leaves = nearest(bvh, leaf_fn, leaf, o, d, t_min, t_max, init)
+    return best.t, best.s, best.code, best.idx, visits, leaves
+
+
+def nearest_groups(f: FrustaParams, bvh, leaf: int, group: int, origins, directions, t_min, t_max):
+    """:func:`nearest_bvh` over a batch in groups of ``group`` rays (``lax.map`` over groups,
+    vmap within one): a vmapped while loop runs until its slowest ray ends, so small groups of
+    coherent rays waste the fewest lanes."""
+    n = origins.shape[0]
+    g = min(group, n)
+    pad = (-n) % g
+
+    def padded(x):
+        return jnp.concatenate([x, jnp.broadcast_to(x[-1:], (pad,) + x.shape[1:])]) if pad else x
+
+    args = [padded(a).reshape((-1, g) + a.shape[1:]) for a in (origins, directions, t_min, t_max)]
+    one = jax.vmap(lambda o, d, a, b: nearest_bvh(f, bvh, leaf, o, d, a, b))
+    out = jax.lax.map(lambda xs: one(*xs), tuple(args))
+    return tuple(x.reshape((-1,) + x.shape[2:])[:n] for x in out)
+
