@@ -42,7 +42,7 @@ def test_tree_boxes_nest_and_order_is_a_permutation():
     valid = np.arange(p) < 33  # the last four are padding
     blo, bhi = np.float32(c - half), np.float32(c + half)
     bvh = accel.build(jnp.asarray(blo), jnp.asarray(bhi), jnp.asarray(valid), 4)
-    lo, hi, order = (np.asarray(x) for x in bvh)
+    lo, hi, order = (np.asarray(x) for x in (bvh.lo, bvh.hi, bvh.order))
     n_leaves = lo.shape[0] // 2
     assert n_leaves == 16 and sorted(order[order >= 0].tolist()) == list(range(33))
     for i in range(1, n_leaves):
@@ -93,12 +93,13 @@ def test_boxes_contain_every_hit_point(skeletons):
         assert np.all(x >= lo[row] - 1e-5) and np.all(x <= hi[row] + 1e-5)
 
 
-@pytest.mark.parametrize("leaf,group", [(4, 64), (2, 16)])
-def test_bvh_equals_brute_force_on_random_skeletons(skeletons, leaf, group):
+@pytest.mark.parametrize("accel,leaf,group", [("bvh", 4, 512), ("bvh", 2, 16), ("blocks", 4, 512)])
+def test_bvh_and_blocks_equal_brute_force_on_random_skeletons(skeletons, accel, leaf, group):
     rng = np.random.default_rng(7)
     for j, r, p in skeletons:
         brute = build_skeleton(j, r, p)
-        fast = build_skeleton(j, r, p, accel="bvh", leaf=leaf, group=group)
+        fast = build_skeleton(j, r, p, accel=accel, leaf=leaf, group=group)
+        assert fast.static.accel == accel
         O, D = ref.random_rays(rng, j.min(0) - 0.5, j.max(0) + 0.5, 8192, spread=1.0)
         a = cast(brute, O, D)
         b = cast(fast, O, D, culled=True)

@@ -35,6 +35,7 @@ class BVH(NamedTuple):
     lo: jnp.ndarray  # (2L, 3) node boxes in heap order (index 0 unused)
     hi: jnp.ndarray  # (2L, 3)
     order: jnp.ndarray  # (L * leaf,) primitive index of each leaf slot (-1: padding)
+    children: jnp.ndarray  # (L, 12) per internal node: lo, hi of its left child, then of its right
 
 
 def _expand_bits(v):
@@ -86,7 +87,9 @@ def build(box_lo, box_hi, valid, leaf: int) -> BVH:
     pad = jnp.full((1, 3), inf, box_lo.dtype)
     lo = jnp.concatenate([pad] + los[::-1])  # heap order: root at 1
     hi = jnp.concatenate([-pad] + his[::-1])
-    return BVH(lo, hi, order)
+    kids = jnp.arange(n_leaves) * 2
+    children = jnp.concatenate([lo[kids], hi[kids], lo[kids + 1], hi[kids + 1]], axis=1)  # row 0 unused
+    return BVH(lo, hi, order, children)
 
 
 def escape(i):
@@ -98,13 +101,17 @@ def escape(i):
     return jnp.where(j == 0, 0, j + 1)
 
 
-def ray_box(lo, hi, o, inv_d, t_min, t_max):
-    """Whether the ray's (t_min, t_max] meets the box (slab test; an empty box never)."""
+def slab(lo, hi, o, inv_d):
+    """(t0, t1) of the ray against the box (t0 > t1: miss); an empty box (lo = +inf, hi = -inf,
+    padding) gives t0 = -inf, t1 = inf and is tested apart by the callers."""
     ta = (lo - o) * inv_d
     tb = (hi - o) * inv_d
-    t0 = jnp.max(jnp.minimum(ta, tb))
-    t1 = jnp.min(jnp.maximum(ta, tb))
-    # an empty box (lo = +inf, hi = -inf: padding) gives t0 = -inf, t1 = inf: test it apart
+    return jnp.max(jnp.minimum(ta, tb)), jnp.min(jnp.maximum(ta, tb))
+
+
+def ray_box(lo, hi, o, inv_d, t_min, t_max):
+    """Whether the ray's (t_min, t_max] meets the box (slab test; an empty box never)."""
+    t0, t1 = slab(lo, hi, o, inv_d)
     return (t0 <= t1) & (t1 >= t_min) & (t0 <= t_max) & jnp.all(lo <= hi)
 
 
@@ -125,14 +132,15 @@ def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Be
     leaf's primitives (slot ids index ``bvh.order``); returns (Best, nodes visited, leaves
     tested).
 
-    Near child first, with a bit trail instead of a stack: descending pushes one bit (1: the far
-    sibling is still to visit), finishing a subtree pops the trailing zeros (climbs to the
-    nearest ancestor with a pending sibling) and flips to that sibling. The trail is one int32
-    (depth <= 31), so nothing overflows and nothing is scattered under vmap. Near first lets the
-    box test prune against the best hit so far. While-while (Aila and Laine 2009): the inner
-    loop walks internal nodes until the ray reaches a leaf its box test admits, the outer loop
-    tests that leaf, so under vmap the costly leaf test runs once per outer step for all lanes
-    instead of at every node."""
+    At an internal node whose box the ray meets, one gather brings both children's boxes; the
+    ray goes to the nearer child it meets (by slab entry), and when it meets both it pushes one
+    bit on a *bit trail* (1: the far sibling is pending) instead of a node on a stack. Finishing
+    a subtree pops the trail's trailing zeros (climbs to the nearest ancestor with a pending
+    sibling) and moves to that sibling, whose box is already known to be met. The trail is one
+    int32 (depth <= 31): nothing overflows and nothing is scattered under vmap. Near first lets
+    the box tests prune against the best hit so far. While-while (Aila and Laine 2009): the inner
+    loop walks internal nodes until the ray reaches a leaf, the outer loop tests that leaf, so
+    under vmap the costly leaf test runs once per outer step for all lanes."""
     n_leaves = bvh.lo.shape[0] // 2
     # 1 / d with signed infinities for zero components (the slab test stays exact)
     inv_d = jnp.where(d == 0, jnp.where(jnp.signbit(d), -jnp.inf, jnp.inf), 1.0 / jnp.where(d == 0, 1.0, d))
@@ -146,30 +154,32 @@ def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Be
         done = trail == 0
         return jnp.where(done, 0, node ^ 1), jnp.where(done, trail, trail ^ one)
 
+    def meets(lo, hi, t_hi):
+        t0, t1 = slab(lo, hi, o, inv_d)
+        return (t0 <= t1) & (t1 >= t_min) & (t0 <= t_hi) & jnp.all(lo <= hi), t0
+
     def to_leaf(node, trail, t_hi, visits):
         def body(st):
-            node, trail, _, v = st
-            hit = ray_box(bvh.lo[node], bvh.hi[node], o, inv_d, t_min, t_hi)
-            found = hit & (node >= n_leaves)
-            # nearer child: the one whose box centre lies first along d
-            left, right = 2 * node, 2 * node + 1
-            cl = bvh.lo[jnp.minimum(left, 2 * n_leaves - 1)] + bvh.hi[jnp.minimum(left, 2 * n_leaves - 1)]
-            cr = bvh.lo[jnp.minimum(right, 2 * n_leaves - 1)] + bvh.hi[jnp.minimum(right, 2 * n_leaves - 1)]
-            gap = jnp.where(jnp.isfinite(cl) & jnp.isfinite(cr), cl - cr, 0.0)
-            near = jnp.where(jnp.sum(gap * d) > 0, right, left)
-            descend = hit & (node < n_leaves)
+            node, trail, v = st
+            row = bvh.children[node]
+            hl, tl = meets(row[0:3], row[3:6], t_hi)
+            hr, tr = meets(row[6:9], row[9:12], t_hi)
+            near = jnp.where(hr & (~hl | (tr < tl)), 2 * node + 1, 2 * node)
             pn, pt = pop(node, trail)
-            nxt = jnp.where(found, node, jnp.where(descend, near, pn))
-            ntrail = jnp.where(found, trail, jnp.where(descend, (trail << one) | one, pt))
-            return nxt, ntrail, found, v + 1
+            anyhit = hl | hr
+            nxt = jnp.where(anyhit, near, pn)
+            ntrail = jnp.where(anyhit, (trail << one) | (hl & hr).astype(jnp.uint32), pt)
+            return nxt, ntrail, v + 1
 
-        node, trail, found, visits = jax.lax.while_loop(lambda st: (st[0] > 0) & ~st[2], body,
-                                                        (node, trail, jnp.asarray(False), visits))
-        return node, trail, found, visits
+        def cond(st):
+            return (st[0] > 0) & (st[0] < n_leaves)
+
+        return jax.lax.while_loop(cond, body, (node, trail, visits))
 
     def outer(st):
         node, trail, best, visits, leaves = st
-        node, trail, found, visits = to_leaf(node, trail, best.t, visits)
+        node, trail, visits = to_leaf(node, trail, best.t, visits)
+        found = node >= n_leaves
         slots = (jnp.maximum(node, n_leaves) - n_leaves) * leaf + jnp.arange(leaf, dtype=jnp.int32)
         cand = leaf_fn(slots, o, d, t_min, best.t)
         better = found & (cand.t < best.t)
@@ -177,6 +187,11 @@ def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Be
         pn, pt = pop(node, trail)
         return jnp.where(found, pn, 0), jnp.where(found, pt, trail), best, visits, leaves + found.astype(jnp.int32)
 
-    st = (jnp.int32(1), jnp.uint32(0), init, jnp.int32(0), jnp.int32(0))
+    root = ray_box(bvh.lo[1], bvh.hi[1], o, inv_d, t_min, t_max)
+    if n_leaves == 1:
+        start = jnp.where(root, 1, 0)  # the root is the only leaf
+    else:
+        start = jnp.where(root, 1, 0)
+    st = (start.astype(jnp.int32), jnp.uint32(0), init._replace(t=jnp.minimum(init.t, t_max)), jnp.int32(0), jnp.int32(0))
     node, trail, best, visits, leaves = jax.lax.while_loop(lambda st: st[0] > 0, outer, st)
     return best, visits, leaves

@@ -9,11 +9,12 @@ from the segment parameters, so the tree is rebuilt from the frame's own frusta.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from ..accel import Best, build, nearest
+from ..accel import BVH, Best, build, nearest
 from ._intersect import SIDE, FrustaParams, _segment_t
 
 
@@ -38,19 +39,53 @@ def segment_boxes(f: FrustaParams, n_ang: int = 32):
     return lo - grow[:, None], hi + grow[:, None]
 
 
-def build_bvh(f: FrustaParams, leaf: int):
+_PACKED = ("c1", "m", "u", "w", "h", "r1", "r2", "nb", "db", "nt", "dt", "cap_b", "cap_t", "valid")
+
+
+class FrustaBVH(NamedTuple):
+    """The tree and the segments' ray-test fields packed in leaf order: one row per leaf slot,
+    so a leaf's segments arrive in one gather instead of one per field."""
+
+    tree: BVH
+    rows: jnp.ndarray  # (L * leaf, 30) packed _PACKED fields, padding slots invalid
+
+
+def _pack(f: FrustaParams, order):
+    cols = []
+    for name in _PACKED:
+        a = getattr(f, name).astype(f.h.dtype)
+        cols.append(a[jnp.maximum(order, 0)].reshape(order.shape[0], -1))
+    rows = jnp.concatenate(cols, axis=1)
+    return rows.at[:, -1].set(jnp.where(order >= 0, rows[:, -1], 0.0))
+
+
+def _unpack(rows, f: FrustaParams) -> FrustaParams:
+    out, i = {}, 0
+    for name in _PACKED:
+        w = 1 if getattr(f, name).ndim == 1 else 3
+        col = rows[..., i : i + w]
+        out[name] = col[..., 0] if w == 1 else col
+        i += w
+    out["cap_b"] = out["cap_b"] > 0.5
+    out["cap_t"] = out["cap_t"] > 0.5
+    out["valid"] = out["valid"] > 0.5
+    z = jnp.zeros(rows.shape[:-1], rows.dtype)
+    return FrustaParams(**out, u_off=z, twist=z, sid=z.astype(jnp.int32), shell=z, v_off=z)
+
+
+def build_bvh(f: FrustaParams, leaf: int) -> FrustaBVH:
     lo, hi = segment_boxes(f)
-    return build(lo, hi, f.valid, leaf)
+    tree = build(lo, hi, f.valid, leaf)
+    return FrustaBVH(tree, _pack(f, tree.order))
 
 
-def nearest_bvh(f: FrustaParams, bvh, leaf: int, o, d, t_min, t_max):
+def nearest_bvh(f: FrustaParams, fb: FrustaBVH, leaf: int, o, d, t_min, t_max):
     """(t, s, code, idx, visits, leaves) of one ray through the tree; idx indexes ``f``."""
-    order = bvh.order
+    order = fb.tree.order
 
     def leaf_fn(slots, o, d, t_min, t_hi):
-        ids = order[slots]
-        seg = jax.tree_util.tree_map(lambda a: a[jnp.maximum(ids, 0)], f)
-        seg = seg._replace(valid=seg.valid & (ids >= 0))
+        seg = _unpack(jax.lax.dynamic_slice_in_dim(fb.rows, slots[0], leaf), f)
+        ids = jax.lax.dynamic_slice_in_dim(order, slots[0], leaf)
         ts, ss, cs = jax.vmap(_segment_t, in_axes=(0, None, None, None, None))(seg, o, d, t_min, t_hi)
         tm = jnp.min(ts)
         i = jnp.min(jnp.where(ts == tm, jnp.arange(leaf), leaf))
@@ -60,7 +95,7 @@ def nearest_bvh(f: FrustaParams, bvh, leaf: int, o, d, t_min, t_max):
 
     inf = jnp.asarray(jnp.inf, o.dtype)
     init = Best(inf, jnp.zeros((), o.dtype), jnp.int32(SIDE), jnp.int32(-1))
-    best, visits, leaves = nearest(bvh, leaf_fn, leaf, o, d, t_min, t_max, init)
+    best, visits, leaves = nearest(fb.tree, leaf_fn, leaf, o, d, t_min, t_max, init)
     return best.t, best.s, best.code, best.idx, visits, leaves
 
 

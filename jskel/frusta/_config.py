@@ -73,6 +73,6 @@ class FrustaConfig(StrictModel):
     texture_scale: tuple[Annotated[float, Field(gt=0.0)], Annotated[float, Field(gt=0.0)]] = (1.0, 1.0)
     relief: ReliefConfig | None = None
     block: Annotated[int, Field(ge=1, le=4096)] = 64  # segments per scan step (smaller for small skeletons)
-    accel: Literal["blocks", "bvh"] = "blocks"  # batch culling: blocks of segments, or a linear BVH (issue 6)
+    accel: Literal["auto", "blocks", "bvh"] = "auto"  # batch culling of plain segments: auto = bvh from 16 segments
     leaf: Annotated[int, Field(ge=1, le=64)] = 4  # segments per BVH leaf
-    group: Annotated[int, Field(ge=1, le=65536)] = 64  # rays per vmapped BVH traversal
+    group: Annotated[int, Field(ge=1, le=65536)] = 512  # rays per vmapped BVH traversal
