@@ -109,13 +109,16 @@ class RenderConfig(StrictModel):
     """How rays are evaluated: rays per compiled call, screen tile order, precision, progress bar.
 
     Rays are ordered in ``tile`` x ``tile`` screen tiles so a chunk of ``chunk = tile**2`` rays
-    covers one compact tile (see ``jskel.rays.tile_order``).
+    covers one compact tile (see ``jskel.rays.tile_order``). ``devices``: ``all`` shards the
+    rays over every local device (``chunk`` rays per device per call; the image is the same bit
+    for bit as on one device), ``one`` or a count.
     """
 
     chunk: Annotated[int, Field(ge=1, le=1 << 24)] = 4096
     tile: Annotated[int, Field(ge=1, le=4096)] = 64
     dtype: Literal["float32", "float64"] = "float32"
     progress: bool | None = None
+    devices: Literal["all", "one"] | Annotated[int, Field(ge=1, le=4096)] = "all"  # shard rays over local devices
 
 
 class Experiment(StrictModel):

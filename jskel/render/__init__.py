@@ -65,6 +65,18 @@ def camera_of(exp: Experiment) -> Camera:
     return Camera(np.asarray(c.eye), np.asarray(c.target), np.asarray(c.up), c.fov_deg, c.width, c.height)
 
 
+def devices_of(exp: Experiment):
+    """``render.devices`` as ``map_chunks`` takes it: None (one device) or a device list."""
+    d = exp.render.devices
+    if d == "one":
+        return None
+    devs = jax.local_devices()
+    if d != "all" and d > len(devs):
+        raise ValueError(f"render.devices: {d} devices asked, {len(devs)} present")
+    devs = devs if d == "all" else devs[:d]
+    return devs if len(devs) > 1 else None
+
+
 def dtype_of(exp: Experiment):
     if exp.render.dtype == "float64":
         if not jax.config.jax_enable_x64:
@@ -103,7 +115,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     params = (built.params, lights_from_config(exp.lights, dtype), shading_from_config(exp.shading, dtype))
     fn = pixel_fn(rep.name, built.static)
     prog = exp.render.progress if progress is None else progress
-    res = map_chunks(fn, params, rays, chunk=exp.render.chunk, progress=prog, desc="render")
+    res = map_chunks(fn, params, rays, chunk=exp.render.chunk, progress=prog, desc="render", devices=devices_of(exp))
     inv = np.empty_like(order)
     inv[order] = np.arange(order.size)
     hits, rgb = jax.tree_util.tree_map(lambda a: a[inv], res.out)
@@ -119,6 +131,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
         "compile_cached": res.compile_s == 0.0,
         "render_s": res.run_s,
         "rays": n,
+        "devices_used": len(devices_of(exp) or [None]),
         "mrays_per_s": n / res.run_s / 1e6 if res.run_s > 0 else None,
         "hit_fraction": float(np.mean(np.isfinite(hits.t))),
         "anchor": [float(x) for x in built.anchor],
