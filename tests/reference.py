@@ -80,6 +80,12 @@ def cut_plane(a, b):
     n = _unit(np.cross(pts[0] - pts[1], nm))
     if n @ (a["m"] + b["m"]) < 0:
         n = -n
+    # jskel's documented guard: a plane that does not cut both cones in ellipses (|n . m| within
+    # 0.05 of the sine of the cone's half-angle) is replaced by the bisector plane at the joint
+    for s in (a, b):
+        k = (s["r2"] - s["r1"]) / np.linalg.norm(s["c2"] - s["c1"])
+        if abs(n @ s["m"]) <= abs(k) / np.sqrt(1 + k * k) + 0.05:
+            return _unit(a["m"] + b["m"]), a["c2"]
     return n, pts[0]
 
 

@@ -70,6 +70,15 @@ def _cross2(a, b):
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
+ELLIPSE_MARGIN = 0.05  # |n . m| must exceed sin(half-angle) by this much
+
+
+def _cuts_ellipse(n, m, r0, r1, h):
+    """Whether planes of normal n cut the cones (axis m, radii r0 -> r1 over h) in ellipses."""
+    k = (r1 - r0) / np.where(h > 0, h, 1.0)
+    return np.abs(np.sum(n * m, -1)) > np.abs(k) / np.sqrt(1.0 + k * k) + ELLIPSE_MARGIN
+
+
 def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
     """Cutting planes at joints ``j`` between segments a (ending at j) and b (starting at j).
 
@@ -81,7 +90,8 @@ def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
     Returns ``(n, p)``: unit plane normals with n . (ma + mb) > 0 and a point on each plane.
     Collinear axes (the paper's coordinate-axis fallback) give the plane through j perpendicular
     to the axis, which is the limit of the construction; side lines that are parallel (A or B
-    at infinity) fall back to the bisector plane through j.
+    at infinity), or a plane that would not cut both cones in ellipses (``_cuts_ellipse``),
+    fall back to the bisector plane through j.
     """
     cr = np.cross(ma, mb)
     sin = np.linalg.norm(cr, axis=-1)
@@ -123,7 +133,13 @@ def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
     n = _unit(np.cross(ab3, nm))
     p = j + a2[:, :1] * e1 + a2[:, 1:] * e2
     bis = _unit(ma + mb)
+    # a plane must cut each cone in an ellipse (|n . m| above the sine of the cone's half-angle),
+    # else the region between the planes is unbounded along a generator (a hyperbolic cut): a
+    # strong change of taper with a small bend (a palm leaflet leaving the thick rachis) puts
+    # Eq. 3-5's A and B far along the axis and the plane nearly through it. Those joints take
+    # the bisector plane.
     fallback = ~(oka & okb) & ~collinear
+    fallback |= ~collinear & ~(_cuts_ellipse(n, ma, ra0, ra1, ha) & _cuts_ellipse(n, mb, rb0, rb1, hb))
     n = np.where(fallback[:, None], bis, n)
     p = np.where(fallback[:, None], j, p)
     n = np.where(collinear[:, None], ma, n)

@@ -18,7 +18,7 @@ class SkeletonConfig(StrictModel):
     ``options`` are generator-specific (see ``jskel.scenes``); unknown options are errors.
     """
 
-    procedural: Literal["saguaro", "aloe", "well", "lsystem_tree"] | None = None
+    procedural: Literal["saguaro", "aloe", "well", "lsystem_tree", "palm", "pine", "oasis", "dancing_cacti"] | None = None
     seed: int = 0
     options: dict[str, float] = {}
     joints: list[Vec3] | None = None
@@ -73,6 +73,7 @@ class FrustaConfig(StrictModel):
     texture_scale: tuple[Annotated[float, Field(gt=0.0)], Annotated[float, Field(gt=0.0)]] = (1.0, 1.0)
     relief: ReliefConfig | None = None
     block: Annotated[int, Field(ge=1, le=4096)] = 64  # segments per scan step (smaller for small skeletons)
-    accel: Literal["auto", "blocks", "bvh"] = "auto"  # batch culling of plain segments: auto = bvh from 16 segments
+    frame: float = 0.0  # animation frame, for animated generators (dancing_cacti)
+    accel: Literal["auto", "blocks", "bvh", "none"] = "auto"  # plain segments: auto = bvh from 16 segments; none = brute force
     leaf: Annotated[int, Field(ge=1, le=64)] = 4  # segments per BVH leaf
     group: Annotated[int, Field(ge=1, le=65536)] = 512  # rays per vmapped BVH traversal

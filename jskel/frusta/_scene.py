@@ -159,11 +159,17 @@ def frusta_from_skeleton(joints, radii, parents, *, twist_deg=0.0, match_minor_a
     return arrays, topo, info
 
 
-def _skeleton_arrays(sk: SkeletonConfig):
+ANIMATED = ("dancing_cacti",)
+
+
+def _skeleton_arrays(sk: SkeletonConfig, frame: float = 0.0):
     if sk.procedural is not None:
         from ..scenes import generate
 
-        j, r, p, colors = generate(sk.procedural, sk.seed, dict(sk.options))
+        opts = dict(sk.options)
+        if sk.procedural in ANIMATED:
+            opts.setdefault("frame", frame)
+        j, r, p, colors = generate(sk.procedural, sk.seed, opts)
     else:
         j = np.asarray(sk.joints, np.float64)
         r = np.asarray(sk.radii, np.float64)
@@ -222,7 +228,7 @@ def relief_memory(arr: FrustaArrays, height: np.ndarray, scale, relief_ids, dtyp
 
 def host_frusta(cfg: FrustaConfig):
     """World-space float64 frusta of an object config: (arrays, topo, info, joints, radii, colors)."""
-    j, r, p, colors = _skeleton_arrays(cfg.skeleton)
+    j, r, p, colors = _skeleton_arrays(cfg.skeleton, cfg.frame)
     arrays, topo, info = frusta_from_skeleton(j, r, p, twist_deg=cfg.twist_deg, match_minor_axes=cfg.match_minor_axes)
     return arrays, topo, info, j, r, colors
 
@@ -280,7 +286,8 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         rq = ReliefQuality(rel.steps, rel.bisection, uv, rel.early_exit, rel.v_mode)
         info = dict(info, relief_uv=uv)
     static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block,
-                    "bvh" if plain is not None and plain.bvh is not None else "blocks", cfg.leaf, cfg.group)
+                    "none" if cfg.accel == "none" else ("bvh" if plain is not None and plain.bvh is not None else "blocks"),
+                    cfg.leaf, cfg.group)
     info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size))
     return Built(scene, static, anchor, (lo, hi), info)
 
@@ -331,6 +338,8 @@ def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
         g = scene.plain
         if static.accel == "bvh":
             t, s, c, i, _, _ = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, o, d, a, b)
+        elif static.accel == "none":  # brute force: every segment for every ray (the reference)
+            t, s, c, i = jax.vmap(lambda o_, d_, a_, b_: nearest_one(g.frusta, _segment_t, o_, d_, a_, b_, static.quality.block))(o, d, a, b)
         else:
             t, s, c, i = nearest_batch(g.frusta, g.block_c, g.block_r, _segment_t, o, d, a, b, static.quality.block)
         fin = jax.vmap(_finish, in_axes=(None, 0, 0, 0, 0, 0, 0, None))
