@@ -81,6 +81,10 @@ def cmd_render(args) -> int:
     from .render import render, write_aovs
 
     res = render(exp, obj, progress=args.progress)
+    import jax
+
+    if jax.process_index() != 0:  # several hosts: process 0 writes the gathered image
+        return 0
     paths = write_aovs(args.out, res.hits, res.image, exp.camera.width, exp.camera.height, res.run)
     r = res.run
     print(
@@ -186,6 +190,9 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
+        from .distributed import init_from_env
+
+        init_from_env()
         return args.func(args)
     except ConfigError as e:
         for line in e.lines:

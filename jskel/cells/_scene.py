@@ -98,7 +98,19 @@ def base_inside(cfg: CellsConfig) -> tuple[Callable, np.ndarray, np.ndarray, str
         if not mesh.is_watertight:
             raise ValueError(f"object.base.path: mesh {b.path!r} is not watertight (the inside/outside voxelization of Sec. 3.1.4 needs a closed mesh)")
         digest = hashlib.sha256(Path(b.path).read_bytes()).hexdigest()
-        return (lambda p: mesh.contains(p)), mesh.bounds[0] + c, mesh.bounds[1] + c, digest
+        # voxelize once and fill the inside (trimesh's subdivision voxelizer + scipy fill): no ray
+        # tests, so no rtree or Embree; 512 voxels along the longest side
+        ext = float(np.max(mesh.extents))
+        vox = mesh.voxelized(ext / 512.0).fill()
+        grid = np.asarray(vox.matrix, bool)
+
+        def inside(p):
+            idx = vox.points_to_indices(np.asarray(p, np.float64) - c)
+            ok = np.all((idx >= 0) & (idx < np.array(grid.shape)), axis=1)
+            idx = np.clip(idx, 0, np.array(grid.shape) - 1)
+            return ok & grid[idx[:, 0], idx[:, 1], idx[:, 2]]
+
+        return inside, mesh.bounds[0] + c, mesh.bounds[1] + c, digest
     # another representation's object: its own inside test, jitted over point batches
     from .. import registry
 

@@ -115,7 +115,17 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     params = (built.params, lights_from_config(exp.lights, dtype), shading_from_config(exp.shading, dtype))
     fn = pixel_fn(rep.name, built.static)
     prog = exp.render.progress if progress is None else progress
-    res = map_chunks(fn, params, rays, chunk=exp.render.chunk, progress=prog, desc="render", devices=devices_of(exp))
+    n_proc = jax.process_count()
+    if n_proc > 1:  # several hosts: this process traces its share, then every share is gathered
+        from ..distributed import gather, share
+
+        lo, hi = share(rays.size, exp.render.chunk, n_proc, jax.process_index())
+        mine = Rays(*(a[lo:hi] for a in rays))
+        res = map_chunks(fn, params, mine, chunk=exp.render.chunk, progress=prog, desc="render", devices=devices_of(exp))
+        per = share(rays.size, exp.render.chunk, n_proc, 0)[1]
+        res = res._replace(out=gather(res.out, hi - lo, per))
+    else:
+        res = map_chunks(fn, params, rays, chunk=exp.render.chunk, progress=prog, desc="render", devices=devices_of(exp))
     inv = np.empty_like(order)
     inv[order] = np.arange(order.size)
     hits, rgb = jax.tree_util.tree_map(lambda a: a[inv], res.out)
@@ -132,6 +142,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
         "render_s": res.run_s,
         "rays": n,
         "devices_used": len(devices_of(exp) or [None]),
+        "processes": jax.process_count(),
         "mrays_per_s": n / res.run_s / 1e6 if res.run_s > 0 else None,
         "hit_fraction": float(np.mean(np.isfinite(hits.t))),
         "anchor": [float(x) for x in built.anchor],
