@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import itertools
 import statistics
+import time
 from pathlib import Path
 from typing import Annotated, Any, Literal, NamedTuple
 
@@ -31,9 +32,13 @@ class BenchFile(StrictModel):
     sweep: dict[str, list[Any]] | list[dict[str, Any]] | None = None  # a grid, or explicit settings
     reference: list[str] = []
     metric: str = "depth_rmse"
-    peer: Literal["embree_mesh", "marching_cubes"] | None = None
+    peer: Literal["embree_mesh", "marching_cubes", "skeleton"] | None = None
     peer_levels: list[Annotated[int, Field(ge=0, le=4096)]] = [0, 1, 2, 3, 4, 5]
     peer_match: dict[str, Any] | None = None
+    # animated scenes (``peer: skeleton``): frames timed per frame with rebuild, for jskel and peers
+    frames: list[float] = []
+    mitsuba_variant: str = "llvm_ad_rgb"
+    stats: bool = False  # frusta BVH: nodes and leaves visited per ray (one extra untimed pass)
 
 
 class _Depth(NamedTuple):
@@ -123,6 +128,135 @@ def peer_embree_mesh(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: li
     return out
 
 
+def _median(xs):
+    return round(float(statistics.median(xs)), 5)
+
+
+def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[dict]):
+    """Issue 6's peers on the same rays as jskel's rows: Embree on the Table 1 "GS" tessellation
+    (level m and m + 1) and Mitsuba 3's round linear curves; for animated scenes (``frames``),
+    seconds per frame with everything a new frame needs (skeleton, rebuild, cast) for all three.
+    Ratios are jskel's warm median over the peer's (above 1: jskel is slower)."""
+    import numpy as np
+
+    from .frusta import host_frusta
+    from .frusta._scene import _skeleton_arrays
+    from .peers.skeleton import TABLE1_GS_LEVEL, EmbreeMesh, MitsubaCurves, frusta_mesh
+    from .render import camera_of, render
+
+    O, D = camera_of(exp).ray_arrays()
+    ref_t = np.asarray(ref_hits.t, np.float64)
+    jsk = [r for r in rows if r.get("setting", {}).get("object.accel") in ("bvh", "auto")]
+    jskel_s = jsk[0]["render_s_median"] if jsk else None
+    base = {"scene": exp.name, "rays": int(O.shape[0])}
+
+    def agree(t):
+        a, b = np.isfinite(t), np.isfinite(ref_t)
+        both = a & b
+        out = {"hit_miss_vs_jskel_pct": round(float(100 * np.mean(a != b)), 4), "hit_fraction": round(float(a.mean()), 4)}
+        if both.any():
+            dt = t[both] - ref_t[both]
+            out["depth_rmse_vs_jskel"] = round(float(np.sqrt(np.mean(dt * dt))), 6)
+            out["depth_median_abs_vs_jskel"] = round(float(np.median(np.abs(dt))), 6)
+        return out
+
+    arrays, _, _, joints, radii, _ = host_frusta(obj)
+    parents = _skeleton_arrays(obj.skeleton, obj.frame)[2]
+    out = []
+    level = TABLE1_GS_LEVEL.get(obj.skeleton.procedural, 1)
+    for m in (level, level + 1):
+        t0 = time.perf_counter()
+        V, F = frusta_mesh(arrays, m)
+        tess_s = time.perf_counter() - t0
+        em = EmbreeMesh(V, F)
+        casts = [em.cast(O, D) for _ in range(runs + 1)][1:]
+        med = _median([c[1] for c in casts])
+        row = dict(base, peer="embree", gs_level=m, table1_level=m == level, triangles=int(F.shape[0]),
+                   triangles_per_segment=16 * 4**m, mesh_bytes=int(V.shape[0] * 12 + F.shape[0] * 12),
+                   tessellate_s=round(tess_s, 4), build_s=round(em.build_s, 4), cast_s_median=med, runs=runs,
+                   mrays_per_s=round(O.shape[0] / med / 1e6, 3), **agree(casts[0][0]))
+        if jskel_s:
+            row["jskel_over_peer"] = round(jskel_s / med, 2)
+        out.append(row)
+    mc = None
+    for variant in dict.fromkeys([bench.mitsuba_variant, "scalar_rgb"]):
+        try:
+            mc = MitsubaCurves(joints, radii, parents, variant)
+            casts = [mc.cast(O, D) for _ in range(runs + 1)][1:]
+        except Exception as e:  # noqa: BLE001 - a peer that cannot run is recorded, not fatal
+            out.append(dict(base, peer="mitsuba", variant=variant, error=f"{type(e).__name__}: {e}"))
+            mc = None
+            continue
+        med = _median([c[1] for c in casts])
+        row = dict(base, peer="mitsuba", variant=variant, curves=mc.n_curves, build_s=round(mc.build_s, 4),
+                   cast_s_median=med, runs=runs, mrays_per_s=round(O.shape[0] / med / 1e6, 3), **agree(casts[0][0]))
+        if jskel_s:
+            row["jskel_over_peer"] = round(jskel_s / med, 2)
+        out.append(row)
+        break
+    from .frusta._scene import ANIMATED
+
+    if bench.frames and obj.skeleton.procedural in ANIMATED:
+        out += _frames_rows(bench, exp, obj, O, D, level, mc, base)
+    return out
+
+
+def _frames_rows(bench, exp, obj, O, D, level, mc, base):
+    """Seconds per animated frame, rebuild included: jskel (skeleton, cutting planes, BVH built in
+    JAX, cast; the compile is shared by all frames and reported apart), Embree (skeleton, cutting
+    planes, tessellation, BVH build, cast) and Mitsuba (skeleton, control-point update with its
+    rebuild, cast)."""
+    from .frusta import host_frusta
+    from .frusta._scene import _skeleton_arrays
+    from .peers.skeleton import EmbreeMesh, frusta_mesh
+    from .render import render
+
+    jt, et, mt = [], [], []
+    parts = {"jskel_build": [], "jskel_cast": [], "embree_skeleton": [], "embree_tess": [], "embree_build": [],
+             "embree_cast": [], "mitsuba_skeleton": [], "mitsuba_update": [], "mitsuba_cast": []}
+    compile_s = None
+    for f in bench.frames:  # host loop over frames
+        o = obj.model_copy(update={"frame": f})
+        res = render(exp, o, progress=False)
+        if compile_s is None:
+            compile_s = res.run["compile_s"]
+            res = render(exp, o, progress=False)  # the first call compiled: time a warm one
+        parts["jskel_build"].append(res.run["build_s"])
+        parts["jskel_cast"].append(res.run["render_s"])
+        jt.append(res.run["build_s"] + res.run["render_s"])
+        t0 = time.perf_counter()
+        arrays = host_frusta(o)[0]
+        t1 = time.perf_counter()
+        V, F = frusta_mesh(arrays, level)
+        t2 = time.perf_counter()
+        em = EmbreeMesh(V, F)
+        _, cast_s = em.cast(O, D)
+        parts["embree_skeleton"].append(t1 - t0)
+        parts["embree_tess"].append(t2 - t1)
+        parts["embree_build"].append(em.build_s)
+        parts["embree_cast"].append(cast_s)
+        et.append(t2 - t0 + em.build_s + cast_s)
+        if mc is not None:
+            t0 = time.perf_counter()
+            j, r, p, _ = _skeleton_arrays(o.skeleton, o.frame)
+            sk = time.perf_counter() - t0
+            up = mc.update(j, r, p)
+            _, cast_s = mc.cast(O, D)
+            parts["mitsuba_skeleton"].append(sk)
+            parts["mitsuba_update"].append(up)
+            parts["mitsuba_cast"].append(cast_s)
+            mt.append(sk + up + cast_s)
+    row = dict(base, peer="animated_frames", frames=len(bench.frames), gs_level=level, jskel_compile_s=round(compile_s, 3),
+               jskel_frame_s_median=_median(jt), embree_frame_s_median=_median(et),
+               **{f"{k}_s_median": _median(v) for k, v in parts.items() if v})
+    row["jskel_over_embree"] = round(row["jskel_frame_s_median"] / row["embree_frame_s_median"], 2)
+    if mt:
+        row["mitsuba_variant"] = mc.variant
+        row["mitsuba_frame_s_median"] = _median(mt)
+        row["jskel_over_mitsuba"] = round(row["jskel_frame_s_median"] / row["mitsuba_frame_s_median"], 2)
+    return [row]
+
+
 def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
     """Render once (compiles; its compile seconds are kept), ``warmup - 1`` more, then ``runs``
     timed renders. Returns (row, first result)."""
@@ -154,6 +288,7 @@ def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
         "jskel": r["jskel"],
     }
     row["build_s"] = round(r["build_s"], 4)
+    row["us_per_ray"] = round(med / r["rays"] * 1e6, 4)
     for k in ("memory", "memory_bytes", "precompute_s", "cache"):
         if k in r["info"]:
             row[k] = r["info"][k]
@@ -197,5 +332,36 @@ def plot_sweep(rows: list[dict], keys: list[str], metric: str, path: Path, title
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_scaling(rows: list[dict], path: Path, title: str):
+    """Cost per ray and traversal work per ray against the number of primitives (log2 x axis,
+    so growth in proportion to log(segments) is a straight line), from rows with ``stats``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    ok = sorted((r for r in rows if r.get("nodes_per_ray_mean") is not None), key=lambda r: r["primitives"])
+    if len(ok) < 2:
+        return None
+    n = np.array([r["primitives"] for r in ok], float)
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    ax[0].plot(n, [r["us_per_ray"] for r in ok], "o-")
+    ax[0].set_ylabel("warm median microseconds per ray")
+    ax[1].plot(n, [r["nodes_per_ray_mean"] for r in ok], "o-", label="internal nodes visited")
+    ax[1].plot(n, [r["leaves_per_ray_mean"] for r in ok], "s-", label="leaves tested")
+    ax[1].set_ylabel("per ray (mean)")
+    ax[1].legend()
+    for a in ax:
+        a.set_xscale("log", base=2)
+        a.set_xlabel("segments")
+        a.set_ylim(bottom=0)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -95,6 +95,15 @@ def cmd_render(args) -> int:
     return 0
 
 
+def _bvh_stats(exp, obj) -> dict:
+    from . import frusta
+    from .render import camera_of, dtype_of
+
+    built = frusta.build(obj, dtype_of(exp))
+    rays = camera_of(exp).rays(anchor=built.anchor, dtype=dtype_of(exp))
+    return {k: round(v, 3) if isinstance(v, float) else v for k, v in frusta.traversal_stats(built, rays, exp.render.chunk).items()}
+
+
 def cmd_bench(args) -> int:
     from .bench import BenchFile, plot_sweep, sweep_settings, timed_render
 
@@ -119,7 +128,8 @@ def cmd_bench(args) -> int:
         groups.append((None, [(str(p), _load(p, common), None) for p in paths]))
     else:
         for p in paths:
-            ref_job = _load(p, common + bench.reference)
+            # a sweep with no reference only times its settings (e.g. cost against scene size)
+            ref_job = _load(p, common + bench.reference) if bench.reference else None
             jobs = [(str(p), _load(p, common + [f"{k}={json.dumps(v)}" for k, v in st.items()]), st)
                     for st in sweep_settings(bench.sweep)]
             groups.append((ref_job, jobs))
@@ -137,15 +147,18 @@ def cmd_bench(args) -> int:
         for file, (exp, obj), setting in jobs:
             row, first = timed_render(exp, obj, runs, bench.warmup)
             row["file"] = file
+            if bench.stats and obj.type == "frusta":
+                row.update(_bvh_stats(exp, obj))
             if setting is not None:
                 row["setting"] = setting
+            if setting is not None and ref_hits is not None:
                 row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(first.hits, ref_hits, first.rgb, ref_rgb).items()})
             print(json.dumps(row), flush=True)
             group_rows.append(row)
         if bench.peer is not None and ref_job is not None:
-            from .bench import peer_embree_mesh, peer_marching_cubes
+            from .bench import peer_embree_mesh, peer_marching_cubes, peer_skeleton
 
-            peer_fn = {"embree_mesh": peer_embree_mesh, "marching_cubes": peer_marching_cubes}[bench.peer]
+            peer_fn = {"embree_mesh": peer_embree_mesh, "marching_cubes": peer_marching_cubes, "skeleton": peer_skeleton}[bench.peer]
             for row in peer_fn(bench, *ref_job, ref_hits, runs, group_rows):
                 print(json.dumps(row), flush=True)
                 group_rows.append(row)
@@ -163,6 +176,12 @@ def cmd_bench(args) -> int:
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text("".join(json.dumps(r) + "\n" for r in rows))
+        if bench.stats and bench.sweep is not None and not bench.reference:
+            from .bench import plot_scaling
+
+            done = plot_scaling(rows, out.with_suffix(".png"), f"{rows[0]['scene']}: cost per ray against segments ({rows[0]['device']})")
+            if done:
+                print(f"jskel: plot -> {done}")
     return 0
 
 

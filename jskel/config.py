@@ -111,7 +111,9 @@ class RenderConfig(StrictModel):
     Rays are ordered in ``tile`` x ``tile`` screen tiles so a chunk of ``chunk = tile**2`` rays
     covers one compact tile (see ``jskel.rays.tile_order``). ``devices``: ``all`` shards the
     rays over every local device (``chunk`` rays per device per call; the image is the same bit
-    for bit as on one device), ``one`` or a count.
+    for bit as on one device), ``one`` or a count. ``memory_mb``: a budget (MiB per device) for
+    one compiled call; ``chunk`` is then an upper bound, halved until XLA's memory analysis of
+    the call (arguments, outputs, temporaries) fits (``jskel.rays.chunk_for_budget``).
     """
 
     chunk: Annotated[int, Field(ge=1, le=1 << 24)] = 4096
@@ -119,6 +121,7 @@ class RenderConfig(StrictModel):
     dtype: Literal["float32", "float64"] = "float32"
     progress: bool | None = None
     devices: Literal["all", "one"] | Annotated[int, Field(ge=1, le=4096)] = "all"  # shard rays over local devices
+    memory_mb: Annotated[float, Field(gt=0.0, le=1 << 24)] | None = None  # device memory budget of one call: chunk shrinks to fit
 
 
 class Experiment(StrictModel):

@@ -210,6 +210,7 @@ class ChunkedResult(NamedTuple):
     out: object
     compile_s: float
     run_s: float
+    memory: dict | None = None  # with a memory budget: the chunk chosen and the bytes of each try
 
 
 _COMPILED: dict = {}
@@ -257,6 +258,41 @@ def compile_batch_fn(batch_fn: Callable, example_args, mesh=None) -> tuple[Calla
     return compiled, time.perf_counter() - t0
 
 
+def compiled_bytes(compiled) -> int | None:
+    """Bytes one call of an XLA executable needs on its device (arguments + outputs +
+    temporaries, from XLA's memory analysis), or None where the backend does not report it."""
+    try:
+        m = compiled.memory_analysis()
+    except Exception:  # noqa: BLE001 - not every backend implements it
+        return None
+    if m is None:
+        return None
+    return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes)
+
+
+def chunk_for_budget(batch_fn: Callable, params, rays: Rays, chunk: int, budget: int, mesh=None) -> tuple[int, list[dict]]:
+    """The largest chunk (``chunk`` or ``chunk`` halved until it fits) whose compiled call needs
+    at most ``budget`` bytes by XLA's memory analysis. Each try compiles (and is cached, so the
+    chosen size is not compiled twice); the bytes of the parameters do not shrink with the chunk,
+    so a budget below them raises ValueError. Returns (chunk, tries as {chunk, bytes})."""
+    tries = []
+    c = chunk
+    while True:
+        ex = Rays(*(_pad_to(a[:c], c) for a in rays))
+        compiled, _ = compile_batch_fn(batch_fn, (params, ex), mesh)
+        need = compiled_bytes(compiled)
+        tries.append({"chunk": c, "bytes": need})
+        if need is None or need <= budget:
+            return c, tries
+        if c == 1:
+            raise ValueError(f"render.memory_mb: {budget / 2**20:g} MiB is below what one ray needs ({need / 2**20:.1f} MiB, mostly the scene)")
+        # the per-ray part scales with the chunk: jump close to the fit, then halve from there
+        fixed = sum(int(np.asarray(x).nbytes) for x in jax.tree_util.tree_leaves(params))
+        per_ray = max((need - fixed) / c, 1.0)
+        fit = int(max(1, (budget - fixed) // per_ray))
+        c = max(1, min(c // 2, 1 << (fit.bit_length() - 1)))
+
+
 def map_chunks(
     batch_fn: Callable,
     params,
@@ -265,6 +301,7 @@ def map_chunks(
     progress: bool | None = None,
     desc: str = "rays",
     devices=None,
+    memory_budget: int | None = None,
 ) -> ChunkedResult:
     """Evaluate ``batch_fn(params, rays_chunk) -> pytree`` over ``rays`` in chunks of ``chunk``.
 
@@ -276,7 +313,9 @@ def map_chunks(
     Returns NumPy arrays of leading size ``rays.size`` with the structure of ``batch_fn``'s
     output. ``devices``: None or one device runs unsharded; a list of devices (or ``"all"``,
     every local device) gives each device ``chunk`` rays per call; the result is the same bit for
-    bit as one device with the same ``chunk`` (tested).
+    bit as one device with the same ``chunk`` (tested). ``memory_budget`` (bytes per device):
+    ``chunk`` is lowered by :func:`chunk_for_budget` until one call fits; the chunk used and
+    the bytes it needs are returned in ``memory``.
     """
     from tqdm.auto import tqdm
 
@@ -285,6 +324,13 @@ def map_chunks(
         raise ValueError("rays: the batch is empty")
     chunk = int(min(chunk, n))
     mesh = ray_mesh(None if devices == "all" else devices) if devices is not None else None
+    memory = None
+    if memory_budget is not None:
+        t_b = time.perf_counter()
+        per_dev = 1 if mesh is None else mesh.size
+        c, tries = chunk_for_budget(batch_fn, params, rays, chunk * per_dev, int(memory_budget), mesh)
+        chunk = max(1, c // per_dev)
+        memory = {"budget_bytes": int(memory_budget), "chunk": chunk, "tries": tries, "seconds": time.perf_counter() - t_b}
     if mesh is not None:
         chunk *= mesh.size  # ``chunk`` rays per device per call
     n_chunks = -(-n // chunk)
@@ -295,6 +341,8 @@ def map_chunks(
 
     first = slice_rays(0)
     compiled, compile_s = compile_batch_fn(batch_fn, (params, first), mesh)
+    if memory is not None:
+        compile_s += memory["seconds"]  # the tries compiled (the chosen size among them)
     disable = (not sys.stderr.isatty()) if progress is None else (not progress)
     outs = []
     t0 = time.perf_counter()
@@ -307,4 +355,4 @@ def map_chunks(
             pending = nxt
     run_s = time.perf_counter() - t0
     out = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=0)[:n], *outs)
-    return ChunkedResult(out, compile_s, run_s)
+    return ChunkedResult(out, compile_s, run_s, memory)

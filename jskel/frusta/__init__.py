@@ -37,4 +37,5 @@ from ._scene import relief_memory as relief_memory
 from ._scene import rim_points as rim_points
 from ._scene import to_params as to_params
 from ._scene import topology as topology
+from ._scene import traversal_stats as traversal_stats
 from ._scene import validate_skeleton as validate_skeleton

@@ -16,6 +16,11 @@ class SkeletonConfig(StrictModel):
 
     ``offset`` translates and ``scale`` scales the whole skeleton (world units).
     ``options`` are generator-specific (see ``jskel.scenes``); unknown options are errors.
+    ``subdivide`` splits every segment into that many collinear pieces (radii interpolated): the
+    same surface from more segments, for studies of cost against segment count.
+    ``replicate: k`` lays k x k copies, each scaled by 1/k, side by side over the original's
+    x-y extent (a wall facing +z): k^2 times the segments, about the same screen coverage and
+    depth complexity for a camera on the z axis (issue 6's cost-against-log(segments) study).
     """
 
     procedural: Literal["saguaro", "aloe", "well", "lsystem_tree", "palm", "pine", "oasis", "dancing_cacti"] | None = None
@@ -27,6 +32,8 @@ class SkeletonConfig(StrictModel):
     colors: list[RGB] | None = None
     scale: Annotated[float, Field(gt=0.0)] = 1.0
     offset: Vec3 = (0.0, 0.0, 0.0)
+    subdivide: Annotated[int, Field(ge=1, le=4096)] = 1  # split every segment into this many collinear pieces
+    replicate: Annotated[int, Field(ge=1, le=1024)] = 1  # k x k copies side by side in x-y, each scaled 1/k
 
     @model_validator(mode="after")
     def _one_source(self):

@@ -178,7 +178,53 @@ def _skeleton_arrays(sk: SkeletonConfig, frame: float = 0.0):
         if colors is not None and colors.shape[0] != j.shape[0]:
             raise ValueError(f"{_SIDE_BRANCH_COLOR_PATH}: has {colors.shape[0]} entries for {j.shape[0]} joints")
     j = j * sk.scale + np.asarray(sk.offset, np.float64)
-    return j, r * sk.scale, p, colors
+    r = r * sk.scale
+    if sk.subdivide > 1:
+        j, r, p, colors = subdivide_skeleton(j, r, p, colors, sk.subdivide)
+    if sk.replicate > 1:
+        j, r, p, colors = replicate_skeleton(j, r, p, colors, sk.replicate)
+    return j, r, p, colors
+
+
+def replicate_skeleton(joints, radii, parents, colors, k: int):
+    """k x k copies of a skeleton, each scaled by 1/k about its box's (x, y) minimum corner and
+    placed on a k x k grid over the original's x-y extent (z unchanged in the mean). Copy c has
+    joints ``c * J .. (c + 1) * J - 1`` with its parents shifted by ``c * J``."""
+    lo, hi = joints.min(0), joints.max(0)
+    ext = hi - lo
+    nj = joints.shape[0]
+    cells = np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), -1).reshape(-1, 2)  # (k^2, 2)
+    shift = np.zeros((cells.shape[0], 3))
+    shift[:, :2] = cells * ext[None, :2] / k
+    centre_z = 0.5 * (lo[2] + hi[2])
+    local = (joints - np.array([lo[0], lo[1], centre_z])) / k + np.array([lo[0], lo[1], centre_z])
+    j = (local[None] + shift[:, None, :]).reshape(-1, 3)
+    p = np.asarray(parents)
+    pp = np.where(p[None, :] >= 0, p[None, :] + (np.arange(cells.shape[0]) * nj)[:, None], -1).reshape(-1)
+    cols = None if colors is None else np.tile(colors, (cells.shape[0], 1))
+    return j, np.tile(radii / k, cells.shape[0]), pp, cols
+
+
+def subdivide_skeleton(joints, radii, parents, colors, n: int):
+    """Every segment (parent -> child) split into ``n`` collinear pieces: n - 1 new joints on the
+    segment, radii linearly interpolated, colours of the child. The original joints keep their
+    indices; the new ones follow, ``n - 1`` per child joint in child order. Collinear joints get
+    cutting planes perpendicular to the axis (Eq. 3-5's bisector), so the surface is unchanged."""
+    p = np.asarray(parents)
+    child = np.nonzero(p >= 0)[0]
+    nj = joints.shape[0]
+    if child.size == 0:
+        return joints, radii, p, colors
+    f = (np.arange(1, n) / n)[None, :]  # (1, n-1)
+    a, b = joints[p[child]], joints[child]
+    new_j = (a[:, None, :] + f[..., None] * (b - a)[:, None, :]).reshape(-1, 3)
+    new_r = (radii[p[child], None] + f * (radii[child] - radii[p[child]])[:, None]).reshape(-1)
+    ids = nj + np.arange(child.size * (n - 1)).reshape(child.size, n - 1)
+    new_p = np.concatenate([p[child][:, None], ids[:, :-1]], axis=1).reshape(-1)
+    out_p = p.copy()
+    out_p[child] = ids[:, -1]
+    cols = None if colors is None else np.concatenate([colors, np.repeat(colors[child], n - 1, axis=0)])
+    return np.concatenate([joints, new_j]), np.concatenate([radii, new_r]), np.concatenate([out_p, new_p]), cols
 
 
 RELIEF_TEXTURES = ("brick", "gravel", "grass")
@@ -355,6 +401,32 @@ def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
     for h in hits[1:]:
         out = _nearest_hit(out, h)
     return out
+
+
+def _stats_batch(static: Static):
+    def fn(params, rays: Rays):
+        g = params.plain
+        return nearest_groups(g.frusta, g.bvh, static.leaf, static.group, *rays)[4:]
+
+    return fn
+
+
+_STATS_FNS: dict = {}
+
+
+def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
+    """Work per ray of the BVH traversal of the plain segments: mean and max internal nodes
+    visited and leaves tested (deterministic counts, free of timing noise; issue 6's
+    "cost per ray grows no faster than log(segments)"). Empty when the scene has no BVH."""
+    from ..rays import map_chunks
+
+    if built.static.accel != "bvh" or built.params.plain is None:
+        return {}
+    fn = _STATS_FNS.setdefault(built.static, _stats_batch(built.static))
+    visits, leaves = map_chunks(fn, built.params, rays, chunk=chunk, progress=False).out
+    return {"nodes_per_ray_mean": float(np.mean(visits)), "nodes_per_ray_max": int(np.max(visits)),
+            "leaves_per_ray_mean": float(np.mean(leaves)), "leaves_per_ray_max": int(np.max(leaves)),
+            "leaf_tests_per_ray_mean": float(np.mean(leaves)) * built.static.leaf}
 
 
 def albedo(scene: FrustaScene, static: Static, hit: Hit):

@@ -102,6 +102,18 @@ def environment() -> dict:
     }
 
 
+def peak_rss_mb() -> float | None:
+    """The process's peak resident memory so far in MiB (Linux/macOS), None elsewhere."""
+    try:
+        import resource
+        import sys
+
+        r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return round(r / (2**20 if sys.platform == "darwin" else 2**10), 1)
+    except Exception:  # noqa: BLE001 - not available on this platform
+        return None
+
+
 def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     """Render one frame of an experiment (host function; the heavy work is jitted in chunks)."""
     dtype = dtype_of(exp)
@@ -115,17 +127,18 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     params = (built.params, lights_from_config(exp.lights, dtype), shading_from_config(exp.shading, dtype))
     fn = pixel_fn(rep.name, built.static)
     prog = exp.render.progress if progress is None else progress
+    budget = None if exp.render.memory_mb is None else int(exp.render.memory_mb * 2**20)
     n_proc = jax.process_count()
     if n_proc > 1:  # several hosts: this process traces its share, then every share is gathered
         from ..distributed import gather, share
 
         lo, hi = share(rays.size, exp.render.chunk, n_proc, jax.process_index())
         mine = Rays(*(a[lo:hi] for a in rays))
-        res = map_chunks(fn, params, mine, chunk=exp.render.chunk, progress=prog, desc="render", devices=devices_of(exp))
+        res = map_chunks(fn, params, mine, chunk=exp.render.chunk, progress=prog, desc="render", devices=devices_of(exp), memory_budget=budget)
         per = share(rays.size, exp.render.chunk, n_proc, 0)[1]
         res = res._replace(out=gather(res.out, hi - lo, per))
     else:
-        res = map_chunks(fn, params, rays, chunk=exp.render.chunk, progress=prog, desc="render", devices=devices_of(exp))
+        res = map_chunks(fn, params, rays, chunk=exp.render.chunk, progress=prog, desc="render", devices=devices_of(exp), memory_budget=budget)
     inv = np.empty_like(order)
     inv[order] = np.arange(order.size)
     hits, rgb = jax.tree_util.tree_map(lambda a: a[inv], res.out)
@@ -147,7 +160,10 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
         "hit_fraction": float(np.mean(np.isfinite(hits.t))),
         "anchor": [float(x) for x in built.anchor],
         "info": built.info,
+        "peak_host_mb": peak_rss_mb(),
     }
+    if res.memory is not None:
+        run["memory_budget"] = res.memory
     if hits.flags is not None:
         f = np.asarray(hits.flags)
         run["flags"] = {"overflow_rays": int(np.sum((f & FLAG_OVERFLOW) != 0)), "step_cap_rays": int(np.sum((f & FLAG_STEP_CAP) != 0))}

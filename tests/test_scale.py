@@ -1,0 +1,191 @@
+"""Issue 6 beyond the tree itself: the peers' tessellation (no peer library needed), skeleton
+families for the cost-against-size study, traversal work growing with log(segments), and the
+memory budget that picks the chunk."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import reference as ref
+from conftest import build_skeleton, cast
+from jskel import frusta
+from jskel.peers.skeleton import curve_points, frusta_mesh
+
+
+def _tree(rng, n):
+    joints, parents = [np.zeros(3)], [-1]
+    for i in range(1, n):
+        par = int(rng.integers(0, i))
+        step = rng.normal(size=3)
+        step[1] = abs(step[1]) + 0.4
+        joints.append(joints[par] + 0.7 * step / np.linalg.norm(step))
+        parents.append(par)
+    return np.array(joints), rng.uniform(0.05, 0.25, n), np.array(parents)
+
+
+@pytest.mark.parametrize("level", [0, 1, 2])
+def test_gs_tessellation_has_table_1_counts_and_lies_on_the_clipped_cones(level):
+    """Table 1: 16 n x 4^m triangles for n segments at level m (plus fans on free ends); every
+    vertex on its cone x^2 + z^2 = (r1 + k y)^2 (closed form in float64 here) and the end rings
+    on the cutting planes."""
+    rng = np.random.default_rng(3)
+    j, r, p = _tree(rng, 12)
+    arr, topo, _ = frusta.frusta_from_skeleton(j, r, p)
+    s = arr.h.shape[0]
+    V, F = frusta_mesh(arr, level)
+    nu, nv = 8 * 2**level, 2**level
+    caps = int(np.sum(arr.cap_b) + np.sum(arr.cap_t))
+    assert F.shape[0] == 16 * 4**level * s + caps * nu
+    assert F.min() >= 0 and F.max() < V.shape[0]
+    P = V[: s * (nv + 1) * nu].reshape(s, nv + 1, nu, 3) - arr.c1[:, None, None, :]
+    y = np.einsum("sabk,sk->sab", P, arr.m)
+    radial = np.linalg.norm(P - y[..., None] * arr.m[:, None, None, :], axis=-1)
+    want = arr.r1[:, None, None] + (arr.r2 - arr.r1)[:, None, None] / arr.h[:, None, None] * y
+    np.testing.assert_allclose(radial, want, atol=1e-9)
+    np.testing.assert_allclose(np.einsum("sak,sk->sa", P[:, 0], arr.nb), np.broadcast_to(arr.db[:, None], (s, nu)), atol=1e-9)
+    np.testing.assert_allclose(np.einsum("sak,sk->sa", P[:, -1], arr.nt), np.broadcast_to(arr.dt[:, None], (s, nu)), atol=1e-9)
+    # a triangle's vertices come from one segment (or its cap centre)
+    seg = np.minimum(F // ((nv + 1) * nu), s)
+    lateral = np.all(F < s * (nv + 1) * nu, axis=1)
+    assert np.all(seg[lateral, 0] == seg[lateral, 1]) and np.all(seg[lateral, 1] == seg[lateral, 2])
+
+
+def test_curve_points_are_one_round_cone_per_segment():
+    j = np.array([[0, 0, 0], [0, 1, 0], [1, 1, 0], [0, 2, 0.0]])
+    r = np.array([0.3, 0.2, 0.1, 0.15])
+    pts = curve_points(j, r, np.array([-1, 0, 1, 1]))
+    assert pts.shape == (3, 2, 4)
+    np.testing.assert_array_equal(pts[:, 0, :3], j[[0, 1, 1]])
+    np.testing.assert_array_equal(pts[:, 1, :3], j[[1, 2, 3]])
+    np.testing.assert_array_equal(pts[:, :, 3], [[0.3, 0.2], [0.2, 0.1], [0.2, 0.15]])
+
+
+def test_subdivided_skeleton_is_the_same_surface():
+    """Splitting every segment into collinear pieces leaves the skinned surface unchanged: the
+    float64 NumPy reference on the original skeleton agrees with jskel on the split one."""
+    from jskel.frusta._scene import subdivide_skeleton
+
+    rng = np.random.default_rng(11)
+    j, r, p = _tree(rng, 10)
+    j2, r2, p2, _ = subdivide_skeleton(j, r, p, None, 3)
+    assert j2.shape[0] == 10 + 9 * 2 and np.sum(p2 >= 0) == 27
+    np.testing.assert_array_equal(j2[:10], j)
+    split = build_skeleton(j2, r2, p2, accel="bvh")
+    O, D = ref.random_rays(rng, j.min(0) - 0.4, j.max(0) + 0.4, 8192, spread=1.0)
+    got = cast(split, O, D, culled=True)
+    segs = ref.segments(j, r, p)
+    t_ref, _ = ref.intersect(segs, O, D)
+    scale = float(np.linalg.norm(j.max(0) - j.min(0)))
+    far = ref.far_from_silhouette(segs, O, D, delta=1e-3 * scale, jump=2e-2 * scale)
+    hit_g, hit_w = np.isfinite(got.t), np.isfinite(t_ref)
+    assert 0.05 < hit_w.mean() < 0.95
+    np.testing.assert_array_equal(hit_g[far], hit_w[far])
+    both = hit_g & hit_w & far
+    assert np.max(np.abs(got.t[both] - t_ref[both])) <= 1e-4 * scale
+
+
+def test_replicated_skeleton_tiles_the_original_box():
+    from jskel.frusta._scene import replicate_skeleton
+
+    rng = np.random.default_rng(2)
+    j, r, p = _tree(rng, 7)
+    j3, r3, p3, _ = replicate_skeleton(j, r, p, None, 3)
+    assert j3.shape == (63, 3) and np.sum(p3 < 0) == 9
+    lo, hi = j.min(0), j.max(0)
+    assert np.all(j3[:, :2] >= lo[:2] - 1e-12) and np.all(j3[:, :2] <= hi[:2] + 1e-12)
+    for c in range(9):  # every copy is the original scaled by 1/3 and shifted
+        part = j3[7 * c : 7 * (c + 1)]
+        np.testing.assert_allclose((part - part[0]) * 3, j - j[0], atol=1e-12)
+        np.testing.assert_array_equal(p3[7 * c : 7 * (c + 1)], np.where(p >= 0, p + 7 * c, -1))
+    np.testing.assert_allclose(r3, np.tile(r / 3, 9))
+
+
+def _wall(k, width=48, height=64):
+    from jskel.config import load
+    from jskel.render import camera_of
+
+    exp, obj = load("experiments/saguaro.yaml", [f"camera.width={width}", f"camera.height={height}", "object.accel=bvh",
+                                                 f"object.skeleton.replicate={k}", "camera.eye=[0.1, 3.3, 9.5]",
+                                                 "camera.target=[0.1, 3.3, 0]", "camera.fov_deg=40"])
+    built = frusta.build(obj)
+    return built, camera_of(exp).rays(anchor=built.anchor)
+
+
+def test_traversal_work_grows_with_log_segments_at_fixed_coverage():
+    """The saguaro wall of k x k copies (30 k^2 segments, about the same pixels covered): leaves
+    tested per ray stay bounded and nodes visited per ray grow at most in proportion to log2 of
+    the segment count (deterministic counts of the traversal, not timings)."""
+    stats = {}
+    for k in (1, 4, 16):
+        built, rays = _wall(k)
+        stats[30 * k * k] = frusta.traversal_stats(built, rays, chunk=4096)
+    leaves = [s["leaves_per_ray_mean"] for s in stats.values()]
+    nodes = np.array([s["nodes_per_ray_mean"] for s in stats.values()])
+    logs = np.log2(np.array(list(stats)))
+    assert max(leaves) < 2.0 * max(min(leaves), 0.5), leaves
+    # nodes per ray against log2(segments): bounded by a line through the origin whose slope
+    # the smallest scene sets, with a margin of 1.5 (a linear growth in segments fails by far)
+    assert np.all(nodes <= 1.5 * max(nodes[0] / logs[0], 1.0) * logs), (nodes, logs)
+    assert nodes[-1] > nodes[0]  # the tree did deepen
+
+
+def test_memory_budget_shrinks_the_chunk_and_keeps_the_image():
+    from jskel.config import load
+    from jskel.render import render
+
+    base = ["camera.width=64", "camera.height=48", "render.chunk=2048", "render.progress=false"]
+    exp, obj = load("experiments/saguaro.yaml", base)
+    plain = render(exp, obj)
+    assert "memory_budget" not in plain.run and plain.run["peak_host_mb"] > 0
+    # a budget far above the need keeps the chunk and reports what XLA says the call needs
+    roomy = render(*load("experiments/saguaro.yaml", base + ["render.memory_mb=65536"]))
+    need = roomy.run["memory_budget"]["tries"][0]["bytes"]
+    assert roomy.run["memory_budget"]["chunk"] == 2048 and 0 < need <= 65536 * 2**20
+    mb = need / 3 / 2**20
+    small = render(*load("experiments/saguaro.yaml", base + [f"render.memory_mb={mb}"]))
+    mem = small.run["memory_budget"]
+    assert mem["chunk"] < 2048 and mem["tries"][-1]["bytes"] <= int(mb * 2**20) < mem["tries"][0]["bytes"]
+    np.testing.assert_array_equal(small.hits.t, plain.hits.t)
+    np.testing.assert_array_equal(small.hits.prim, plain.hits.prim)
+
+
+def test_a_budget_below_the_scene_is_an_error_naming_the_key():
+    import jax.numpy as jnp
+
+    from jskel.rays import chunk_for_budget, make_rays
+
+    params = jnp.zeros((1 << 19,), jnp.float32)  # 2 MiB that no chunk size can shed
+    rays = make_rays(np.zeros((64, 3)), np.tile([0.0, 0.0, 1.0], (64, 1)))
+    fn = lambda p, r: r.origins * p[0]  # noqa: E731
+    with pytest.raises(ValueError, match=r"render.memory_mb: 1 MiB"):
+        chunk_for_budget(fn, params, rays, 64, 2**20)
+    assert chunk_for_budget(fn, params, rays, 64, 2**23)[0] == 64
+
+
+def test_bench_cost_against_size_writes_rows_with_traversal_counts_and_a_plot(tmp_path, capsys):
+    """``jskel bench`` with a sweep and no reference times each setting and, with ``stats``,
+    adds the traversal counts (checked here against a direct call) and plots them."""
+    import json
+
+    from jskel import cli
+
+    root = __import__("pathlib").Path(__file__).resolve().parent.parent
+    spec = tmp_path / "size.yaml"
+    spec.write_text(
+        f"width: 48\nheight: 64\nruns: 1\nwarmup: 0\nscenes: [{root / 'experiments' / 'saguaro.yaml'}]\n"
+        "set: [object.accel=bvh, 'camera.eye=[0.1, 3.3, 9.5]', 'camera.target=[0.1, 3.3, 0]', camera.fov_deg=40]\n"
+        "sweep: {object.skeleton.replicate: [1, 4]}\nstats: true\n"
+    )
+    out = tmp_path / "size.jsonl"
+    assert cli.main(["bench", str(spec), "--out", str(out)]) == 0
+    rows = [json.loads(x) for x in out.read_text().splitlines()]
+    assert [r["primitives"] for r in rows] == [30, 480]
+    assert out.with_suffix(".png").exists()
+    for k, r in zip((1, 4), rows):
+        assert r["us_per_ray"] == pytest.approx(r["render_s_median"] / r["rays"] * 1e6, rel=0.02)  # both rounded
+        assert "hit_miss_pct" not in r  # no reference, no error columns
+        want = frusta.traversal_stats(*_wall(k))
+        assert r["nodes_per_ray_mean"] == pytest.approx(want["nodes_per_ray_mean"], abs=1e-3)
+        assert r["leaves_per_ray_mean"] == pytest.approx(want["leaves_per_ray_mean"], abs=1e-3)
+    assert "rows" not in capsys.readouterr().err
