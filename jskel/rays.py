@@ -155,14 +155,31 @@ class Camera(NamedTuple):
         return np.broadcast_to(eye, d.shape).copy(), d
 
 
+def _morton2(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Interleave the bits of two non-negative int arrays (< 2^16): a 2D Z-order key."""
+    def spread(v):
+        v = v.astype(np.uint64) & 0xFFFF
+        v = (v | (v << 8)) & 0x00FF00FF
+        v = (v | (v << 4)) & 0x0F0F0F0F
+        v = (v | (v << 2)) & 0x33333333
+        v = (v | (v << 1)) & 0x55555555
+        return v
+
+    return spread(x) | (spread(y) << np.uint64(1))
+
+
 def tile_order(width: int, height: int, tile: int) -> np.ndarray:
-    """Permutation of row-major pixel indices that lists pixels tile by tile (tile x tile).
+    """Permutation of row-major pixel indices that lists pixels tile by tile (tile x tile), and
+    within a tile in Z-order (Morton order of the pixel's position in its tile).
 
     Chunks of consecutive rays are then compact on screen, which is what lets a batch-level
-    test (one scalar per chunk) skip geometry that no ray of the chunk can reach.
+    test (one scalar per chunk) skip geometry that no ray of the chunk can reach; with a
+    power-of-two tile, every aligned run of 4^j rays inside a tile is a 2^j x 2^j square, which
+    is what packet traversal (``jskel.accel.nearest_packet``) wants of its packets.
     """
     ys, xs = np.divmod(np.arange(width * height), width)
-    key = ((ys // tile) * (-(-width // tile)) + xs // tile) * (tile * tile) + (ys % tile) * tile + xs % tile
+    tiles = (ys // tile) * (-(-width // tile)) + xs // tile
+    key = tiles.astype(np.uint64) * np.uint64(1 << 32) + _morton2(xs % tile, ys % tile)
     return np.argsort(key, kind="stable")
 
 

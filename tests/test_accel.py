@@ -93,12 +93,14 @@ def test_boxes_contain_every_hit_point(skeletons):
         assert np.all(x >= lo[row] - 1e-5) and np.all(x <= hi[row] + 1e-5)
 
 
-@pytest.mark.parametrize("accel,leaf,group", [("bvh", 4, 512), ("bvh", 2, 16), ("blocks", 4, 512)])
-def test_bvh_and_blocks_equal_brute_force_on_random_skeletons(skeletons, accel, leaf, group):
+@pytest.mark.parametrize("accel,leaf,group,packet", [("bvh", 4, 512, 0), ("bvh", 2, 16, 0), ("bvh", 4, 512, 256),
+                                                     ("bvh", 2, 512, 7), ("blocks", 4, 512, 0)])
+def test_bvh_and_blocks_equal_brute_force_on_random_skeletons(skeletons, accel, leaf, group, packet):
+    """Per-ray walks, packets of 256 incoherent rays and a packet size that pads the chunk."""
     rng = np.random.default_rng(7)
     for j, r, p in skeletons:
         brute = build_skeleton(j, r, p)
-        fast = build_skeleton(j, r, p, accel=accel, leaf=leaf, group=group)
+        fast = build_skeleton(j, r, p, accel=accel, leaf=leaf, group=group, packet=packet)
         assert fast.static.accel == accel
         O, D = ref.random_rays(rng, j.min(0) - 0.5, j.max(0) + 0.5, 8192, spread=1.0)
         a = cast(brute, O, D)

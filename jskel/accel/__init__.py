@@ -8,4 +8,5 @@ from ._lbvh import escape as escape
 from ._lbvh import leaves_for as leaves_for
 from ._lbvh import morton_codes as morton_codes
 from ._lbvh import nearest as nearest
+from ._lbvh import nearest_packet as nearest_packet
 from ._lbvh import ray_box as ray_box

@@ -134,6 +134,11 @@ def _ctz(x):
     return jax.lax.population_count((x & (~x + jnp.uint32(1))) - jnp.uint32(1))
 
 
+def _inv_d(d):
+    """1 / d with signed infinities for zero components (the slab test stays exact)."""
+    return jnp.where(d == 0, jnp.where(jnp.signbit(d), -jnp.inf, jnp.inf), 1.0 / jnp.where(d == 0, 1.0, d))
+
+
 def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Best):
     """Nearest hit of one ray. ``leaf_fn(slot_ids (leaf,), o, d, t_min, t_max) -> Best`` of a
     leaf's primitives (slot ids index ``bvh.order``); returns (Best, nodes visited, leaves
@@ -149,8 +154,7 @@ def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Be
     loop walks internal nodes until the ray reaches a leaf, the outer loop tests that leaf, so
     under vmap the costly leaf test runs once per outer step for all lanes."""
     n_leaves = bvh.lo.shape[0] // 2
-    # 1 / d with signed infinities for zero components (the slab test stays exact)
-    inv_d = jnp.where(d == 0, jnp.where(jnp.signbit(d), -jnp.inf, jnp.inf), 1.0 / jnp.where(d == 0, 1.0, d))
+    inv_d = _inv_d(d)
     one = jnp.uint32(1)
 
     def pop(node, trail):
@@ -202,3 +206,71 @@ def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Be
     st = (start.astype(jnp.int32), jnp.uint32(0), init._replace(t=jnp.minimum(init.t, t_max)), jnp.int32(0), jnp.int32(0))
     node, trail, best, visits, leaves = jax.lax.while_loop(lambda st: st[0] > 0, outer, st)
     return best, visits, leaves
+
+
+def nearest_packet(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Best):
+    """Nearest hits of a *packet* of P rays (o, d: (P,3); t_min, t_max: (P,)) sharing one
+    traversal (Wald et al. 2001's packets, with the bit trail of :func:`nearest`): the node and
+    trail are scalars, every box test is done for all P rays at once, and the packet enters a
+    child when any of its rays meets it, nearer child first by the smallest entry among them.
+    ``leaf_fn(slots (leaf,), o, d, t_min, t_hi) -> Best`` of (P,) arrays tests every ray of the
+    packet against a leaf. Each ray's t is the minimum over a superset of the leaves its own
+    walk would test, so t equals :func:`nearest`'s exactly (ids too, but for exact ties).
+
+    Why: the loop is one scalar ``while_loop`` whose body branches with a real ``lax.cond``
+    (leaf or internal node) instead of a vmapped loop that runs every lane until the slowest ray
+    ends; on coherent rays (primary rays in 16 x 16 screen squares, ``rays.tile_order``) the
+    union of the rays' walks is short. Measured on the 2-core CPU (1024x768, packets of 256 vs
+    per-ray groups of 512): palm 0.78 s vs 1.51 s, dancing cacti 1.37 vs 2.54 s, oasis 2.19 vs
+    2.67 s, identical hits. Incoherent rays (random directions) make the union long: use
+    :func:`nearest` for those. Returns (Best of (P,) arrays, iterations of the packet's loop)."""
+    n_leaves = bvh.lo.shape[0] // 2
+    inv_d = _inv_d(d)
+    inf = jnp.asarray(jnp.inf, o.dtype)
+    one = jnp.uint32(1)
+
+    def meets(lo, hi, t_hi):
+        ta = (lo - o) * inv_d
+        tb = (hi - o) * inv_d
+        t0 = jnp.max(jnp.minimum(ta, tb), -1)
+        t1 = jnp.min(jnp.maximum(ta, tb), -1)
+        return (t0 <= t1) & (t1 >= t_min) & (t0 <= t_hi) & jnp.all(lo <= hi), t0
+
+    def pop(node, trail):
+        z = _ctz(jnp.where(trail == 0, one, trail))
+        node = node >> z.astype(jnp.int32)
+        trail = trail >> z
+        done = trail == 0
+        return jnp.where(done, 0, node ^ 1), jnp.where(done, trail, trail ^ one)
+
+    def internal(st):
+        node, trail, best, it = st
+        row = bvh.children[node]
+        hl, tl = meets(row[0:3], row[3:6], best.t)
+        hr, tr = meets(row[6:9], row[9:12], best.t)
+        al, ar = jnp.any(hl), jnp.any(hr)
+        left_first = jnp.min(jnp.where(hl, tl, inf)) <= jnp.min(jnp.where(hr, tr, inf))
+        near = jnp.where(ar & (~al | ~left_first), 2 * node + 1, 2 * node)
+        pn, pt = pop(node, trail)
+        met = al | ar
+        return jnp.where(met, near, pn), jnp.where(met, (trail << one) | (al & ar).astype(jnp.uint32), pt), best, it + 1
+
+    def at_leaf(st):
+        node, trail, best, it = st
+        slots = (node - n_leaves) * leaf + jnp.arange(leaf, dtype=jnp.int32)
+        cand = leaf_fn(slots, o, d, t_min, best.t)
+        better = cand.t < best.t
+        best = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), cand, best)
+        pn, pt = pop(node, trail)
+        return pn, pt, best, it + 1
+
+    def body(st):
+        return jax.lax.cond(st[0] >= n_leaves, at_leaf, internal, st)
+
+    root, _ = meets(bvh.lo[1], bvh.hi[1], t_max)
+    p = o.shape[0]
+    best = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (p,)), init)
+    best = best._replace(t=jnp.minimum(best.t, t_max))
+    st = (jnp.where(jnp.any(root), 1, 0).astype(jnp.int32), jnp.uint32(0), best, jnp.int32(0))
+    _, _, best, it = jax.lax.while_loop(lambda st: st[0] > 0, body, st)
+    return best, it

@@ -14,7 +14,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..accel import BVH, Best, build, nearest
+from ..accel import BVH, Best, build, nearest, nearest_packet
 from ._intersect import SIDE, FrustaParams, _segment_t
 
 
@@ -79,24 +79,58 @@ def build_bvh(f: FrustaParams, leaf: int) -> FrustaBVH:
     return FrustaBVH(tree, _pack(f, tree.order))
 
 
+def _leaf_best(f: FrustaParams, fb: FrustaBVH, leaf: int, slots, o, d, t_min, t_hi):
+    """Best of one ray against one leaf's segments (their rows arrive in one gather)."""
+    seg = _unpack(jax.lax.dynamic_slice_in_dim(fb.rows, slots[0], leaf), f)
+    ids = jax.lax.dynamic_slice_in_dim(fb.tree.order, slots[0], leaf)
+    ts, ss, cs = jax.vmap(_segment_t, in_axes=(0, None, None, None, None))(seg, o, d, t_min, t_hi)
+    tm = jnp.min(ts)
+    i = jnp.min(jnp.where(ts == tm, jnp.arange(leaf), leaf))
+    sel = jnp.arange(leaf) == i
+    return Best(tm, jnp.sum(jnp.where(sel, ss, 0.0)), jnp.sum(jnp.where(sel, cs, 0)).astype(jnp.int32),
+                jnp.where(jnp.isfinite(tm), jnp.sum(jnp.where(sel, ids, 0)), -1).astype(jnp.int32))
+
+
+def _init(dtype):
+    return Best(jnp.asarray(jnp.inf, dtype), jnp.zeros((), dtype), jnp.int32(SIDE), jnp.int32(-1))
+
+
 def nearest_bvh(f: FrustaParams, fb: FrustaBVH, leaf: int, o, d, t_min, t_max):
     """(t, s, code, idx, visits, leaves) of one ray through the tree; idx indexes ``f``."""
-    order = fb.tree.order
 
     def leaf_fn(slots, o, d, t_min, t_hi):
-        seg = _unpack(jax.lax.dynamic_slice_in_dim(fb.rows, slots[0], leaf), f)
-        ids = jax.lax.dynamic_slice_in_dim(order, slots[0], leaf)
-        ts, ss, cs = jax.vmap(_segment_t, in_axes=(0, None, None, None, None))(seg, o, d, t_min, t_hi)
-        tm = jnp.min(ts)
-        i = jnp.min(jnp.where(ts == tm, jnp.arange(leaf), leaf))
-        sel = jnp.arange(leaf) == i
-        return Best(tm, jnp.sum(jnp.where(sel, ss, 0.0)), jnp.sum(jnp.where(sel, cs, 0)).astype(jnp.int32),
-                    jnp.where(jnp.isfinite(tm), jnp.sum(jnp.where(sel, ids, 0)), -1).astype(jnp.int32))
+        return _leaf_best(f, fb, leaf, slots, o, d, t_min, t_hi)
 
-    inf = jnp.asarray(jnp.inf, o.dtype)
-    init = Best(inf, jnp.zeros((), o.dtype), jnp.int32(SIDE), jnp.int32(-1))
-    best, visits, leaves = nearest(fb.tree, leaf_fn, leaf, o, d, t_min, t_max, init)
+    best, visits, leaves = nearest(fb.tree, leaf_fn, leaf, o, d, t_min, t_max, _init(o.dtype))
     return best.t, best.s, best.code, best.idx, visits, leaves
+
+
+def _pad_groups(arrays, g: int):
+    """Arrays (N, ...) padded by repeating the last row to a multiple of g, as (N/g, g, ...)."""
+    n = arrays[0].shape[0]
+    pad = (-n) % g
+
+    def padded(x):
+        return jnp.concatenate([x, jnp.broadcast_to(x[-1:], (pad,) + x.shape[1:])]) if pad else x
+
+    return [padded(a).reshape((-1, g) + a.shape[1:]) for a in arrays]
+
+
+def nearest_packets(f: FrustaParams, fb: FrustaBVH, leaf: int, packet: int, origins, directions, t_min, t_max):
+    """(t, s, code, idx, iterations) of a batch in packets of ``packet`` consecutive rays, each
+    packet one traversal (``accel.nearest_packet``; ``lax.map`` over packets). Consecutive rays
+    should be close on screen (``rays.tile_order``: a packet of 256 is a 16 x 16 square); the
+    results equal :func:`nearest_groups`' whatever the order, only the time depends on it."""
+    n = origins.shape[0]
+    g = min(packet, n)
+    leaf_fn = jax.vmap(lambda slots, o, d, a, b: _leaf_best(f, fb, leaf, slots, o, d, a, b), in_axes=(None, 0, 0, 0, 0))
+
+    def one(xs):
+        best, it = nearest_packet(fb.tree, leaf_fn, leaf, *xs, _init(origins.dtype))
+        return best.t, best.s, best.code, best.idx, jnp.broadcast_to(it, best.t.shape)
+
+    out = jax.lax.map(one, tuple(_pad_groups([origins, directions, t_min, t_max], g)))
+    return tuple(x.reshape((-1,) + x.shape[2:])[:n] for x in out)
 
 
 def nearest_groups(f: FrustaParams, bvh, leaf: int, group: int, origins, directions, t_min, t_max):
@@ -104,14 +138,6 @@ def nearest_groups(f: FrustaParams, bvh, leaf: int, group: int, origins, directi
     vmap within one): a vmapped while loop runs until its slowest ray ends, so small groups of
     coherent rays waste the fewest lanes."""
     n = origins.shape[0]
-    g = min(group, n)
-    pad = (-n) % g
-
-    def padded(x):
-        return jnp.concatenate([x, jnp.broadcast_to(x[-1:], (pad,) + x.shape[1:])]) if pad else x
-
-    args = [padded(a).reshape((-1, g) + a.shape[1:]) for a in (origins, directions, t_min, t_max)]
     one = jax.vmap(lambda o, d, a, b: nearest_bvh(f, bvh, leaf, o, d, a, b))
-    out = jax.lax.map(lambda xs: one(*xs), tuple(args))
+    out = jax.lax.map(lambda xs: one(*xs), tuple(_pad_groups([origins, directions, t_min, t_max], min(group, n))))
     return tuple(x.reshape((-1,) + x.shape[2:])[:n] for x in out)
-

@@ -83,4 +83,5 @@ class FrustaConfig(StrictModel):
     frame: float = 0.0  # animation frame, for animated generators (dancing_cacti)
     accel: Literal["auto", "blocks", "bvh", "none"] = "auto"  # plain segments: auto = bvh from 16 segments; none = brute force
     leaf: Annotated[int, Field(ge=1, le=64)] = 4  # segments per BVH leaf
-    group: Annotated[int, Field(ge=1, le=65536)] = 512  # rays per vmapped BVH traversal
+    group: Annotated[int, Field(ge=1, le=65536)] = 512  # rays per vmapped BVH traversal (packet: 0)
+    packet: Annotated[int, Field(ge=0, le=65536)] = 256  # rays sharing one BVH traversal; 0: one walk per ray

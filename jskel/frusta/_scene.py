@@ -21,7 +21,7 @@ from ._intersect import FrustaParams as FrustaParams
 from ._intersect import Quality as Quality
 from ._intersect import inside_one as _inside_one
 from ._intersect import _finish, _segment_t, nearest_batch, nearest_batch_compact, nearest_one
-from ._accel import build_bvh, nearest_groups
+from ._accel import build_bvh, nearest_groups, nearest_packets
 from ._relief import ReliefMaps as ReliefMaps
 from ._relief import ReliefQuality as ReliefQuality
 from ._relief import enters_shell, make_relief_finish, make_relief_t
@@ -64,6 +64,7 @@ class Static(NamedTuple):
     accel: str = "blocks"  # blocks | bvh (plain segments)
     leaf: int = 4
     group: int = 512
+    packet: int = 256  # bvh: rays per shared traversal (0: per-ray walks in groups of ``group``)
 
 
 def _pad(a: np.ndarray, n: int, fill) -> np.ndarray:
@@ -333,7 +334,7 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         info = dict(info, relief_uv=uv)
     static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block,
                     "none" if cfg.accel == "none" else ("bvh" if plain is not None and plain.bvh is not None else "blocks"),
-                    cfg.leaf, cfg.group)
+                    cfg.leaf, cfg.group, cfg.packet)
     info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size))
     return Built(scene, static, anchor, (lo, hi), info)
 
@@ -376,13 +377,16 @@ def intersect(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
 
 def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
     """Like :func:`intersect`, but skips work at the batch level: plain segments through the
-    linear BVH (``accel: bvh``) or by skipping blocks that no ray of the batch reaches
+    linear BVH (``accel: bvh``; packets of ``packet`` consecutive rays share a traversal, or
+    with ``packet: 0`` every ray walks alone, in vmapped groups) or by skipping blocks that no ray of the batch reaches
     (``blocks``); relief marched only for the (ray, segment) pairs whose ray enters a shell."""
     o, d, a, b = rays
     hits = []
     if scene.plain is not None:
         g = scene.plain
-        if static.accel == "bvh":
+        if static.accel == "bvh" and static.packet > 0:
+            t, s, c, i, _ = nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, o, d, a, b)
+        elif static.accel == "bvh":
             t, s, c, i, _, _ = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, o, d, a, b)
         elif static.accel == "none":  # brute force: every segment for every ray (the reference)
             t, s, c, i = jax.vmap(lambda o_, d_, a_, b_: nearest_one(g.frusta, _segment_t, o_, d_, a_, b_, static.quality.block))(o, d, a, b)
@@ -406,7 +410,10 @@ def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
 def _stats_batch(static: Static):
     def fn(params, rays: Rays):
         g = params.plain
-        return nearest_groups(g.frusta, g.bvh, static.leaf, static.group, *rays)[4:]
+        out = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, *rays)[4:]
+        if static.packet > 0:
+            out = out + nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, *rays)[4:]
+        return out
 
     return fn
 
@@ -416,17 +423,23 @@ _STATS_FNS: dict = {}
 
 def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
     """Work per ray of the BVH traversal of the plain segments: mean and max internal nodes
-    visited and leaves tested (deterministic counts, free of timing noise; issue 6's
-    "cost per ray grows no faster than log(segments)"). Empty when the scene has no BVH."""
+    visited and leaves tested by each ray's own walk (deterministic counts, free of timing
+    noise; issue 6's "cost per ray grows no faster than log(segments)"), and with packets the
+    mean steps of a packet's shared loop (nodes and leaves of the union of its rays' walks, in
+    the given ray order). Empty when the scene has no BVH."""
     from ..rays import map_chunks
 
     if built.static.accel != "bvh" or built.params.plain is None:
         return {}
     fn = _STATS_FNS.setdefault(built.static, _stats_batch(built.static))
-    visits, leaves = map_chunks(fn, built.params, rays, chunk=chunk, progress=False).out
-    return {"nodes_per_ray_mean": float(np.mean(visits)), "nodes_per_ray_max": int(np.max(visits)),
-            "leaves_per_ray_mean": float(np.mean(leaves)), "leaves_per_ray_max": int(np.max(leaves)),
-            "leaf_tests_per_ray_mean": float(np.mean(leaves)) * built.static.leaf}
+    out = map_chunks(fn, built.params, rays, chunk=chunk, progress=False).out
+    visits, leaves = out[:2]
+    stats = {"nodes_per_ray_mean": float(np.mean(visits)), "nodes_per_ray_max": int(np.max(visits)),
+             "leaves_per_ray_mean": float(np.mean(leaves)), "leaves_per_ray_max": int(np.max(leaves)),
+             "leaf_tests_per_ray_mean": float(np.mean(leaves)) * built.static.leaf}
+    if len(out) > 2:  # packets: steps of each packet's shared loop (every ray carries its packet's)
+        stats["packet_steps_mean"] = float(np.mean(out[2]))
+    return stats
 
 
 def albedo(scene: FrustaScene, static: Static, hit: Hit):
