@@ -1,4 +1,4 @@
-"""Command line: ``python -m jskel render|bench ...``.
+"""Command line: ``python -m jskel render|bench|sweep ...``.
 
 Every bad input (unknown key, wrong type, bad value, bad skeleton) ends the command before any
 compilation with one line per problem on stderr, naming the key path and the value, and exit
@@ -185,6 +185,36 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_sweep(args) -> int:
+    """``jskel sweep FILE --out DIR``: see ``jskel.sweep``."""
+    from .sweep import SweepFile, reference_overrides, resolve_base, run_sweep
+
+    raw = apply_overrides(read_yaml(args.file), args.set)
+    try:
+        sweep = SweepFile.model_validate(raw)
+    except ValidationError as e:
+        raise ConfigError(_format(e)) from None
+    base = resolve_base(sweep, Path(args.file))
+    if not base.exists():
+        raise ConfigError([f"base: file not found (got {sweep.base!r})"])
+    # every setting is validated (and x64 switched on if any asks for float64) before compiling
+    jobs, ref_jobs, seen = [], [], {}
+    for i, st in enumerate(sweep.grid()):
+        try:
+            jobs.append((st, _load(base, sweep.set + [f"{k}={json.dumps(v)}" for k, v in st.items()])))
+            ro = reference_overrides(sweep, st)
+            if ro is not None:
+                key = json.dumps(ro)
+                seen.setdefault(key, (key, _load(base, ro)))
+            ref_jobs.append(None if ro is None else seen[key])
+        except ConfigError as e:
+            raise ConfigError([f"setting {i} {json.dumps(st)}: {line}" for line in e.lines]) from None
+    out = Path(args.out)
+    rows = run_sweep(sweep, jobs, ref_jobs, out, progress=args.progress)
+    print(f"jskel: {len(rows)} settings -> {out / 'results.csv'}, {out / 'report.md'}")
+    return 0
+
+
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="jskel", description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -203,6 +233,14 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a bench key")
     b.add_argument("--out", default=None, help="also write the JSON lines to this file")
     b.set_defaults(func=cmd_bench)
+    w = sub.add_parser("sweep", help="vary config keys, measure error against a reference and time: results.csv, pareto.png, report.md")
+    w.add_argument("file", help="sweep YAML")
+    w.add_argument("--out", required=True, help="output folder (an existing results.csv there is resumed)")
+    w.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a sweep key")
+    g = w.add_mutually_exclusive_group()
+    g.add_argument("--progress", dest="progress", action="store_true", default=None)
+    g.add_argument("--no-progress", dest="progress", action="store_false")
+    w.set_defaults(func=cmd_sweep)
     return ap
 
 

@@ -160,6 +160,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
         "hit_fraction": float(np.mean(np.isfinite(hits.t))),
         "anchor": [float(x) for x in built.anchor],
         "info": built.info,
+        "params_bytes": int(sum(getattr(x, "nbytes", 0) for x in jax.tree_util.tree_leaves(built.params))),
         "peak_host_mb": peak_rss_mb(),
     }
     if res.memory is not None:

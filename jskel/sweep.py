@@ -1,0 +1,287 @@
+"""Sweeps: what accuracy costs in time (issue 8).
+
+``python -m jskel sweep FILE --out DIR`` renders one base experiment at every setting of the
+varied config keys, times each (compile apart, warm-up runs, median/min/max of ``runs`` warm
+renders, ``block_until_ready`` inside the chunked evaluation before every clock stops), measures
+it against a reference render (the same scene at named high-quality overrides, e.g. 4096 steps in
+float64) and writes into DIR:
+
+* ``results.csv``: one row per setting: every varied value, compile seconds, warm median, min
+  and max seconds, runs, rays per second, each metric, the representation's device bytes, device
+  and versions. Rows are appended as they finish, so an interrupted sweep resumes: settings
+  whose row is there are skipped (matched by their values, not their position).
+* ``pareto.png``: the first metric against time, log axes, the Pareto front marked.
+* ``report.md``: the sweep, the environment, the plot and the table.
+
+Nothing is reported that was not measured in this run or read back from ``results.csv``.
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import Field, field_validator, model_validator
+
+from .config import StrictModel
+
+#: metric name -> where it comes from (``metrics.compare``, ``metrics.ssim``, the run's bytes)
+METRICS = ("hit_miss_pct", "prim_mismatch_pct", "depth_rmse", "depth_max", "normal_deg_mean", "normal_deg_max",
+           "uv_rmse", "image_rmse", "psnr_db", "ssim", "depth_px_p99", "depth_px_max", "memory_bytes")
+
+
+class Range(StrictModel):
+    """``num`` values from ``start`` to ``stop`` inclusive, evenly spaced, or geometrically with
+    ``log: true``; ``integer: true`` rounds them (duplicates dropped)."""
+
+    start: float
+    stop: float
+    num: Annotated[int, Field(ge=1, le=10000)]
+    log: bool = False
+    integer: bool = False
+
+    @model_validator(mode="after")
+    def _positive_for_log(self):
+        if self.log and (self.start <= 0 or self.stop <= 0):
+            raise ValueError(f"a log range needs start and stop > 0 (got {self.start}, {self.stop})")
+        return self
+
+    def values(self) -> list:
+        if self.num == 1:
+            vals = [self.start]
+        elif self.log:
+            r = math.log(self.stop / self.start) / (self.num - 1)
+            vals = [self.start * math.exp(r * i) for i in range(self.num)]
+        else:
+            vals = [self.start + (self.stop - self.start) * i / (self.num - 1) for i in range(self.num)]
+        if self.integer:
+            vals = list(dict.fromkeys(int(round(v)) for v in vals))
+        return vals
+
+
+class SweepFile(StrictModel):
+    """A sweep: ``base`` experiment (path relative to the sweep file), overrides for all
+    (``set``), the grid ``vary`` (key -> list or range; cartesian product) or explicit
+    ``settings``, the ``reference`` overrides (empty list: no reference, no error metrics), the
+    metrics and the timing."""
+
+    base: str
+    set: list[str] = []
+    vary: dict[str, list[Any] | Range] = {}
+    settings: list[dict[str, Any]] | None = Field(default=None, validate_default=True)
+    reference: list[str] | None = None
+    metrics: list[str] = ["hit_miss_pct", "depth_rmse", "psnr_db"]
+    runs: Annotated[int, Field(ge=1, le=1000)] = 5
+    warmup: Annotated[int, Field(ge=0, le=100)] = 1
+
+    @field_validator("metrics")
+    @classmethod
+    def _known_metrics(cls, v):
+        bad = [m for m in v if m not in METRICS]
+        if bad:
+            raise ValueError(f"unknown {', '.join(map(repr, bad))} (known: {', '.join(METRICS)})")
+        return v
+
+    @field_validator("vary")
+    @classmethod
+    def _no_empty_lists(cls, v):
+        empty = [k for k, x in v.items() if isinstance(x, list) and not x]
+        if empty:
+            raise ValueError(f"empty list for {', '.join(empty)}")
+        return v
+
+    @field_validator("settings")
+    @classmethod
+    def _one_grid(cls, v, info):
+        vary = info.data.get("vary")
+        if not vary and not v:
+            raise ValueError("give 'vary' (key -> values) or 'settings' (a list of overrides)")
+        if vary and v:
+            raise ValueError("give either 'vary' or 'settings', not both")
+        return v
+
+    def grid(self) -> list[dict]:
+        """The settings, in order: explicit, or the product of ``vary`` (first key slowest)."""
+        if self.settings is not None:
+            return [dict(s) for s in self.settings]
+        keys = list(self.vary)
+        lists = [v.values() if isinstance(v, Range) else list(v) for v in self.vary.values()]
+        return [dict(zip(keys, vals)) for vals in itertools.product(*lists)]
+
+
+def setting_key(setting: dict) -> str:
+    """The identity of a setting in ``results.csv`` (JSON of its values, keys sorted)."""
+    return json.dumps(setting, sort_keys=True)
+
+
+def read_done(path: Path) -> dict[str, dict]:
+    """Rows of an existing ``results.csv`` by setting key (an interrupted sweep's work)."""
+    if not path.exists():
+        return {}
+    with path.open(newline="") as f:
+        return {row["setting"]: row for row in csv.DictReader(f)}
+
+
+def columns(sweep: SweepFile, keys: list[str]) -> list[str]:
+    return (keys + ["compile_s", "time_median_s", "time_min_s", "time_max_s", "runs", "rays", "rays_per_s"]
+            + list(sweep.metrics) + ["hit_fraction", "device", "jax", "dtype", "setting"])
+
+
+def measure(exp, obj, ref, sweep: SweepFile) -> dict:
+    """Time one setting (compile apart, warm-up, ``runs`` warm renders) and score it."""
+    import statistics
+
+    from .metrics import compare, depth_in_pixels, ssim
+    from .render import render
+
+    first = render(exp, obj, progress=False)
+    for _ in range(max(sweep.warmup - 1, 0)):
+        render(exp, obj, progress=False)
+    times = [render(exp, obj, progress=False).run["render_s"] for _ in range(sweep.runs)]
+    med = statistics.median(times)
+    run = first.run
+    row = {"compile_s": run["compile_s"], "time_median_s": med, "time_min_s": min(times), "time_max_s": max(times),
+           "runs": sweep.runs, "rays": run["rays"], "rays_per_s": run["rays"] / med if med > 0 else None,
+           "hit_fraction": run["hit_fraction"], "device": run["device"], "jax": run["jax"], "dtype": exp.render.dtype,
+           "memory_bytes": run["params_bytes"]}
+    if ref is not None:
+        row.update(compare(first.hits, ref.hits, first.rgb, ref.rgb))
+        if "ssim" in sweep.metrics:
+            row["ssim"] = ssim(first.rgb, ref.rgb, (exp.camera.height, exp.camera.width))
+        row.update(depth_in_pixels(first.hits.t, ref.hits.t, exp.camera.fov_deg, exp.camera.height))
+    return row
+
+
+def _fmt(v):
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return "" if v is None else v
+
+
+def reference_overrides(sweep: SweepFile, setting: dict) -> list[str] | None:
+    """The overrides of a setting's reference: the sweep's ``set``, the setting, then the
+    ``reference`` overrides (which win). Settings that differ only in keys the reference
+    overrides (the quality knobs) share one reference render; settings that differ in others
+    (a mode, a scene option) get their own. None without a reference."""
+    if not sweep.reference:
+        return None
+    merged: dict[str, str] = {}
+    for item in sweep.set + [f"{k}={json.dumps(v)}" for k, v in setting.items()] + sweep.reference:
+        k, v = item.split("=", 1)
+        merged[k.strip()] = v
+    return [f"{k}={v}" for k, v in sorted(merged.items())]
+
+
+def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress: bool | None = None) -> list[dict]:
+    """Measure every job ``(setting, (exp, obj))`` not already in ``out/results.csv`` against its
+    reference job (``ref_jobs[i]``: ``(key, (exp, obj))`` or None; renders shared by key),
+    appending rows as they finish; then write the plot and the report. Returns every row."""
+    import sys
+
+    from tqdm.auto import tqdm
+
+    from .render import render
+
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "results.csv"
+    keys = list(dict.fromkeys(k for s, _ in jobs for k in s))
+    cols = columns(sweep, keys)
+    done = read_done(path)
+    todo = [(s, job, rj) for (s, job), rj in zip(jobs, ref_jobs) if setting_key(s) not in done]
+    refs: dict[str, object] = {}
+    new_file = not path.exists()
+    disable = (not sys.stderr.isatty()) if progress is None else (not progress)
+    with path.open("a", newline="") as f, tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="settings",
+                                               unit="setting", disable=disable) as bar:
+        w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
+        if new_file:
+            w.writeheader()
+        for setting, (exp, obj), rj in todo:  # host loop over settings
+            ref = None
+            if rj is not None:
+                if rj[0] not in refs:
+                    refs[rj[0]] = render(*rj[1], progress=False)
+                ref = refs[rj[0]]
+            row = measure(exp, obj, ref, sweep)
+            row.update(setting)
+            row["setting"] = setting_key(setting)
+            w.writerow({k: _fmt(row.get(k)) for k in cols})
+            f.flush()
+            bar.update(1)
+    rows = list(read_done(path).values())
+    plot = plot_pareto(rows, keys, sweep.metrics[0], out / "pareto.png")
+    write_report(sweep, rows, keys, out / "report.md", plot)
+    return rows
+
+
+def _num(x):
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return None
+
+
+def plot_pareto(rows: list[dict], keys: list[str], metric: str, path: Path):
+    """Error against warm median time on log axes, the Pareto front marked; None when no row
+    has a positive value of ``metric`` (e.g. a sweep without a reference)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from .metrics import pareto_front
+
+    pts = [(r, _num(r.get("time_median_s")), _num(r.get(metric))) for r in rows]
+    pts = [(r, t, e) for r, t, e in pts if t is not None and e is not None and e > 0]
+    if not pts:
+        return None
+    t = np.array([p[1] for p in pts])
+    e = np.array([p[2] for p in pts])
+    front = pareto_front(t, e)
+    fig, ax = plt.subplots(figsize=(7, 5))
+    ax.scatter(t[~front], e[~front], c="0.6", s=18, label="setting")
+    order = np.argsort(t[front])
+    ax.plot(t[front][order], e[front][order], "o-", c="C3", label="Pareto front")
+    for (r, ti, ei) in pts:
+        ax.annotate(",".join(str(r.get(k, "")) for k in keys), (ti, ei), fontsize=6, xytext=(2, 2), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("warm median render time [s]")
+    ax.set_ylabel(metric)
+    ax.set_title(f"{metric} against time ({rows[0].get('device', '')}); labels: " + ", ".join(k.split(".")[-1] for k in keys), fontsize=8)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def write_report(sweep: SweepFile, rows: list[dict], keys: list[str], path: Path, plot):
+    import platform
+
+    import jax
+
+    cols = keys + ["time_median_s", "time_min_s", "time_max_s", "compile_s"] + list(sweep.metrics)
+    lines = [f"# Sweep of {sweep.base}", "",
+             f"Varied: {', '.join(keys)}. Reference: {', '.join(sweep.reference) if sweep.reference else 'none'}. "
+             f"Timing: median of {sweep.runs} warm runs after {sweep.warmup} warm-up, compile apart.",
+             f"Device: {rows[0].get('device', '?') if rows else '?'}; jax {jax.__version__}; Python {platform.python_version()}; "
+             f"{platform.machine()}.", ""]
+    if plot is not None:
+        lines += [f"![{sweep.metrics[0]} against time]({Path(plot).name})", ""]
+    lines += ["| " + " | ".join(c.split(".")[-1] for c in cols) + " |", "| " + " | ".join("---" for _ in cols) + " |"]
+    for r in rows:
+        lines.append("| " + " | ".join(str(r.get(c, "")) for c in cols) + " |")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def resolve_base(sweep: SweepFile, sweep_path: Path) -> Path:
+    p = Path(sweep.base)
+    return p if p.exists() else sweep_path.parent / sweep.base
+
