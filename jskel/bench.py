@@ -265,7 +265,8 @@ def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
     first = render(exp, obj, progress=False)
     for _ in range(max(warmup - 1, 0)):
         render(exp, obj, progress=False)
-    times = [render(exp, obj, progress=False).run["render_s"] for _ in range(runs)]
+    warm = [render(exp, obj, progress=False).run for _ in range(runs)]
+    times = [w["render_s"] for w in warm]
     med = statistics.median(times)
     r = first.run
     row = {
@@ -287,7 +288,9 @@ def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
         "jax": r["jax"],
         "jskel": r["jskel"],
     }
-    row["build_s"] = round(r["build_s"], 4)
+    # the build of warm runs (the first also compiles the jitted BVH build for new shapes)
+    row["build_s"] = round(statistics.median(w["build_s"] for w in warm), 4)
+    row["build_first_s"] = round(r["build_s"], 4)
     row["us_per_ray"] = round(med / r["rays"] * 1e6, 4)
     for k in ("memory", "memory_bytes", "precompute_s", "cache"):
         if k in r["info"]:
@@ -338,28 +341,40 @@ def plot_sweep(rows: list[dict], keys: list[str], metric: str, path: Path, title
 
 def plot_scaling(rows: list[dict], path: Path, title: str):
     """Cost per ray and traversal work per ray against the number of primitives (log2 x axis,
-    so growth in proportion to log(segments) is a straight line), from rows with ``stats``."""
+    so growth in proportion to log(segments) is a straight line), from rows with ``stats``.
+    The first swept key is the size axis; rows that differ in the other swept keys are drawn
+    as separate lines (e.g. per-ray walks against packets)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
-    ok = sorted((r for r in rows if r.get("nodes_per_ray_mean") is not None), key=lambda r: r["primitives"])
+    ok = [r for r in rows if r.get("nodes_per_ray_mean") is not None]
     if len(ok) < 2:
         return None
-    n = np.array([r["primitives"] for r in ok], float)
-    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    ax[0].plot(n, [r["us_per_ray"] for r in ok], "o-")
+    groups: dict[str, list[dict]] = {}
+    for r in ok:
+        st = r.get("setting", {})
+        label = ", ".join(f"{k.split('.')[-1]}={v}" for k, v in list(st.items())[1:]) or "all"
+        groups.setdefault(label, []).append(r)
+    fig, ax = plt.subplots(1, 3, figsize=(14, 4))
+    for i, (label, rs) in enumerate(groups.items()):
+        rs = sorted(rs, key=lambda r: r["primitives"])
+        n = np.array([r["primitives"] for r in rs], float)
+        ax[0].plot(n, [r["us_per_ray"] for r in rs], "o-", c=f"C{i}", label=label)
+        ax[1].plot(n, [r["nodes_per_ray_mean"] for r in rs], "o-", c=f"C{i}", label=f"nodes ({label})")
+        ax[1].plot(n, [r["leaves_per_ray_mean"] for r in rs], "s--", c=f"C{i}", label=f"leaves ({label})")
+        if any("packet_steps_mean" in r for r in rs):
+            ax[2].plot(n, [r.get("packet_steps_mean", np.nan) for r in rs], "o-", c=f"C{i}", label=label)
     ax[0].set_ylabel("warm median microseconds per ray")
-    ax[1].plot(n, [r["nodes_per_ray_mean"] for r in ok], "o-", label="internal nodes visited")
-    ax[1].plot(n, [r["leaves_per_ray_mean"] for r in ok], "s-", label="leaves tested")
-    ax[1].set_ylabel("per ray (mean)")
-    ax[1].legend()
+    ax[1].set_ylabel("per ray, its own walk (mean)")
+    ax[2].set_ylabel("steps of a packet's shared loop (mean)")
     for a in ax:
         a.set_xscale("log", base=2)
         a.set_xlabel("segments")
         a.set_ylim(bottom=0)
+        a.legend(fontsize=7)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
