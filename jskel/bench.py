@@ -142,7 +142,7 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
     from .frusta import host_frusta
     from .frusta._scene import _skeleton_arrays
     from .peers.skeleton import TABLE1_GS_LEVEL, EmbreeMesh, MitsubaCurves, frusta_mesh
-    from .render import camera_of, render
+    from .render import camera_of
 
     O, D = camera_of(exp).ray_arrays()
     ref_t = np.asarray(ref_hits.t, np.float64)

@@ -95,6 +95,15 @@ def cmd_render(args) -> int:
     return 0
 
 
+def _read_model(model, path, overrides):
+    """A bench or sweep file, overridden and validated (every bad key at once, exit 2)."""
+    raw = apply_overrides(read_yaml(path), overrides)
+    try:
+        return model.model_validate(raw)
+    except ValidationError as e:
+        raise ConfigError(_format(e)) from None
+
+
 def _bvh_stats(exp, obj) -> dict:
     from . import frusta
     from .render import camera_of, dtype_of
@@ -107,11 +116,7 @@ def _bvh_stats(exp, obj) -> dict:
 def cmd_bench(args) -> int:
     from .bench import BenchFile, plot_sweep, sweep_settings, timed_render
 
-    raw = apply_overrides(read_yaml(args.file), args.set)
-    try:
-        bench = BenchFile.model_validate(raw)
-    except ValidationError as e:
-        raise ConfigError(_format(e)) from None
+    bench = _read_model(BenchFile, args.file, args.set)
     base = Path(args.file).parent
     runs = args.runs or bench.runs
     common = [f"camera.width={bench.width}", f"camera.height={bench.height}", "render.progress=false", *bench.set]
@@ -189,11 +194,7 @@ def cmd_sweep(args) -> int:
     """``jskel sweep FILE --out DIR``: see ``jskel.sweep``."""
     from .sweep import SweepFile, reference_overrides, resolve_base, run_sweep
 
-    raw = apply_overrides(read_yaml(args.file), args.set)
-    try:
-        sweep = SweepFile.model_validate(raw)
-    except ValidationError as e:
-        raise ConfigError(_format(e)) from None
+    sweep = _read_model(SweepFile, args.file, args.set)
     base = resolve_base(sweep, Path(args.file))
     if not base.exists():
         raise ConfigError([f"base: file not found (got {sweep.base!r})"])

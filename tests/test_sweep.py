@@ -13,7 +13,7 @@ import pytest
 from jskel import cli
 from jskel.metrics import compare, depth_in_pixels, pareto_front, ssim, uv_rmse
 from jskel.rays import Hit
-from jskel.sweep import Range, SweepFile
+from jskel.sweep import Range
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -134,6 +134,18 @@ def _ctz(x):
     return jax.lax.population_count((x & (~x + jnp.uint32(1))) - jnp.uint32(1))
 
 
+def pop(node, trail):
+    """Finish the current subtree of a bit-trail walk: climb past the trail's trailing zeros to
+    the nearest ancestor with a pending sibling and move to it; (next node, trail), node 0 when
+    the traversal is done."""
+    one = jnp.uint32(1)
+    z = _ctz(jnp.where(trail == 0, one, trail))
+    node = node >> z.astype(jnp.int32)
+    trail = trail >> z
+    done = trail == 0
+    return jnp.where(done, 0, node ^ 1), jnp.where(done, trail, trail ^ one)
+
+
 def _inv_d(d):
     """1 / d with signed infinities for zero components (the slab test stays exact)."""
     return jnp.where(d == 0, jnp.where(jnp.signbit(d), -jnp.inf, jnp.inf), 1.0 / jnp.where(d == 0, 1.0, d))
@@ -156,14 +168,6 @@ def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Be
     n_leaves = bvh.lo.shape[0] // 2
     inv_d = _inv_d(d)
     one = jnp.uint32(1)
-
-    def pop(node, trail):
-        """Finish the current subtree: (next node, trail), node 0 when the traversal is done."""
-        z = _ctz(jnp.where(trail == 0, one, trail))
-        node = node >> z.astype(jnp.int32)
-        trail = trail >> z
-        done = trail == 0
-        return jnp.where(done, 0, node ^ 1), jnp.where(done, trail, trail ^ one)
 
     def meets(lo, hi, t_hi):
         t0, t1 = slab(lo, hi, o, inv_d)
@@ -235,13 +239,6 @@ def nearest_packet(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, i
         t0 = jnp.max(jnp.minimum(ta, tb), -1)
         t1 = jnp.min(jnp.maximum(ta, tb), -1)
         return (t0 <= t1) & (t1 >= t_min) & (t0 <= t_hi) & jnp.all(lo <= hi), t0
-
-    def pop(node, trail):
-        z = _ctz(jnp.where(trail == 0, one, trail))
-        node = node >> z.astype(jnp.int32)
-        trail = trail >> z
-        done = trail == 0
-        return jnp.where(done, 0, node ^ 1), jnp.where(done, trail, trail ^ one)
 
     def internal(st):
         node, trail, best, it = st
