@@ -192,26 +192,11 @@ def cmd_bench(args) -> int:
 
 def cmd_sweep(args) -> int:
     """``jskel sweep FILE --out DIR``: see ``jskel.sweep``."""
-    from .sweep import SweepFile, reference_overrides, resolve_base, run_sweep
+    from .sweep import load_sweep, run_sweep
 
-    sweep = _read_model(SweepFile, args.file, args.set)
-    base = resolve_base(sweep, Path(args.file))
-    if not base.exists():
-        raise ConfigError([f"base: file not found (got {sweep.base!r})"])
-    # every setting is validated (and x64 switched on if any asks for float64) before compiling
-    jobs, ref_jobs, seen = [], [], {}
-    for i, st in enumerate(sweep.grid()):
-        try:
-            jobs.append((st, _load(base, sweep.set + [f"{k}={json.dumps(v)}" for k, v in st.items()])))
-            ro = reference_overrides(sweep, st)
-            if ro is not None:
-                key = json.dumps(ro)
-                seen.setdefault(key, (key, _load(base, ro)))
-            ref_jobs.append(None if ro is None else seen[key])
-        except ConfigError as e:
-            raise ConfigError([f"setting {i} {json.dumps(st)}: {line}" for line in e.lines]) from None
+    sweep, jobs, ref_jobs = load_sweep(args.file, args.set)
     out = Path(args.out)
-    rows = run_sweep(sweep, jobs, ref_jobs, out, progress=args.progress)
+    rows = run_sweep(sweep, jobs, ref_jobs, out, progress=args.progress, spec=(str(args.file), list(args.set)))
     print(f"jskel: {len(rows)} settings -> {out / 'results.csv'}, {out / 'report.md'}")
     return 0
 

@@ -77,6 +77,7 @@ class SweepFile(StrictModel):
     metrics: list[str] = ["hit_miss_pct", "depth_rmse", "psnr_db"]
     runs: Annotated[int, Field(ge=1, le=1000)] = 5
     warmup: Annotated[int, Field(ge=0, le=100)] = 1
+    parallel: Annotated[int, Field(ge=1, le=256)] = 1  # worker processes, one setting at a time each
 
     @field_validator("metrics")
     @classmethod
@@ -176,23 +177,106 @@ def reference_overrides(sweep: SweepFile, setting: dict) -> list[str] | None:
     return [f"{k}={v}" for k, v in sorted(merged.items())]
 
 
-def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress: bool | None = None) -> list[dict]:
+def load_sweep(path, overrides: list[str]):
+    """Read and validate a sweep file and every setting's experiment and reference (x64 is
+    switched on here if any of them asks for float64, before anything compiles). Returns
+    (sweep, jobs [(setting, (exp, obj))], ref_jobs [(key, (exp, obj)) or None]); bad input
+    raises ``ConfigError`` naming the setting and key."""
+    from .cli import _load, _read_model
+    from .config import ConfigError
+
+    sweep = _read_model(SweepFile, path, overrides)
+    base = resolve_base(sweep, Path(path))
+    if not base.exists():
+        raise ConfigError([f"base: file not found (got {sweep.base!r})"])
+    jobs, ref_jobs, seen = [], [], {}
+    for i, st in enumerate(sweep.grid()):
+        try:
+            jobs.append((st, _load(base, sweep.set + [f"{k}={json.dumps(v)}" for k, v in st.items()])))
+            ro = reference_overrides(sweep, st)
+            if ro is not None:
+                key = json.dumps(ro)
+                seen.setdefault(key, (key, _load(base, ro)))
+            ref_jobs.append(None if ro is None else seen[key])
+        except ConfigError as e:
+            raise ConfigError([f"setting {i} {json.dumps(st)}: {line}" for line in e.lines]) from None
+    return sweep, jobs, ref_jobs
+
+
+def measure_setting(sweep: SweepFile, setting: dict, job, rj, refs: dict) -> dict:
+    """One row: the setting measured against its reference (rendered once per key into
+    ``refs``)."""
+    from .render import render
+
+    ref = None
+    if rj is not None:
+        if rj[0] not in refs:
+            refs[rj[0]] = render(*rj[1], progress=False)
+        ref = refs[rj[0]]
+    row = measure(*job, ref, sweep)
+    row.update(setting)
+    row["setting"] = setting_key(setting)
+    return row
+
+
+_WORKER: dict = {}
+
+
+def _worker_init():
+    """A worker process of a parallel sweep: asks XLA for single-threaded Eigen kernels, so N
+    workers contend less for the cores (XLA may still run some work on more threads)."""
+    import os
+
+    flags = os.environ.get("XLA_FLAGS", "")
+    os.environ["XLA_FLAGS"] = (flags + " --xla_cpu_multi_thread_eigen=false").strip()
+
+
+def _worker_row(spec, index: int) -> dict:
+    """Measure setting ``index`` of the sweep ``spec`` = (path, overrides) in a worker process;
+    the parsed sweep and its reference renders are kept for the worker's next settings."""
+    if spec not in _WORKER:
+        _WORKER.clear()
+        _WORKER[spec] = (load_sweep(spec[0], list(spec[1])), {})
+    (sweep, jobs, ref_jobs), refs = _WORKER[spec]
+    return measure_setting(sweep, *jobs[index], ref_jobs[index], refs)
+
+
+def _rows_parallel(spec, indices: list[int], workers: int):
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    spec = (spec[0], tuple(spec[1]))
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_worker_init) as pool:
+        futures = [pool.submit(_worker_row, spec, i) for i in indices]
+        for fut in as_completed(futures):
+            yield fut.result()
+
+
+def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress: bool | None = None, spec=None) -> list[dict]:
     """Measure every job ``(setting, (exp, obj))`` not already in ``out/results.csv`` against its
     reference job (``ref_jobs[i]``: ``(key, (exp, obj))`` or None; renders shared by key),
-    appending rows as they finish; then write the plot and the report. Returns every row."""
+    appending rows as they finish; then write the plot and the report. Returns every row.
+
+    With ``parallel: N`` (and ``spec`` = (sweep file, overrides) for the workers to read) the
+    settings are measured by N spawned processes (single-threaded Eigen in XLA), one setting at a
+    time each, every worker rendering the references it needs once. Their timings then share
+    the machine with each other: use it where accuracy is what the sweep is for, or where
+    there are more cores than workers."""
     import sys
 
     from tqdm.auto import tqdm
-
-    from .render import render
 
     out.mkdir(parents=True, exist_ok=True)
     path = out / "results.csv"
     keys = list(dict.fromkeys(k for s, _ in jobs for k in s))
     cols = columns(sweep, keys)
     done = read_done(path)
-    todo = [(s, job, rj) for (s, job), rj in zip(jobs, ref_jobs) if setting_key(s) not in done]
-    refs: dict[str, object] = {}
+    todo = [i for i, (s, _) in enumerate(jobs) if setting_key(s) not in done]
+    if sweep.parallel > 1 and spec is not None and len(todo) > 1:
+        rows_iter = _rows_parallel(spec, todo, min(sweep.parallel, len(todo)))
+    else:
+        refs: dict[str, object] = {}
+        rows_iter = (measure_setting(sweep, *jobs[i], ref_jobs[i], refs) for i in todo)  # host loop over settings
     new_file = not path.exists()
     disable = (not sys.stderr.isatty()) if progress is None else (not progress)
     with path.open("a", newline="") as f, tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="settings",
@@ -200,15 +284,7 @@ def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress:
         w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
         if new_file:
             w.writeheader()
-        for setting, (exp, obj), rj in todo:  # host loop over settings
-            ref = None
-            if rj is not None:
-                if rj[0] not in refs:
-                    refs[rj[0]] = render(*rj[1], progress=False)
-                ref = refs[rj[0]]
-            row = measure(exp, obj, ref, sweep)
-            row.update(setting)
-            row["setting"] = setting_key(setting)
+        for row in rows_iter:
             w.writerow({k: _fmt(row.get(k)) for k in cols})
             f.flush()
             bar.update(1)
@@ -269,7 +345,8 @@ def write_report(sweep: SweepFile, rows: list[dict], keys: list[str], path: Path
     cols = keys + ["time_median_s", "time_min_s", "time_max_s", "compile_s"] + list(sweep.metrics)
     lines = [f"# Sweep of {sweep.base}", "",
              f"Varied: {', '.join(keys)}. Reference: {', '.join(sweep.reference) if sweep.reference else 'none'}. "
-             f"Timing: median of {sweep.runs} warm runs after {sweep.warmup} warm-up, compile apart.",
+             f"Timing: median of {sweep.runs} warm runs after {sweep.warmup} warm-up, compile apart"
+             + (f"; {sweep.parallel} worker processes shared the machine." if sweep.parallel > 1 else "."),
              f"Device: {rows[0].get('device', '?') if rows else '?'}; jax {jax.__version__}; Python {platform.python_version()}; "
              f"{platform.machine()}.", ""]
     if plot is not None:

@@ -140,6 +140,23 @@ def test_tiny_sweep_writes_every_output_and_resumes(tmp_path, monkeypatch):
     assert sorted(r["setting"] for r in again) == sorted(r["setting"] for r in rows)
 
 
+def test_parallel_workers_measure_the_same_errors(tmp_path):
+    """Two spawned worker processes measure the tiny sweep: the same settings and the same
+    (deterministic) errors as one process; only the timings may differ."""
+    base = ROOT / "experiments" / "saguaro.yaml"
+    seq = _write(tmp_path / "seq.yaml", TINY.format(base=base))
+    par = _write(tmp_path / "par.yaml", TINY.format(base=base) + "parallel: 2\n")
+    assert cli.main(["sweep", str(seq), "--out", str(tmp_path / "a")]) == 0
+    assert cli.main(["sweep", str(par), "--out", str(tmp_path / "b")]) == 0
+    a = {r["setting"]: r for r in _rows(tmp_path / "a" / "results.csv")}
+    b = {r["setting"]: r for r in _rows(tmp_path / "b" / "results.csv")}
+    assert set(a) == set(b) and len(a) == 4
+    for k in a:
+        for m in ("normal_deg_mean", "hit_miss_pct", "depth_rmse", "ssim", "memory_bytes", "rays"):
+            assert a[k][m] == b[k][m], (k, m)
+    assert "2 worker processes" in (tmp_path / "b" / "report.md").read_text()
+
+
 @pytest.mark.parametrize("body,needle", [
     ("vary: {object.normals: [interpolated]}\nmetrics: [depth_rmsx]", "metrics: unknown 'depth_rmsx'"),
     ("vary: {}", "settings: give 'vary'"),
