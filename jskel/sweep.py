@@ -23,7 +23,7 @@ import itertools
 import json
 import math
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
@@ -78,6 +78,9 @@ class SweepFile(StrictModel):
     runs: Annotated[int, Field(ge=1, le=1000)] = 5
     warmup: Annotated[int, Field(ge=0, le=100)] = 1
     parallel: Annotated[int, Field(ge=1, le=256)] = 1  # worker processes, one setting at a time each
+    # Bhagvat Fig. 6: the relief as displaced meshes cast by Embree ([peers] extra), one row per level
+    peer: Literal["relief_mesh"] | None = None
+    peer_levels: list[Annotated[int, Field(ge=0, le=12)]] = [0, 1, 2, 3, 4, 5, 6]
 
     @field_validator("metrics")
     @classmethod
@@ -94,6 +97,12 @@ class SweepFile(StrictModel):
         if empty:
             raise ValueError(f"empty list for {', '.join(empty)}")
         return v
+
+    @model_validator(mode="after")
+    def _peer_needs_reference(self):
+        if self.peer is not None and not self.reference:
+            raise ValueError(f"peer: {self.peer} is scored against the reference: give 'reference' too")
+        return self
 
     @field_validator("settings")
     @classmethod
@@ -128,8 +137,49 @@ def read_done(path: Path) -> dict[str, dict]:
 
 
 def columns(sweep: SweepFile, keys: list[str]) -> list[str]:
-    return (keys + ["compile_s", "time_median_s", "time_min_s", "time_max_s", "runs", "rays", "rays_per_s"]
+    peer = ["peer.level", "triangles", "peer_build_s"] if sweep.peer else []
+    return (keys + peer + ["compile_s", "time_median_s", "time_min_s", "time_max_s", "runs", "rays", "rays_per_s"]
             + list(sweep.metrics) + ["hit_fraction", "device", "jax", "dtype", "setting"])
+
+
+def peer_rows(sweep: SweepFile, ref_job, refs: dict, levels: list[int]) -> list[dict]:
+    """Bhagvat et al. 2009, Fig. 6 ("GS+R"): the base experiment's relief as displaced triangle
+    meshes (``jskel.peers.relief_mesh``) at subdivision ``levels``, cast by Embree on the same
+    rays and scored against the base setting's reference. Time: Embree's warm median cast
+    (its BVH build apart, in ``peer_build_s``); memory: the mesh's bytes."""
+    from types import SimpleNamespace
+
+    from .bench import peer_embree_mesh
+    from .render import render
+
+    if ref_job[0] not in refs:
+        refs[ref_job[0]] = render(*ref_job[1], progress=False)
+    exp, obj = ref_job[1]
+    spec = SimpleNamespace(peer_levels=levels, peer_match=None)
+    rows = []
+    for r in peer_embree_mesh(spec, exp, obj, refs[ref_job[0]].hits, sweep.runs, []):
+        row = {k: v for k, v in r.items() if k in sweep.metrics or k in ("hit_miss_pct", "depth_rmse")}
+        row.update({"peer.level": r["level"], "triangles": r["triangles"], "peer_build_s": r["build_s"],
+                    "time_median_s": r["render_s_median"], "runs": r["runs"], "rays": r["rays"],
+                    "memory_bytes": r["mesh_bytes"], "device": "embree (cpu)", "setting": setting_key({"peer.level": r["level"]})})
+        rows.append(row)
+    return rows
+
+
+def equal_error(rows: list[dict], metric: str) -> list[dict]:
+    """For each jskel row, the peer row with the fewest triangles whose ``metric`` and hit/miss
+    disagreement are both at most jskel's (Fig. 6's "similar quality"), or None."""
+    peers = sorted((r for r in rows if str(r.get("peer.level", "")) != ""), key=lambda r: int(r["triangles"]))
+    out = []
+    for r in rows:
+        if str(r.get("peer.level", "")) != "" or _num(r.get(metric)) is None:
+            continue
+        match = next((p for p in peers if _num(p.get(metric)) is not None and _num(p[metric]) <= _num(r[metric])
+                      and _num(p.get("hit_miss_pct", 0)) <= _num(r.get("hit_miss_pct", 0))), None)
+        out.append({"setting": r["setting"], "error": _num(r[metric]), "time_s": _num(r["time_median_s"]),
+                    "triangles": None if match is None else int(match["triangles"]),
+                    "peer_time_s": None if match is None else _num(match["time_median_s"])})
+    return out
 
 
 def measure(exp, obj, ref, sweep: SweepFile) -> dict:
@@ -180,8 +230,9 @@ def reference_overrides(sweep: SweepFile, setting: dict) -> list[str] | None:
 def load_sweep(path, overrides: list[str]):
     """Read and validate a sweep file and every setting's experiment and reference (x64 is
     switched on here if any of them asks for float64, before anything compiles). Returns
-    (sweep, jobs [(setting, (exp, obj))], ref_jobs [(key, (exp, obj)) or None]); bad input
-    raises ``ConfigError`` naming the setting and key."""
+    (sweep, jobs [(setting, (exp, obj))], ref_jobs [(key, (exp, obj)) or None], with one more
+    reference job at the end, the base setting's, when the sweep has a peer); bad input raises
+    ``ConfigError`` naming the setting and key."""
     from .cli import _load, _read_model
     from .config import ConfigError
 
@@ -200,6 +251,11 @@ def load_sweep(path, overrides: list[str]):
             ref_jobs.append(None if ro is None else seen[key])
         except ConfigError as e:
             raise ConfigError([f"setting {i} {json.dumps(st)}: {line}" for line in e.lines]) from None
+    if sweep.peer is not None:  # the peer is scored against the base setting's reference
+        ro = reference_overrides(sweep, {})
+        key = json.dumps(ro)
+        seen.setdefault(key, (key, _load(base, ro)))
+        ref_jobs.append(seen[key])
     return sweep, jobs, ref_jobs
 
 
@@ -288,6 +344,12 @@ def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress:
             w.writerow({k: _fmt(row.get(k)) for k in cols})
             f.flush()
             bar.update(1)
+        if sweep.peer is not None:
+            levels = [lv for lv in sweep.peer_levels if setting_key({"peer.level": lv}) not in done]
+            if levels:
+                for row in peer_rows(sweep, ref_jobs[-1], {}, levels):
+                    w.writerow({k: _fmt(row.get(k)) for k in cols})
+                    f.flush()
     rows = list(read_done(path).values())
     plot = plot_pareto(rows, keys, sweep.metrics[0], out / "pareto.png")
     write_report(sweep, rows, keys, out / "report.md", plot)
@@ -323,8 +385,12 @@ def plot_pareto(rows: list[dict], keys: list[str], metric: str, path: Path):
     ax.scatter(t[~front], e[~front], c="0.6", s=18, label="setting")
     order = np.argsort(t[front])
     ax.plot(t[front][order], e[front][order], "o-", c="C3", label="Pareto front")
+    mesh = np.array([str(r.get("peer.level", "")) != "" for r, _, _ in pts])
+    if mesh.any():
+        ax.scatter(t[mesh], e[mesh], marker="^", facecolors="none", edgecolors="C0", s=40, label="displaced mesh, Embree")
     for (r, ti, ei) in pts:
-        ax.annotate(",".join(str(r.get(k, "")) for k in keys), (ti, ei), fontsize=6, xytext=(2, 2), textcoords="offset points")
+        label = f"mesh {r['peer.level']}" if str(r.get("peer.level", "")) != "" else ",".join(str(r.get(k, "")) for k in keys)
+        ax.annotate(label, (ti, ei), fontsize=6, xytext=(2, 2), textcoords="offset points")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("warm median render time [s]")
@@ -351,9 +417,20 @@ def write_report(sweep: SweepFile, rows: list[dict], keys: list[str], path: Path
              f"{platform.machine()}.", ""]
     if plot is not None:
         lines += [f"![{sweep.metrics[0]} against time]({Path(plot).name})", ""]
-    lines += ["| " + " | ".join(c.split(".")[-1] for c in cols) + " |", "| " + " | ".join("---" for _ in cols) + " |"]
+    if sweep.peer is not None:
+        cols = keys + ["peer.level", "triangles"] + cols[len(keys):]
+    lines += ["| " + " | ".join(c.split(".")[-1] if c != "peer.level" else "mesh level" for c in cols) + " |",
+              "| " + " | ".join("---" for _ in cols) + " |"]
     for r in rows:
         lines.append("| " + " | ".join(str(r.get(c, "")) for c in cols) + " |")
+    if sweep.peer is not None:
+        m = sweep.metrics[0]
+        lines += ["", f"Equal error (Fig. 6): the smallest mesh whose {m} and hit/miss % are at most the setting's.", "",
+                  f"| setting | {m} | time s | mesh triangles | Embree cast s |", "| --- | --- | --- | --- | --- |"]
+        for e in equal_error(rows, m):
+            tri = "none up to the largest level" if e["triangles"] is None else f"{e['triangles']:,}"
+            pt = "" if e["peer_time_s"] is None else f"{e['peer_time_s']:.4g}"
+            lines.append(f"| {e['setting']} | {e['error']:.4g} | {e['time_s']:.4g} | {tri} | {pt} |")
     path.write_text("\n".join(lines) + "\n")
     return path
 

@@ -221,3 +221,25 @@ warmup: 0
     rows = _rows(tmp_path / "o" / "results.csv")
     assert _falls([float(r["prim_mismatch_pct"]) + 1e-3 for r in rows])
     assert _falls([float(r["depth_rmse"]) for r in rows])
+
+
+def test_equal_error_picks_the_smallest_mesh_at_most_as_wrong():
+    from jskel.sweep import equal_error
+
+    rows = [
+        {"setting": "a", "depth_rmse": "0.02", "hit_miss_pct": "0.5", "time_median_s": "0.1"},
+        {"setting": "b", "depth_rmse": "0.005", "hit_miss_pct": "0.1", "time_median_s": "0.3"},
+        {"setting": "m0", "peer.level": "0", "triangles": "100", "depth_rmse": "0.03", "hit_miss_pct": "0.9", "time_median_s": "0.01"},
+        {"setting": "m1", "peer.level": "1", "triangles": "400", "depth_rmse": "0.01", "hit_miss_pct": "0.4", "time_median_s": "0.01"},
+        {"setting": "m2", "peer.level": "2", "triangles": "1600", "depth_rmse": "0.004", "hit_miss_pct": "0.2", "time_median_s": "0.02"},
+    ]
+    got = {e["setting"]: e["triangles"] for e in equal_error(rows, "depth_rmse")}
+    # a: m1 is at most as wrong in both; b: m2's depth error passes but its hit/miss (0.2) does not
+    assert got == {"a": 400, "b": None}
+
+
+def test_a_peer_needs_a_reference(tmp_path, capsys):
+    spec = _write(tmp_path / "p.yaml", f"base: {ROOT / 'experiments' / 'relief_column.yaml'}\n"
+                  "vary: {object.relief.steps: [8]}\npeer: relief_mesh\n")
+    assert cli.main(["sweep", str(spec), "--out", str(tmp_path / "o")]) == 2
+    assert "peer: relief_mesh is scored against the reference" in capsys.readouterr().err
