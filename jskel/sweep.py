@@ -25,6 +25,7 @@ import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from .config import StrictModel
@@ -317,18 +318,38 @@ def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress:
     settings are measured by N spawned processes (single-threaded Eigen in XLA), one setting at a
     time each, every worker rendering the references it needs once. Their timings then share
     the machine with each other: use it where accuracy is what the sweep is for, or where
-    there are more cores than workers."""
+    there are more cores than workers.
+
+    Several hosts (the ``JSKEL_*`` variables of ``jskel.distributed``): every process measures
+    every setting, each render spread over the hosts as ``jskel render`` does, in the order of
+    process 0's list of settings still to do; process 0 alone reads and writes ``out``."""
     import sys
 
     from tqdm.auto import tqdm
 
-    out.mkdir(parents=True, exist_ok=True)
+    import jax
+
+    hosts = jax.process_count()
+    writer = jax.process_index() == 0
     path = out / "results.csv"
     keys = list(dict.fromkeys(k for s, _ in jobs for k in s))
     cols = columns(sweep, keys)
-    done = read_done(path)
-    todo = [i for i, (s, _) in enumerate(jobs) if setting_key(s) not in done]
-    if sweep.parallel > 1 and spec is not None and len(todo) > 1:
+    done = read_done(path) if writer else {}
+    todo_mask = np.array([setting_key(s) not in done for s, _ in jobs])
+    if hosts > 1 and sweep.peer is not None:
+        raise ValueError(f"peer: {sweep.peer} runs on one host (got {hosts} processes)")
+    if hosts > 1:  # several hosts render every setting together: all follow process 0's list
+        from jax.experimental import multihost_utils
+
+        todo_mask = np.asarray(multihost_utils.broadcast_one_to_all(todo_mask))
+    todo = [i for i in range(len(jobs)) if todo_mask[i]]
+    if not writer:  # the other hosts render their share of every setting; process 0 writes
+        refs: dict[str, object] = {}
+        for i in todo:
+            measure_setting(sweep, *jobs[i], ref_jobs[i], refs)
+        return []
+    out.mkdir(parents=True, exist_ok=True)
+    if sweep.parallel > 1 and spec is not None and len(todo) > 1 and hosts == 1:
         rows_iter = _rows_parallel(spec, todo, min(sweep.parallel, len(todo)))
     else:
         refs: dict[str, object] = {}
