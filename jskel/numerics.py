@@ -10,6 +10,7 @@ float32 constant, so the same code is right in float32 (the default) and float64
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 
@@ -83,3 +84,15 @@ def line_dist2(oc, d, tc):
     by 1 % of its radius)."""
     e = oc - tc[..., None] * d
     return jnp.sum(e * e, axis=-1)
+
+
+def differentiable_root(g, t):
+    """``t`` (a root of the scalar function ``g`` found by a march or a bisection) unchanged, with
+    derivatives by the implicit-function theorem (issue 9): g(t(p), p) = 0 gives
+    dt = -(dg/dp . dp) / (dg/dt) for whatever ``g`` closes over (primitive ends and radii, the
+    threshold, a shell's radii and thickness, the ray). Without it the derivative of a bisection
+    loop's output is exactly zero, with no error. ``lax.custom_root`` with an identity solve: the
+    forward value is ``t`` bit for bit and the loop that found it is not differentiated. Where
+    dg/dt is 0 (a grazing hit, where t itself jumps) the derivative is reported as 0."""
+    return jax.lax.custom_root(g, jax.lax.stop_gradient(t), lambda f, x0: x0,
+                               lambda gt, y: safe_div(y, gt(jnp.ones_like(y)), 0.0))

@@ -33,7 +33,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..numerics import eps_of, safe_div, safe_normalize, safe_sqrt
+from ..numerics import differentiable_root, eps_of, safe_div, safe_normalize, safe_sqrt
 from ..rays import masked_hit
 from ._intersect import CAP_BOTTOM, CAP_TOP, FrustaParams, _dot, recentre, side_roots
 
@@ -169,7 +169,8 @@ def make_relief_t(maps: ReliefMaps, q: ReliefQuality):
             v_a = exact_v(seg, e + s_a * d)[0]
             v_b = exact_v(seg, e + s_b * d)[0]
 
-        def below(s):
+        def gap(s):
+            """w - h: negative below the relief surface (Eq. 11-12 against the map)."""
             p = e + s * d
             y = _dot(p, seg.m)
             x, z = _dot(p, seg.u), _dot(p, seg.w)
@@ -181,7 +182,10 @@ def make_relief_t(maps: ReliefMaps, q: ReliefQuality):
                 v = v_a + (v_b - v_a) * safe_div(s - s_a, s_b - s_a, 0.0)
             u = _angle_u(seg, p, v)
             hgt = sample_height(maps, u * maps.scale[0], (v + seg.v_off) * maps.scale[1], q.v_mode)
-            return w <= hgt
+            return w - hgt
+
+        def below(s):
+            return gap(s) <= 0  # exactly w <= h: a float difference is 0 only when equal
 
         b0 = below(s_a)
         inside0 = (~from_outside) & b0  # the march starts below the relief surface
@@ -215,7 +219,9 @@ def make_relief_t(maps: ReliefMaps, q: ReliefQuality):
 
         if n_bis > 0:
             lo, hi = jax.lax.fori_loop(0, n_bis, bis, (lo, hi))
-        s_hit = jnp.where(hit_at_entry, s_a, 0.5 * (lo + hi))
+        # the crossing found by the march and bisection, differentiable by the implicit-function
+        # theorem (numerics.differentiable_root); an entry hit is the shell's own analytic root
+        s_hit = jnp.where(hit_at_entry, s_a, differentiable_root(gap, 0.5 * (lo + hi)))
         t = t0 + s_hit
         good = ok & found & (t > t_min) & (t <= t_max)
         code = jnp.where(hit_at_entry, entry, RELIEF)

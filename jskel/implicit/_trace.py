@@ -41,7 +41,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..numerics import line_dist2, safe_div, safe_normalize
+from ..numerics import differentiable_root, line_dist2, safe_div, safe_normalize
 from ..rays import FLAG_OVERFLOW as OVERFLOW
 from ..rays import FLAG_STEP_CAP as STEP_CAP
 from ._field import Displace, Prims, Shape, _dot, closest, kernel, lipschitz_total, shaped_field
@@ -213,7 +213,7 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
         t_in = jnp.min(jnp.where(inside, tin, inf))
         found = anyc & jnp.isfinite(t_in)
         lo, hi = _bisect(g, t_lo, jnp.where(found, t_in, t_lo), q.bisection)
-        t = jnp.where(found, 0.5 * (lo + hi), inf)
+        t = jnp.where(found, differentiable_root(g, jnp.where(found, 0.5 * (lo + hi), t_lo)), inf)
         return t, flags
 
     if q.method == "naive":
@@ -252,7 +252,7 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
     t_hit = jnp.where(first_sample | (q.bisection == 0), t, 0.5 * (lo + hi))
     if q.bisection == 0:
         t_hit = t
-    return jnp.where(found, t_hit, inf), flags
+    return jnp.where(found, differentiable_root(g, jnp.where(found, t_hit, t_lo)), inf), flags
 
 
 def surface_one(cand: Candidates, tune: Tuning, o, d, t, q: Quality):
