@@ -74,8 +74,11 @@ def cmd_render_frames(args, exp, obj) -> int:
     return 0
 
 
+X64 = ["render.dtype=float64"]  # --x64: the precision switch, set at the entry point only
+
+
 def cmd_render(args) -> int:
-    exp, obj = _load(args.experiment, args.set)
+    exp, obj = _load(args.experiment, args.set + (X64 if args.x64 else []))
     if args.frames is not None:
         return cmd_render_frames(args, exp, obj)
     from .render import render, write_aovs
@@ -119,7 +122,8 @@ def cmd_bench(args) -> int:
     bench = _read_model(BenchFile, args.file, args.set)
     base = Path(args.file).parent
     runs = args.runs or bench.runs
-    common = [f"camera.width={bench.width}", f"camera.height={bench.height}", "render.progress=false", *bench.set]
+    common = [f"camera.width={bench.width}", f"camera.height={bench.height}", "render.progress=false", *bench.set,
+              *(X64 if args.x64 else [])]
     paths = []
     for i, scene in enumerate(bench.scenes):
         p = Path(scene)
@@ -194,9 +198,10 @@ def cmd_sweep(args) -> int:
     """``jskel sweep FILE --out DIR``: see ``jskel.sweep``."""
     from .sweep import load_sweep, run_sweep
 
-    sweep, jobs, ref_jobs = load_sweep(args.file, args.set)
+    sweep, jobs, ref_jobs = load_sweep(args.file, args.set, X64 if args.x64 else [])
     out = Path(args.out)
-    rows = run_sweep(sweep, jobs, ref_jobs, out, progress=args.progress, spec=(str(args.file), list(args.set)))
+    rows = run_sweep(sweep, jobs, ref_jobs, out, progress=args.progress,
+                     spec=(str(args.file), list(args.set), X64 if args.x64 else []))
     print(f"jskel: {len(rows)} settings -> {out / 'results.csv'}, {out / 'report.md'}")
     return 0
 
@@ -212,12 +217,14 @@ def parser() -> argparse.ArgumentParser:
     g = r.add_mutually_exclusive_group()
     g.add_argument("--progress", dest="progress", action="store_true", default=None)
     g.add_argument("--no-progress", dest="progress", action="store_false")
+    r.add_argument("--x64", action="store_true", help="float64 throughout (render.dtype=float64; x64 switched on here)")
     r.set_defaults(func=cmd_render)
     b = sub.add_parser("bench", help="time renders (compile apart, median of warm runs), JSON lines out")
     b.add_argument("file", help="benchmark YAML")
     b.add_argument("--runs", type=int, default=None, help="override the number of timed runs")
     b.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a bench key")
     b.add_argument("--out", default=None, help="also write the JSON lines to this file")
+    b.add_argument("--x64", action="store_true", help="every scene in float64 (render.dtype=float64)")
     b.set_defaults(func=cmd_bench)
     w = sub.add_parser("sweep", help="vary config keys, measure error against a reference and time: results.csv, pareto.png, report.md")
     w.add_argument("file", help="sweep YAML")
@@ -226,6 +233,7 @@ def parser() -> argparse.ArgumentParser:
     g = w.add_mutually_exclusive_group()
     g.add_argument("--progress", dest="progress", action="store_true", default=None)
     g.add_argument("--no-progress", dest="progress", action="store_false")
+    w.add_argument("--x64", action="store_true", help="every setting in float64 unless it sets render.dtype itself")
     w.set_defaults(func=cmd_sweep)
     return ap
 

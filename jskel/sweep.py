@@ -228,12 +228,13 @@ def reference_overrides(sweep: SweepFile, setting: dict) -> list[str] | None:
     return [f"{k}={v}" for k, v in sorted(merged.items())]
 
 
-def load_sweep(path, overrides: list[str]):
+def load_sweep(path, overrides: list[str], exp_overrides: list[str] = ()):
     """Read and validate a sweep file and every setting's experiment and reference (x64 is
     switched on here if any of them asks for float64, before anything compiles). Returns
     (sweep, jobs [(setting, (exp, obj))], ref_jobs [(key, (exp, obj)) or None], with one more
     reference job at the end, the base setting's, when the sweep has a peer); bad input raises
-    ``ConfigError`` naming the setting and key."""
+    ``ConfigError`` naming the setting and key. ``exp_overrides`` (e.g. ``--x64``'s) apply to
+    every setting before its own values."""
     from .cli import _load, _read_model
     from .config import ConfigError
 
@@ -244,7 +245,7 @@ def load_sweep(path, overrides: list[str]):
     jobs, ref_jobs, seen = [], [], {}
     for i, st in enumerate(sweep.grid()):
         try:
-            jobs.append((st, _load(base, sweep.set + [f"{k}={json.dumps(v)}" for k, v in st.items()])))
+            jobs.append((st, _load(base, sweep.set + list(exp_overrides) + [f"{k}={json.dumps(v)}" for k, v in st.items()])))
             ro = reference_overrides(sweep, st)
             if ro is not None:
                 key = json.dumps(ro)
@@ -289,11 +290,12 @@ def _worker_init():
 
 
 def _worker_row(spec, index: int) -> dict:
-    """Measure setting ``index`` of the sweep ``spec`` = (path, overrides) in a worker process;
+    """Measure setting ``index`` of the sweep ``spec`` = (path, overrides, experiment overrides)
+    in a worker process;
     the parsed sweep and its reference renders are kept for the worker's next settings."""
     if spec not in _WORKER:
         _WORKER.clear()
-        _WORKER[spec] = (load_sweep(spec[0], list(spec[1])), {})
+        _WORKER[spec] = (load_sweep(spec[0], list(spec[1]), list(spec[2])), {})
     (sweep, jobs, ref_jobs), refs = _WORKER[spec]
     return measure_setting(sweep, *jobs[index], ref_jobs[index], refs)
 
@@ -302,7 +304,7 @@ def _rows_parallel(spec, indices: list[int], workers: int):
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    spec = (spec[0], tuple(spec[1]))
+    spec = (spec[0], tuple(spec[1]), tuple(spec[2]))
     with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_worker_init) as pool:
         futures = [pool.submit(_worker_row, spec, i) for i in indices]
         for fut in as_completed(futures):
@@ -314,7 +316,8 @@ def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress:
     reference job (``ref_jobs[i]``: ``(key, (exp, obj))`` or None; renders shared by key),
     appending rows as they finish; then write the plot and the report. Returns every row.
 
-    With ``parallel: N`` (and ``spec`` = (sweep file, overrides) for the workers to read) the
+    With ``parallel: N`` (and ``spec`` = (sweep file, overrides, experiment overrides) for the
+    workers to read) the
     settings are measured by N spawned processes (single-threaded Eigen in XLA), one setting at a
     time each, every worker rendering the references it needs once. Their timings then share
     the machine with each other: use it where accuracy is what the sweep is for, or where

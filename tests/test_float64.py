@@ -48,19 +48,25 @@ def test_float64_matches_reference_to_1e_9():
     assert r.stdout.startswith("ok")
 
 
-def test_cli_float64_render(tmp_path):
+import pytest  # noqa: E402
+
+
+@pytest.mark.parametrize("switch", [["--set", "render.dtype=float64"], ["--x64"]])
+def test_cli_float64_render(tmp_path, switch):
+    """The precision switch at the entry point: the key, or --x64 (issue 9)."""
     import json
 
     import numpy as np
 
     exp = HERE.parent / "experiments" / "well.yaml"
     r = subprocess.run(
-        [sys.executable, "-m", "jskel", "render", str(exp), "--out", str(tmp_path),
-         "--set", "render.dtype=float64", "--set", "camera.width=40", "--set", "camera.height=30"],
+        [sys.executable, "-m", "jskel", "render", str(exp), "--out", str(tmp_path), *switch,
+         "--set", "camera.width=40", "--set", "camera.height=30"],
         capture_output=True, text=True, timeout=300,
     )
     assert r.returncode == 0, r.stderr[-2000:]
     run = json.loads((tmp_path / "run.json").read_text())
     assert run["config"]["render"]["dtype"] == "float64"
+    assert run["params_bytes"] > 0
     depth = np.load(tmp_path / "depth.npy")
     assert depth.dtype == np.float32 and np.isfinite(depth).any()
