@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..interface import Built
+from ..numerics import safe_normalize
 from ..rays import FLAG_STEP_CAP, Hit, masked_hit
 from ._config import CellsConfig as CellsConfig
 from ._membership import INSIDE, memory_table, membership, unpack, words_for
@@ -290,7 +291,7 @@ def inside(p: CellParams, static: Static, point):
 def environment(env: jnp.ndarray, d):
     """Radiance for an escaping direction: an equirectangular map (H,W,3), or, for the (1,1,3)
     placeholder of ``sky``, a procedural sky (horizon to zenith, dark ground)."""
-    d = d / jnp.sqrt(jnp.sum(d * d))
+    d = safe_normalize(d)  # a zero direction gives the horizon, not NaN
     if env.shape[0] == 1:
         up = jnp.clip(d[1], -1.0, 1.0)
         sky = jnp.where(up >= 0, (1 - up) * jnp.array([0.85, 0.9, 1.0]) + up * jnp.array([0.25, 0.45, 0.85]),
@@ -339,7 +340,7 @@ def shade_batch(p: CellParams, static: Static, rays, hits: Hit, lights, sh):
     from ..rays import Rays, compact_map
     from ..render._shade import shade_one
 
-    d0 = rays.directions / jnp.sqrt(jnp.sum(rays.directions**2, -1, keepdims=True))
+    d0 = safe_normalize(rays.directions)
     env0 = jax.vmap(lambda d: environment(p.env, d))(d0)
     base = jax.vmap(lambda h: albedo(p, static, h))(hits)
     local = jax.vmap(lambda h, d, b: shade_one(h, d, b, lights, sh))(hits, d0, base)

@@ -28,7 +28,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..numerics import safe_div, safe_normalize
+from ..numerics import safe_div, safe_normalize, safe_sqrt
 from ._membership import INSIDE, lookup
 
 TILE_HAS_INSIDE = 1
@@ -101,7 +101,7 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside: bool, opt: TraceOpti
     (True: Alg. 3.1 / 3.2, looking for an inside cell; False: Alg. 3.3, leaving one), then
     bisection. Tiles whose flags lack (want_inside) / have (not want_inside) ``skip_flag`` are
     jumped over to the first sample past their exit (bitwise the same samples)."""
-    h = p.step * p.size / jnp.sqrt(jnp.sum(d * d))
+    h = safe_div(p.step * p.size, safe_sqrt(jnp.sum(d * d)), 0.0)  # d = 0: no step, no NaN
 
     def is_target(t):
         code, tile, ok = membership_at(p, o + t * d)
@@ -196,5 +196,5 @@ def refract(d, n, eta):
     cos_i = -jnp.sum(d * n)
     k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
     tir = k < 0
-    t = eta * d + (eta * cos_i - jnp.sqrt(jnp.maximum(k, 0.0))) * n
+    t = eta * d + (eta * cos_i - safe_sqrt(k)) * n
     return jnp.where(tir, reflect(d, n), t), tir

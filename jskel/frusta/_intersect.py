@@ -253,7 +253,7 @@ def _rays_touch_sphere(origins, directions, dd, t_min, t_max, c, r):
     oc = c[None, :] - origins
     tc = safe_div(_dot(oc, directions), dd, 0.0)
     dist2 = line_dist2(oc, directions, tc)
-    rt = r / jnp.sqrt(dd)
+    rt = safe_div(r, safe_sqrt(dd), 0.0)  # d = 0: no NaN
     return (dist2 <= r * r) & (tc + rt > t_min) & (tc - rt <= t_max)
 
 

@@ -18,7 +18,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..numerics import safe_div
+from ..numerics import safe_div, safe_sqrt
 
 
 class Prims(NamedTuple):
@@ -204,7 +204,7 @@ def lipschitz(prims: Prims):
     ok = rmin > 0
     rs = jnp.where(ok, rmin, 1.0)
     ab = prims.b - prims.a
-    length = jnp.sqrt(_dot(ab, ab))
+    length = safe_sqrt(_dot(ab, ab))  # a ball's a == b: finite derivative
     slope = safe_div(jnp.abs(prims.rb - prims.ra), length, 0.0)
     bound = 8.0 / (3.0 * jnp.sqrt(3.0) * rs) + slope / rs
     return jnp.where(prims.valid, jnp.where(ok, bound, jnp.inf), 0.0)

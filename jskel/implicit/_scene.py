@@ -11,7 +11,7 @@ import numpy as np
 from ..interface import Built
 from ..rays import Hit, Rays, compact_map, masked_hit
 from ._config import ImplicitConfig as ImplicitConfig
-from ..numerics import safe_div
+from ..numerics import safe_div, safe_sqrt
 from ._field import Displace as Displace
 from ._field import Prims as Prims
 from ._field import Shape as Shape
@@ -391,7 +391,7 @@ def project(pr: Projector, x, kind: str):
     elif kind == "cylindrical":
         uv = jnp.stack([jnp.arctan2(ps, pu) / (2 * jnp.pi) + 0.5, h])
     else:  # spherical
-        rho = jnp.sqrt(pu * pu + ps * ps)
+        rho = safe_sqrt(pu * pu + ps * ps)
         uv = jnp.stack([jnp.arctan2(ps, pu) / (2 * jnp.pi) + 0.5, jnp.arctan2(rho, h) / jnp.pi])
     return uv * pr.scale
 

@@ -41,7 +41,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..numerics import differentiable_root, line_dist2, safe_div, safe_normalize
+from ..numerics import differentiable_root, line_dist2, safe_div, safe_normalize, safe_sqrt
 from ..rays import FLAG_OVERFLOW as OVERFLOW
 from ..rays import FLAG_STEP_CAP as STEP_CAP
 from ._field import Displace, Prims, Shape, _dot, closest, kernel, lipschitz_total, shaped_field
@@ -73,7 +73,7 @@ class Tuning(NamedTuple):
 def influence_spheres(prims: Prims):
     """Centre (P,3) and radius (P,) of a sphere containing each primitive's support."""
     c = 0.5 * (prims.a + prims.b)
-    half = 0.5 * jnp.sqrt(_dot(prims.b - prims.a, prims.b - prims.a))
+    half = 0.5 * safe_sqrt(_dot(prims.b - prims.a, prims.b - prims.a))
     return c, half + jnp.maximum(prims.ra, prims.rb)
 
 
@@ -95,7 +95,7 @@ def _sphere_interval(c, r, o, d, t_min, t_max):
     oc = c - o
     tc = safe_div(_dot(oc, d), dd, 0.0)
     dist2 = line_dist2(oc, d, tc)
-    half = jnp.sqrt(jnp.maximum(r * r - dist2, 0.0) / dd)
+    half = safe_sqrt(safe_div(r * r - dist2, dd, 0.0))  # safe: a miss or d = 0 gives no NaN derivative
     t0 = jnp.maximum(tc - half, t_min)
     t1 = jnp.minimum(tc + half, t_max)
     return t0, t1, (dist2 < r * r) & (t0 < t1)
@@ -114,7 +114,7 @@ def block_spheres(prims: Prims, block: int):
     anyv = jnp.any(v, axis=1)
     cb = jnp.where(anyv[:, None], 0.5 * (lo + hi), 0.0)
     e = c - cb[:, None, :]
-    rb = jnp.max(jnp.where(v, jnp.sqrt(_dot(e, e)) + r, 0.0), axis=1)
+    rb = jnp.max(jnp.where(v, safe_sqrt(_dot(e, e)) + r, 0.0), axis=1)
     # rounding: grow by a few ulps of the coordinates so no member pokes out in float32
     scale = jnp.max(jnp.abs(cb), axis=1) + rb
     return cb, rb + 8 * jnp.finfo(c.dtype).eps * scale, anyv
@@ -213,14 +213,15 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
         t_in = jnp.min(jnp.where(inside, tin, inf))
         found = anyc & jnp.isfinite(t_in)
         lo, hi = _bisect(g, t_lo, jnp.where(found, t_in, t_lo), q.bisection)
-        t = jnp.where(found, differentiable_root(g, jnp.where(found, 0.5 * (lo + hi), t_lo)), inf)
+        # a miss differentiates at t = 0 (g finite there; t_lo may be inf), and is masked after
+        t = jnp.where(found, differentiable_root(g, jnp.where(found, 0.5 * (lo + hi), 0.0)), inf)
         return t, flags
 
     if q.method == "naive":
         def advance(t, gv):
             return t + tune.step
     elif q.method == "lipschitz":
-        L = lipschitz_total(sub, q.shape, tune.disp) * jnp.sqrt(_dot(d, d))
+        L = lipschitz_total(sub, q.shape, tune.disp) * safe_sqrt(_dot(d, d))
 
         def advance(t, gv):
             return t + jnp.maximum(safe_div(-gv, L, 0.0), tune.eps)
@@ -252,7 +253,7 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
     t_hit = jnp.where(first_sample | (q.bisection == 0), t, 0.5 * (lo + hi))
     if q.bisection == 0:
         t_hit = t
-    return jnp.where(found, differentiable_root(g, jnp.where(found, t_hit, t_lo)), inf), flags
+    return jnp.where(found, differentiable_root(g, jnp.where(found, t_hit, 0.0)), inf), flags
 
 
 def surface_one(cand: Candidates, tune: Tuning, o, d, t, q: Quality):
