@@ -55,6 +55,19 @@ def cast(built, O, D, t_min=0.0, t_max=np.inf, culled=False):
     return res.out._replace(position=np.asarray(res.out.position, np.float64) + built.anchor)
 
 
+def random_tree(rng, n, lift=0.3, length=0.8, r_max=0.3):
+    """A random branching skeleton of n joints (each joint's parent drawn among the earlier
+    ones, steps of ``length`` leaning up by ``lift``): (joints (n,3), radii (n,), parents)."""
+    joints, parents = [np.zeros(3)], [-1]
+    for i in range(1, n):
+        par = int(rng.integers(0, i))
+        step = rng.normal(size=3)
+        step[1] = abs(step[1]) + lift
+        joints.append(joints[par] + length * step / np.linalg.norm(step))
+        parents.append(par)
+    return np.array(joints), rng.uniform(0.05, r_max, n), np.array(parents)
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

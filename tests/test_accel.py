@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import reference as ref
-from conftest import build_skeleton, cast
+from conftest import build_skeleton, cast, random_tree
 from jskel import accel, frusta
 from jskel.frusta._accel import segment_boxes
 
@@ -55,16 +55,8 @@ def test_tree_boxes_nest_and_order_is_a_permutation():
 
 
 def _random_skeleton(rng, n):
-    joints = [np.zeros(3)]
-    parents = [-1]
-    for i in range(1, n):
-        par = int(rng.integers(0, i))
-        step = rng.normal(size=3)
-        step[1] = abs(step[1]) + 0.3
-        joints.append(joints[par] + 0.8 * step / np.linalg.norm(step))
-        parents.append(par)
-    radii = rng.uniform(0.05, 0.3, n)
-    return np.array(joints), radii, parents
+    j, r, p = random_tree(rng, n)
+    return j, r, p.tolist()
 
 
 @pytest.fixture(scope="module")

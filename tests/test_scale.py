@@ -8,20 +8,13 @@ import numpy as np
 import pytest
 
 import reference as ref
-from conftest import build_skeleton, cast
+from conftest import build_skeleton, cast, random_tree
 from jskel import frusta
 from jskel.peers.skeleton import curve_points, frusta_mesh
 
 
 def _tree(rng, n):
-    joints, parents = [np.zeros(3)], [-1]
-    for i in range(1, n):
-        par = int(rng.integers(0, i))
-        step = rng.normal(size=3)
-        step[1] = abs(step[1]) + 0.4
-        joints.append(joints[par] + 0.7 * step / np.linalg.norm(step))
-        parents.append(par)
-    return np.array(joints), rng.uniform(0.05, 0.25, n), np.array(parents)
+    return random_tree(rng, n, lift=0.4, length=0.7, r_max=0.25)
 
 
 @pytest.mark.parametrize("level", [0, 1, 2])
