@@ -306,7 +306,10 @@ def sweep_settings(sweep) -> list[dict]:
     return [dict(zip(keys, vals)) for vals in itertools.product(*(sweep[k] for k in keys))]
 
 
-def plot_sweep(rows: list[dict], keys: list[str], metric: str, path: Path, title: str):
+def pareto_plot(t, e, labels: list[str], path: Path, ylabel: str, title: str, marked=None, marked_label: str = ""):
+    """Error ``e`` against time ``t`` on log axes with the Pareto front marked, one label per
+    point; ``marked`` (bool mask) points get an extra hollow marker (e.g. a peer's meshes).
+    Shared by the bench and sweep commands."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -315,28 +318,36 @@ def plot_sweep(rows: list[dict], keys: list[str], metric: str, path: Path, title
 
     from .metrics import pareto_front
 
-    ok = [r for r in rows if r.get(metric) is not None and r[metric] > 0]
-    if not ok:
-        return None
-    t = np.array([r["render_s_median"] for r in ok])
-    e = np.array([r[metric] for r in ok])
+    t, e = np.asarray(t, float), np.asarray(e, float)
     front = pareto_front(t, e)
     fig, ax = plt.subplots(figsize=(7, 5))
     ax.scatter(t[~front], e[~front], c="0.6", s=18, label="setting")
     order = np.argsort(t[front])
     ax.plot(t[front][order], e[front][order], "o-", c="C3", label="Pareto front")
-    for r, ti, ei in zip(ok, t, e):
-        ax.annotate(",".join(str(r["setting"].get(k, "-")) for k in keys), (ti, ei), fontsize=6, xytext=(2, 2), textcoords="offset points")
+    if marked is not None and np.any(marked):
+        m = np.asarray(marked)
+        ax.scatter(t[m], e[m], marker="^", facecolors="none", edgecolors="C0", s=40, label=marked_label)
+    for lab, ti, ei in zip(labels, t, e):
+        ax.annotate(lab, (ti, ei), fontsize=6, xytext=(2, 2), textcoords="offset points")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("warm median render time [s]")
-    ax.set_ylabel(metric)
-    ax.set_title(title + "\nlabels: " + ", ".join(k.split(".")[-1] for k in keys) + " (- where a setting omits one)", fontsize=9)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=8)
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def plot_sweep(rows: list[dict], keys: list[str], metric: str, path: Path, title: str):
+    ok = [r for r in rows if r.get(metric) is not None and r[metric] > 0]
+    if not ok:
+        return None
+    labels = [",".join(str(r["setting"].get(k, "-")) for k in keys) for r in ok]
+    title = title + "\nlabels: " + ", ".join(k.split(".")[-1] for k in keys) + " (- where a setting omits one)"
+    return pareto_plot([r["render_s_median"] for r in ok], [r[metric] for r in ok], labels, path, metric, title)
 
 
 def plot_scaling(rows: list[dict], path: Path, title: str):

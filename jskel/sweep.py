@@ -388,43 +388,18 @@ def _num(x):
 
 
 def plot_pareto(rows: list[dict], keys: list[str], metric: str, path: Path):
-    """Error against warm median time on log axes, the Pareto front marked; None when no row
-    has a positive value of ``metric`` (e.g. a sweep without a reference)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    from .metrics import pareto_front
+    """Error against warm median time on log axes, the Pareto front marked (``bench.pareto_plot``);
+    None when no row has a positive value of ``metric`` (e.g. a sweep without a reference)."""
+    from .bench import pareto_plot
 
     pts = [(r, _num(r.get("time_median_s")), _num(r.get(metric))) for r in rows]
     pts = [(r, t, e) for r, t, e in pts if t is not None and e is not None and e > 0]
     if not pts:
         return None
-    t = np.array([p[1] for p in pts])
-    e = np.array([p[2] for p in pts])
-    front = pareto_front(t, e)
-    fig, ax = plt.subplots(figsize=(7, 5))
-    ax.scatter(t[~front], e[~front], c="0.6", s=18, label="setting")
-    order = np.argsort(t[front])
-    ax.plot(t[front][order], e[front][order], "o-", c="C3", label="Pareto front")
-    mesh = np.array([str(r.get("peer.level", "")) != "" for r, _, _ in pts])
-    if mesh.any():
-        ax.scatter(t[mesh], e[mesh], marker="^", facecolors="none", edgecolors="C0", s=40, label="displaced mesh, Embree")
-    for (r, ti, ei) in pts:
-        label = f"mesh {r['peer.level']}" if str(r.get("peer.level", "")) != "" else ",".join(str(r.get(k, "")) for k in keys)
-        ax.annotate(label, (ti, ei), fontsize=6, xytext=(2, 2), textcoords="offset points")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("warm median render time [s]")
-    ax.set_ylabel(metric)
-    ax.set_title(f"{metric} against time ({rows[0].get('device', '')}); labels: " + ", ".join(k.split(".")[-1] for k in keys), fontsize=8)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    mesh = [str(r.get("peer.level", "")) != "" for r, _, _ in pts]
+    labels = [f"mesh {r['peer.level']}" if m else ",".join(str(r.get(k, "")) for k in keys) for (r, _, _), m in zip(pts, mesh)]
+    title = f"{metric} against time ({rows[0].get('device', '')}); labels: " + ", ".join(k.split(".")[-1] for k in keys)
+    return pareto_plot([p[1] for p in pts], [p[2] for p in pts], labels, path, metric, title, mesh, "displaced mesh, Embree")
 
 
 def write_report(sweep: SweepFile, rows: list[dict], keys: list[str], path: Path, plot):
