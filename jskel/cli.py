@@ -54,17 +54,20 @@ def cmd_render_frames(args, exp, obj) -> int:
 
     from .render import render, write_aovs
 
-    if "frame" not in type(obj).model_fields:
+    if not exp.is_scene and "frame" not in type(obj).model_fields:
         raise ConfigError([f"--frames: object.type {obj.type!r} has no animation"])
     frames = _frames(args.frames)
     out = Path(args.out)
     images, runs = [], []
     for f in frames:  # host loop over frames: each reuses the one compiled render
-        o = obj.model_copy(update={"frame": f})
-        res = render(exp, o, progress=args.progress)
+        if exp.is_scene:  # a scene's frame poses every animated shape and moves objects with a motion
+            e, o = exp.model_copy(update={"frame": f}), obj
+        else:
+            e, o = exp, obj.model_copy(update={"frame": f})
+        res = render(e, o, progress=args.progress)
         tag = f"{int(round(f)):04d}" if float(f).is_integer() else f"{f:09.3f}"
         sub = out / f"frame_{tag}"
-        write_aovs(sub, res.hits, res.image, exp.camera.width, exp.camera.height, res.run)
+        write_aovs(sub, res.hits, res.image, exp.camera.width, exp.camera.height, res.run, res.aovs)
         images.append(res.image)
         runs.append({"frame": f, "render_s": res.run["render_s"], "compile_s": res.run["compile_s"], "build_s": res.run["build_s"]})
         print(f"jskel: frame {f:g}: {res.run['render_s']:.3f} s (compile {res.run['compile_s']:.2f} s) -> {sub}")
@@ -88,7 +91,7 @@ def cmd_render(args) -> int:
 
     if jax.process_index() != 0:  # several hosts: process 0 writes the gathered image
         return 0
-    paths = write_aovs(args.out, res.hits, res.image, exp.camera.width, exp.camera.height, res.run)
+    paths = write_aovs(args.out, res.hits, res.image, exp.camera.width, exp.camera.height, res.run, res.aovs)
     r = res.run
     print(
         f"jskel: rendered {exp.name} ({r['info'].get('segments', r['info'].get('primitives', '?'))} primitives) "

@@ -18,7 +18,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from . import registry
 
@@ -80,12 +80,17 @@ class CameraConfig(StrictModel):
 
 
 class LightConfig(StrictModel):
-    """Directional light; ``direction`` points from the scene *towards* the light."""
+    """A light. ``directional``: ``direction`` points from the scene *towards* the light;
+    ``point``: at ``position``, radiance falling off as 1 / distance^2 (``intensity`` is the
+    radiance at distance 1). ``shadows``: whether it casts shadows in a scene (``objects:``;
+    single-object renders have no shadow rays)."""
 
-    type: Literal["directional"] = "directional"
+    type: Literal["directional", "point"] = "directional"
     direction: Vec3 = (0.4, 0.8, 0.6)
+    position: Vec3 | None = None
     color: RGB = (1.0, 1.0, 1.0)
     intensity: Annotated[float, Field(ge=0.0)] = 1.0
+    shadows: bool = True
 
     @field_validator("direction")
     @classmethod
@@ -94,14 +99,24 @@ class LightConfig(StrictModel):
             raise ValueError("direction is the zero vector")
         return v
 
+    @model_validator(mode="after")
+    def _point_has_position(self):
+        if self.type == "point" and self.position is None:
+            raise ValueError("a point light needs a 'position'")
+        if self.type == "directional" and self.position is not None:
+            raise ValueError("a directional light has no 'position' (give type: point)")
+        return self
+
 
 class ShadingConfig(StrictModel):
-    """Lambert + Blinn-Phong; colours are linear RGB, ``gamma`` encodes the PNG."""
+    """Lambert + Blinn-Phong; colours are linear RGB. ``output``: the transfer function from
+    linear light to the PNG's 8 bits, the sRGB curve (IEC 61966-2-1) or a plain power 1/gamma."""
 
     ambient: Annotated[float, Field(ge=0.0)] = 0.15
     specular: Annotated[float, Field(ge=0.0)] = 0.25
     shininess: Annotated[float, Field(gt=0.0)] = 32.0
     background: RGB = (0.82, 0.86, 0.92)
+    output: Literal["srgb", "gamma"] = "srgb"
     gamma: Annotated[float, Field(gt=0.0)] = 2.2
 
 
@@ -114,6 +129,10 @@ class RenderConfig(StrictModel):
     for bit as on one device), ``one`` or a count. ``memory_mb``: a budget (MiB per device) for
     one compiled call; ``chunk`` is then an upper bound, halved until XLA's memory analysis of
     the call (arguments, outputs, temporaries) fits (``jskel.rays.chunk_for_budget``).
+
+    Scenes (``objects:``) only: ``spp`` jittered samples per pixel (the first at the pixel
+    centre; AOVs come from it) from ``seed``; ``bounces`` bounds reflection and refraction
+    depth; ``lanes`` is the size of the dense sub-batches that compacted rays are traced in.
     """
 
     chunk: Annotated[int, Field(ge=1, le=1 << 24)] = 4096
@@ -122,17 +141,99 @@ class RenderConfig(StrictModel):
     progress: bool | None = None
     devices: Literal["all", "one"] | Annotated[int, Field(ge=1, le=4096)] = "all"  # shard rays over local devices
     memory_mb: Annotated[float, Field(gt=0.0, le=1 << 24)] | None = None  # device memory budget of one call: chunk shrinks to fit
+    spp: Annotated[int, Field(ge=1, le=1024)] = 1  # samples per pixel (jittered; scenes)
+    seed: int = 0  # of the jitter
+    bounces: Annotated[int, Field(ge=0, le=16)] = 2  # reflection / refraction depth (scenes)
+    lanes: Annotated[int, Field(ge=1, le=1 << 20)] = 256  # rays per compacted sub-batch (scenes)
+
+
+Unit = Annotated[float, Field(ge=0.0, le=1.0)]
+
+
+class TransformConfig(StrictModel):
+    """Object to world: scale uniformly by ``scale``, rotate by XYZ Euler angles (degrees, X
+    first), then translate. Uniform scale keeps every representation's distances exact."""
+
+    translate: Vec3 = (0.0, 0.0, 0.0)
+    rotate_deg: Vec3 = (0.0, 0.0, 0.0)
+    scale: Annotated[float, Field(gt=0.0)] = 1.0
+
+
+class MotionConfig(StrictModel):
+    """Rigid motion per frame, added to the transform at ``frame``: translation and Euler
+    angles (degrees) per frame (rigidly moving objects, e.g. cell objects, issue 7)."""
+
+    translate: Vec3 = (0.0, 0.0, 0.0)
+    rotate_deg: Vec3 = (0.0, 0.0, 0.0)
+
+
+class MaterialConfig(StrictModel):
+    """Surface response. ``color`` multiplies the representation's own colour (skeleton colours,
+    textures); ``specular``/``shininess`` default to the ``shading`` section's. A fraction
+    ``reflectivity`` of the light is mirrored, ``transparency`` refracted with index ``ior``
+    (total internal reflection turns into reflection); the rest is shaded locally."""
+
+    color: RGB = (1.0, 1.0, 1.0)
+    specular: Annotated[float, Field(ge=0.0)] | None = None
+    shininess: Annotated[float, Field(gt=0.0)] | None = None
+    reflectivity: Unit = 0.0
+    transparency: Unit = 0.0
+    ior: Annotated[float, Field(gt=0.0, le=10.0)] = 1.5
+
+    @model_validator(mode="after")
+    def _energy(self):
+        if self.reflectivity + self.transparency > 1.0:
+            raise ValueError(f"reflectivity + transparency must not exceed 1 (got {self.reflectivity} + {self.transparency})")
+        return self
+
+
+class SceneObjectConfig(StrictModel):
+    """One object of a scene: a ``shape`` (any representation's ``object`` section, validated by
+    the registry), its transform, material and motion."""
+
+    name: str | None = None
+    shape: dict
+    transform: TransformConfig = TransformConfig()
+    material: MaterialConfig = MaterialConfig()
+    motion: MotionConfig | None = None
+
+
+class EnvironmentConfig(StrictModel):
+    """What rays that escape the scene see: a sky gradient over the world y axis, ``horizon``
+    at y = 0 blending to ``zenith`` upwards and ``ground`` downwards. Unset colours take
+    ``shading.background`` (all unset: a constant background)."""
+
+    zenith: RGB | None = None
+    horizon: RGB | None = None
+    ground: RGB | None = None
 
 
 class Experiment(StrictModel):
-    """A whole experiment; ``object`` is validated by the registered representation."""
+    """A whole experiment: one ``object`` (validated by the registered representation) or a
+    scene of several ``objects`` with materials, an ``environment`` and a ``frame``."""
 
     name: str = "experiment"
-    object: Any
+    object: Any = None
+    objects: list[SceneObjectConfig] | None = None
     camera: CameraConfig = CameraConfig()
     lights: list[LightConfig] = [LightConfig()]
     shading: ShadingConfig = ShadingConfig()
+    environment: EnvironmentConfig = EnvironmentConfig()
     render: RenderConfig = RenderConfig()
+    frame: float = 0.0  # animation frame of a scene (objects' shapes with a frame, motions)
+
+    @model_validator(mode="after")
+    def _object_or_objects(self):
+        if (self.object is None) == (self.objects is None):
+            raise ValueError("give either 'object' (one representation) or 'objects' (a scene), not both" if self.object is not None
+                             else "give 'object' (one representation) or 'objects' (a scene)")
+        if self.objects is not None and not self.objects:
+            raise ValueError("objects: a scene needs at least one object")
+        return self
+
+    @property
+    def is_scene(self) -> bool:
+        return self.objects is not None
 
 
 def _loc(loc) -> str:
@@ -166,8 +267,20 @@ def _format(err: ValidationError, prefix: tuple = ()) -> list[str]:
     return lines
 
 
-def validate(raw: dict) -> tuple[Experiment, BaseModel]:
-    """Validate a raw experiment dict; returns (experiment, object config) or raises ConfigError."""
+def _validate_shape(raw_obj: dict, where: tuple) -> tuple[BaseModel | None, list[str]]:
+    kind = raw_obj.get("type")
+    if kind not in registry.names():
+        return None, [f"{_loc(where)}.type: unknown representation (got {_short(kind)}; known: {', '.join(registry.names())})"]
+    try:
+        return registry.get(kind).Config.model_validate(raw_obj), []
+    except ValidationError as e:
+        return None, _format(e, where)
+
+
+def validate(raw: dict) -> tuple[Experiment, Any]:
+    """Validate a raw experiment dict; returns (experiment, object config) or raises ConfigError.
+
+    For a scene (``objects:``) the second item is the tuple of the objects' validated shapes."""
     if not isinstance(raw, dict):
         raise ConfigError([f"<root>: an experiment must be a mapping (got {_short(raw)})"])
     lines: list[str] = []
@@ -178,16 +291,20 @@ def validate(raw: dict) -> tuple[Experiment, BaseModel]:
         lines += _format(e)
     raw_obj = raw.get("object")
     if isinstance(raw_obj, dict):
-        kind = raw_obj.get("type")
-        if kind not in registry.names():
-            lines.append(f"object.type: unknown representation (got {_short(kind)}; known: {', '.join(registry.names())})")
-        else:
-            try:
-                obj = registry.get(kind).Config.model_validate(raw_obj)
-            except ValidationError as e:
-                lines += _format(e, ("object",))
-    elif "object" in raw:
+        obj, more = _validate_shape(raw_obj, ("object",))
+        lines += more
+    elif raw_obj is not None:
         lines.append(f"object: must be a mapping with a 'type' key (got {_short(raw_obj)})")
+    raw_objs = raw.get("objects")
+    if isinstance(raw_objs, list):
+        shapes = []
+        for i, o in enumerate(raw_objs):
+            shape = o.get("shape") if isinstance(o, dict) else None
+            if isinstance(shape, dict):
+                got, more = _validate_shape(shape, ("objects", i, "shape"))
+                shapes.append(got)
+                lines += more
+        obj = tuple(shapes)
     if lines:
         raise ConfigError(lines)
     return exp, obj
@@ -252,6 +369,12 @@ def load(path: str | Path | None = None, overrides: list[str] | None = None) -> 
 def resolved(exp: Experiment, obj: BaseModel) -> dict:
     """The resolved config as plain data (saved to ``run.json``)."""
     d = exp.model_dump(mode="json")
-    d["object"] = obj.model_dump(mode="json")
+    if exp.is_scene:
+        for o, shape in zip(d["objects"], obj):
+            o["shape"] = shape.model_dump(mode="json")
+        d.pop("object")
+    else:
+        d["object"] = obj.model_dump(mode="json")
+        d.pop("objects")
     return d
 

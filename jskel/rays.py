@@ -138,15 +138,21 @@ class Camera(NamedTuple):
         o, d = self.ray_arrays(anchor)
         return make_rays(o, d, 0.0, np.inf, dtype)
 
-    def ray_arrays(self, anchor=None) -> tuple[np.ndarray, np.ndarray]:
-        """(origins, directions), both (H*W, 3) float64 NumPy, as :meth:`rays` casts them."""
+    def ray_arrays(self, anchor=None, jitter=None) -> tuple[np.ndarray, np.ndarray]:
+        """(origins, directions), both (H*W, 3) float64 NumPy, as :meth:`rays` casts them.
+
+        jitter: None (pixel centres) or (H*W, 2) offsets in pixels (x right, y down) of each
+        ray's point in its pixel, e.g. uniform in [-0.5, 0.5) for jittered anti-aliasing."""
         right, up, fwd = self.basis()
         w, h = int(self.width), int(self.height)
         tan_half = math.tan(math.radians(self.fov_y_deg) / 2.0)
         aspect = w / h
-        xs = ((np.arange(w) + 0.5) / w * 2.0 - 1.0) * tan_half * aspect
-        ys = (1.0 - (np.arange(h) + 0.5) / h * 2.0) * tan_half
-        px, py = np.meshgrid(xs, ys)
+        ix, iy = np.meshgrid(np.arange(w, dtype=np.float64) + 0.5, np.arange(h, dtype=np.float64) + 0.5)
+        if jitter is not None:
+            j = np.asarray(jitter, np.float64).reshape(h, w, 2)
+            ix, iy = ix + j[..., 0], iy + j[..., 1]
+        px = (ix / w * 2.0 - 1.0) * tan_half * aspect
+        py = (1.0 - iy / h * 2.0) * tan_half
         d = fwd[None, :] + px.reshape(-1, 1) * right[None, :] + py.reshape(-1, 1) * up[None, :]
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         eye = np.asarray(self.eye, np.float64)

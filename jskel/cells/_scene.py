@@ -258,6 +258,7 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
     info = dict(obj.info)
     info["words_per_tile"] = words_for(slots)
     info["primitives"] = info["inside_split_cells"]
+    info["surface_tolerance"] = float(obj.size / cfg.steps_per_tile * 0.5**cfg.bisection)  # last bracket's width
     return Built(params, static, anchor, (lo, lo + extent), info)
 
 

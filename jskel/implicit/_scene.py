@@ -318,7 +318,9 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     q = Quality(cfg.method, cfg.steps, cfg.bisection, cfg.capacity, early_exit=cfg.early_exit, shape=shape,
                 block=cfg.block_size, block_capacity=cfg.block_capacity)
     static = Static(q, kinds, textured)
-    info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_estimate": fmax}
+    info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_estimate": fmax,
+            # width of the last bisection bracket: how far a returned hit may lie from F = T
+            "surface_tolerance": float((cfg.eps if cfg.method == "lipschitz" else cfg.step) * 0.5 ** cfg.bisection)}
     return Built(scene, static, anchor, (lo, hi), info)
 
 

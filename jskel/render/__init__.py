@@ -17,11 +17,12 @@ import numpy as np
 
 from .. import registry
 from ..config import Experiment, resolved
-from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Camera, Rays, map_chunks, permute, tile_order
+from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Camera, Hit, Rays, make_rays, map_chunks, permute, tile_order
 from ._aov import write_aovs as write_aovs
 from ._shade import Lights as Lights
 from ._shade import Shading as Shading
 from ._shade import encode_png as encode_png
+from ._shade import output_transform as output_transform
 from ._shade import lights_from_config as lights_from_config
 from ._shade import shade_one as shade_one
 from ._shade import shading_from_config as shading_from_config
@@ -32,6 +33,7 @@ class RenderResult(NamedTuple):
     rgb: np.ndarray  # (H*W, 3) linear
     image: np.ndarray  # (H, W, 3) uint8
     run: dict  # what run.json holds
+    aovs: dict | None = None  # scenes: more per-pixel outputs (obj, visibility, ...), leading axis H*W
 
 
 @functools.lru_cache(maxsize=None)
@@ -114,8 +116,30 @@ def peak_rss_mb() -> float | None:
         return None
 
 
+def _trace(exp: Experiment, fn, params, rays: Rays, progress):
+    """``map_chunks`` of ``fn`` over ``rays`` on every local device of this process, and over
+    several hosts (each traces its share, then every share is gathered)."""
+    budget = None if exp.render.memory_mb is None else int(exp.render.memory_mb * 2**20)
+    n_proc = jax.process_count()
+    if n_proc > 1:
+        from ..distributed import gather, share
+
+        lo, hi = share(rays.size, exp.render.chunk, n_proc, jax.process_index())
+        mine = Rays(*(a[lo:hi] for a in rays))
+        res = map_chunks(fn, params, mine, chunk=exp.render.chunk, progress=progress, desc="render", devices=devices_of(exp), memory_budget=budget)
+        per = share(rays.size, exp.render.chunk, n_proc, 0)[1]
+        return res._replace(out=gather(res.out, hi - lo, per))
+    return map_chunks(fn, params, rays, chunk=exp.render.chunk, progress=progress, desc="render", devices=devices_of(exp), memory_budget=budget)
+
+
 def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
-    """Render one frame of an experiment (host function; the heavy work is jitted in chunks)."""
+    """Render one frame of an experiment (host function; the heavy work is jitted in chunks).
+
+    ``obj`` is the validated ``object`` section, or for a scene (``objects:``) the tuple of the
+    objects' validated shapes (what ``config.load`` returns); scenes go to :func:`render_scene`."""
+    prog = exp.render.progress if progress is None else progress
+    if exp.is_scene:
+        return render_scene(exp, obj, prog)
     dtype = dtype_of(exp)
     rep = registry.get(obj.type)
     t0 = time.perf_counter()
@@ -124,27 +148,15 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     cam = camera_of(exp)
     order = tile_order(cam.width, cam.height, exp.render.tile)
     rays = permute(cam.rays(anchor=built.anchor, dtype=dtype), order)
-    params = (built.params, lights_from_config(exp.lights, dtype), shading_from_config(exp.shading, dtype))
+    params = (built.params, lights_from_config(exp.lights, dtype, origin=built.anchor), shading_from_config(exp.shading, dtype))
     fn = pixel_fn(rep.name, built.static)
-    prog = exp.render.progress if progress is None else progress
-    budget = None if exp.render.memory_mb is None else int(exp.render.memory_mb * 2**20)
-    n_proc = jax.process_count()
-    if n_proc > 1:  # several hosts: this process traces its share, then every share is gathered
-        from ..distributed import gather, share
-
-        lo, hi = share(rays.size, exp.render.chunk, n_proc, jax.process_index())
-        mine = Rays(*(a[lo:hi] for a in rays))
-        res = map_chunks(fn, params, mine, chunk=exp.render.chunk, progress=prog, desc="render", devices=devices_of(exp), memory_budget=budget)
-        per = share(rays.size, exp.render.chunk, n_proc, 0)[1]
-        res = res._replace(out=gather(res.out, hi - lo, per))
-    else:
-        res = map_chunks(fn, params, rays, chunk=exp.render.chunk, progress=prog, desc="render", devices=devices_of(exp), memory_budget=budget)
+    res = _trace(exp, fn, params, rays, prog)
     inv = np.empty_like(order)
     inv[order] = np.arange(order.size)
     hits, rgb = jax.tree_util.tree_map(lambda a: a[inv], res.out)
     # hit positions back to world coordinates (host, float64)
     hits = hits._replace(position=np.asarray(hits.position, np.float64) + built.anchor)
-    image = encode_png(rgb.reshape(cam.height, cam.width, 3), exp.shading.gamma)
+    image = encode_png(rgb.reshape(cam.height, cam.width, 3), output_transform(exp.shading))
     n = rays.size
     run = {
         "config": resolved(exp, obj),
@@ -169,3 +181,71 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
         f = np.asarray(hits.flags)
         run["flags"] = {"overflow_rays": int(np.sum((f & FLAG_OVERFLOW) != 0)), "step_cap_rays": int(np.sum((f & FLAG_STEP_CAP) != 0))}
     return RenderResult(hits, rgb, image, run)
+
+
+def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> RenderResult:
+    """Render one frame of a scene (``objects:``): see ``jskel.render._scene``.
+
+    ``render.spp`` samples per pixel: the first through the pixel centre (the AOVs come from
+    it), the others jittered uniformly in the pixel from ``render.seed``; the colour is their
+    mean. Extra AOVs: ``obj`` (object index, -1 on a miss), ``visibility`` (per light, 1 lit /
+    0 shadowed), ``reflect_obj`` / ``refract_obj`` (object seen by the first reflection /
+    refraction ray, -1 if none or it escaped) and ``secondary`` (secondary rays per pixel)."""
+    from ._scene import build_scene, scene_fn
+
+    dtype = dtype_of(exp)
+    t0 = time.perf_counter()
+    params, static, eye, objects_info = build_scene(exp, shapes, dtype)
+    build_s = time.perf_counter() - t0
+    cam = camera_of(exp)
+    n_pix = cam.width * cam.height
+    order = tile_order(cam.width, cam.height, exp.render.tile)
+    rng = np.random.default_rng(exp.render.seed)
+    os_, ds_ = [], []
+    for s in range(exp.render.spp):
+        jitter = None if s == 0 else rng.uniform(-0.5, 0.5, (n_pix, 2))
+        o, d = cam.ray_arrays(anchor=eye, jitter=jitter)
+        os_.append(o[order])
+        ds_.append(d[order])
+    rays = make_rays(np.concatenate(os_), np.concatenate(ds_), 0.0, np.inf, dtype)
+    res = _trace(exp, scene_fn(static), params, rays, progress)
+    out = res.out
+    inv = np.empty_like(order)
+    inv[order] = np.arange(order.size)
+    first = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n_pix][inv], {k: v for k, v in out.items() if k != "rgb"})
+    rgb = np.asarray(out["rgb"], np.float64).reshape(exp.render.spp, n_pix, 3).mean(axis=0)[inv].astype(np.float32)
+    h = first["hit"]
+    hits = Hit(h.t, np.asarray(h.position, np.float64) + eye, h.normal, h.uv, h.prim, first["flags"])
+    image = encode_png(rgb.reshape(cam.height, cam.width, 3), output_transform(exp.shading))
+    eff = static.effects
+    aovs = {"obj": h.obj, "visibility": first["visibility"], "secondary": first["secondary"]}
+    if eff.reflection:
+        aovs["reflect_obj"] = first["first_obj"][:, 0]
+    if eff.refraction:
+        aovs["refract_obj"] = first["first_obj"][:, 1]
+    f_all = np.asarray(out["flags"])
+    run = {
+        "config": resolved(exp, shapes),
+        **environment(),
+        "build_s": build_s,
+        "compile_s": res.compile_s,
+        "compile_cached": res.compile_s == 0.0,
+        "render_s": res.run_s,
+        "rays": int(rays.size),
+        "spp": exp.render.spp,
+        "effects": eff._asdict(),
+        "secondary_rays": int(np.sum(out["secondary"])),
+        "devices_used": len(devices_of(exp) or [None]),
+        "processes": jax.process_count(),
+        "mrays_per_s": rays.size / res.run_s / 1e6 if res.run_s > 0 else None,
+        "hit_fraction": float(np.mean(np.isfinite(h.t))),
+        "eye": [float(x) for x in eye],
+        "objects": objects_info,
+        "info": {"objects": len(shapes), "primitives": int(sum(int(i.get("primitives", i.get("segments", 0)) or 0) for i in objects_info))},
+        "params_bytes": int(sum(getattr(x, "nbytes", 0) for x in jax.tree_util.tree_leaves(params))),
+        "peak_host_mb": peak_rss_mb(),
+        "flags": {"overflow_rays": int(np.sum((f_all & FLAG_OVERFLOW) != 0)), "step_cap_rays": int(np.sum((f_all & FLAG_STEP_CAP) != 0))},
+    }
+    if res.memory is not None:
+        run["memory_budget"] = res.memory
+    return RenderResult(hits, rgb, image, run, aovs)

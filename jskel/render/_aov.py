@@ -8,9 +8,11 @@ from pathlib import Path
 import numpy as np
 
 
-def write_aovs(out: str | Path, hits, image_u8: np.ndarray, width: int, height: int, run: dict) -> dict:
+def write_aovs(out: str | Path, hits, image_u8: np.ndarray, width: int, height: int, run: dict, extra: dict | None = None) -> dict:
     """Write every output of a render into ``out``; returns {name: path}.
 
+    extra: more per-pixel arrays (leading axis width*height) written as ``<name>.npy`` with
+    shape (H, W, ...), e.g. a scene's ``obj``, ``visibility``, ``reflect_obj``.
     hits: NumPy ``Hit`` with a leading axis of width*height (row-major).
     depth.npy (H,W) float32, +inf on a miss; normal.npy (H,W,3) float32; uv.npy (H,W,2)
     float32; prim.npy (H,W) int32, -1 on a miss; image.png (H,W,3) uint8.
@@ -30,6 +32,9 @@ def write_aovs(out: str | Path, hits, image_u8: np.ndarray, width: int, height: 
         files["cell"] = files["prim"]  # the hit cell's global id (issue 5)
     if getattr(hits, "flags", None) is not None:
         files["flags"] = np.asarray(hits.flags, np.int32).reshape(h, w)
+    for name, arr in (extra or {}).items():
+        a = np.asarray(arr)
+        files[name] = a.reshape((h, w) + a.shape[1:])
     paths = {}
     for name, arr in files.items():
         p = out / f"{name}.npy"

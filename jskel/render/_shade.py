@@ -1,4 +1,5 @@
-"""Lambert + Blinn-Phong shading with directional lights (traced values: no recompile)."""
+"""Lambert + Blinn-Phong shading with directional and point lights (traced values: no
+recompile), and the output transfer to 8-bit sRGB."""
 
 from __future__ import annotations
 
@@ -12,10 +13,14 @@ from ..rays import Hit
 
 
 class Lights(NamedTuple):
-    """L directional lights: ``direction`` (L,3) towards the light, ``radiance`` (L,3)."""
+    """L lights: ``direction`` (L,3) towards a directional light, ``radiance`` (L,3).
+    ``position`` (L,3) and ``point`` (L,) bool, where given, make light l a point light at
+    ``position[l]`` (in the rays' frame) whose radiance falls off as 1 / distance^2."""
 
     direction: jnp.ndarray
     radiance: jnp.ndarray
+    position: jnp.ndarray | None = None
+    point: jnp.ndarray | None = None
 
 
 class Shading(NamedTuple):
@@ -25,13 +30,35 @@ class Shading(NamedTuple):
     background: jnp.ndarray  # (3,)
 
 
-def lights_from_config(lights, dtype) -> Lights:
+def lights_from_config(lights, dtype, origin=None) -> Lights:
+    """Device arrays of the ``lights`` section; point-light positions are expressed relative to
+    ``origin`` (the rays' frame: the anchor, or the eye for scenes) in float64 first."""
     if not lights:
         return Lights(jnp.zeros((1, 3), dtype), jnp.zeros((1, 3), dtype))
     d = np.array([l.direction for l in lights], np.float64)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     rad = np.array([np.asarray(l.color) * l.intensity for l in lights], np.float64)
-    return Lights(jnp.asarray(d, dtype), jnp.asarray(rad, dtype))
+    point = np.array([l.type == "point" for l in lights])
+    if not point.any():
+        return Lights(jnp.asarray(d, dtype), jnp.asarray(rad, dtype))
+    o = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
+    pos = np.array([np.asarray(l.position, np.float64) - o if l.type == "point" else np.zeros(3) for l in lights])
+    return Lights(jnp.asarray(d, dtype), jnp.asarray(rad, dtype), jnp.asarray(pos, dtype), jnp.asarray(point))
+
+
+def light_at(lights: Lights, p):
+    """Per light, at point ``p`` (3,): unit direction towards it (L,3), radiance arriving
+    (L,3) and the distance to it (L,) (+inf for directional lights)."""
+    if lights.position is None:
+        n = lights.direction.shape[0]
+        return lights.direction, lights.radiance, jnp.full((n,), jnp.inf, lights.radiance.dtype)
+    to = lights.position - p[None, :]
+    dist2 = jnp.sum(to * to, axis=-1)
+    dist = jnp.sqrt(jnp.maximum(dist2, jnp.finfo(to.dtype).tiny))
+    pl = lights.point
+    direction = jnp.where(pl[:, None], to / dist[:, None], lights.direction)
+    radiance = jnp.where(pl[:, None], lights.radiance / jnp.maximum(dist2, jnp.finfo(to.dtype).tiny)[:, None], lights.radiance)
+    return direction, radiance, jnp.where(pl, dist, jnp.inf)
 
 
 def shading_from_config(sh, dtype) -> Shading:
@@ -49,21 +76,45 @@ def shade_one(hit: Hit, direction, base_rgb, lights: Lights, sh: Shading):
     The shading normal is turned to face the viewer, so interpolated normals (Eq. 8 of
     Bhagvat et al.) that lean away from a grazing eye still shade the visible side.
     """
-    d = safe_normalize(direction)
-    n = hit.normal
-    n = jnp.where(jnp.sum(n * d) > 0, -n, n)
-    v = -d
-    ndl = jnp.maximum(lights.direction @ n, 0.0)  # (L,)
-    hv = safe_normalize(lights.direction + v[None, :])
-    ndh = jnp.maximum(hv @ n, 0.0)
-    spec = jnp.where(ndl > 0, ndh**sh.shininess, 0.0)
-    col = sh.ambient * base_rgb + jnp.sum(
-        lights.radiance * (base_rgb[None, :] * ndl[:, None] + sh.specular * spec[:, None]), axis=0
-    )
+    col = shade_local(hit.position, hit.normal, direction, base_rgb, lights, sh.ambient, sh.specular, sh.shininess)
     return jnp.where(jnp.isfinite(hit.t), col, sh.background)
 
 
-def encode_png(rgb: np.ndarray, gamma: float) -> np.ndarray:
-    """Linear float RGB (H,W,3) -> uint8 with display gamma."""
-    x = np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0) ** (1.0 / gamma)
+def facing(normal, direction):
+    """``normal`` turned to face against ``direction`` (the side the ray arrives from)."""
+    return jnp.where(jnp.sum(normal * direction) > 0, -normal, normal)
+
+
+def shade_local(position, normal, direction, base_rgb, lights: Lights, ambient, specular, shininess, visible=None):
+    """Ambient + per light Lambert + Blinn-Phong at one hit (no miss handling); ``visible``
+    (L,) scales each light (shadow rays: 0 where occluded)."""
+    d = safe_normalize(direction)
+    n = facing(normal, d)
+    v = -d
+    ldir, rad, _ = light_at(lights, position)
+    ndl = jnp.maximum(jnp.sum(ldir * n[None, :], axis=-1), 0.0)  # (L,)
+    hv = safe_normalize(ldir + v[None, :])
+    ndh = jnp.maximum(jnp.sum(hv * n[None, :], axis=-1), 0.0)
+    spec = jnp.where(ndl > 0, ndh**shininess, 0.0)
+    if visible is not None:
+        rad = rad * visible[:, None]
+    return ambient * base_rgb + jnp.sum(rad * (base_rgb[None, :] * ndl[:, None] + specular * spec[:, None]), axis=0)
+
+
+def srgb_encode(x: np.ndarray) -> np.ndarray:
+    """The sRGB transfer function (IEC 61966-2-1) of linear values in [0, 1]."""
+    x = np.asarray(x, np.float64)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1.0 / 2.4) - 0.055)
+
+
+def encode_png(rgb: np.ndarray, gamma: float | None = None) -> np.ndarray:
+    """Linear float RGB (H,W,3) -> uint8: the sRGB curve (``gamma`` None) or a power 1/gamma.
+    Values are clipped to [0, 1] first; NaN (never produced on purpose) becomes 0."""
+    x = np.clip(np.nan_to_num(np.asarray(rgb, np.float64), nan=0.0), 0.0, 1.0)
+    x = srgb_encode(x) if gamma is None else x ** (1.0 / gamma)
     return (x * 255.0 + 0.5).astype(np.uint8)
+
+
+def output_transform(shading) -> float | None:
+    """The ``gamma`` argument of :func:`encode_png` for a ``shading`` section."""
+    return None if shading.output == "srgb" else shading.gamma

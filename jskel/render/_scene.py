@@ -1,0 +1,485 @@
+"""Scenes of several objects with materials, lights and effects (issue 7).
+
+A scene (``objects:`` in an experiment) holds objects of any representation, each with a
+transform (uniform scale, XYZ Euler rotation, translation; plus a rigid ``motion`` per frame),
+a material, and lights (directional or point, each casting shadows or not). The renderer talks
+to every object through the representation interface only (``intersect_batch`` or
+``intersect_one``, ``albedo``), so it never branches on a representation's type inside a kernel.
+
+Frame. Rays are expressed relative to the camera's eye ("camera-relative rendering"): the
+host computes, in float64, each object's offsets between that frame and the frame its params
+are stored in (its build anchor), so float32 keeps full precision near the camera wherever the
+scene sits in the world; with an identity transform a primary ray reaches an object as the
+very floats a single-object render gives it (the two-object test relies on it).
+
+Effects only where the scene calls for them, in both senses:
+
+* statically (:func:`effects_of`): shadow code exists only if a light casts shadows, reflection
+  code only if a material has ``reflectivity > 0``, refraction only if one has
+  ``transparency > 0``, and bounce levels only if either exists. Which effects exist is part of
+  the static key, so a scene without them compiles a program without their work (a test reads
+  the jaxpr and XLA's cost analysis);
+* per ray (wavefront style): every level of the ray tree is a fixed-capacity queue of rays.
+  Each object traces only the queued rays that are live *and* cross its world bounding box,
+  gathered into dense sub-batches of ``lanes`` rays (``jskel.rays.compact_map``); shadow rays
+  are gathered the same way per light, and an object tests only the shadow rays that no earlier
+  object has already blocked (early out across objects). Reflection and refraction rays are
+  compacted into the next level's queue (``jnp.nonzero`` with a static size). Under ``vmap`` a
+  ``lax.cond`` would run both branches for every ray; here the work follows the number of rays
+  that need it (the ``bench_effects`` benchmark measures 10/50/100 % reflective coverage).
+
+The queue holds ``N`` rays (the chunk) when each hit spawns at most one secondary ray, and
+``2N`` when materials both reflect and refract; a level whose rays do not fit drops the excess
+and flags their pixels with ``FLAG_OVERFLOW`` (counted in ``run.json``, never silent).
+
+Shading (Whitted 1980): a hit's colour is ``(1 - kr - kt) * local + kr * L(reflected) + kt *
+L(refracted)``, where ``local`` is ambient + Lambert + Blinn-Phong with each light's
+visibility; total internal reflection turns the refracted ray into a reflected one; rays beyond
+``render.bounces`` contribute nothing; rays that escape take the environment's colour. Secondary
+rays start on the hit's side of the surface, offset along the normal by a bound that scales
+with the hit's magnitude plus the representation's own surface tolerance (the last bisection
+bracket of marched surfaces; ``info["surface_tolerance"]``): a fixed epsilon fails once the
+scene is scaled or moved.
+
+Transparent objects must be frusta: their analytic intersection reports the exit from inside;
+the implicit and cell tracers search for the first entry only (a ValueError says so).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Hashable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import registry
+from ..numerics import eps_of, safe_normalize, safe_sqrt
+from ..rays import FLAG_OVERFLOW, Rays, compact_map
+from ._shade import Lights, facing, light_at, lights_from_config, shade_local
+
+
+class SceneHit(NamedTuple):
+    """Nearest hit of a ray over all objects, in the eye-relative world frame (leading axis N).
+
+    t (+inf on a miss), position (3), normal (3, unit, outward), uv (2), prim (-1 on a miss),
+    obj (index of the object, -1 on a miss), base (3, the representation's colour at the hit:
+    skeleton colour or texture), flags (int32 diagnostics of the representation)."""
+
+    t: jnp.ndarray
+    position: jnp.ndarray
+    normal: jnp.ndarray
+    uv: jnp.ndarray
+    prim: jnp.ndarray
+    obj: jnp.ndarray
+    base: jnp.ndarray
+    flags: jnp.ndarray
+
+
+class XForm(NamedTuple):
+    """World (eye-relative) <-> one object's params frame: ``o' = rt o / s + c`` for points,
+    ``d' = rt d`` for directions (t' = t / s), ``p = s r p' + g`` back; ``lo``/``hi`` the
+    object's world bounding box."""
+
+    rt: jnp.ndarray
+    r: jnp.ndarray
+    s: jnp.ndarray
+    c: jnp.ndarray
+    g: jnp.ndarray
+    lo: jnp.ndarray
+    hi: jnp.ndarray
+
+
+class Materials(NamedTuple):
+    """Per object (leading axis K): colour (3), specular, shininess, reflectivity,
+    transparency, ior, and ``offset``, the world-space surface tolerance of its tracer."""
+
+    color: jnp.ndarray
+    specular: jnp.ndarray
+    shininess: jnp.ndarray
+    reflect: jnp.ndarray
+    transmit: jnp.ndarray
+    ior: jnp.ndarray
+    offset: jnp.ndarray
+
+
+class SceneParams(NamedTuple):
+    """Everything traced: changing any value (a radius, a transform, a light, a material's
+    reflectivity between non-zero values) reuses the compiled program."""
+
+    objects: tuple
+    xforms: tuple
+    mat: Materials
+    lights: Lights
+    shadows: jnp.ndarray  # (L,) bool: light l casts shadows
+    ambient: jnp.ndarray
+    env: jnp.ndarray  # (3, 3): zenith, horizon, ground
+
+
+class Effects(NamedTuple):
+    """Static: which effects the scene calls for (derived by :func:`effects_of`)."""
+
+    shadows: bool
+    reflection: bool
+    refraction: bool
+    bounces: int  # levels after the primary one (0 without reflection and refraction)
+
+
+class SceneStatic(NamedTuple):
+    reps: tuple  # representation name per object
+    statics: tuple  # each object's static options
+    effects: Effects
+    lanes: int
+
+
+def euler_matrix(deg) -> np.ndarray:
+    """Rotation by XYZ Euler angles in degrees, X applied first: ``Rz @ Ry @ Rx``."""
+    x, y, z = np.radians(np.asarray(deg, np.float64))
+    cx, sx, cy, sy, cz, sz = math.cos(x), math.sin(x), math.cos(y), math.sin(y), math.cos(z), math.sin(z)
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def effects_of(exp) -> Effects:
+    """The effects an experiment's scene calls for (host, static)."""
+    mats = [o.material for o in exp.objects]
+    refl = any(m.reflectivity > 0 for m in mats)
+    refr = any(m.transparency > 0 for m in mats)
+    shadows = any(l.shadows and l.intensity > 0 for l in exp.lights)
+    return Effects(shadows, refl, refr, exp.render.bounces if (refl or refr) else 0)
+
+
+def object_transform(o, frame: float):
+    """(scale, rotation (3,3), translation (3,)) of scene object ``o`` at ``frame`` (float64)."""
+    t = np.asarray(o.transform.translate, np.float64)
+    e = np.asarray(o.transform.rotate_deg, np.float64)
+    if o.motion is not None:
+        t = t + frame * np.asarray(o.motion.translate, np.float64)
+        e = e + frame * np.asarray(o.motion.rotate_deg, np.float64)
+    return float(o.transform.scale), euler_matrix(e), t
+
+
+def _shape_at(shape, frame: float):
+    if frame != 0.0 and "frame" in type(shape).model_fields:
+        return shape.model_copy(update={"frame": shape.frame + frame})
+    return shape
+
+
+def _check_shape(i: int, o, shape):
+    if o.material.transparency > 0 and shape.type != "frusta":
+        raise ValueError(
+            f"objects[{i}].material.transparency: {o.material.transparency} on a {shape.type} object; only frusta report "
+            "the exit of a ray from inside (the implicit and cell tracers search for the first entry)")
+    if shape.type == "cells" and shape.mode != "first_hit":
+        raise ValueError(
+            f"objects[{i}].shape.mode: {shape.mode!r}; in a scene a cell object is shaded by its material "
+            "(material.reflectivity / transparency), give mode: first_hit")
+
+
+def build_scene(exp, shapes, dtype):
+    """Build every object and the scene's arrays (host). Returns (params, static, eye, info)."""
+    eye = np.asarray(exp.camera.eye, np.float64)
+    objs, xfs, statics, reps, info = [], [], [], [], []
+    cols, spec, shin, refl, trans, ior, off = [], [], [], [], [], [], []
+    for i, (o, shape) in enumerate(zip(exp.objects, shapes)):
+        _check_shape(i, o, shape)
+        rep = registry.get(shape.type)
+        built = rep.build(_shape_at(shape, exp.frame), dtype)
+        s, r, t = object_transform(o, exp.frame)
+        a = np.asarray(built.anchor, np.float64)
+        c = r.T @ (eye - t) / s - a
+        g = s * (r @ a) + t - eye
+        lo, hi = (np.asarray(b, np.float64) for b in built.bounds)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        w = (s * corners @ r.T) + t - eye
+        pad = 1e-5 * (np.max(np.abs(w)) + np.max(w.max(0) - w.min(0)))  # float32 rounding of the box test
+        xfs.append(XForm(*(jnp.asarray(v, dtype) for v in (r.T, r, s, c, g, w.min(0) - pad, w.max(0) + pad))))
+        objs.append(built.params)
+        statics.append(built.static)
+        reps.append(rep.name)
+        m = o.material
+        cols.append(m.color)
+        spec.append(exp.shading.specular if m.specular is None else m.specular)
+        shin.append(exp.shading.shininess if m.shininess is None else m.shininess)
+        refl.append(m.reflectivity)
+        trans.append(m.transparency)
+        ior.append(m.ior)
+        off.append(4.0 * s * float(built.info.get("surface_tolerance", 0.0)))
+        info.append({"name": o.name or f"objects[{i}]", "type": rep.name, **built.info})
+    mat = Materials(*(jnp.asarray(np.asarray(v, np.float64), dtype) for v in (cols, spec, shin, refl, trans, ior, off)))
+    bg = np.asarray(exp.shading.background, np.float64)
+    ev = exp.environment
+    env = np.array([bg if v is None else v for v in (ev.zenith, ev.horizon, ev.ground)], np.float64)
+    lights = lights_from_config(exp.lights, dtype, origin=eye)
+    shadows = np.array([l.shadows for l in exp.lights] or [False])
+    params = SceneParams(tuple(objs), tuple(xfs), mat, lights, jnp.asarray(shadows), jnp.asarray(exp.shading.ambient, dtype),
+                         jnp.asarray(env, dtype))
+    static = SceneStatic(tuple(reps), tuple(statics), effects_of(exp), int(exp.render.lanes))
+    return params, static, eye, info
+
+
+# ----------------------------------------------------------------------------- tracing
+
+
+def _apply(m, v):
+    """``m @ v`` for each row of v (..., 3), written out per component: exact for the identity,
+    and free of the reduced-precision matrix units some accelerators use for float32 dots."""
+    return v[..., 0:1] * m[:, 0] + v[..., 1:2] * m[:, 1] + v[..., 2:3] * m[:, 2]
+
+
+def _box_crossed(rays: Rays, lo, hi):
+    """Slab test: does the ray's interval (t_min, t_max] meet the box [lo, hi]? (N,) bool."""
+    inv = 1.0 / rays.directions  # +-inf for zero components: the slab then holds or fails whole
+    t0 = (lo - rays.origins) * inv
+    t1 = (hi - rays.origins) * inv
+    near = jnp.max(jnp.where(jnp.isnan(t0), -jnp.inf, jnp.minimum(t0, t1)), axis=-1)
+    far = jnp.min(jnp.where(jnp.isnan(t1), jnp.inf, jnp.maximum(t0, t1)), axis=-1)
+    return (near <= far) & (far >= rays.t_min) & (near <= rays.t_max)
+
+
+def _to_object(x: XForm, rays: Rays) -> Rays:
+    return Rays(_apply(x.rt, rays.origins) / x.s + x.c, _apply(x.rt, rays.directions), rays.t_min / x.s, rays.t_max / x.s)
+
+
+def _object_hits(rep_name: str, static, p, x: XForm, k: int, rays: Rays) -> SceneHit:
+    rep = registry.get(rep_name)
+    local = _to_object(x, rays)
+    if hasattr(rep, "intersect_batch"):
+        h = rep.intersect_batch(p, static, local)
+    else:
+        h = jax.vmap(lambda o, d, a, b: rep.intersect_one(p, static, o, d, a, b))(*local)
+    base = jax.vmap(lambda hh: rep.albedo(p, static, hh))(h)
+    hit = jnp.isfinite(h.t)
+    t = h.t * x.s
+    pos = jnp.where(hit[:, None], _apply(x.r, jnp.where(hit[:, None], h.position, 0.0)) * x.s + x.g, jnp.inf)
+    flags = jnp.zeros_like(h.prim) if h.flags is None else h.flags
+    obj = jnp.where(hit, k, -1).astype(jnp.int32)
+    return SceneHit(t, pos, _apply(x.r, h.normal), h.uv, h.prim, obj, base.astype(t.dtype), flags.astype(jnp.int32))
+
+
+def _miss(n: int, dtype) -> SceneHit:
+    z3 = jnp.zeros((n, 3), dtype)
+    return SceneHit(jnp.full((n,), jnp.inf, dtype), jnp.full((n, 3), jnp.inf, dtype), z3, jnp.zeros((n, 2), dtype),
+                    jnp.full((n,), -1, jnp.int32), jnp.full((n,), -1, jnp.int32), z3, jnp.zeros((n,), jnp.int32))
+
+
+def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live) -> SceneHit:
+    """Nearest hit over all objects of the ``live`` rays (others: misses). Each object traces
+    only the live rays that cross its bounding box, compacted into sub-batches of ``lanes``."""
+    n, dtype = rays.size, rays.origins.dtype
+    best = _miss(n, dtype)
+    for k, (rep, st) in enumerate(zip(static.reps, static.statics)):
+        x = params.xforms[k]
+        need = live & _box_crossed(rays, x.lo, x.hi)
+        fn = functools.partial(_object_hits, rep, st, params.objects[k], x, k)
+        hk = compact_map(fn, need, rays, _miss(n, dtype), static.lanes)
+        closer = hk.t < best.t
+        best = jax.tree_util.tree_map(lambda a, b: jnp.where(closer.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), hk, best)
+    return best
+
+
+def occluded(params: SceneParams, static: SceneStatic, rays: Rays, need):
+    """Any-hit: (N,) True where a ``need``-ed ray meets some object in (t_min, t_max]. Objects
+    are tested in turn and each only on the rays no earlier object blocked (early out)."""
+    blocked = jnp.zeros_like(need)
+    for k, (rep, st) in enumerate(zip(static.reps, static.statics)):
+        x = params.xforms[k]
+        todo = need & ~blocked & _box_crossed(rays, x.lo, x.hi)
+
+        def fn(sub, rep=rep, st=st, k=k, x=x):
+            return jnp.isfinite(_object_hits(rep, st, params.objects[k], x, k, sub).t)
+
+        blocked = compact_map(fn, todo, rays, blocked, static.lanes)
+    return blocked
+
+
+def offset_of(hit: SceneHit, mat: Materials):
+    """Distance to move a secondary ray's origin off the surface: a float rounding bound that
+    grows with the hit's magnitude and its distance along the ray, plus the object's tracer
+    tolerance (see the module docstring)."""
+    eps = eps_of(hit.t)
+    mag = jnp.max(jnp.abs(jnp.where(jnp.isfinite(hit.position), hit.position, 0.0)), axis=-1)
+    tt = jnp.where(jnp.isfinite(hit.t), hit.t, 0.0)
+    return 64.0 * eps * (mag + tt) + mat.offset[jnp.maximum(hit.obj, 0)]
+
+
+def environment(env, d):
+    """Sky gradient over world y: horizon -> zenith upwards, horizon -> ground downwards."""
+    y = safe_normalize(d)[..., 1:2]
+    up = env[1] + (env[0] - env[1]) * jnp.maximum(y, 0.0)
+    down = env[1] + (env[2] - env[1]) * jnp.maximum(-y, 0.0)
+    return jnp.where(y >= 0, up, down)
+
+
+def _visibility(params: SceneParams, static: SceneStatic, hit: SceneHit, d, live):
+    """(N, L) visibility of each light from each live hit: 1, or 0 where a shadow ray is
+    blocked. Shadow rays exist only for hits facing the light, of lights casting shadows."""
+    n, nl = hit.t.shape[0], params.lights.radiance.shape[0]
+    got = live & jnp.isfinite(hit.t)
+    nf = jax.vmap(facing)(hit.normal, d)
+    p0 = jnp.where(got[:, None], hit.position, 0.0)
+    ldir, _, dist = jax.vmap(lambda p: light_at(params.lights, p))(p0)  # (N,L,3), (N,L)
+    facing_light = jnp.sum(ldir * nf[:, None, :], axis=-1) > 0
+    need = got[:, None] & params.shadows[None, :] & facing_light
+    org = p0 + nf * offset_of(hit, params.mat)[:, None]
+    rays = Rays(jnp.repeat(org, nl, axis=0), ldir.reshape(n * nl, 3), jnp.zeros((n * nl,), org.dtype), dist.reshape(n * nl))
+    with jax.named_scope("shadow_rays"):
+        blocked = occluded(params, static, rays, need.reshape(n * nl))
+    return jnp.where(blocked.reshape(n, nl), 0.0, 1.0).astype(org.dtype)
+
+
+def _reflect(d, n):
+    return d - 2.0 * jnp.sum(d * n, axis=-1, keepdims=True) * n
+
+
+def _refract(d, n_out, ior):
+    """Refracted direction through a surface of outward normal ``n_out`` (Snell's law); where
+    total internal reflection happens, the mirrored direction instead. Returns (dir, tir)."""
+    d = safe_normalize(d)
+    entering = jnp.sum(d * n_out, axis=-1) < 0
+    nf = jnp.where(entering[:, None], n_out, -n_out)
+    eta = jnp.where(entering, 1.0 / ior, ior)
+    cosi = -jnp.sum(d * nf, axis=-1)
+    k = 1.0 - eta * eta * (1.0 - cosi * cosi)
+    tir = k < 0
+    t = eta[:, None] * d + (eta * cosi - safe_sqrt(k))[:, None] * nf
+    return jnp.where(tir[:, None], _reflect(d, nf), safe_normalize(t)), tir
+
+
+class Queue(NamedTuple):
+    """One level of the ray tree: Q rays with their weight, pixel (slot in the chunk), kind (0
+    camera, 1 reflection, 2 refraction at the first bounce) and whether the slot is live."""
+
+    rays: Rays
+    weight: jnp.ndarray
+    pixel: jnp.ndarray
+    kind: jnp.ndarray
+    live: jnp.ndarray
+
+
+def _compact_queue(cands: Queue, cap: int):
+    """The live candidates moved to the front of a queue of ``cap`` slots; (queue, dropped)
+    where ``dropped`` (M,) marks live candidates that did not fit."""
+    live = cands.live
+    idx = jnp.nonzero(live, size=cap, fill_value=0)[0]
+    count = jnp.sum(live.astype(jnp.int32))
+    keep = jnp.arange(cap) < count
+    q = jax.tree_util.tree_map(lambda a: a[idx], cands)
+    q = q._replace(live=keep)
+    rank = jnp.cumsum(live.astype(jnp.int32)) - 1
+    return q, live & (rank >= cap)
+
+
+def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: SceneHit):
+    """Add one level's light to ``rgb`` (N,3) and return (rgb, visibility, kr, kt)."""
+    n_pix = rgb.shape[0]
+    d = q.rays.directions
+    got = q.live & jnp.isfinite(hits.t)
+    if static.effects.shadows:
+        vis = _visibility(params, static, hits, d, q.live)
+    else:
+        vis = jnp.ones((hits.t.shape[0], params.lights.radiance.shape[0]), d.dtype)
+    m = params.mat
+    k = jnp.maximum(hits.obj, 0)
+    kd = hits.base * m.color[k]
+    pos0 = jnp.where(got[:, None], hits.position, 0.0)
+    local = jax.vmap(lambda p, nn, dd, b, sp, sh, v: shade_local(p, nn, dd, b, params.lights, params.ambient, sp, sh, v))(
+        pos0, hits.normal, d, kd, m.specular[k], m.shininess[k], vis)
+    kr = jnp.where(got, m.reflect[k], 0.0)
+    kt = jnp.where(got, m.transmit[k], 0.0)
+    col = jnp.where(got[:, None], (1.0 - kr - kt)[:, None] * local, environment(params.env, d))
+    dst = jnp.where(q.live, q.pixel, n_pix)
+    rgb = rgb.at[dst].add(q.weight * col, mode="drop")
+    return rgb, vis, kr, kt
+
+
+def spawn(params: SceneParams, static: SceneStatic, q: Queue, hits: SceneHit, kr, kt, level: int):
+    """Reflection and refraction rays of a level, compacted into the next level's queue.
+    Returns (queue, the candidates' pixels, which candidates were dropped)."""
+    eff = static.effects
+    d = safe_normalize(q.rays.directions)
+    p0 = jnp.where(jnp.isfinite(hits.position), hits.position, 0.0)
+    off = offset_of(hits, params.mat)[:, None]
+    nf = jax.vmap(facing)(hits.normal, d)
+    zeros = jnp.zeros_like(q.rays.t_min)
+    infs = jnp.full_like(q.rays.t_max, jnp.inf)
+    cands = []
+    if eff.reflection:
+        with jax.named_scope("reflection_rays"):
+            r = _reflect(d, nf)
+            kind = jnp.where(level == 0, 1, q.kind).astype(jnp.int32)
+            cands.append(Queue(Rays(p0 + nf * off, r, zeros, infs), q.weight * kr[:, None], q.pixel, kind, q.live & (kr > 0)))
+    if eff.refraction:
+        with jax.named_scope("refraction_rays"):
+            ior = params.mat.ior[jnp.maximum(hits.obj, 0)]
+            t, tir = _refract(d, hits.normal, ior)
+            side = jnp.where(tir[:, None], nf, -nf)  # through the surface, or back on the near side
+            kind = jnp.where(level == 0, 2, q.kind).astype(jnp.int32)
+            cands.append(Queue(Rays(p0 + side * off, t, zeros, infs), q.weight * kt[:, None], q.pixel, kind, q.live & (kt > 0)))
+    allc = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *cands)
+    nq, dropped = _compact_queue(allc, q.live.shape[0])
+    return nq, allc.pixel, dropped
+
+
+def scene_batch(static: SceneStatic):
+    """The per-chunk function ``(params, rays) -> dict of per-ray outputs`` for a scene."""
+    eff = static.effects
+    levels = 1 + eff.bounces
+    cap_factor = 2 if (eff.reflection and eff.refraction) else 1
+
+    def batch(params: SceneParams, rays: Rays):
+        n, dtype = rays.size, rays.origins.dtype
+        cap = cap_factor * n
+        pad = cap - n
+
+        def padded(a, fill):
+            return jnp.concatenate([a, jnp.full((pad,) + a.shape[1:], fill, a.dtype)], axis=0) if pad else a
+
+        q = Queue(Rays(padded(rays.origins, 0.0), padded(rays.directions, 1.0), padded(rays.t_min, 0.0), padded(rays.t_max, 0.0)),
+                  jnp.ones((cap, 3), dtype), jnp.arange(cap, dtype=jnp.int32) % n, jnp.zeros((cap,), jnp.int32),
+                  jnp.arange(cap) < n)
+        rgb = jnp.zeros((n, 3), dtype)
+        flags = jnp.zeros((n,), jnp.int32)
+        first_obj = jnp.full((n, 2), -1, jnp.int32)  # object hit by the first reflection / refraction ray
+        secondary = jnp.zeros((n,), jnp.int32)
+
+        def level_fn(level, carry):
+            """One level of the ray tree; ``level`` is traced, so every level runs one copy of
+            the tracing code (unrolling them multiplied the compile time by the depth)."""
+            q, rgb, flags, first_obj, secondary, aov, vis0 = carry
+            hits = nearest(params, static, q.rays, q.live)
+            rgb, vis, kr, kt = shade_level(params, static, q, rgb, hits)
+            live_hit = q.live & jnp.isfinite(hits.t)
+            flags = flags.at[jnp.where(live_hit, q.pixel, n)].max(hits.flags, mode="drop")
+            first = level == 0
+            aov = jax.tree_util.tree_map(lambda a, b: jnp.where(first, a[:n], b), hits, aov)
+            vis0 = jnp.where(first, vis[:n], vis0)
+            secondary = secondary.at[jnp.where(q.live & ~first, q.pixel, n)].add(1, mode="drop")
+            col = jnp.clip(q.kind - 1, 0, 1)
+            first_obj = first_obj.at[jnp.where(q.live & (level == 1), q.pixel, n), col].set(hits.obj, mode="drop")
+            if levels > 1:
+                q, pix, dropped = spawn(params, static, q, hits, kr, kt, level)
+                flags = flags.at[jnp.where(dropped, pix, n)].max(FLAG_OVERFLOW, mode="drop")
+            return q, rgb, flags, first_obj, secondary, aov, vis0
+
+        aov = _miss(n, dtype)
+        vis0 = jnp.ones((n, params.lights.radiance.shape[0]), dtype)
+        carry = (q, rgb, flags, first_obj, secondary, aov, vis0)
+        if levels == 1:
+            carry = level_fn(0, carry)
+        else:
+            carry = jax.lax.fori_loop(0, levels, level_fn, carry)
+        _, rgb, flags, first_obj, secondary, aov, vis0 = carry
+        return {"hit": aov, "rgb": rgb, "visibility": vis0, "flags": flags, "first_obj": first_obj, "secondary": secondary}
+
+    return batch
+
+
+@functools.lru_cache(maxsize=None)
+def scene_fn(static: SceneStatic):
+    """Cached per static key, so a second render of the same shapes compiles nothing."""
+    return scene_batch(static)
