@@ -39,6 +39,7 @@ class BenchFile(StrictModel):
     frames: list[float] = []
     mitsuba_variant: str = "llvm_ad_rgb"
     stats: bool = False  # frusta BVH: nodes and leaves visited per ray (one extra untimed pass)
+    labels: list[str] | None = None  # a name per sweep setting (rows and the bar chart of a timing-only sweep)
 
 
 class _Depth(NamedTuple):
@@ -295,7 +296,39 @@ def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
     for k in ("memory", "memory_bytes", "precompute_s", "cache"):
         if k in r["info"]:
             row[k] = r["info"][k]
+    for k in ("effects", "secondary_rays", "spp"):  # scenes
+        if k in r:
+            row[k] = r[k]
     return row, first
+
+
+def plot_bars(rows: list[dict], path: Path, title: str):
+    """Warm median seconds per row as a bar chart (min-max as error bars), labelled by each
+    row's ``label``; secondary rays per frame written over the bars where rows have them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not rows:
+        return None
+    labels = [r.get("label") or str(r.get("setting")) for r in rows]
+    med = [r["render_s_median"] for r in rows]
+    lo = [m - r["render_s_min"] for m, r in zip(med, rows)]
+    hi = [r["render_s_max"] - m for m, r in zip(med, rows)]
+    fig, ax = plt.subplots(figsize=(max(6, 0.9 * len(rows)), 4.2))
+    bars = ax.bar(range(len(rows)), med, yerr=[lo, hi], color="#4477aa", capsize=3)
+    for b, r in zip(bars, rows):
+        if r.get("secondary_rays") is not None:
+            ax.annotate(f"{r['secondary_rays']:,}", (b.get_x() + b.get_width() / 2, b.get_height()), ha="center", va="bottom",
+                        fontsize=7, xytext=(0, 2), textcoords="offset points")
+    ax.set_xticks(range(len(rows)), labels, rotation=30, ha="right")
+    ax.set_ylabel("warm median seconds per frame")
+    ax.set_title(title + "\n(numbers: secondary rays per frame)" if any("secondary_rays" in r for r in rows) else title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
 
 
 def sweep_settings(sweep) -> list[dict]:

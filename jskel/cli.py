@@ -135,6 +135,9 @@ def cmd_bench(args) -> int:
             raise ConfigError([f"scenes[{i}]: file not found (got {scene!r})"])
         paths.append(p)
     # validate every experiment (and every sweep setting) before any compilation
+    settings = sweep_settings(bench.sweep) if bench.sweep is not None else []
+    if bench.labels is not None and len(bench.labels) != len(settings):
+        raise ConfigError([f"labels: {len(bench.labels)} labels for {len(settings)} sweep settings"])
     groups = []  # (reference job or None, [(file, (exp, obj), setting)])
     if bench.sweep is None:
         groups.append((None, [(str(p), _load(p, common), None) for p in paths]))
@@ -163,6 +166,8 @@ def cmd_bench(args) -> int:
                 row.update(_bvh_stats(exp, obj))
             if setting is not None:
                 row["setting"] = setting
+                if bench.labels is not None:
+                    row["label"] = bench.labels[settings.index(setting)]
             if setting is not None and ref_hits is not None:
                 row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(first.hits, ref_hits, first.rgb, ref_rgb).items()})
             print(json.dumps(row), flush=True)
@@ -188,6 +193,12 @@ def cmd_bench(args) -> int:
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text("".join(json.dumps(r) + "\n" for r in rows))
+        if bench.sweep is not None and not bench.reference and not bench.stats:
+            from .bench import plot_bars
+
+            done = plot_bars(rows, out.with_suffix(".png"), f"{rows[0]['scene']} {rows[0]['width']}x{rows[0]['height']}: time per setting ({rows[0]['device']})")
+            if done:
+                print(f"jskel: plot -> {done}")
         if bench.stats and bench.sweep is not None and not bench.reference:
             from .bench import plot_scaling
 

@@ -189,8 +189,10 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
     ``render.spp`` samples per pixel: the first through the pixel centre (the AOVs come from
     it), the others jittered uniformly in the pixel from ``render.seed``; the colour is their
     mean. Extra AOVs: ``obj`` (object index, -1 on a miss), ``visibility`` (per light, 1 lit /
-    0 shadowed), ``reflect_obj`` / ``refract_obj`` (object seen by the first reflection /
-    refraction ray, -1 if none or it escaped) and ``secondary`` (secondary rays per pixel)."""
+    0 shadowed), ``reflect_obj`` / ``refract_obj`` (where the path that starts with the
+    pixel's first reflection / refraction ray ends: the object its last ray hit, -1 if it
+    escaped or there is none; through a glass rod that is the object seen behind it; where a
+    path branches, one of the branches) and ``secondary`` (secondary rays per pixel)."""
     from ._scene import build_scene, scene_fn
 
     dtype = dtype_of(exp)

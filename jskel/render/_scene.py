@@ -444,7 +444,7 @@ def scene_batch(static: SceneStatic):
                   jnp.arange(cap) < n)
         rgb = jnp.zeros((n, 3), dtype)
         flags = jnp.zeros((n,), jnp.int32)
-        first_obj = jnp.full((n, 2), -1, jnp.int32)  # object hit by the first reflection / refraction ray
+        first_obj = jnp.full((n, 2), -1, jnp.int32)  # where the reflection / refraction path ends
         secondary = jnp.zeros((n,), jnp.int32)
 
         def level_fn(level, carry):
@@ -460,7 +460,8 @@ def scene_batch(static: SceneStatic):
             vis0 = jnp.where(first, vis[:n], vis0)
             secondary = secondary.at[jnp.where(q.live & ~first, q.pixel, n)].add(1, mode="drop")
             col = jnp.clip(q.kind - 1, 0, 1)
-            first_obj = first_obj.at[jnp.where(q.live & (level == 1), q.pixel, n), col].set(hits.obj, mode="drop")
+            # where the path of the first reflection / refraction ray ends: later levels overwrite
+            first_obj = first_obj.at[jnp.where(q.live & (level >= 1), q.pixel, n), col].set(hits.obj, mode="drop")
             if levels > 1:
                 q, pix, dropped = spawn(params, static, q, hits, kr, kt, level)
                 flags = flags.at[jnp.where(dropped, pix, n)].max(FLAG_OVERFLOW, mode="drop")
