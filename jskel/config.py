@@ -145,6 +145,7 @@ class RenderConfig(StrictModel):
     seed: int = 0  # of the jitter
     bounces: Annotated[int, Field(ge=0, le=16)] = 2  # reflection / refraction depth (scenes)
     lanes: Annotated[int, Field(ge=1, le=1 << 20)] = 256  # rays per compacted sub-batch (scenes)
+    compaction: bool = True  # scenes: false traces every queue slot against every object (masking), for comparison
 
 
 Unit = Annotated[float, Field(ge=0.0, le=1.0)]

@@ -132,6 +132,7 @@ class SceneStatic(NamedTuple):
     statics: tuple  # each object's static options
     effects: Effects
     lanes: int
+    compaction: bool = True  # False: every queue slot traced against every object (masking; for the benchmark)
 
 
 def euler_matrix(deg) -> np.ndarray:
@@ -218,7 +219,7 @@ def build_scene(exp, shapes, dtype):
     shadows = np.array([l.shadows for l in exp.lights] or [False])
     params = SceneParams(tuple(objs), tuple(xfs), mat, lights, jnp.asarray(shadows), jnp.asarray(exp.shading.ambient, dtype),
                          jnp.asarray(env, dtype))
-    static = SceneStatic(tuple(reps), tuple(statics), effects_of(exp), int(exp.render.lanes))
+    static = SceneStatic(tuple(reps), tuple(statics), effects_of(exp), int(exp.render.lanes), bool(exp.render.compaction))
     return params, static, eye, info
 
 
@@ -274,7 +275,7 @@ def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live) -> Scene
     best = _miss(n, dtype)
     for k, (rep, st) in enumerate(zip(static.reps, static.statics)):
         x = params.xforms[k]
-        need = live & _box_crossed(rays, x.lo, x.hi)
+        need = (live & _box_crossed(rays, x.lo, x.hi)) if static.compaction else jnp.ones_like(live)
         fn = functools.partial(_object_hits, rep, st, params.objects[k], x, k)
         hk = compact_map(fn, need, rays, _miss(n, dtype), static.lanes)
         closer = hk.t < best.t
@@ -288,12 +289,15 @@ def occluded(params: SceneParams, static: SceneStatic, rays: Rays, need):
     blocked = jnp.zeros_like(need)
     for k, (rep, st) in enumerate(zip(static.reps, static.statics)):
         x = params.xforms[k]
-        todo = need & ~blocked & _box_crossed(rays, x.lo, x.hi)
+        todo = (need & ~blocked & _box_crossed(rays, x.lo, x.hi)) if static.compaction else jnp.ones_like(need)
 
         def fn(sub, rep=rep, st=st, k=k, x=x):
             return jnp.isfinite(_object_hits(rep, st, params.objects[k], x, k, sub).t)
 
-        blocked = compact_map(fn, todo, rays, blocked, static.lanes)
+        if static.compaction:
+            blocked = compact_map(fn, todo, rays, blocked, static.lanes)
+        else:  # masking: every ray traced, the result kept where needed
+            blocked = blocked | (need & compact_map(fn, todo, rays, jnp.zeros_like(blocked), static.lanes))
     return blocked
 
 
@@ -449,7 +453,8 @@ def scene_batch(static: SceneStatic):
 
         def level_fn(level, carry):
             """One level of the ray tree; ``level`` is traced, so every level runs one copy of
-            the tracing code (unrolling them multiplied the compile time by the depth)."""
+            the tracing code (unrolling them multiplied the compile time by the depth), and the
+            loop ends at the first level with no live ray."""
             q, rgb, flags, first_obj, secondary, aov, vis0 = carry
             hits = nearest(params, static, q.rays, q.live)
             rgb, vis, kr, kt = shade_level(params, static, q, rgb, hits)
@@ -472,8 +477,9 @@ def scene_batch(static: SceneStatic):
         carry = (q, rgb, flags, first_obj, secondary, aov, vis0)
         if levels == 1:
             carry = level_fn(0, carry)
-        else:
-            carry = jax.lax.fori_loop(0, levels, level_fn, carry)
+        else:  # stops early once a level spawns no ray (a scalar loop condition: a real branch)
+            carry = jax.lax.while_loop(lambda c: (c[0] < levels) & jnp.any(c[1][0].live),
+                                       lambda c: (c[0] + 1, level_fn(c[0], c[1])), (jnp.int32(0), carry))[1]
         _, rgb, flags, first_obj, secondary, aov, vis0 = carry
         return {"hit": aov, "rgb": rgb, "visibility": vis0, "flags": flags, "first_obj": first_obj, "secondary": secondary}
 
