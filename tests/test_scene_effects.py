@@ -333,3 +333,58 @@ def test_bad_scene_input_names_the_key():
         validate({"objects": [{"shape": SAG}], "object": SAG})
     with pytest.raises(ConfigError, match=r"lights\[0\]: a point light needs a 'position'"):
         validate({"objects": [{"shape": SAG}], "lights": [{"type": "point"}]})
+
+
+# --------------------------------------------------------------------------- animation
+
+BONES = {"type": "implicit", "threshold": T, "method": "lipschitz", "eps": 1e-3, "bones": [
+    {"name": "upper", "head": [0, 0, 0], "tail": [0, 1.5, 0], "tube": [0.5, 0.5],
+     "keys": [{"frame": 0, "rotate": [0, 0, 0]}, {"frame": 10, "rotate": [0, 0, 40]}]},
+    {"name": "lower", "parent": "upper", "head": [0, 1.5, 0], "tail": [0, 3, 0], "tube": [0.5, 0.3],
+     "keys": [{"frame": 0, "rotate": [0, 0, 0]}, {"frame": 10, "rotate": [50, 0, 0]}]}]}
+CAM_A = camera((0.0, 1.5, 7.0), (0.0, 1.5, 0.0), 64, 48)
+
+
+def test_scene_frame_poses_bones_as_the_object_frame_does():
+    lights = [{"direction": [0.4, 0.9, 0.5], "shadows": False}]
+    _, moved = run({"objects": [{"shape": BONES}], "frame": 7, "camera": CAM_A, "lights": lights})
+    _, alone = run({"object": {**BONES, "frame": 7}, "camera": CAM_A, "lights": lights})
+    _, rest = run({"objects": [{"shape": BONES}], "frame": 0, "camera": CAM_A, "lights": lights})
+    np.testing.assert_array_equal(moved.hits.t, alone.hits.t)
+    np.testing.assert_array_equal(moved.hits.prim, alone.hits.prim)
+    assert np.sum(np.isfinite(moved.hits.t) != np.isfinite(rest.hits.t)) > 50  # the pose changed the picture
+
+
+def _rot(deg):
+    x, y, z = np.radians(deg)
+    rx = np.array([[1, 0, 0], [0, np.cos(x), -np.sin(x)], [0, np.sin(x), np.cos(x)]])
+    ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
+    rz = np.array([[np.cos(z), -np.sin(z), 0], [np.sin(z), np.cos(z), 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def test_rigid_motion_of_a_cell_object_equals_the_camera_moving_back(tmp_path):
+    """A cell object moved by ``motion`` for 3 frames and scaled looks, from camera C, as the
+    unmoved object looks from C carried back by the inverse of that rigid motion (depths scale by
+    1/s): the motion, transform and camera-relative frames written out in float64 here."""
+    cells_shape = {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45}, "tiles": 6,
+                   "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "cache": str(tmp_path / "cache")}
+    lights = [{"direction": [0.4, 0.9, 0.5], "shadows": False}]
+    s, f = 1.5, 3
+    motion = {"translate": [0.2, 0.1, -0.3], "rotate_deg": [5.0, 12.0, 0.0]}
+    cam = camera((0.3, 2.5, 5.5), (0.4, 0.2, -0.6), 64, 48)
+    _, moved = run({"objects": [{"shape": cells_shape, "transform": {"scale": s, "translate": [0.1, 0, 0]}, "motion": motion}],
+                    "frame": f, "camera": cam, "lights": lights})
+    R = _rot(f * np.asarray(motion["rotate_deg"]))
+    t = np.array([0.1, 0, 0]) + f * np.asarray(motion["translate"])
+    back = lambda p: R.T @ (np.asarray(p) - t) / s  # noqa: E731 - world -> object
+    cam0 = camera(back(cam["eye"]), back(cam["target"]), 64, 48)
+    cam0["up"] = (R.T @ np.array([0.0, 1.0, 0.0])).tolist()
+    _, still = run({"objects": [{"shape": cells_shape}], "camera": cam0, "lights": lights})
+    a, b = moved.hits, still.hits
+    both = np.isfinite(a.t) & np.isfinite(b.t)
+    assert both.sum() > 300
+    assert np.mean(np.isfinite(a.t) == np.isfinite(b.t)) > 0.995
+    same = both & (a.prim == b.prim)
+    assert np.mean(same[both]) > 0.99
+    np.testing.assert_allclose(a.t[same] / s, b.t[same], rtol=2e-4)
