@@ -52,3 +52,11 @@ class Representation(Protocol):
     # Optional: intersect_batch(params, static, rays) -> Hit (leading ray axis), equal to
     # vmap(intersect_one) but free to skip work at the batch level (block culling, compaction
     # of (ray, primitive) pairs). The renderer uses it when present.
+    #
+    # Optional, for scenes (jskel.render._scene):
+    # * exits_from_inside(cfg) -> bool: a ray starting inside the surface gets its exit as the
+    #   hit (analytic surfaces); only such objects may be transparent in a scene;
+    # * own_effects(cfg) -> bool: the object section asks for secondary rays the
+    #   representation traces itself (``shade_batch``), which a scene does not use;
+    # * Built.info["surface_tolerance"]: how far (object units) a returned hit may lie from the
+    #   true surface (a marching tracer's last bracket); secondary rays start beyond it.

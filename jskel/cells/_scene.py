@@ -420,5 +420,10 @@ class _Cells:
     inside = staticmethod(inside)
     shade_batch = staticmethod(shade_batch)
 
+    @staticmethod
+    def own_effects(cfg) -> bool:
+        """Reflection and refraction modes trace the cells' own secondary rays (shade_batch)."""
+        return cfg.mode != "first_hit"
+
 
 REPRESENTATION = _Cells()

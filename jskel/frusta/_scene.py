@@ -466,5 +466,11 @@ class _Frusta:
     albedo = staticmethod(albedo)
     inside = staticmethod(inside)
 
+    @staticmethod
+    def exits_from_inside(cfg) -> bool:
+        """Plain frusta: both roots of the cone and the caps are tested against t_min, so a
+        ray from inside gets its exit (a relief shell's march searches for entries only)."""
+        return cfg.relief is None
+
 
 REPRESENTATION = _Frusta()

@@ -41,8 +41,9 @@ with the hit's magnitude plus the representation's own surface tolerance (the la
 bracket of marched surfaces; ``info["surface_tolerance"]``): a fixed epsilon fails once the
 scene is scaled or moved.
 
-Transparent objects must be frusta: their analytic intersection reports the exit from inside;
-the implicit and cell tracers search for the first entry only (a ValueError says so).
+Transparent objects must report the exit of a ray from inside (``exits_from_inside(cfg)`` in
+the interface: frusta without relief, whose intersection is analytic); the implicit and cell tracers search for the
+first entry only (a ValueError says so).
 """
 
 from __future__ import annotations
@@ -170,15 +171,18 @@ def _shape_at(shape, frame: float):
     return shape
 
 
-def _check_shape(i: int, o, shape):
-    if o.material.transparency > 0 and shape.type != "frusta":
+def _check_shape(i: int, o, shape, rep):
+    """Host checks of what a representation can do in a scene (interface flags, not types)."""
+    exits = getattr(rep, "exits_from_inside", None)
+    if o.material.transparency > 0 and not (exits is not None and exits(shape)):
         raise ValueError(
-            f"objects[{i}].material.transparency: {o.material.transparency} on a {shape.type} object; only frusta report "
-            "the exit of a ray from inside (the implicit and cell tracers search for the first entry)")
-    if shape.type == "cells" and shape.mode != "first_hit":
+            f"objects[{i}].material.transparency: {o.material.transparency} on a {shape.type} object, whose tracer "
+            "searches for the first entry only (a transparent object must report the exit of a ray from inside: plain frusta do)")
+    own = getattr(rep, "own_effects", None)
+    if own is not None and own(shape):
         raise ValueError(
-            f"objects[{i}].shape.mode: {shape.mode!r}; in a scene a cell object is shaded by its material "
-            "(material.reflectivity / transparency), give mode: first_hit")
+            f"objects[{i}].shape.mode: {getattr(shape, 'mode', '?')!r}; in a scene an object is shaded by its material "
+            "(material.reflectivity / transparency), not by effects of its own: give mode: first_hit")
 
 
 def build_scene(exp, shapes, dtype):
@@ -187,8 +191,8 @@ def build_scene(exp, shapes, dtype):
     objs, xfs, statics, reps, info = [], [], [], [], []
     cols, spec, shin, refl, trans, ior, off = [], [], [], [], [], [], []
     for i, (o, shape) in enumerate(zip(exp.objects, shapes)):
-        _check_shape(i, o, shape)
         rep = registry.get(shape.type)
+        _check_shape(i, o, shape, rep)
         built = rep.build(_shape_at(shape, exp.frame), dtype)
         s, r, t = object_transform(o, exp.frame)
         a = np.asarray(built.anchor, np.float64)
