@@ -1,0 +1,99 @@
+"""The fit file (``python -m jskel fit FILE --out DIR``), validated by pydantic."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import Field, model_validator
+
+from ..config import CameraConfig, StrictModel
+from ..frusta import SkeletonConfig
+
+Frac = Annotated[float, Field(ge=0.0, le=1.0)]
+
+
+class SyntheticConfig(StrictModel):
+    """Points sampled uniformly on a known skeleton's surface, with Gaussian noise of standard
+    deviation ``noise`` x the skeleton's length (sum of segment lengths), and a fraction
+    ``outliers`` of the points replaced by uniform samples in the bounding box grown by 20%."""
+
+    skeleton: SkeletonConfig
+    count: Annotated[int, Field(ge=1, le=10_000_000)] = 2000
+    noise: Annotated[float, Field(ge=0.0, le=1.0)] = 0.01
+    outliers: Frac = 0.05
+    seed: int = 0
+
+
+class PointsConfig(StrictModel):
+    """A point cloud: a ``file`` (.npy (N,3), .xyz / .txt (x y z per line), .ply) or
+    ``synthetic`` points. ``nonfinite``: NaN or inf points are rejected (an error naming how
+    many and the first index) or dropped (counted in fit.json)."""
+
+    file: str | None = None
+    synthetic: SyntheticConfig | None = None
+    nonfinite: Literal["reject", "drop"] = "reject"
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.file is None) == (self.synthetic is None):
+            raise ValueError("give exactly one of 'file' and 'synthetic'")
+        return self
+
+
+class EstimateConfig(StrictModel):
+    """A skeleton estimated from the points. ``pca_chain``: ``segments`` segments along the
+    cloud's principal axis (a single tube, roughly straight). ``mst``: a minimum spanning tree
+    over the centroids of occupied voxels of edge ``voxel`` (x the cloud's extent), simplified
+    to joints about ``segment`` (x extent) apart; needs voxels wider than the tubes and narrower
+    than the gaps between branches."""
+
+    method: Literal["pca_chain", "mst"] = "pca_chain"
+    segments: Annotated[int, Field(ge=1, le=4096)] = 5
+    voxel: Annotated[float, Field(gt=0.0, le=1.0)] = 0.08
+    segment: Annotated[float, Field(gt=0.0, le=1.0)] = 0.15
+
+
+class InitConfig(StrictModel):
+    """The starting skeleton: ``skeleton`` (given) or ``estimate``; with ``synthetic`` points
+    and neither, the true skeleton. ``perturb``: joints moved by a random vector of that
+    fraction of the mean segment length, radii scaled by 1 +- perturb (random signs)."""
+
+    skeleton: SkeletonConfig | None = None
+    estimate: EstimateConfig | None = None
+    perturb: Frac = 0.0
+    seed: int = 1
+
+    @model_validator(mode="after")
+    def _not_both(self):
+        if self.skeleton is not None and self.estimate is not None:
+            raise ValueError("give 'skeleton' or 'estimate', not both")
+        return self
+
+
+class SolverConfig(StrictModel):
+    """``name``: lm (Levenberg-Marquardt), gauss_newton, lbfgs (jaxopt) or adam (optax).
+    ``loss``: l2, huber or cauchy, with ``scale`` a fraction of the cloud's extent.
+    ``smoothness``: weight of the joints' second differences along chains. ``restarts``: fits
+    from that many perturbed starts at once (vmap), the best kept."""
+
+    name: Literal["lm", "gauss_newton", "lbfgs", "adam"] = "lm"
+    loss: Literal["l2", "huber", "cauchy"] = "huber"
+    scale: Annotated[float, Field(gt=0.0, le=1.0)] = 0.01
+    maxiter: Annotated[int, Field(ge=1, le=100_000)] = 100
+    tol: Annotated[float, Field(gt=0.0)] = 1e-6
+    learning_rate: Annotated[float, Field(gt=0.0)] = 0.01
+    smoothness: Annotated[float, Field(ge=0.0)] = 0.0
+    restarts: Annotated[int, Field(ge=1, le=4096)] = 1
+    min_radius: Annotated[float, Field(ge=0.0, le=1.0)] = 1e-4  # fraction of extent: radii = min + softplus(u)
+
+
+class FitFile(StrictModel):
+    """A fit: points, a start, a solver; the output experiment uses ``camera`` (framed on the
+    fitted skeleton when omitted)."""
+
+    name: str = "fit"
+    points: PointsConfig
+    init: InitConfig = InitConfig()
+    solver: SolverConfig = SolverConfig()
+    camera: CameraConfig | None = None
+    dtype: Literal["float32", "float64"] = "float32"

@@ -1,0 +1,110 @@
+"""The solver adapter: one small interface over jaxopt and optax (issue 10).
+
+jaxopt is no longer maintained upstream; it is used here for what it does best (Levenberg-
+Marquardt and Gauss-Newton on residuals, L-BFGS with a line search) behind :func:`make`, so
+another library can replace it by adding an entry. Every solver is driven the same way:
+
+    step = make(name, residuals, loss, maxiter, tol)   # a Stepper; residuals(x, *args), loss(x, *args)
+    state = step.init(x0, *args)
+    x, state = step.update(x, state, *args)            # one iteration (the caller jits it)
+    step.error(state)                                  # the solver's own stopping measure
+
+which lets the caller record the loss after every iteration (the fit's loss curve) and stop on
+the solver's criterion, and ``step.run(x0)`` runs to the end in one compiled call (``vmap`` of it
+fits many problems at once).
+
+``residuals(x, *args) -> (M,)`` are already robust (see :func:`robust_residuals`);
+``loss(x, *args)`` is half their sum of squares, the quantity every solver decreases; ``args``
+(the points) are traced, so new points of the same shape reuse the compiled solver.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+
+def robust_residuals(r, kind: str, scale):
+    """Residuals whose half sum of squares is the robust loss: ``l2``: r; ``huber``: the
+    residual of Huber's loss (quadratic within ``scale``, linear beyond); ``cauchy``:
+    ``scale^2 log(1 + (r/scale)^2)``. Written as r times a weight that is 1 near zero, so the
+    map is smooth at r = 0 (a sign(r) sqrt(loss) form has an infinite slope there)."""
+    if kind == "l2":
+        return r
+    x2 = (r / scale) ** 2
+    if kind == "huber":
+        # 0.5 rho^2 = huber(r) = 0.5 r^2 (|r| <= s), s |r| - 0.5 s^2 beyond: rho = r sqrt(2 s/|r| - s^2/r^2)
+        big = x2 > 1.0
+        w2 = jnp.where(big, 2.0 / jnp.sqrt(jnp.where(big, x2, 1.0)) - 1.0 / jnp.where(big, x2, 1.0), 1.0)
+        return r * jnp.sqrt(w2)
+    if kind == "cauchy":
+        small = x2 < 1e-6
+        w2 = jnp.where(small, 1.0 - 0.5 * x2, jnp.log1p(x2) / jnp.where(small, 1.0, x2))
+        return r * jnp.sqrt(w2)
+    raise ValueError(f"solver.loss: unknown robust loss {kind!r} (l2, huber, cauchy)")
+
+
+class Stepper(NamedTuple):
+    init: Callable
+    update: Callable
+    error: Callable
+    run: Callable
+    iterations: Callable
+
+
+SOLVERS = ("lm", "gauss_newton", "lbfgs", "adam")
+
+
+def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: float, learning_rate: float = 0.01,
+         dense: bool = True) -> Stepper:
+    """A :class:`Stepper` for solver ``name`` (``lm``, ``gauss_newton``, ``lbfgs``, ``adam``).
+
+    ``dense``: Levenberg-Marquardt forms the Jacobian (forward mode, one pass per unknown) and
+    solves its normal equations by Cholesky; otherwise it runs matrix-free conjugate gradients
+    on J^T J products (for problems whose Jacobian would not fit in memory). On the 24-unknown
+    chain the matrix-free form took 35 s to compile against 11 s dense (CPU, development run)."""
+    if name in ("lm", "gauss_newton", "lbfgs"):
+        import jaxopt
+
+        if name == "lm":
+            kw = {"materialize_jac": True, "solver": "cholesky"} if dense else {}
+            s = jaxopt.LevenbergMarquardt(residual_fun=residuals, maxiter=maxiter, tol=tol, xtol=tol, gtol=tol, jit=True, **kw)
+        elif name == "gauss_newton":
+            s = jaxopt.GaussNewton(residual_fun=residuals, maxiter=maxiter, tol=tol, jit=True)
+        else:
+            s = jaxopt.LBFGS(fun=loss, maxiter=maxiter, tol=tol, jit=True)
+
+        def run(x0, *args):
+            return s.run(x0, *args)
+
+        return Stepper(s.init_state, s.update, lambda st: st.error, run, lambda st: st.iter_num)
+    if name == "adam":
+        import optax
+
+        opt = optax.adam(learning_rate)
+        grad = jax.grad(loss)
+
+        class AdamState(NamedTuple):
+            opt: object
+            error: jnp.ndarray
+            iter_num: jnp.ndarray
+
+        def init(x0, *args):
+            return AdamState(opt.init(x0), jnp.asarray(jnp.inf, x0.dtype), jnp.int32(0))
+
+        def update(x, st, *args):
+            g = grad(x, *args)
+            upd, o = opt.update(g, st.opt, x)
+            err = jnp.sqrt(jnp.sum(g * g))
+            return optax.apply_updates(x, upd), AdamState(o, err, st.iter_num + 1)
+
+        def run(x0, *args):
+            def cond(c):
+                return (c[1].iter_num < maxiter) & (c[1].error > tol)
+
+            return jax.lax.while_loop(cond, lambda c: update(c[0], c[1], *args), (x0, init(x0, *args)))
+
+        return Stepper(init, update, lambda st: st.error, run, lambda st: st.iter_num)
+    raise ValueError(f"solver.name: unknown solver {name!r} ({', '.join(SOLVERS)})")
