@@ -1,4 +1,4 @@
-"""Command line: ``python -m jskel render|bench|sweep ...``.
+"""Command line: ``python -m jskel render|bench|sweep|fit ...``.
 
 Every bad input (unknown key, wrong type, bad value, bad skeleton) ends the command before any
 compilation with one line per problem on stderr, naming the key path and the value, and exit
@@ -220,6 +220,28 @@ def cmd_sweep(args) -> int:
     return 0
 
 
+def cmd_fit(args) -> int:
+    """``jskel fit FILE --out DIR``: see ``jskel.fit``."""
+    raw = apply_overrides(read_yaml(args.file), args.set)
+    from .fit import FitFile, run_fit
+
+    try:
+        cfg = FitFile.model_validate(raw)
+    except ValidationError as e:
+        raise ConfigError(_format(e)) from None
+    if args.x64 or cfg.dtype == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+        cfg = cfg.model_copy(update={"dtype": "float64"})
+    info = run_fit(cfg, Path(args.out), Path(args.file).parent)
+    res = info["residuals"]
+    print(f"jskel: fitted {info['segments']} segments to {info['points']['points']} points with {cfg.solver.name} in "
+          f"{info['seconds']:.2f} s ({info['iterations']} iterations, compile {info['compile_s']:.2f} s); "
+          f"residual rms {res['rms']:.4g}, inliers {res['inlier_fraction']:.1%} -> {Path(args.out) / 'fitted.yaml'}")
+    return 0
+
+
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="jskel", description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -249,6 +271,12 @@ def parser() -> argparse.ArgumentParser:
     g.add_argument("--no-progress", dest="progress", action="store_false")
     w.add_argument("--x64", action="store_true", help="every setting in float64 unless it sets render.dtype itself")
     w.set_defaults(func=cmd_sweep)
+    f = sub.add_parser("fit", help="fit a skeleton's joints and radii to a point cloud: fitted.yaml, fit.json, fit.png")
+    f.add_argument("file", help="fit YAML")
+    f.add_argument("--out", required=True, help="output folder")
+    f.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a fit key")
+    f.add_argument("--x64", action="store_true", help="fit in float64")
+    f.set_defaults(func=cmd_fit)
     return ap
 
 

@@ -1,0 +1,34 @@
+"""Fitting skeletons of conical frusta to point clouds (issue 10).
+
+Public API:
+
+* :func:`distances` / :func:`signed_distance`: differentiable signed distance from points to a
+  skeleton's frusta (``_distance``), with :func:`segments_of` for the static topology;
+* :func:`fit_points`: fit joints and radii of a fixed topology (jaxopt LM / Gauss-Newton /
+  L-BFGS or optax Adam through the adapter in ``_solvers``);
+* :func:`pca_chain`, :func:`mst_skeleton`: starting skeletons estimated from points;
+* :func:`run_fit` and :class:`FitFile`: what ``python -m jskel fit FILE --out DIR`` runs."""
+
+from ._config import FitFile as FitFile
+from ._distance import Segments as Segments
+from ._distance import cutting_planes as cutting_planes
+from ._distance import distances as distances
+from ._distance import geometry as geometry
+from ._distance import sample_surface as sample_surface
+from ._distance import segments_of as segments_of
+from ._distance import signed_distance as signed_distance
+from ._fit import FitResult as FitResult
+from ._fit import fit_many as fit_many
+from ._fit import fit_points as fit_points
+from ._fit import load_points as load_points
+from ._fit import mst_skeleton as mst_skeleton
+from ._fit import pca_chain as pca_chain
+from ._fit import perturbed as perturbed
+from ._fit import point_distances as point_distances
+from ._fit import read_points as read_points
+from ._fit import run_fit as run_fit
+from ._solvers import robust_residuals as robust_residuals
+
+__all__ = ["FitFile", "FitResult", "Segments", "cutting_planes", "distances", "fit_many", "fit_points", "geometry", "load_points",
+           "mst_skeleton", "pca_chain", "perturbed", "point_distances", "read_points", "robust_residuals", "run_fit",
+           "sample_surface", "segments_of", "signed_distance"]

@@ -44,13 +44,14 @@ class EstimateConfig(StrictModel):
     """A skeleton estimated from the points. ``pca_chain``: ``segments`` segments along the
     cloud's principal axis (a single tube, roughly straight). ``mst``: a minimum spanning tree
     over the centroids of occupied voxels of edge ``voxel`` (x the cloud's extent), simplified
-    to joints about ``segment`` (x extent) apart; needs voxels wider than the tubes and narrower
-    than the gaps between branches."""
+    to joints about ``segment`` (x extent) apart, twigs shorter than ``prune`` voxels cut; needs
+    voxels wider than the tubes and narrower than the gaps between branches."""
 
     method: Literal["pca_chain", "mst"] = "pca_chain"
     segments: Annotated[int, Field(ge=1, le=4096)] = 5
     voxel: Annotated[float, Field(gt=0.0, le=1.0)] = 0.08
     segment: Annotated[float, Field(gt=0.0, le=1.0)] = 0.15
+    prune: Annotated[float, Field(ge=0.0, le=1000.0)] = 3.0  # twigs shorter than this many voxel edges are cut
 
 
 class InitConfig(StrictModel):
@@ -80,7 +81,9 @@ class SolverConfig(StrictModel):
     loss: Literal["l2", "huber", "cauchy"] = "huber"
     scale: Annotated[float, Field(gt=0.0, le=1.0)] = 0.01
     maxiter: Annotated[int, Field(ge=1, le=100_000)] = 100
-    tol: Annotated[float, Field(gt=0.0)] = 1e-6
+    tol: Annotated[float, Field(gt=0.0)] = 1e-6  # the solver's own criterion (gradient norm, normalised units)
+    ftol: Annotated[float, Field(ge=0.0)] = 1e-6  # or stop when the loss falls by less than this fraction ...
+    patience: Annotated[int, Field(ge=1, le=100_000)] = 10  # ... for this many iterations in a row
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.01
     smoothness: Annotated[float, Field(ge=0.0)] = 0.0
     restarts: Annotated[int, Field(ge=1, le=4096)] = 1

@@ -9,10 +9,10 @@ perpendicular to the axis and capped.
 
 Per segment the signed distance combines ``cone``, the distance to the generator line in the
 point's axial half-plane, ``(rho - r1 - k y) / sqrt(1 + k^2)``, with the distances beyond the
-bottom and top planes as for the intersection of three solids: inside, their maximum; outside,
-the length of their positive parts (the distance to a rim when a point is beyond the side and a
-plane at once; exact for a cylinder's perpendicular cap, close for cones and oblique planes). The skeleton's distance is the
-minimum over segments (the union). Gradients are finite everywhere: the radial distance ``rho``
+segment's real caps (free ends) as for the intersection of solids: inside, their maximum;
+outside, the length of their positive parts (the distance to a rim). A shared cutting plane is
+not a surface; it only decides which segment a point belongs to (:func:`signed_distance`). The
+skeleton's distance is the minimum over the segments a point belongs to. Gradients are finite everywhere: the radial distance ``rho``
 uses the double-``where`` norm (``numerics.safe_norm``) so a point on the axis has a zero, not a
 NaN, radial gradient; divisions go through ``safe_div``; a segment of zero length is rejected on
 the host (``validate_skeleton``) and guarded in JAX.
@@ -165,8 +165,20 @@ def geometry(joints, radii, seg: Segments) -> Geometry:
     return Geometry(c1, m, h, r1, r2, nb, db, nt, dt)
 
 
-def segment_distances(g: Geometry, x):
-    """Signed distance of one point ``x`` (3,) to every segment's solid (S,): negative inside."""
+def _combine(v):
+    """Signed distance of the intersection of solids from their signed distances (..., K):
+    inside, the maximum; outside, the length of the positive parts (the distance to a rim when a
+    point is beyond the side and a cap at once; exact for a cylinder's perpendicular cap)."""
+    return safe_norm(jnp.maximum(v, 0.0)) + jnp.minimum(jnp.max(v, axis=-1), 0.0)
+
+
+def segment_distances(g: Geometry, x, cap_b=None, cap_t=None):
+    """Signed distances of one point ``x`` (3,) to each segment (S,), and whether ``x`` lies
+    between the segment's internal (shared) cutting planes (S,) bool.
+
+    With ``cap_b``/``cap_t`` (S,) bool (which planes close a free end), the internal planes
+    only select the segment and the distance combines the cone with the real caps; without
+    them every plane bounds the solid."""
     q = x[None, :] - g.c1
     y = _dot(q, g.m)
     rho = safe_norm(q - y[:, None] * g.m)
@@ -174,23 +186,48 @@ def segment_distances(g: Geometry, x):
     cone = (rho - (g.r1 + k * y)) / jnp.sqrt(1.0 + k * k)
     below = g.db - _dot(g.nb, q)
     above = _dot(g.nt, q) - g.dt
-    v = jnp.stack([cone, below, above], axis=-1)
-    # outside a rim (beyond the side and a plane at once) the distance to the rim circle is
-    # the length of the positive parts (exact for a cylinder's perpendicular cap); max(...)
-    # alone underestimates it there, which pulled fitted radii outwards by 4-7 % on noisy caps
-    return safe_norm(jnp.maximum(v, 0.0)) + jnp.minimum(jnp.max(v, axis=-1), 0.0)
+    if cap_b is None:
+        return _combine(jnp.stack([cone, below, above], -1)), jnp.ones_like(cone, bool)
+    off = jnp.asarray(-jnp.inf, cone.dtype)
+    v = jnp.stack([cone, jnp.where(cap_b, below, off), jnp.where(cap_t, above, off)], -1)
+    within = (cap_b | (below <= 0)) & (cap_t | (above <= 0))
+    return _combine(v), within
 
 
-def signed_distance(g: Geometry, x):
-    """Signed distance of one point (3,) to the skeleton's surface (negative inside)."""
-    return jnp.min(segment_distances(g, x))
+def signed_distance(g: Geometry, x, seg: Segments | None = None):
+    """Signed distance of one point (3,) to the skeleton's surface (negative inside).
+
+    A shared cutting plane is not a surface: with the topology ``seg``, each segment counts
+    only for points between its shared planes and is closed only by its real caps, so a point
+    inside near a joint gets its distance to the side, not to the plane (the plain minimum over
+    capped pieces made interior points near joints look close to the surface). Points that no
+    segment's shared planes enclose (far from a bent joint) fall back to the minimum over
+    pieces bounded by all their planes."""
+    if seg is None:
+        return jnp.min(segment_distances(g, x)[0])
+    cap_b, cap_t = caps_of(seg)
+    d, within = segment_distances(g, x, cap_b, cap_t)
+    big = jnp.asarray(jnp.finfo(d.dtype).max, d.dtype)
+    d_in = jnp.min(jnp.where(within, d, big))
+    d_all = jnp.min(segment_distances(g, x)[0])
+    return jnp.where(jnp.any(within), d_in, d_all)
+
+
+def caps_of(seg: Segments):
+    """(cap_b, cap_t) (S,) bool NumPy: a plane closes a free end unless a continuation shares it."""
+    s = len(seg.start)
+    cap_b = np.ones(s, bool)
+    cap_t = np.ones(s, bool)
+    cap_b[np.asarray(seg.cont_b, np.int64)] = False
+    cap_t[np.asarray(seg.cont_a, np.int64)] = False
+    return cap_b, cap_t
 
 
 def distances(joints, radii, seg: Segments, points, block: int = 4096):
     """Signed distances (N,) of ``points`` (N,3); evaluated in blocks of ``block`` points with
     ``lax.map`` when N is larger, so memory is O(block x segments)."""
     g = geometry(joints, radii, seg)
-    one = jax.vmap(lambda p: signed_distance(g, p))
+    one = jax.vmap(lambda p: signed_distance(g, p, seg))
     n = points.shape[0]
     if n <= block:
         return one(points)
@@ -250,5 +287,5 @@ def sample_surface(joints, radii, parents, count: int, rng: np.random.Generator)
     return np.concatenate(out)
 
 
-__all__ = ["Geometry", "Segments", "cutting_planes", "distances", "geometry", "sample_surface", "segment_distances",
-           "segments_of", "signed_distance"]
+__all__ = ["Geometry", "Segments", "caps_of", "cutting_planes", "distances", "geometry", "sample_surface",
+           "segment_distances", "segments_of", "signed_distance"]

@@ -135,14 +135,17 @@ def pca_chain(points: np.ndarray, segments: int):
     return np.array(joints), np.array(radii), np.arange(-1, segments)
 
 
-def mst_skeleton(points: np.ndarray, voxel: float, segment: float):
+def mst_skeleton(points: np.ndarray, voxel: float, segment: float, prune: float = 3.0):
     """A branching skeleton: a minimum spanning tree over occupied voxels' centroids (voxel
-    edge ``voxel`` x extent), rooted at one end of its longest path and simplified to joints
-    at least ``segment`` x extent apart along each branch (branch points and tips kept).
-    Limits: voxels must be wider than the tubes (so a centroid lies near the axis) and narrower
-    than the gaps between branches (or branches fuse); noise and outliers add spurious twigs."""
+    edge ``voxel`` x extent; voxels with a single point, such as lone outliers, make no node),
+    twigs shorter than ``prune`` voxel edges cut off (repeatedly), rooted at one end of its
+    longest path and simplified to joints about ``segment`` x extent apart along each branch
+    (branch points and tips kept); each radius is the median distance of its voxel's points
+    from the local axis. Limits: voxels must be wider than the tubes (so a centroid lies near
+    the axis) and narrower than the gaps between branches (or branches fuse); branches shorter
+    than ``prune`` voxels are lost with the twigs."""
     from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree, shortest_path
+    from scipy.sparse.csgraph import minimum_spanning_tree
 
     ext = float(np.max(np.ptp(points, axis=0))) or 1.0
     v = voxel * ext
@@ -152,50 +155,92 @@ def mst_skeleton(points: np.ndarray, voxel: float, segment: float):
     cen = np.zeros((len(uniq), 3))
     np.add.at(cen, inv, points)
     cen /= counts[:, None]
-    keep = counts >= 2  # lone points (outliers) make no node
-    if keep.sum() < 2:
-        raise ValueError(f"init.estimate.voxel: {voxel} leaves fewer than 2 occupied voxels with 2 points")
-    idx = np.nonzero(keep)[0]
+    idx = np.nonzero(counts >= 2)[0]
+    if len(idx) < 2:
+        raise ValueError(f"init.estimate.voxel: {voxel} leaves fewer than 2 voxels holding 2 points or more")
     cen, kk = cen[idx], uniq[idx]
     n = len(idx)
     d = np.abs(kk[:, None, :] - kk[None, :, :]).max(-1)
     ii, jj = np.nonzero((d <= 1) & (np.arange(n)[:, None] < np.arange(n)[None, :]))
     w = np.linalg.norm(cen[ii] - cen[jj], axis=1) + 1e-12
-    g = coo_matrix((w, (ii, jj)), shape=(n, n)).tocsr()
-    t = minimum_spanning_tree(g)
-    t = t + t.T
-    dist = shortest_path(t, indices=0, directed=False)
-    dist = np.where(np.isfinite(dist), dist, -1)
-    root = int(np.argmax(dist))  # one end of a longest path (of the component holding node 0)
-    order, pred = breadth_first_order(t, root, directed=False)
-    deg = np.asarray((t > 0).sum(axis=1)).reshape(-1)
+    t = minimum_spanning_tree(coo_matrix((w, (ii, jj)), shape=(n, n)).tocsr()).tocoo()
+    adj = {i: set() for i in range(n)}
+    for a, b in zip(t.row, t.col):
+        adj[int(a)].add(int(b))
+        adj[int(b)].add(int(a))
+    # keep the largest connected piece (a forest when voxels of two parts are not neighbours)
+    seen, best = set(), []
+    for s0 in range(n):
+        if s0 in seen:
+            continue
+        comp, stack = [], [s0]
+        seen.add(s0)
+        while stack:
+            u = stack.pop()
+            comp.append(u)
+            for x in adj[u] - seen:
+                seen.add(x)
+                stack.append(x)
+        best = comp if len(comp) > len(best) else best
+    alive = set(best)
+    adj = {u: adj[u] & alive for u in alive}
+    # cut twigs: a leaf's path to the first branch node, when shorter than prune voxels
+    for _ in range(4):
+        cut = set()
+        for leaf in [u for u in adj if len(adj[u]) == 1]:
+            path, prev, cur, length = [leaf], None, leaf, 0.0
+            while True:
+                nxt = [x for x in adj[cur] if x != prev]
+                if len(nxt) != 1:
+                    break
+                length += float(np.linalg.norm(cen[nxt[0]] - cen[cur]))
+                prev, cur = cur, nxt[0]
+                if len(adj[cur]) != 2:
+                    break
+                path.append(cur)
+            if len(adj[cur]) > 2 and length < prune * v:
+                cut.update(path)
+        if not cut:
+            break
+        for u in cut:
+            for x in adj[u]:
+                if x not in cut:
+                    adj[x].discard(u)
+        adj = {u: nb - cut for u, nb in adj.items() if u not in cut}
+
+    def farthest(src):
+        dist, order, par = {src: 0.0}, [src], {src: -1}
+        for u in order:
+            for x in adj[u]:
+                if x not in dist:
+                    dist[x] = dist[u] + float(np.linalg.norm(cen[x] - cen[u]))
+                    par[x] = u
+                    order.append(x)
+        return max(dist, key=dist.get), order, par
+
+    root, _, _ = farthest(next(iter(adj)))
+    _, order, pred = farthest(root)
+    deg = {u: len(adj[u]) for u in adj}
     seglen = segment * ext
-    keep_node = {root}
-    newpar = {root: -1}
-    acc = {root: 0.0}
-    anchor = {root: root}
+    newpar, acc, anchor = {root: -1}, {root: 0.0}, {root: root}
+    keep = [root]
     for node in order[1:]:
-        p = int(pred[node])
-        a = anchor[p]
+        p = pred[node]
         dd = acc[p] + float(np.linalg.norm(cen[node] - cen[p]))
         if deg[node] != 2 or dd >= seglen or deg[p] > 2:
-            keep_node.add(int(node))
-            newpar[int(node)] = a
-            anchor[int(node)] = int(node)
-            acc[int(node)] = 0.0
+            keep.append(node)
+            newpar[node] = anchor[p]
+            anchor[node], acc[node] = node, 0.0
         else:
-            anchor[int(node)] = a
-            acc[int(node)] = dd
-    kept = [int(x) for x in order if int(x) in keep_node]
-    pos = {k: i for i, k in enumerate(kept)}
-    joints = cen[kept]
-    parents = np.array([-1 if newpar[k] < 0 else pos[newpar[k]] for k in kept])
-    # radius: median distance of each kept voxel's points from its centroid, across the local axis
-    radii = np.zeros(len(kept))
-    for i, k in enumerate(kept):
-        sel = inv == idx[k]
-        q = points[sel] - cen[k]
-        nb = joints[parents[i]] if parents[i] >= 0 else (joints[np.argmax(parents == i)] if np.any(parents == i) else cen[k] + [0, 1, 0])
+            anchor[node], acc[node] = anchor[p], dd
+    pos = {k: i for i, k in enumerate(keep)}
+    joints = cen[keep]
+    parents = np.array([-1 if newpar[k] < 0 else pos[newpar[k]] for k in keep])
+    radii = np.zeros(len(keep))
+    for i, k in enumerate(keep):
+        q = points[inv == idx[k]] - cen[k]
+        child = np.nonzero(parents == i)[0]
+        nb = joints[parents[i]] if parents[i] >= 0 else (joints[child[0]] if len(child) else cen[k] + [0, 1, 0])
         ax = nb - cen[k]
         ax /= np.linalg.norm(ax) or 1.0
         radii[i] = max(float(np.median(np.linalg.norm(q - np.outer(q @ ax, ax), axis=1))) if len(q) else 0.0, 1e-3 * ext)
@@ -220,7 +265,7 @@ def starting_skeleton(cfg: FitFile, points: np.ndarray, truth) -> tuple[np.ndarr
         how = "given"
     elif init.estimate is not None or truth is None:
         est = init.estimate or EstimateConfig()
-        j, r, p = (pca_chain(points, est.segments) if est.method == "pca_chain" else mst_skeleton(points, est.voxel, est.segment))
+        j, r, p = (pca_chain(points, est.segments) if est.method == "pca_chain" else mst_skeleton(points, est.voxel, est.segment, est.prune))
         how = f"estimate:{est.method}"
     else:
         j, r, p = truth
@@ -323,6 +368,36 @@ def _steppers(name, pr: Problem, s: SolverConfig, n_res: int, n_par: int):
                          dense=n_res * n_par <= DENSE_JACOBIAN_MAX)
 
 
+def _typed_state(step, x0, args):
+    """The solver's initial state with the dtypes an update returns (jaxopt's first update
+    turns an int counter into a float), so one executable serves every iteration."""
+    st0 = step.init(x0, *args)
+    shapes = jax.eval_shape(lambda x, st: step.update(x, st, *args), x0, st0)[1]
+    return jax.tree_util.tree_map(lambda a, sh: jnp.asarray(a, sh.dtype), st0, shapes)
+
+
+def run_to_end(step, pr: Problem, s: SolverConfig, x0, points):
+    """One fit as a single ``while_loop`` with the stepping loop's stopping rule (the solver's
+    criterion, or ``patience`` iterations in a row whose loss fell by less than ``ftol``);
+    ``vmap`` of it fits many problems in one call. Returns (x, iterations, final loss)."""
+    st0 = _typed_state(step, x0, (points,))
+    l0 = loss(x0, points, pr)
+
+    def cond(c):
+        x, st, it, prev, stalled = c
+        return (it < s.maxiter) & (step.error(st) > s.tol) & (stalled < s.patience)
+
+    def body(c):
+        x, st, it, prev, stalled = c
+        x, st = step.update(x, st, points)
+        cur = loss(x, points, pr)
+        stalled = jnp.where(prev - cur <= s.ftol * jnp.abs(prev), stalled + 1, 0)
+        return x, st, it + 1, cur, stalled
+
+    x, _, it, cur, _ = jax.lax.while_loop(cond, body, (x0, st0, jnp.int32(0), l0, jnp.int32(0)))
+    return x, it, cur
+
+
 def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dtype=np.float32, seed: int = 1,
                perturb: float = 0.0) -> FitResult:
     """Fit a skeleton of ``parents``' topology to ``points`` from (joints0, radii0): the
@@ -348,29 +423,31 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
             j, r = perturbed(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), np.asarray(parents), max(perturb, 0.1), rng)
             starts.append(nz.start(j, r, pr))
         xb = cast(np.stack(starts))
-        solve = jax.jit(jax.vmap(lambda x: step.run(x, pts)[0]))
-        xs = solve(xb)
-        ls = np.asarray(jax.jit(jax.vmap(lambda x: loss(x, pts, pr)))(xs))
+        xs, _, ls = jax.jit(jax.vmap(lambda x: run_to_end(step, pr, s, x, pts)))(xb)
+        ls = np.asarray(ls)
         restart_losses = [float(v) for v in ls]
         best = int(np.nanargmin(ls))
-        x0 = xb[best]
+        x0 = xb[best]  # stepped again from the best start, for its loss curve
     lossf = jax.jit(lambda x: loss(x, pts, pr))
     t0 = time.perf_counter()
-    st0 = step.init(x0, pts)
-    # jaxopt's first update may change a state field's dtype (an int counter becomes a float):
-    # start from the state types an update returns, so one executable serves every iteration
-    shapes = jax.eval_shape(lambda x, st: step.update(x, st, pts), x0, st0)[1]
-    st0 = jax.tree_util.tree_map(lambda a, sh: jnp.asarray(a, sh.dtype), st0, shapes)
+    st0 = _typed_state(step, x0, (pts,))
     upd = jax.jit(lambda x, st: step.update(x, st, pts)).lower(x0, st0).compile()
     compile_s = time.perf_counter() - t0
     x, st = x0, st0
     history = [float(lossf(x))]
     converged = False
     it = 0
+    stalled = 0
     for it in range(1, s.maxiter + 1):  # host loop over iterations: one compiled update each
         x, st = upd(x, st)
         history.append(float(lossf(x)))
         if float(step.error(st)) <= s.tol:
+            converged = True
+            break
+        # the distance is piecewise smooth (which segment is nearest, rims), so the gradient
+        # need not vanish at the optimum: also stop once the loss has stopped falling
+        stalled = stalled + 1 if history[-2] - history[-1] <= s.ftol * abs(history[-2]) else 0
+        if stalled >= s.patience:
             converged = True
             break
     seconds = time.perf_counter() - t_all - compile_s
@@ -380,6 +457,34 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
     return FitResult(j, r, np.asarray(parents), history, it, converged, seconds, compile_s, float(step.error(st)), s.restarts, restart_losses)
 
 
+def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32):
+    """Fit one topology to B clouds at once (B, N, 3), each from its own start (B, J, 3) and
+    (B, J) or one shared start: every cloud is normalised on the host, then the solver's whole
+    run is ``vmap``-ed (one compiled call; the batch runs until its slowest fit stops).
+    Returns (joints (B,J,3), radii (B,J), final losses (B,), seconds, compile seconds)."""
+    clouds = np.asarray(clouds, np.float64)
+    b = clouds.shape[0]
+    j0 = np.broadcast_to(np.asarray(joints0, np.float64), (b,) + np.shape(joints0)[-2:])
+    r0 = np.broadcast_to(np.asarray(radii0, np.float64), (b,) + np.shape(radii0)[-1:])
+    seg = segments_of(j0[0], r0[0], parents, "init.skeleton")
+    pr = problem_of(seg, s)
+    nzs = [normaliser_of(c) for c in clouds]
+    pts = jnp.asarray(np.stack([nz.points(c) for nz, c in zip(nzs, clouds)]), dtype)
+    x0 = jnp.asarray(np.stack([nz.start(j, r, pr) for nz, j, r in zip(nzs, j0, r0)]), dtype)
+    step = _steppers(s.name, pr, s, clouds.shape[1] + 3 * len(pr.triples), x0.shape[-1])
+    solve = jax.jit(jax.vmap(lambda x, p: run_to_end(step, pr, s, x, p)[0]))
+    t0 = time.perf_counter()
+    solve = solve.lower(x0, pts).compile()
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    xs = solve(x0, pts)
+    xs.block_until_ready()
+    seconds = time.perf_counter() - t0
+    losses = np.asarray(jax.vmap(lambda x, p: loss(x, p, pr))(xs, pts))
+    out = [nz.world(x, pr) for nz, x in zip(nzs, np.asarray(xs))]
+    return np.stack([o[0] for o in out]), np.stack([o[1] for o in out]), losses, seconds, compile_s
+
+
 def point_distances(points, joints, radii, parents, dtype=np.float32) -> np.ndarray:
     """Signed distances of ``points`` to a skeleton's surface, in world units (NumPy)."""
     seg = segments_of(joints, radii, parents, "skeleton")
@@ -387,3 +492,124 @@ def point_distances(points, joints, radii, parents, dtype=np.float32) -> np.ndar
     d = distances(jnp.asarray(nz.points(joints), dtype), jnp.asarray(np.asarray(radii) / nz.extent, dtype), seg,
                   jnp.asarray(nz.points(points), dtype))
     return np.asarray(d, np.float64) * nz.extent
+
+
+# ----------------------------------------------------------------------------- the command
+
+
+def framing_camera(joints, radii, width: int = 480, height: int = 360, fov: float = 40.0) -> dict:
+    """A camera section that frames a skeleton (looking from +z, a little above and right)."""
+    lo = (joints - radii[:, None]).min(0)
+    hi = (joints + radii[:, None]).max(0)
+    c = 0.5 * (lo + hi)
+    rad = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
+    d = np.array([0.5, 0.35, 1.0])
+    d /= np.linalg.norm(d)
+    dist = 1.15 * rad / np.tan(np.radians(fov) / 2)
+    eye = c + d * dist
+    return {"eye": [float(x) for x in eye], "target": [float(x) for x in c], "up": [0.0, 1.0, 0.0], "fov_deg": fov,
+            "width": width, "height": height}
+
+
+def residual_stats(d: np.ndarray, inlier: float) -> dict:
+    a = np.abs(d)
+    return {"mean_abs": float(a.mean()), "rms": float(np.sqrt(np.mean(d * d))), "median_abs": float(np.median(a)),
+            "p95_abs": float(np.percentile(a, 95)), "max_abs": float(a.max()), "inlier_threshold": inlier,
+            "inlier_fraction": float(np.mean(a <= inlier))}
+
+
+def plot_fit(path: Path, res: FitResult, points: np.ndarray, d: np.ndarray, title: str):
+    """Loss over iterations, the residual histogram, and the points (projected on the cloud's
+    two principal axes) coloured by |residual| with the fitted skeleton drawn over them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 3, figsize=(14, 4.2))
+    ax[0].semilogy(np.arange(len(res.history)), res.history)
+    ax[0].set_xlabel("iteration")
+    ax[0].set_ylabel("loss (normalised units)")
+    ax[0].set_title("loss")
+    ax[1].hist(d, bins=80, color="#4477aa")
+    ax[1].set_yscale("log")
+    ax[1].set_xlabel("signed distance to the fitted surface (world units)")
+    ax[1].set_title("residuals")
+    c = points.mean(0)
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
+    pp = (points - c) @ vt[:2].T
+    jj = (res.joints - c) @ vt[:2].T
+    sc = ax[2].scatter(pp[:, 0], pp[:, 1], c=np.abs(d), s=2, cmap="viridis", vmax=np.percentile(np.abs(d), 95))
+    for i, p in enumerate(res.parents):
+        if p >= 0:
+            ax[2].plot([jj[p, 0], jj[i, 0]], [jj[p, 1], jj[i, 1]], "r-", lw=1.5)
+    ax[2].plot(jj[:, 0], jj[:, 1], "r.", ms=6)
+    ax[2].set_aspect("equal")
+    ax[2].set_title("points by |residual|, fitted skeleton (red)")
+    fig.colorbar(sc, ax=ax[2], shrink=0.8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
+    """Run a fit file: read or synthesise the points, start, solve; write ``fitted.yaml`` (an
+    experiment ``jskel render`` renders), ``fit.json`` and ``fit.png``. Returns fit.json's dict."""
+    import json
+
+    import yaml
+
+    dtype = np.float64 if cfg.dtype == "float64" else np.float32
+    if dtype == np.float64 and not jax.config.jax_enable_x64:
+        raise ValueError("dtype: float64 needs jax_enable_x64 (the CLI's --x64 switches it on)")
+    points, pinfo, truth = load_points(cfg.points, base)
+    j0, r0, parents, how = starting_skeleton(cfg, points, truth)
+    if cfg.init.perturb > 0:
+        j0, r0 = perturbed(j0, r0, parents, cfg.init.perturb, np.random.default_rng(cfg.init.seed))
+    res = fit_points(points, j0, r0, parents, cfg.solver, dtype, seed=cfg.init.seed, perturb=cfg.init.perturb)
+    d = point_distances(points, res.joints, res.radii, res.parents, dtype)
+    ext = float(np.max(np.ptp(points, axis=0)))
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    exp = {
+        "name": f"{cfg.name}-fitted",
+        "object": {"type": "frusta", "skeleton": {"joints": res.joints.tolist(), "radii": res.radii.tolist(),
+                                                   "parents": [int(p) for p in res.parents]}},
+        "camera": cfg.camera.model_dump(mode="json") if cfg.camera is not None else framing_camera(res.joints, res.radii),
+    }
+    (out / "fitted.yaml").write_text(f"# fitted by `jskel fit` ({cfg.solver.name}, {cfg.solver.loss} loss)\n" + yaml.safe_dump(exp, sort_keys=False))
+    info = {
+        "name": cfg.name,
+        "solver": cfg.solver.model_dump(mode="json"),
+        "start": how,
+        "points": pinfo,
+        "joints": len(res.joints),
+        "segments": int(np.sum(res.parents >= 0)),
+        "iterations": res.iterations,
+        "converged": res.converged,
+        "solver_error": res.error,
+        "seconds": res.seconds,
+        "compile_s": res.compile_s,
+        "loss_start": res.history[0],
+        "loss_final": res.history[-1],
+        "history": res.history,
+        "restarts": res.restarts,
+        "restart_losses": res.restart_losses,
+        "residuals": residual_stats(d, 3.0 * cfg.solver.scale * ext),
+        "dtype": cfg.dtype,
+    }
+    if truth is not None and len(truth[0]) == len(res.joints) and np.array_equal(truth[2], res.parents):
+        length = pinfo["skeleton_length"]
+        info["truth"] = {
+            "joint_error_max": float(np.max(np.linalg.norm(res.joints - truth[0], axis=1))),
+            "joint_error_max_of_length": float(np.max(np.linalg.norm(res.joints - truth[0], axis=1)) / length),
+            "radius_error_max_rel": float(np.max(np.abs(res.radii / truth[1] - 1))),
+        }
+    from ..render import environment
+
+    info.update({k: v for k, v in environment().items() if k in ("jax", "device", "jskel")})
+    (out / "fit.json").write_text(json.dumps(info, indent=2) + "\n")
+    plot_fit(out / "fit.png", res, points, d, f"{cfg.name}: {cfg.solver.name} ({cfg.solver.loss}), {len(points)} points, "
+                                            f"{res.iterations} iterations, {res.seconds:.2f} s")
+    return info

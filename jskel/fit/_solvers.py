@@ -10,8 +10,8 @@ another library can replace it by adding an entry. Every solver is driven the sa
     step.error(state)                                  # the solver's own stopping measure
 
 which lets the caller record the loss after every iteration (the fit's loss curve) and stop on
-the solver's criterion, and ``step.run(x0)`` runs to the end in one compiled call (``vmap`` of it
-fits many problems at once).
+the solver's criterion or its own; ``jskel.fit._fit.run_to_end`` wraps the same update in one
+``while_loop`` (``vmap`` of it fits many problems at once).
 
 ``residuals(x, *args) -> (M,)`` are already robust (see :func:`robust_residuals`);
 ``loss(x, *args)`` is half their sum of squares, the quantity every solver decreases; ``args``
@@ -47,11 +47,9 @@ def robust_residuals(r, kind: str, scale):
 
 
 class Stepper(NamedTuple):
-    init: Callable
-    update: Callable
-    error: Callable
-    run: Callable
-    iterations: Callable
+    init: Callable  # (x0, *args) -> state
+    update: Callable  # (x, state, *args) -> (x, state)
+    error: Callable  # state -> the solver's stopping measure
 
 
 SOLVERS = ("lm", "gauss_newton", "lbfgs", "adam")
@@ -76,10 +74,7 @@ def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: floa
         else:
             s = jaxopt.LBFGS(fun=loss, maxiter=maxiter, tol=tol, jit=True)
 
-        def run(x0, *args):
-            return s.run(x0, *args)
-
-        return Stepper(s.init_state, s.update, lambda st: st.error, run, lambda st: st.iter_num)
+        return Stepper(s.init_state, s.update, lambda st: st.error)
     if name == "adam":
         import optax
 
@@ -100,11 +95,5 @@ def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: floa
             err = jnp.sqrt(jnp.sum(g * g))
             return optax.apply_updates(x, upd), AdamState(o, err, st.iter_num + 1)
 
-        def run(x0, *args):
-            def cond(c):
-                return (c[1].iter_num < maxiter) & (c[1].error > tol)
-
-            return jax.lax.while_loop(cond, lambda c: update(c[0], c[1], *args), (x0, init(x0, *args)))
-
-        return Stepper(init, update, lambda st: st.error, run, lambda st: st.iter_num)
+        return Stepper(init, update, lambda st: st.error)
     raise ValueError(f"solver.name: unknown solver {name!r} ({', '.join(SOLVERS)})")

@@ -124,4 +124,41 @@ for xy in ([0.05, 0.4], [0.3, 1.5]):
     each_arg(ft0, (jnp.asarray(1.0), f.c1, o))
     n += 1
 checked["frusta"] = n
+
+# fitting (issue 10): the signed point-to-frusta distance against joints, radii and the point,
+# at random points and at hard ones where the distance is smooth in the argument checked
+from jskel.fit import distances, segments_of  # noqa: E402
+
+FJ = np.array([[0, 0, 0], [0, 1, 0], [0.4, 2, 0.1], [0.6, 3, 0.5], [0.5, 4, 1.0]], float)
+FR = np.array([0.5, 0.5, 0.4, 0.3, 0.0])  # r1 == r2 on the first segment, a closed tip at the end
+FP = [-1, 0, 1, 2, 3]
+fseg = segments_of(FJ, FR, FP)
+
+
+def dist(j, r, x):
+    return distances(j, r, fseg, x[None, :])[0]
+
+
+rng = np.random.default_rng(0)
+n = 0
+for x in rng.uniform([-0.8, -0.3, -0.8], [1.2, 4.3, 1.6], (6, 3)):
+    each_arg(dist, (jnp.asarray(FJ), jnp.asarray(FR), jnp.asarray(x)))
+    n += 1
+checked["fit_distance_random"] = n
+# hard points: on the axis of the cylinder (smooth in the radii only: |radial| has a kink), near
+# the apex of the closed tip, just inside the shared cutting plane and beyond it (smooth in all)
+n = 0
+on_axis = jnp.array([0.0, 0.5, 0.0])
+check_grads(jax.jit(lambda r: dist(jnp.asarray(FJ), r, on_axis)), (jnp.asarray(FR),), order=1, modes=["fwd", "rev"], eps=1e-6)
+g = jax.grad(dist, argnums=(0, 1, 2))(jnp.asarray(FJ), jnp.asarray(FR), on_axis)
+assert all(np.all(np.isfinite(v)) for v in g)
+n += 1
+tip = FJ[4] + np.array([0.05, -0.2, 0.03])
+each_arg(dist, (jnp.asarray(FJ), jnp.asarray(FR), jnp.asarray(tip)))
+n += 1
+for side in (-1e-3, 1e-3):  # either side of the plane shared at joint 1, near the surface
+    x = FJ[1] + np.array([0.47, side, 0.0])
+    each_arg(dist, (jnp.asarray(FJ), jnp.asarray(FR), jnp.asarray(x)))
+    n += 1
+checked["fit_distance_hard"] = n
 print(json.dumps({"checked": checked}))
