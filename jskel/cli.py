@@ -119,9 +119,33 @@ def _bvh_stats(exp, obj) -> dict:
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in frusta.traversal_stats(built, rays, exp.render.chunk).items()}
 
 
+def cmd_fit_bench(args) -> int:
+    """A bench file with a ``fit:`` section: the fitting benchmark (``jskel.fit._bench``)."""
+    from .fit._bench import FitBenchFile, run_fit_bench
+
+    b = _read_model(FitBenchFile, args.file, args.set).fit
+    out = Path(args.out) if args.out else None
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text("")
+
+    def emit(row):
+        line = json.dumps(row)
+        print(line, flush=True)
+        if out is not None:
+            with out.open("a") as f:
+                f.write(line + "\n")
+
+    run_fit_bench(b, emit)
+    return 0
+
+
 def cmd_bench(args) -> int:
     from .bench import BenchFile, plot_sweep, sweep_settings, timed_render
 
+    raw = read_yaml(args.file)
+    if isinstance(raw, dict) and "fit" in raw:
+        return cmd_fit_bench(args)
     bench = _read_model(BenchFile, args.file, args.set)
     base = Path(args.file).parent
     runs = args.runs or bench.runs

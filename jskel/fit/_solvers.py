@@ -64,7 +64,11 @@ def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: floa
     on J^T J products (for problems whose Jacobian would not fit in memory). On the 24-unknown
     chain the matrix-free form took 35 s to compile against 11 s dense (CPU, development run)."""
     if name in ("lm", "gauss_newton", "lbfgs"):
-        import jaxopt
+        import warnings
+
+        with warnings.catch_warnings():  # "JAXopt is no longer maintained": known, hence this adapter
+            warnings.simplefilter("ignore", DeprecationWarning)
+            import jaxopt
 
         if name == "lm":
             kw = {"materialize_jac": True, "solver": "cholesky"} if dense else {}

@@ -1,0 +1,125 @@
+"""The fitting benchmark (``python -m jskel bench experiments/bench_fit.yaml``, issue 10).
+
+For every (solver, point count, segment count) it fits a synthetic bent chain of that many
+segments (noise and outliers as configured) from a perturbed start, and reports seconds to stop
+(compile apart), iterations, whether the stopping rule was met within ``maxiter``, the final
+errors against the truth and the residuals; then the throughput of ``vmap``-ed batches of fits
+(fits per second). A combination whose work per distance evaluation (points x segments) exceeds
+``max_work`` is reported as skipped with that figure, not silently left out.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import Field
+
+from ..config import StrictModel
+from ._config import SolverConfig
+from ._distance import sample_surface
+from ._fit import fit_many, fit_points, perturbed
+
+
+class FitBench(StrictModel):
+    """``fit:`` section of a bench file."""
+
+    points: list[Annotated[int, Field(ge=10, le=10_000_000)]] = [1000, 10000, 100000]
+    segments: list[Annotated[int, Field(ge=1, le=100_000)]] = [5, 50, 500]
+    solvers: list[Literal["lm", "gauss_newton", "lbfgs", "adam"]] = ["lm", "gauss_newton", "lbfgs", "adam"]
+    loss: Literal["l2", "huber", "cauchy"] = "cauchy"
+    noise: Annotated[float, Field(ge=0.0, le=1.0)] = 0.01
+    outliers: Annotated[float, Field(ge=0.0, le=1.0)] = 0.05
+    perturb: Annotated[float, Field(ge=0.0, le=1.0)] = 0.1
+    maxiter: Annotated[int, Field(ge=1)] = 200
+    learning_rate: Annotated[float, Field(gt=0.0)] = 0.003
+    max_work: Annotated[float, Field(gt=0.0)] = 1e7  # points x segments above which a combination is skipped
+    batch: list[Annotated[int, Field(ge=1, le=4096)]] = [1, 8, 32]
+    batch_points: Annotated[int, Field(ge=10)] = 1000
+    batch_segments: Annotated[int, Field(ge=1)] = 5
+    batch_solvers: list[Literal["lm", "gauss_newton", "lbfgs", "adam"]] = ["lm", "lbfgs"]
+    seed: int = 0
+
+
+class FitBenchFile(StrictModel):
+    fit: FitBench
+
+
+def bent_chain(segments: int, seed: int = 0):
+    """A chain of unit segments bending 25 degrees at every joint about a turning axis, radii
+    tapering from 0.5 to 0.25 (host, float64)."""
+    rng = np.random.default_rng(seed)
+    d = np.array([0.0, 1.0, 0.0])
+    joints = [np.zeros(3)]
+    for _ in range(segments):
+        joints.append(joints[-1] + d)
+        ax = np.cross(d, rng.normal(size=3))
+        ax /= np.linalg.norm(ax)
+        a = np.radians(25.0)
+        d = d * np.cos(a) + np.cross(ax, d) * np.sin(a) + ax * np.dot(ax, d) * (1 - np.cos(a))
+    j = np.array(joints)
+    r = np.linspace(0.5, 0.25, segments + 1)
+    return j, r, np.arange(-1, segments)
+
+
+def _cloud(j, r, p, n, noise, outliers, rng):
+    pts = sample_surface(j, r, p, n, rng)
+    length = float(np.sum(np.linalg.norm(np.diff(j, axis=0), axis=1)))
+    pts = pts + rng.normal(0.0, noise * length, pts.shape)
+    k = int(round(outliers * n))
+    if k:
+        lo, hi = pts.min(0), pts.max(0)
+        pad = 0.2 * (hi - lo)
+        pts[rng.choice(n, k, replace=False)] = rng.uniform(lo - pad, hi + pad, (k, 3))
+    return pts, length
+
+
+def run_fit_bench(b: FitBench, emit) -> list[dict]:
+    """Run the benchmark, calling ``emit(row)`` for each JSON row as it is measured."""
+    import jax
+
+    rows = []
+    dev = jax.devices()[0]
+    common = {"device": f"{dev.platform}:{getattr(dev, 'device_kind', '')}", "jax": jax.__version__}
+    for segs in b.segments:
+        j, r, p = bent_chain(segs, b.seed)
+        for n in b.points:
+            rng = np.random.default_rng(b.seed + 1)
+            if n * segs > b.max_work:
+                for name in b.solvers:
+                    row = {"solver": name, "points": n, "segments": segs, "skipped": f"points x segments = {n * segs:.3g} > max_work {b.max_work:.3g}", **common}
+                    emit(row)
+                    rows.append(row)
+                continue
+            pts, length = _cloud(j, r, p, n, b.noise, b.outliers, rng)
+            j0, r0 = perturbed(j, r, p, b.perturb, np.random.default_rng(b.seed + 2))
+            for name in b.solvers:
+                s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter if name != "adam" else 10 * b.maxiter,
+                                 learning_rate=b.learning_rate)
+                res = fit_points(pts, j0, r0, p, s)
+                row = {"solver": name, "loss": b.loss, "points": n, "segments": segs, "compile_s": round(res.compile_s, 3),
+                       "seconds": round(res.seconds, 4), "iterations": res.iterations, "converged": res.converged,
+                       "s_per_iteration": round(res.seconds / max(res.iterations, 1), 5),
+                       "joint_error_max_of_length": round(float(np.max(np.linalg.norm(res.joints - j, axis=1)) / length), 5),
+                       "radius_error_max_rel": round(float(np.max(np.abs(res.radii / r - 1))), 4),
+                       "loss_final": res.history[-1], **common}
+                emit(row)
+                rows.append(row)
+    j, r, p = bent_chain(b.batch_segments, b.seed)
+    for name in b.batch_solvers:
+        for bsz in b.batch:
+            rng = np.random.default_rng(b.seed + 3)
+            clouds = np.stack([_cloud(j, r, p, b.batch_points, b.noise, b.outliers, rng)[0] for _ in range(bsz)])
+            starts = [perturbed(j, r, p, b.perturb, rng) for _ in range(bsz)]
+            s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter, learning_rate=b.learning_rate)
+            t0 = time.perf_counter()
+            jj, rr, losses, secs, comp = fit_many(clouds, np.stack([a for a, _ in starts]), np.stack([c for _, c in starts]), p, s)
+            row = {"solver": name, "batch": bsz, "points": b.batch_points, "segments": b.batch_segments, "compile_s": round(comp, 3),
+                   "seconds": round(secs, 4), "fits_per_s": round(bsz / secs, 3),
+                   "joint_error_max_of_length_worst": round(float(max(np.max(np.linalg.norm(x - j, axis=1)) for x in jj)
+                                                              / float(np.sum(np.linalg.norm(np.diff(j, axis=0), axis=1)))), 5),
+                   "wall_s": round(time.perf_counter() - t0, 3), **common}
+            emit(row)
+            rows.append(row)
+    return rows
