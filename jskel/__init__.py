@@ -10,3 +10,5 @@ from .rays import Hit as Hit
 from .rays import Rays as Rays
 from .rays import make_rays as make_rays
 from .rays import map_chunks as map_chunks
+
+__all__ = ["Built", "Camera", "ConfigError", "Hit", "Rays", "load", "make_rays", "map_chunks"]

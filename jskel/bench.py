@@ -375,6 +375,8 @@ def pareto_plot(t, e, labels: list[str], path: Path, ylabel: str, title: str, ma
 
 
 def plot_sweep(rows: list[dict], keys: list[str], metric: str, path: Path, title: str):
+    """A bench sweep's ``metric`` against warm median time (``pareto_plot``); None if no row
+    has the metric."""
     ok = [r for r in rows if r.get(metric) is not None and r[metric] > 0]
     if not ok:
         return None

@@ -190,6 +190,7 @@ def tile_order(width: int, height: int, tile: int) -> np.ndarray:
 
 
 def permute(rays: Rays, order: np.ndarray) -> Rays:
+    """The rays in the order of the index array ``order`` (e.g. :func:`tile_order`)."""
     return Rays(*(a[order] for a in rays))
 
 

@@ -17,6 +17,7 @@ _ENTRIES = {
 
 
 def names() -> list[str]:
+    """Registered representation names, sorted."""
     return sorted(_ENTRIES)
 
 

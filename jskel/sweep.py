@@ -138,6 +138,7 @@ def read_done(path: Path) -> dict[str, dict]:
 
 
 def columns(sweep: SweepFile, keys: list[str]) -> list[str]:
+    """The columns of results.csv: varied keys, peer columns, timings, metrics, environment."""
     peer = ["peer.level", "triangles", "peer_build_s"] if sweep.peer else []
     return (keys + peer + ["compile_s", "time_median_s", "time_min_s", "time_max_s", "runs", "rays", "rays_per_s"]
             + list(sweep.metrics) + ["hit_fraction", "device", "jax", "dtype", "setting"])
@@ -403,6 +404,7 @@ def plot_pareto(rows: list[dict], keys: list[str], metric: str, path: Path):
 
 
 def write_report(sweep: SweepFile, rows: list[dict], keys: list[str], path: Path, plot):
+    """report.md: the sweep's file, environment, a table of every setting and the plot."""
     import platform
 
     import jax
@@ -435,6 +437,7 @@ def write_report(sweep: SweepFile, rows: list[dict], keys: list[str], path: Path
 
 
 def resolve_base(sweep: SweepFile, sweep_path: Path) -> Path:
+    """The base experiment's path, as given or relative to the sweep file."""
     p = Path(sweep.base)
     return p if p.exists() else sweep_path.parent / sweep.base
 

@@ -10,3 +10,5 @@ from ._lbvh import morton_codes as morton_codes
 from ._lbvh import nearest as nearest
 from ._lbvh import nearest_packet as nearest_packet
 from ._lbvh import ray_box as ray_box
+
+__all__ = ["BVH", "Best", "build", "escape", "leaves_for", "morton_codes", "nearest", "nearest_packet", "ray_box"]

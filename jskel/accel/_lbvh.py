@@ -39,6 +39,9 @@ import jax.numpy as jnp
 
 
 class BVH(NamedTuple):
+    """A complete binary BVH over Morton-sorted primitives (module docstring): node boxes in
+    heap order, each leaf slot's primitive, and each internal node's two child boxes together."""
+
     lo: jnp.ndarray  # (2L, 3) node boxes in heap order (index 0 unused)
     hi: jnp.ndarray  # (2L, 3)
     order: jnp.ndarray  # (L * leaf,) primitive index of each leaf slot (-1: padding)
@@ -123,6 +126,8 @@ def ray_box(lo, hi, o, inv_d, t_min, t_max):
 
 
 class Best(NamedTuple):
+    """The nearest candidate so far of a traversal (t, local parameter, surface code, primitive index)."""
+
     t: jnp.ndarray
     s: jnp.ndarray
     code: jnp.ndarray

@@ -14,3 +14,5 @@ from ._scene import normal_map as normal_map
 from ._scene import precompute as precompute
 from ._trace import CellParams as CellParams
 from ._trace import TraceOptions as TraceOptions
+
+__all__ = ["CellParams", "CellsConfig", "REPRESENTATION", "Static", "TraceOptions", "albedo", "base_inside", "build", "inside", "intersect_one", "normal_map", "precompute"]

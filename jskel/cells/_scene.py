@@ -26,6 +26,8 @@ CACHE_VERSION = 1
 
 
 class Static(NamedTuple):
+    """Static options of a cell object: trace options, mode (first_hit, reflection, refraction), bounces."""
+
     options: TraceOptions
     mode: str
     bounces: int
@@ -240,6 +242,9 @@ def tile_flags(words: np.ndarray, slots: int, present: np.ndarray) -> np.ndarray
 
 
 def build(cfg: CellsConfig, dtype=np.float32) -> Built:
+    """Precompute (or load from the cache) a cell object and cast it to device arrays: the
+    split-cell tile map, packed memberships (Fig. 4.9), tile flags for skipping, normal and
+    colour maps, environment; anchored at the centre of the object's cube."""
     obj = precompute(cfg)
     slots = len(obj.split_cell) - 1
     present = np.zeros(slots, bool)
@@ -279,10 +284,12 @@ def intersect_one(p: CellParams, static: Static, origin, direction, t_min, t_max
 
 
 def albedo(p: CellParams, static: Static, hit: Hit):
+    """The cell colour map at a hit (3,) (Worley colours or a given map)."""
     return color_at(p, jnp.where(jnp.isfinite(hit.t), hit.position, 0.0))
 
 
 def inside(p: CellParams, static: Static, point):
+    """Whether ``point`` (3,), relative to the anchor, is in an inside cell (membership map)."""
     return membership_at(p, point)[0] == INSIDE
 
 
@@ -412,6 +419,8 @@ def shade_batch(p: CellParams, static: Static, rays, hits: Hit, lights, sh):
 
 
 class _Cells:
+    """The cells representation as the registry hands it to the renderer (``jskel.interface.Representation``)."""
+
     name = "cells"
     Config = CellsConfig
     build = staticmethod(build)

@@ -36,6 +36,8 @@ TILE_ALL_INSIDE = 2
 
 
 class CellParams(NamedTuple):
+    """Device arrays of a cell object: tile map of split cells, packed memberships, tile flags, normal and colour maps, placement, step, offsets, environment, ior, reflectivity."""
+
     split: jnp.ndarray  # (r,r,r) int32 split index, 0 empty space
     words: jnp.ndarray  # (N,N,N,W) uint32 packed membership
     tile_flags: jnp.ndarray  # (N,N,N) int32 TILE_HAS_INSIDE | TILE_ALL_INSIDE
@@ -52,6 +54,8 @@ class CellParams(NamedTuple):
 
 
 class TraceOptions(NamedTuple):
+    """Static options of the linear + binary search (Alg. 3.1): sample cap, bisection steps, tile skipping."""
+
     steps: int = 4096  # cap on linear-search samples per ray segment
     bisection: int = 10
     skip: bool = True  # empty / full tile skipping

@@ -347,6 +347,8 @@ def normaliser_of(points) -> Normaliser:
 
 
 class FitResult(NamedTuple):
+    """A fitted skeleton in world units, with the loss after each iteration, iterations, whether the stopping rule was met, seconds (compile apart), the solver's final error and the restarts' losses."""
+
     joints: np.ndarray
     radii: np.ndarray
     parents: np.ndarray

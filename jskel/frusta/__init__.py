@@ -39,3 +39,5 @@ from ._scene import to_params as to_params
 from ._scene import topology as topology
 from ._scene import traversal_stats as traversal_stats
 from ._scene import validate_skeleton as validate_skeleton
+
+__all__ = ["FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cutting_planes", "frusta_from_skeleton", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "load_height_map", "make_group", "minor_semi_axis", "relief_memory", "rim_points", "to_params", "topology", "traversal_stats", "validate_skeleton"]

@@ -57,6 +57,8 @@ class FrustaScene(NamedTuple):
 
 
 class Static(NamedTuple):
+    """Static options of a frusta object (what recompiles when it changes): quality, relief options, acceleration, leaf, group and packet sizes."""
+
     quality: Quality  # normals and the plain group's block size
     has_texture: bool
     relief: ReliefQuality | None = None
@@ -99,6 +101,8 @@ def _block_size(cfg_block: int, count: int) -> int:
 
 
 def make_group(arr: FrustaArrays, ids, anchor, cfg_block: int, dtype, shell=None) -> tuple[Group, int]:
+    """Device arrays of the segments ``ids`` (plain or relief): their padded params, block
+    bounding spheres and BVH; returns (group, block size used)."""
     block = _block_size(cfg_block, len(ids))
     params = to_params(arr, anchor, block, dtype, ids, shell)
     sub = FrustaArrays(*(np.asarray(v)[ids] for v in arr))
@@ -458,6 +462,8 @@ def inside(scene: FrustaScene, static: Static, point):
 
 
 class _Frusta:
+    """The frusta representation as the registry hands it to the renderer (``jskel.interface.Representation``)."""
+
     name = "frusta"
     Config = FrustaConfig
     build = staticmethod(build)

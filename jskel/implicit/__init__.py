@@ -34,3 +34,5 @@ from ._scene import primitives as primitives
 from ._scene import project as project
 from ._scene import rest_position as rest_position
 from ._scene import shaped_field as shaped_field
+
+__all__ = ["Displace", "ImplicitConfig", "ImplicitScene", "OVERFLOW", "Prims", "Projector", "Quality", "REPRESENTATION", "STEP_CAP", "Shape", "Skin", "Static", "Tuning", "albedo", "build", "csg_shape", "displace_params", "expand", "field", "gradient", "inside", "intersect_batch", "intersect_one", "lipschitz", "primitives", "project", "rest_position", "shaped_field"]

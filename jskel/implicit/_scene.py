@@ -50,6 +50,8 @@ class Projector(NamedTuple):
 
 
 class ImplicitScene(NamedTuple):
+    """Device arrays of an implicit model: primitives, tuning values, colour, skin, projectors and their textures, primitive ids."""
+
     prims: Prims
     tune: Tuning
     color: jnp.ndarray  # (3,)
@@ -61,6 +63,8 @@ class ImplicitScene(NamedTuple):
 
 
 class Static(NamedTuple):
+    """Static options of an implicit model: tracer quality, projector kinds and which are textured."""
+
     quality: Quality
     projector: tuple[str, ...]  # planar | cylindrical | spherical per projector; () for none
     textured: tuple[bool, ...]  # per projector: it carries a texture (else the model colour)
@@ -419,6 +423,8 @@ def inside(scene: ImplicitScene, static: Static, point):
 
 
 class _Implicit:
+    """The implicit representation as the registry hands it to the renderer (``jskel.interface.Representation``)."""
+
     name = "implicit"
     Config = ImplicitConfig
     build = staticmethod(build)

@@ -29,6 +29,8 @@ from ._shade import shading_from_config as shading_from_config
 
 
 class RenderResult(NamedTuple):
+    """What a render returns: hits (NumPy, leading axis H*W), linear RGB, the 8-bit image, run.json's dict, and a scene's extra AOVs."""
+
     hits: object  # NumPy Hit, leading axis H*W
     rgb: np.ndarray  # (H*W, 3) linear
     image: np.ndarray  # (H, W, 3) uint8
@@ -63,6 +65,7 @@ def pixel_fn(rep_name: str, static):
 
 
 def camera_of(exp: Experiment) -> Camera:
+    """The host ``Camera`` of an experiment's ``camera`` section."""
     c = exp.camera
     return Camera(np.asarray(c.eye), np.asarray(c.target), np.asarray(c.up), c.fov_deg, c.width, c.height)
 
@@ -80,6 +83,7 @@ def devices_of(exp: Experiment):
 
 
 def dtype_of(exp: Experiment):
+    """NumPy dtype of ``render.dtype``; float64 needs x64 switched on at the entry point."""
     if exp.render.dtype == "float64":
         if not jax.config.jax_enable_x64:
             raise ValueError("render.dtype: float64 needs jax_enable_x64 (the CLI switches it on; in Python call jax.config.update('jax_enable_x64', True) first)")
@@ -88,6 +92,7 @@ def dtype_of(exp: Experiment):
 
 
 def environment() -> dict:
+    """Versions, device and host recorded in every run.json and benchmark row."""
     import jaxlib
 
     from .. import __version__
@@ -251,3 +256,5 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
     if res.memory is not None:
         run["memory_budget"] = res.memory
     return RenderResult(hits, rgb, image, run, aovs)
+
+__all__ = ["Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "lights_from_config", "output_transform", "peak_rss_mb", "pixel_fn", "render", "render_scene", "shade_one", "shading_from_config", "write_aovs"]

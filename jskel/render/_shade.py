@@ -24,6 +24,8 @@ class Lights(NamedTuple):
 
 
 class Shading(NamedTuple):
+    """Device arrays of the shading section: ambient, specular, shininess, background colour."""
+
     ambient: jnp.ndarray
     specular: jnp.ndarray
     shininess: jnp.ndarray
@@ -62,6 +64,7 @@ def light_at(lights: Lights, p):
 
 
 def shading_from_config(sh, dtype) -> Shading:
+    """Device arrays of the ``shading`` section (traced: changing them never recompiles)."""
     return Shading(
         jnp.asarray(sh.ambient, dtype),
         jnp.asarray(sh.specular, dtype),

@@ -156,6 +156,7 @@ def _rot(axis, ang):
 
 
 def lsystem_string(axiom: str, rules: dict, iterations: int) -> str:
+    """``iterations`` parallel rewrites of ``axiom`` by ``rules`` (ABOP Ch. 1)."""
     s = axiom
     for _ in range(iterations):
         s = "".join(rules.get(ch, ch) for ch in s)
@@ -341,6 +342,7 @@ GENERATORS = {"saguaro": saguaro, "aloe": aloe, "well": well, "lsystem_tree": ls
 
 
 def generate(name: str, seed: int, options: dict):
+    """The procedural skeleton ``name``: (joints, radii, parents, colors) in float64."""
     if name not in GENERATORS:
         raise ValueError(f"object.skeleton.procedural: unknown generator {name!r} (known: {', '.join(GENERATORS)})")
     return GENERATORS[name](seed, options)
