@@ -208,3 +208,21 @@ def test_bad_fit_input_is_one_line_and_exit_2(tmp_path, capsys):
     assert info["dropped_nonfinite"] == 1 and pts.shape == (199, 3)
     with pytest.raises(ValueError):
         FitFile.model_validate({"points": {"file": "a.npy", "synthetic": {"skeleton": {"procedural": "saguaro"}}}})
+
+
+def test_bad_values_inside_jit_raise_naming_the_index():
+    """checkify: a radius driven negative, joints that met, a NaN point, all only known under
+    jit (traced values), raise a ValueError with the index and value, never a silent NaN."""
+    from jskel.fit import checked_distances
+
+    J = np.array([[0, 0, 0], [0, 1, 0], [0.3, 2, 0]], np.float32)
+    R = np.array([0.3, 0.25, 0.2], np.float32)
+    seg = segments_of(J, R, [-1, 0, 1])
+    x = np.array([[0.5, 0.5, 0.0], [0.0, 1.5, 0.4]], np.float32)
+    np.testing.assert_allclose(checked_distances(J, R, seg, x), d32(J, R, [-1, 0, 1], x), atol=1e-7)
+    with pytest.raises(ValueError, match=r"radii\[1\]: negative radius -0\.5"):
+        checked_distances(J, np.array([0.3, -0.5, 0.2], np.float32), seg, x)
+    with pytest.raises(ValueError, match=r"joints\[2\]: zero-length segment 1"):
+        checked_distances(np.array([[0, 0, 0], [0, 1, 0], [0, 1, 0]], np.float32), R, seg, x)
+    with pytest.raises(ValueError, match=r"points\[1\]: not finite"):
+        checked_distances(J, R, seg, np.array([[0.5, 0.5, 0.0], [np.nan, 0, 0]], np.float32))

@@ -11,6 +11,7 @@ Public API:
 
 from ._config import FitFile as FitFile
 from ._distance import Segments as Segments
+from ._distance import checked_distances as checked_distances
 from ._distance import cutting_planes as cutting_planes
 from ._distance import distances as distances
 from ._distance import geometry as geometry
@@ -29,6 +30,6 @@ from ._fit import read_points as read_points
 from ._fit import run_fit as run_fit
 from ._solvers import robust_residuals as robust_residuals
 
-__all__ = ["FitFile", "FitResult", "Segments", "cutting_planes", "distances", "fit_many", "fit_points", "geometry", "load_points",
+__all__ = ["FitFile", "FitResult", "Segments", "checked_distances", "cutting_planes", "distances", "fit_many", "fit_points", "geometry", "load_points",
            "mst_skeleton", "pca_chain", "perturbed", "point_distances", "read_points", "robust_residuals", "run_fit",
            "sample_surface", "segments_of", "signed_distance"]

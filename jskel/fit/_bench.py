@@ -1,7 +1,8 @@
 """The fitting benchmark (``python -m jskel bench experiments/bench_fit.yaml``, issue 10).
 
 For every (solver, point count, segment count) it fits a synthetic bent chain of that many
-segments (noise and outliers as configured) from a perturbed start, and reports seconds to stop
+unit segments (Gaussian noise of ``noise_sd`` world units, a fraction ``outliers`` of uniform
+outliers) from a perturbed start, and reports seconds to stop
 (compile apart), iterations, whether the stopping rule was met within ``maxiter``, the final
 errors against the truth and the residuals; then the throughput of ``vmap``-ed batches of fits
 (fits per second). A combination whose work per distance evaluation (points x segments) exceeds
@@ -29,7 +30,7 @@ class FitBench(StrictModel):
     segments: list[Annotated[int, Field(ge=1, le=100_000)]] = [5, 50, 500]
     solvers: list[Literal["lm", "gauss_newton", "lbfgs", "adam"]] = ["lm", "gauss_newton", "lbfgs", "adam"]
     loss: Literal["l2", "huber", "cauchy"] = "cauchy"
-    noise: Annotated[float, Field(ge=0.0, le=1.0)] = 0.01
+    noise_sd: Annotated[float, Field(ge=0.0)] = 0.05  # world units (segments are 1 long, radii 0.5 -> 0.25)
     outliers: Annotated[float, Field(ge=0.0, le=1.0)] = 0.05
     perturb: Annotated[float, Field(ge=0.0, le=1.0)] = 0.1
     maxiter: Annotated[int, Field(ge=1)] = 200
@@ -63,10 +64,10 @@ def bent_chain(segments: int, seed: int = 0):
     return j, r, np.arange(-1, segments)
 
 
-def _cloud(j, r, p, n, noise, outliers, rng):
+def _cloud(j, r, p, n, noise_sd, outliers, rng):
     pts = sample_surface(j, r, p, n, rng)
     length = float(np.sum(np.linalg.norm(np.diff(j, axis=0), axis=1)))
-    pts = pts + rng.normal(0.0, noise * length, pts.shape)
+    pts = pts + rng.normal(0.0, noise_sd, pts.shape)
     k = int(round(outliers * n))
     if k:
         lo, hi = pts.min(0), pts.max(0)
@@ -92,12 +93,18 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                     emit(row)
                     rows.append(row)
                 continue
-            pts, length = _cloud(j, r, p, n, b.noise, b.outliers, rng)
+            pts, length = _cloud(j, r, p, n, b.noise_sd, b.outliers, rng)
             j0, r0 = perturbed(j, r, p, b.perturb, np.random.default_rng(b.seed + 2))
             for name in b.solvers:
                 s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter if name != "adam" else 10 * b.maxiter,
                                  learning_rate=b.learning_rate)
-                res = fit_points(pts, j0, r0, p, s)
+                try:
+                    res = fit_points(pts, j0, r0, p, s)
+                except ValueError as e:  # too few points, a diverged solver: a row that says so
+                    row = {"solver": name, "points": n, "segments": segs, "error": str(e), **common}
+                    emit(row)
+                    rows.append(row)
+                    continue
                 row = {"solver": name, "loss": b.loss, "points": n, "segments": segs, "compile_s": round(res.compile_s, 3),
                        "seconds": round(res.seconds, 4), "iterations": res.iterations, "converged": res.converged,
                        "s_per_iteration": round(res.seconds / max(res.iterations, 1), 5),
@@ -110,7 +117,7 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
     for name in b.batch_solvers:
         for bsz in b.batch:
             rng = np.random.default_rng(b.seed + 3)
-            clouds = np.stack([_cloud(j, r, p, b.batch_points, b.noise, b.outliers, rng)[0] for _ in range(bsz)])
+            clouds = np.stack([_cloud(j, r, p, b.batch_points, b.noise_sd, b.outliers, rng)[0] for _ in range(bsz)])
             starts = [perturbed(j, r, p, b.perturb, rng) for _ in range(bsz)]
             s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter, learning_rate=b.learning_rate)
             t0 = time.perf_counter()

@@ -237,6 +237,40 @@ def distances(joints, radii, seg: Segments, points, block: int = 4096):
     return jax.lax.map(one, pts.reshape(nb, block, 3)).reshape(-1)[:n]
 
 
+def _checks(joints, radii, seg: Segments, points):
+    from jax.experimental import checkify
+
+    checkify.check(jnp.all(jnp.isfinite(joints)), "joints[{i}]: not finite", i=jnp.argmax(~jnp.all(jnp.isfinite(joints), axis=1)))
+    checkify.check(jnp.all(radii >= 0), "radii[{i}]: negative radius {r}", i=jnp.argmin(radii), r=jnp.min(radii))
+    h = safe_norm(joints[seg.end] - joints[seg.start])
+    checkify.check(jnp.all(h > 0), "joints[{i}]: zero-length segment {s}", i=jnp.asarray(seg.end)[jnp.argmin(h)], s=jnp.argmin(h))
+    checkify.check(jnp.all(jnp.isfinite(points)), "points[{i}]: not finite", i=jnp.argmax(~jnp.all(jnp.isfinite(points), axis=1)))
+
+
+_CHECKED: dict = {}
+
+
+def checked_distances(joints, radii, seg: Segments, points, block: int = 4096):
+    """:func:`distances` with its inputs checked inside the compiled function (``checkify``):
+    values that only become bad under jit, a radius an optimiser drove negative, two joints
+    that met, a NaN point, raise a ValueError naming the index and the value instead of
+    returning silent garbage. One executable per topology; the checks cost a few reductions."""
+    from jax.experimental import checkify
+
+    key = (seg, block)
+    if key not in _CHECKED:
+        def f(j, r, x):
+            _checks(j, r, seg, x)
+            return distances(j, r, seg, x, block)
+
+        _CHECKED[key] = jax.jit(checkify.checkify(f))
+    err, out = _CHECKED[key](joints, radii, points)
+    msg = err.get()
+    if msg:
+        raise ValueError(msg.splitlines()[0].split(" (check failed at")[0])
+    return out
+
+
 def sample_surface(joints, radii, parents, count: int, rng: np.random.Generator) -> np.ndarray:
     """``count`` points spread uniformly over the skeleton's surface (host, float64), for
     synthetic studies: lateral surfaces by area and caps by area, rejected where a sample lies
@@ -287,5 +321,5 @@ def sample_surface(joints, radii, parents, count: int, rng: np.random.Generator)
     return np.concatenate(out)
 
 
-__all__ = ["Geometry", "Segments", "caps_of", "cutting_planes", "distances", "geometry", "sample_surface",
+__all__ = ["Geometry", "Segments", "caps_of", "checked_distances", "cutting_planes", "distances", "geometry", "sample_surface",
            "segment_distances", "segments_of", "signed_distance"]

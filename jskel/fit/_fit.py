@@ -23,7 +23,7 @@ import numpy as np
 
 from . import _solvers
 from ._config import EstimateConfig, FitFile, PointsConfig, SolverConfig
-from ._distance import Segments, distances, sample_surface, segments_of
+from ._distance import Segments, checked_distances, distances, sample_surface, segments_of
 
 
 def _softplus_inv(y):
@@ -491,8 +491,8 @@ def point_distances(points, joints, radii, parents, dtype=np.float32) -> np.ndar
     """Signed distances of ``points`` to a skeleton's surface, in world units (NumPy)."""
     seg = segments_of(joints, radii, parents, "skeleton")
     nz = normaliser_of(np.asarray(points, np.float64))
-    d = distances(jnp.asarray(nz.points(joints), dtype), jnp.asarray(np.asarray(radii) / nz.extent, dtype), seg,
-                  jnp.asarray(nz.points(points), dtype))
+    d = checked_distances(jnp.asarray(nz.points(joints), dtype), jnp.asarray(np.asarray(radii) / nz.extent, dtype), seg,
+                          jnp.asarray(nz.points(points), dtype))
     return np.asarray(d, np.float64) * nz.extent
 
 
