@@ -26,7 +26,7 @@ def test_hit_distances_have_the_derivatives_finite_differences_give():
     assert p.returncode == 0, p.stderr[-3000:]
     checked = json.loads(p.stdout.strip().splitlines()[-1])["checked"]
     assert checked == {"implicit_lipschitz": 2, "implicit_bisection": 2, "implicit_naive": 2, "relief": 3, "frusta": 2,
-                       "fit_distance_random": 6, "fit_distance_hard": 4}
+                       "fit_distance_random": 6, "fit_distance_hard": 4, "cells": 2}
 
 
 def test_differentiable_root_keeps_the_value_and_gives_the_implicit_derivative():

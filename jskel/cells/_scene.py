@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..interface import Built
-from ..numerics import safe_normalize
+from ..numerics import differentiable_root, safe_normalize
 from ..rays import FLAG_STEP_CAP, Hit, masked_hit
 from ._config import CellsConfig as CellsConfig
 from ._membership import INSIDE, memory_table, membership, unpack, words_for
@@ -275,9 +275,23 @@ def intersect_one(p: CellParams, static: Static, origin, direction, t_min, t_max
     whole cell's global id (also written as ``cell.npy``); flags STEP_CAP where ``max_steps``
     samples ran out before the ray left the object."""
     m = first_hit(p, origin, direction, t_min, t_max, static.options)
-    t = m.t
+    x0 = origin + jnp.where(jnp.isfinite(m.t), m.t, 0.0) * direction
+    n = normal_at(p, x0, direction)
+    # derivatives (issue 9): cells are unions of tile-map voxels, so the boundary at the hit is
+    # the voxel face the ray crosses there (the axis whose voxel coordinate is nearest an
+    # integer), fixed in the tile frame: t(origin, direction, lo, size) is the root of
+    # g(t) = e_axis . (o + t d - x_b), with x_b = lo + size u and u the hit's tile coordinates.
+    # (Alg. 4.8's smoothed normal shades; it is not the geometry.) The search loop itself would
+    # differentiate to zero.
+    u = jax.lax.stop_gradient((x0 - p.lo) / p.size)
+    v = u * p.split.shape[0]
+    face = jax.nn.one_hot(jnp.argmin(jnp.abs(v - jnp.round(v))), 3, dtype=origin.dtype)
+
+    def g(tt):
+        return jnp.sum(face * (origin + tt * direction - (p.lo + p.size * u)))
+
+    t = jnp.where(jnp.isfinite(m.t), differentiable_root(g, jnp.where(jnp.isfinite(m.t), m.t, 0.0)), m.t)
     x_in = origin + jnp.where(jnp.isfinite(t), t, 0.0) * direction
-    n = normal_at(p, x_in, direction)
     cid = cell_id(p, x_in)
     capped = (~m.found) & (m.steps >= static.options.steps)  # stopped by max_steps: counted, not silent
     return masked_hit(t, x_in, n, jnp.zeros((2,), origin.dtype), cid, jnp.where(capped, FLAG_STEP_CAP, 0))

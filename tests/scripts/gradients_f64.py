@@ -161,4 +161,30 @@ for side in (-1e-3, 1e-3):  # either side of the plane shared at joint 1, near t
     each_arg(dist, (jnp.asarray(FJ), jnp.asarray(FR), jnp.asarray(x)))
     n += 1
 checked["fit_distance_hard"] = n
+
+# cells (binary search in the tile map): t against the ray origin and the object's placement
+import tempfile  # noqa: E402
+
+from jskel import cells  # noqa: E402
+
+ccfg = cells.CellsConfig.model_validate({
+    "type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45}, "tiles": 6, "bisection": 40,
+    "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "cache": tempfile.mkdtemp()})
+cb = cells.build(ccfg, np.float64)
+
+
+def t_cells(o, lo, size, d):
+    p = cb.params._replace(lo=lo, size=size)
+    return cells.intersect_one(p, cb.static, o, d, 0.0, jnp.inf).t
+
+
+n = 0
+for o_w, aim in (([2.5, 1.5, 2.0], [1.0, 0.05, 0.02]), ([-2.5, 0.4, 0.3], [-1.0, 0.02, -0.03])):
+    d_w = np.subtract(aim, o_w)  # aimed at the torus' tube
+    d = jnp.asarray(d_w) / np.linalg.norm(d_w)
+    o = jnp.asarray(o_w) - cb.anchor
+    assert np.isfinite(t_cells(o, cb.params.lo, cb.params.size, d)), o_w
+    each_arg(lambda oo, lo, sz: t_cells(oo, lo, sz, d), (o, cb.params.lo, cb.params.size))
+    n += 1
+checked["cells"] = n
 print(json.dumps({"checked": checked}))
