@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def eps_of(x) -> jnp.ndarray:
@@ -96,3 +97,15 @@ def differentiable_root(g, t):
     dg/dt is 0 (a grazing hit, where t itself jumps) the derivative is reported as 0."""
     return jax.lax.custom_root(g, jax.lax.stop_gradient(t), lambda f, x0: x0,
                                lambda gt, y: safe_div(y, gt(jnp.ones_like(y)), 0.0))
+
+
+def euler_xyz(deg) -> np.ndarray:
+    """Rotation matrix (3,3) float64 for XYZ Euler angles in degrees, X applied first:
+    ``R = Rz @ Ry @ Rx`` (host; the convention of bones' keyframes and scene transforms)."""
+    x, y, z = np.radians(np.asarray(deg, np.float64))
+    cx, sx, cy, sy, cz, sz = np.cos(x), np.sin(x), np.cos(y), np.sin(y), np.cos(z), np.sin(z)
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+

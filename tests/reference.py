@@ -210,3 +210,14 @@ def far_from_silhouette(segs, O, D, delta, jump):
         close = ~np.isfinite(t0) | (np.abs(np.where(np.isfinite(t), t, 0) - np.where(np.isfinite(t0), t0, 0)) < jump)
         ok &= same & close
     return ok
+
+
+def rotation(q):
+    """Rotation matrix of the quaternion q = (w, x, y, z) (normalised here), float64."""
+    q = np.asarray(q, float)
+    q = q / np.linalg.norm(q)
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+

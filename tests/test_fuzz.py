@@ -31,15 +31,6 @@ def _skeleton(rng, n):
     return np.array(joints), rng.uniform(0.08, 0.35, n), np.array(parents)
 
 
-def _rotation(q):
-    q = np.asarray(q, float)
-    q = q / np.linalg.norm(q)
-    w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
 quaternion = st.tuples(*[st.floats(-1, 1) for _ in range(4)]).filter(lambda q: np.linalg.norm(q) > 0.1)
 
 
@@ -54,7 +45,7 @@ def test_float32_frusta_match_the_float64_reference_at_any_magnitude(seed, n, lo
     u = np.asarray(direction, float)
     u = u / np.linalg.norm(u) if np.linalg.norm(u) > 1e-6 else np.array([1.0, 0.0, 0.0])
     offset = 10.0**log_offset * u
-    jw = (j * s) @ _rotation(q).T + offset
+    jw = (j * s) @ ref.rotation(q).T + offset
     rw = r * s
     lo, hi = jw.min(0) - rw.max(), jw.max(0) + rw.max()
     size = float(np.linalg.norm(hi - lo))

@@ -355,12 +355,7 @@ def test_scene_frame_poses_bones_as_the_object_frame_does():
     assert np.sum(np.isfinite(moved.hits.t) != np.isfinite(rest.hits.t)) > 50  # the pose changed the picture
 
 
-def _rot(deg):
-    x, y, z = np.radians(deg)
-    rx = np.array([[1, 0, 0], [0, np.cos(x), -np.sin(x)], [0, np.sin(x), np.cos(x)]])
-    ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
-    rz = np.array([[np.cos(z), -np.sin(z), 0], [np.sin(z), np.cos(z), 0], [0, 0, 1]])
-    return rz @ ry @ rx
+from test_implicit_anim import rot_xyz as _rot  # noqa: E402 - the Euler convention written out in a test
 
 
 def test_rigid_motion_of_a_cell_object_equals_the_camera_moving_back(tmp_path):

@@ -19,15 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def euler_xyz(deg) -> np.ndarray:
-    """Rotation matrix R = Rz . Ry . Rx for XYZ Euler angles in degrees."""
-    x, y, z = np.radians(np.asarray(deg, np.float64))
-    cx, sx, cy, sy, cz, sz = np.cos(x), np.sin(x), np.cos(y), np.sin(y), np.cos(z), np.sin(z)
-    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return rz @ ry @ rx
+from ..numerics import euler_xyz as euler_xyz
 
 
 def key_angles(keys, frame: float) -> np.ndarray:

@@ -137,6 +137,22 @@ def _trace(exp: Experiment, fn, params, rays: Rays, progress):
     return map_chunks(fn, params, rays, chunk=exp.render.chunk, progress=progress, desc="render", devices=devices_of(exp), memory_budget=budget)
 
 
+def _run_base(exp: Experiment, obj, build_s: float, res, n: int) -> dict:
+    """What every run.json starts with: the resolved config, versions, seconds, rays."""
+    return {
+        "config": resolved(exp, obj),
+        **environment(),
+        "build_s": build_s,
+        "compile_s": res.compile_s,
+        "compile_cached": res.compile_s == 0.0,
+        "render_s": res.run_s,
+        "rays": n,
+        "devices_used": len(devices_of(exp) or [None]),
+        "processes": jax.process_count(),
+        "mrays_per_s": n / res.run_s / 1e6 if res.run_s > 0 else None,
+    }
+
+
 def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     """Render one frame of an experiment (host function; the heavy work is jitted in chunks).
 
@@ -164,16 +180,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     image = encode_png(rgb.reshape(cam.height, cam.width, 3), output_transform(exp.shading))
     n = rays.size
     run = {
-        "config": resolved(exp, obj),
-        **environment(),
-        "build_s": build_s,
-        "compile_s": res.compile_s,
-        "compile_cached": res.compile_s == 0.0,
-        "render_s": res.run_s,
-        "rays": n,
-        "devices_used": len(devices_of(exp) or [None]),
-        "processes": jax.process_count(),
-        "mrays_per_s": n / res.run_s / 1e6 if res.run_s > 0 else None,
+        **_run_base(exp, obj, build_s, res, n),
         "hit_fraction": float(np.mean(np.isfinite(hits.t))),
         "anchor": [float(x) for x in built.anchor],
         "info": built.info,
@@ -232,19 +239,10 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
         aovs["refract_obj"] = first["first_obj"][:, 1]
     f_all = np.asarray(out["flags"])
     run = {
-        "config": resolved(exp, shapes),
-        **environment(),
-        "build_s": build_s,
-        "compile_s": res.compile_s,
-        "compile_cached": res.compile_s == 0.0,
-        "render_s": res.run_s,
-        "rays": int(rays.size),
+        **_run_base(exp, shapes, build_s, res, int(rays.size)),
         "spp": exp.render.spp,
         "effects": eff._asdict(),
         "secondary_rays": int(np.sum(out["secondary"])),
-        "devices_used": len(devices_of(exp) or [None]),
-        "processes": jax.process_count(),
-        "mrays_per_s": rays.size / res.run_s / 1e6 if res.run_s > 0 else None,
         "hit_fraction": float(np.mean(np.isfinite(h.t))),
         "eye": [float(x) for x in eye],
         "objects": objects_info,

@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import registry
-from ..numerics import eps_of, safe_normalize, safe_sqrt
+from ..numerics import eps_of, euler_xyz, safe_normalize, safe_sqrt
 from ..rays import FLAG_OVERFLOW, Rays, compact_map
 from ._shade import Lights, facing, light_at, lights_from_config, shade_local
 
@@ -136,16 +136,6 @@ class SceneStatic(NamedTuple):
     compaction: bool = True  # False: every queue slot traced against every object (masking; for the benchmark)
 
 
-def euler_matrix(deg) -> np.ndarray:
-    """Rotation by XYZ Euler angles in degrees, X applied first: ``Rz @ Ry @ Rx``."""
-    x, y, z = np.radians(np.asarray(deg, np.float64))
-    cx, sx, cy, sy, cz, sz = math.cos(x), math.sin(x), math.cos(y), math.sin(y), math.cos(z), math.sin(z)
-    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return rz @ ry @ rx
-
-
 def effects_of(exp) -> Effects:
     """The effects an experiment's scene calls for (host, static)."""
     mats = [o.material for o in exp.objects]
@@ -162,7 +152,7 @@ def object_transform(o, frame: float):
     if o.motion is not None:
         t = t + frame * np.asarray(o.motion.translate, np.float64)
         e = e + frame * np.asarray(o.motion.rotate_deg, np.float64)
-    return float(o.transform.scale), euler_matrix(e), t
+    return float(o.transform.scale), euler_xyz(e), t
 
 
 def _shape_at(shape, frame: float):

@@ -31,6 +31,9 @@ from hypothesis import strategies as st  # noqa: E402
 from jskel import cells, implicit  # noqa: E402
 from jskel.rays import make_rays  # noqa: E402
 
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+from reference import rotation  # noqa: E402  (tests/reference.py)
+
 LONG = os.environ.get("JSKEL_FUZZ") == "long"
 N = 256
 worst = {"implicit": {"examples": 0, "disagree_frac": 0.0}, "cells": {"examples": 0, "disagree_frac": 0.0}}
@@ -48,15 +51,6 @@ def cast(rep, built, O, D, dtype):
     rays = make_rays(O - built.anchor, D, 0.0, np.inf, dtype)
     h = FNS[key](built.params, rays)
     return np.asarray(h.t)
-
-
-def rotation(q):
-    q = np.asarray(q, float)
-    q = q / np.linalg.norm(q)
-    w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def rays_at(rng, lo, hi, far):
