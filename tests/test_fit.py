@@ -226,3 +226,11 @@ def test_bad_values_inside_jit_raise_naming_the_index():
         checked_distances(np.array([[0, 0, 0], [0, 1, 0], [0, 1, 0]], np.float32), R, seg, x)
     with pytest.raises(ValueError, match=r"points\[1\]: not finite"):
         checked_distances(J, R, seg, np.array([[0.5, 0.5, 0.0], [np.nan, 0, 0]], np.float32))
+
+
+def test_a_diverging_solver_is_an_error_not_a_result(noisy_branch):
+    """Adam with a far too large step runs the skeleton away: the loss rises, and the fit says
+    so (a ValueError naming solver.name) instead of returning the finite but absurd skeleton."""
+    pts, _ = noisy_branch
+    with pytest.raises(ValueError, match=r"solver\.name: adam diverged"):
+        fit_points(pts, BENT, BENT_R, CHAIN, SolverConfig(name="adam", loss="cauchy", learning_rate=5.0, maxiter=40))

@@ -455,6 +455,9 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
     seconds = time.perf_counter() - t_all - compile_s
     if not np.all(np.isfinite(np.asarray(x))) or not np.isfinite(history[-1]):
         raise ValueError(f"solver.name: {s.name} diverged to a non-finite loss after {it} iterations (try another solver or a smaller learning_rate)")
+    if history[-1] > history[0]:  # a finite divergence (Gauss-Newton ran to joints of 1e25 on a 50-segment chain)
+        raise ValueError(f"solver.name: {s.name} diverged: the loss rose from {history[0]:.4g} to {history[-1]:.4g} in {it} iterations "
+                         "(try lm, a smaller learning_rate or more points)")
     j, r = nz.world(x, pr)
     return FitResult(j, r, np.asarray(parents), history, it, converged, seconds, compile_s, float(step.error(st)), s.restarts, restart_losses)
 
