@@ -34,6 +34,7 @@ class FitBench(StrictModel):
     outliers: Annotated[float, Field(ge=0.0, le=1.0)] = 0.05
     perturb: Annotated[float, Field(ge=0.0, le=1.0)] = 0.1
     maxiter: Annotated[int, Field(ge=1)] = 200
+    smoothness: Annotated[float, Field(ge=0.0)] = 0.0  # the solver's joint smoothness weight
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.003
     max_work: Annotated[float, Field(gt=0.0)] = 1e7  # points x segments above which a combination is skipped
     batch: list[Annotated[int, Field(ge=1, le=4096)]] = [1, 8, 32]
@@ -97,7 +98,7 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
             j0, r0 = perturbed(j, r, p, b.perturb, np.random.default_rng(b.seed + 2))
             for name in b.solvers:
                 s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter if name != "adam" else 10 * b.maxiter,
-                                 learning_rate=b.learning_rate)
+                                 learning_rate=b.learning_rate, smoothness=b.smoothness)
                 try:
                     res = fit_points(pts, j0, r0, p, s)
                 except ValueError as e:  # too few points, a diverged solver: a row that says so
@@ -105,7 +106,7 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                     emit(row)
                     rows.append(row)
                     continue
-                row = {"solver": name, "loss": b.loss, "points": n, "segments": segs, "compile_s": round(res.compile_s, 3),
+                row = {"solver": name, "loss": b.loss, "smoothness": b.smoothness, "points": n, "segments": segs, "compile_s": round(res.compile_s, 3),
                        "seconds": round(res.seconds, 4), "iterations": res.iterations, "converged": res.converged,
                        "s_per_iteration": round(res.seconds / max(res.iterations, 1), 5),
                        "joint_error_max_of_length": round(float(np.max(np.linalg.norm(res.joints - j, axis=1)) / length), 5),
