@@ -234,3 +234,18 @@ def test_a_diverging_solver_is_an_error_not_a_result(noisy_branch):
     pts, _ = noisy_branch
     with pytest.raises(ValueError, match=r"solver\.name: adam diverged"):
         fit_points(pts, BENT, BENT_R, CHAIN, SolverConfig(name="adam", loss="cauchy", learning_rate=5.0, maxiter=40))
+
+
+def test_jitted_distance_of_a_long_chain_is_zero_on_its_surface():
+    """Regression: on XLA CPU (jax 0.10.2) ``jnp.sum(a * b, -1)`` dot products made the jitted
+    distance of a 50-segment chain wrong (by up to 35) for points past the 655th of a batch, while
+    the same ops run one by one were right; the distance now writes its dots out per component."""
+    from jskel.fit._bench import bent_chain
+    from jskel.fit import sample_surface
+
+    j, r, p = bent_chain(50, 0)
+    seg = segments_of(j, r, p)
+    pts = sample_surface(j, r, p, 2000, np.random.default_rng(0))
+    d = jax.jit(lambda a, b, q: distances(a, b, seg, q))(jnp.asarray(j, jnp.float32), jnp.asarray(r, jnp.float32),
+                                                          jnp.asarray(pts, jnp.float32))
+    assert np.max(np.abs(np.asarray(d))) < 1e-4
