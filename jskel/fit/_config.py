@@ -75,7 +75,9 @@ class SolverConfig(StrictModel):
     """``name``: lm (Levenberg-Marquardt), gauss_newton, lbfgs (jaxopt) or adam (optax).
     ``loss``: l2, huber or cauchy, with ``scale`` a fraction of the cloud's extent.
     ``smoothness``: weight of the joints' second differences along chains. ``restarts``: fits
-    from that many perturbed starts at once (vmap), the best kept."""
+    from that many perturbed starts at once (vmap), the best kept. ``validity``: weight of the
+    penalty that keeps every shared cutting plane cutting both its cones in ellipses and facing
+    its segments (``_distance.plane_margins``), so no piece becomes an unbounded wedge."""
 
     name: Literal["lm", "gauss_newton", "lbfgs", "adam"] = "lm"
     loss: Literal["l2", "huber", "cauchy"] = "huber"
@@ -88,6 +90,7 @@ class SolverConfig(StrictModel):
     smoothness: Annotated[float, Field(ge=0.0)] = 0.0
     restarts: Annotated[int, Field(ge=1, le=4096)] = 1
     min_radius: Annotated[float, Field(ge=0.0, le=1.0)] = 1e-4  # fraction of extent: radii = min + softplus(u)
+    validity: Annotated[float, Field(ge=0.0)] = 1.0  # weight keeping shared cutting planes cutting ellipses (0: off)
 
 
 class FitFile(StrictModel):

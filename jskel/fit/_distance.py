@@ -173,11 +173,74 @@ def geometry(joints, radii, seg: Segments) -> Geometry:
     return Geometry(c1, m, h, r1, r2, nb, db, nt, dt)
 
 
+def plane_margins(joints, radii, seg: Segments):
+    """How well each shared cutting plane cuts its two cones in ellipses, facing the right
+    way: (K, 2) values ``n . m - sin(half-angle)`` for the segments before and after each
+    continuation, ``n`` oriented along ``ma + mb`` (the host build's ``_cuts_ellipse`` test is
+    ``|n . m| > sin + ELLIPSE_MARGIN``). Below zero the plane either cuts a parabola or
+    hyperbola, or faces against one of its segments (a fold past the bisector's reach): either
+    way the piece between the planes is unbounded, a wedge reaching to infinity that can
+    swallow far points. A fit found both on a 50-segment chain with outliers (a segment folded
+    back to 0.26 of its length, its cone reaching 25 units out; a plane with n . m = -0.45
+    putting an outlier 16 units behind a segment inside it), so the fit keeps these above a
+    margin by a penalty (``_fit.residuals``)."""
+    g = geometry(joints, radii, seg)
+    if not len(seg.cont_b):
+        return jnp.zeros((0, 2), joints.dtype)
+    a, b = seg.cont_a, seg.cont_b
+    n = g.nt[a]
+
+    def margin(i):
+        k = safe_div(g.r2[i] - g.r1[i], g.h[i], 0.0)
+        return _dot(n, g.m[i]) - jnp.abs(k) / jnp.sqrt(1.0 + k * k)
+
+    return jnp.stack([margin(a), margin(b)], -1)
+
+
 def _combine(v):
     """Signed distance of the intersection of solids from their signed distances (..., K):
     inside, the maximum; outside, the length of the positive parts (the distance to a rim when a
     point is beyond the side and a cap at once; exact for a cylinder's perpendicular cap)."""
     return _norm3(jnp.maximum(v, 0.0)) + jnp.minimum(jnp.max(v, axis=-1), 0.0)
+
+
+def _seg2(py, pr, ay, ar, by, br):
+    """Distance in the (y, rho) half-plane from point (py, pr) to the segment (a, b)."""
+    dy, dr = by - ay, br - ar
+    t = jnp.clip(safe_div((py - ay) * dy + (pr - ar) * dr, dy * dy + dr * dr, 0.0), 0.0, 1.0)
+    ey, er = py - (ay + t * dy), pr - (ar + t * dr)
+    return safe_sqrt(ey * ey + er * er)
+
+
+def _section_distance(g: Geometry, q, y, rho):
+    """Distance (S,) from a point outside each piece to the piece (bounded by all its planes),
+    measured in the point's own axial half-plane: there the piece's section is the convex
+    quadrilateral between the axis, the bottom plane's line, the generator ``rho = r1 + k y``
+    and the top plane's line (``y (n . m) + rho (n . e) = dist``, ``e`` the point's radial
+    direction), and the distance to it is the nearest of its three outer edges. A point of the
+    section is a point of the piece, so this never reads a far point as near. The plain
+    distance to the infinite cone's generator line, which it replaces for points outside,
+    did: divided by sqrt(1 + k^2) and blind to where the piece ends, it put an outlier 22 units
+    from a fitted chain at 7.9 (a steep cone on a segment the fit had shrunk) and a point 12.7
+    units behind a segment at 2.8, and a fit bent and shrank segments to bring outliers 'near'.
+    Denominators are positive when the planes cut ellipses and face their segment
+    (:func:`plane_margins`, which the fit keeps positive); they are floored otherwise."""
+    k = safe_div(g.r2 - g.r1, g.h, 0.0)
+    e = safe_div(q - y[:, None] * g.m, rho[:, None], 0.0)
+    floor = jnp.asarray(1e-3, y.dtype)
+
+    def ends(n, dist):
+        nm, ne = _dot(n, g.m), _dot(n, e)
+        y_axis = dist / jnp.maximum(nm, floor)
+        y_gen = (dist - g.r1 * ne) / jnp.maximum(nm + k * ne, floor)
+        return y_axis, y_gen
+
+    yb0, yb1 = ends(g.nb, g.db)
+    yt0, yt1 = ends(g.nt, g.dt)
+    zero = jnp.zeros_like(y)
+    rb, rt = g.r1 + k * yb1, g.r1 + k * yt1
+    d = jnp.minimum(_seg2(y, rho, yb0, zero, yb1, rb), _seg2(y, rho, yb1, rb, yt1, rt))
+    return jnp.minimum(d, _seg2(y, rho, yt1, rt, yt0, zero))
 
 
 def segment_distances(g: Geometry, x, cap_b=None, cap_t=None):
@@ -194,8 +257,9 @@ def segment_distances(g: Geometry, x, cap_b=None, cap_t=None):
     cone = (rho - (g.r1 + k * y)) / jnp.sqrt(1.0 + k * k)
     below = g.db - _dot(g.nb, q)
     above = _dot(g.nt, q) - g.dt
-    if cap_b is None:
-        return _combine(jnp.stack([cone, below, above], -1)), jnp.ones_like(cone, bool)
+    if cap_b is None:  # pieces bounded by all their planes: outside, the distance in the section
+        d = _combine(jnp.stack([cone, below, above], -1))
+        return jnp.where(d > 0, _section_distance(g, q, y, rho), d), jnp.ones_like(cone, bool)
     off = jnp.asarray(-1e30, cone.dtype)  # "no such plane": finite (see signed_distance)
     v = jnp.stack([cone, jnp.where(cap_b, below, off), jnp.where(cap_t, above, off)], -1)
     within = (cap_b | (below <= 0)) & (cap_t | (above <= 0))
@@ -205,12 +269,14 @@ def segment_distances(g: Geometry, x, cap_b=None, cap_t=None):
 def signed_distance(g: Geometry, x, seg: Segments | None = None):
     """Signed distance of one point (3,) to the skeleton's surface (negative inside).
 
-    A shared cutting plane is not a surface: with the topology ``seg``, each segment counts
-    only for points between its shared planes and is closed only by its real caps, so a point
-    inside near a joint gets its distance to the side, not to the plane (the plain minimum over
-    capped pieces made interior points near joints look close to the surface). Points that no
-    segment's shared planes enclose (far from a bent joint) fall back to the minimum over
-    pieces bounded by all their planes."""
+    Outside every piece (each bounded by all its planes, shared ones included), the distance
+    to the union's surface is the minimum of the distances to the pieces: that minimum is
+    returned. Inside, a shared cutting plane is not a surface: with the topology ``seg``, each
+    segment counts only for points between its shared planes and is closed only by its real
+    caps, so a point inside near a joint gets its distance to the side, not to the plane (the
+    plain minimum over capped pieces made interior points near joints look close to the
+    surface). An inside point that no segment's shared planes enclose keeps the minimum over
+    pieces."""
     if seg is None:
         return jnp.min(segment_distances(g, x)[0])
     cap_b, cap_t = caps_of(seg)
@@ -218,7 +284,7 @@ def signed_distance(g: Geometry, x, seg: Segments | None = None):
     big = jnp.asarray(1e30, d.dtype)
     d_in = jnp.min(jnp.where(within, d, big))
     d_all = jnp.min(segment_distances(g, x)[0])
-    return jnp.where(jnp.any(within), d_in, d_all)
+    return jnp.where((d_all > 0) | ~jnp.any(within), d_all, d_in)
 
 
 def caps_of(seg: Segments):
@@ -285,8 +351,27 @@ def sample_surface(joints, radii, parents, count: int, rng: np.random.Generator)
 
     a, _, _ = frusta_from_skeleton(joints, radii, parents, path="points.synthetic.skeleton")
     s = a.h.shape[0]
-    slant = np.sqrt(a.h**2 + (a.r2 - a.r1) ** 2)
-    lat = np.pi * (a.r1 + a.r2) * slant
+    # the lateral surface between tilted planes reaches past y in [0, h] on the outer side of a
+    # bend (an earlier version sampled y in [0, h] only and left that sliver bare): propose y
+    # over the cuts' whole axial extent, uniformly by area, and reject what lies outside the
+    # planes (rejection from a uniform proposal keeps the accepted points uniform)
+    k = (a.r2 - a.r1) / a.h
+
+    def extent(n, d):
+        nm = np.sum(n * a.m, -1)
+        ns = np.sqrt(np.maximum(1.0 - nm * nm, 0.0))
+        y1 = (d - a.r1 * ns) / np.maximum(nm + k * ns, 1e-9)
+        y2 = (d + a.r1 * ns) / np.maximum(nm - k * ns, 1e-9)
+        return np.minimum(y1, y2), np.maximum(y1, y2)
+
+    y_lo = np.minimum(extent(a.nb, a.db)[0], 0.0)
+    y_hi = np.maximum(extent(a.nt, a.dt)[1], a.h)
+    # keep the proposal on the cone's nappe (r >= 0)
+    y_lo = np.where(k > 0, np.maximum(y_lo, -a.r1 / np.where(k > 0, k, 1.0)), y_lo)
+    y_hi = np.where(k < 0, np.minimum(y_hi, -a.r1 / np.where(k < 0, k, -1.0)), y_hi)
+    r_lo, r_hi = a.r1 + k * y_lo, a.r1 + k * y_hi
+    slant = np.sqrt(1.0 + k * k) * (y_hi - y_lo)
+    lat = np.pi * (r_lo + r_hi) * slant
     caps_b = np.where(a.cap_b, np.pi * a.r1**2, 0.0)
     caps_t = np.where(a.cap_t, np.pi * a.r2**2, 0.0)
     areas = np.concatenate([lat, caps_b, caps_t])
@@ -301,10 +386,12 @@ def sample_surface(joints, radii, parents, count: int, rng: np.random.Generator)
         e = np.cos(phi)[:, None] * a.u[i] + np.sin(phi)[:, None] * a.w[i]
         # lateral: y with density proportional to the local radius (area of a cone band)
         u = rng.uniform(0, 1, m)
+        ra, rb, ya, yb = r_lo[i], r_hi[i], y_lo[i], y_hi[i]
+        sloped = np.abs(rb - ra) > 1e-12
+        rr = np.sqrt(ra**2 + u * (rb**2 - ra**2))
+        y = ya + np.where(sloped, (rr - ra) / np.where(sloped, rb - ra, 1.0), u) * (yb - ya)
+        rad = np.where(sloped, rr, ra)
         r1, r2 = a.r1[i], a.r2[i]
-        rr = np.sqrt(r1**2 + u * (r2**2 - r1**2))
-        y = np.where(np.abs(r2 - r1) > 1e-12, (rr - r1) / np.where(np.abs(r2 - r1) > 1e-12, r2 - r1, 1.0), u) * a.h[i]
-        rad = np.where(np.abs(r2 - r1) > 1e-12, rr, r1)
         p_lat = a.c1[i] + y[:, None] * a.m[i] + rad[:, None] * e
         rc = np.sqrt(rng.uniform(0, 1, m))
         p_bot = a.c1[i] + (rc * r1)[:, None] * e
@@ -327,5 +414,6 @@ def sample_surface(joints, radii, parents, count: int, rng: np.random.Generator)
     return np.concatenate(out)
 
 
-__all__ = ["Geometry", "Segments", "caps_of", "checked_distances", "cutting_planes", "distances", "geometry", "sample_surface",
+__all__ = ["Geometry", "Segments", "caps_of", "checked_distances", "cutting_planes", "distances", "geometry", "plane_margins",
+           "sample_surface",
            "segment_distances", "segments_of", "signed_distance"]

@@ -23,7 +23,7 @@ import numpy as np
 
 from . import _solvers
 from ._config import EstimateConfig, FitFile, PointsConfig, SolverConfig
-from ._distance import Segments, checked_distances, distances, sample_surface, segments_of
+from ._distance import ELLIPSE_MARGIN, Segments, checked_distances, distances, plane_margins, sample_surface, segments_of
 
 
 def _softplus_inv(y):
@@ -285,11 +285,15 @@ class Problem(NamedTuple):
     scale: float
     smoothness: float
     min_radius: float
+    validity: float
+
+
+VALID_MARGIN = 2.0 * ELLIPSE_MARGIN  # the penalty starts where |n . m| - sin(half-angle) falls below this
 
 
 def problem_of(seg: Segments, s: SolverConfig) -> Problem:
     triples = tuple((int(seg.start[a]), int(seg.start[b]), int(seg.end[b])) for a, b in zip(seg.cont_a, seg.cont_b))
-    return Problem(seg, triples, s.loss, float(s.scale), float(s.smoothness), float(s.min_radius))
+    return Problem(seg, triples, s.loss, float(s.scale), float(s.smoothness), float(s.min_radius), float(s.validity))
 
 
 def radii_of(u, pr: Problem):
@@ -313,6 +317,12 @@ def residuals(x, points, pr: Problem):
         j = joints
         sec = (j[t[:, 0]] - 2.0 * j[t[:, 1]] + j[t[:, 2]]).reshape(-1)
         r = jnp.concatenate([r, jnp.sqrt(pr.smoothness) * sec])
+    if pr.validity > 0 and pr.triples:
+        # keep every shared cutting plane cutting both its cones in ellipses (the geometry the
+        # renderer and its bounds assume); an invalid plane leaves an unbounded piece that can
+        # claim far outliers and so lower the loss below the truth's (see plane_margins)
+        v = plane_margins(joints, radii_of(u, pr), pr.seg).reshape(-1)
+        r = jnp.concatenate([r, jnp.sqrt(pr.validity) * jnp.maximum(VALID_MARGIN - v, 0.0) / VALID_MARGIN])
     return r
 
 
@@ -414,7 +424,7 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
     nz = normaliser_of(points)
     pts = jnp.asarray(nz.points(points), dtype)
     cast = lambda x: jnp.asarray(x, dtype)  # noqa: E731
-    step = _steppers(s.name, pr, s, len(points) + 3 * len(pr.triples), n_par)
+    step = _steppers(s.name, pr, s, len(points) + 5 * len(pr.triples), n_par)
     x0 = cast(nz.start(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), pr))
     t_all = time.perf_counter()
     restart_losses = []
@@ -476,7 +486,7 @@ def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32
     nzs = [normaliser_of(c) for c in clouds]
     pts = jnp.asarray(np.stack([nz.points(c) for nz, c in zip(nzs, clouds)]), dtype)
     x0 = jnp.asarray(np.stack([nz.start(j, r, pr) for nz, j, r in zip(nzs, j0, r0)]), dtype)
-    step = _steppers(s.name, pr, s, clouds.shape[1] + 3 * len(pr.triples), x0.shape[-1])
+    step = _steppers(s.name, pr, s, clouds.shape[1] + 5 * len(pr.triples), x0.shape[-1])
     solve = jax.jit(jax.vmap(lambda x, p: run_to_end(step, pr, s, x, p)[0]))
     t0 = time.perf_counter()
     solve = solve.lower(x0, pts).compile()
@@ -497,6 +507,14 @@ def point_distances(points, joints, radii, parents, dtype=np.float32) -> np.ndar
     d = checked_distances(jnp.asarray(nz.points(joints), dtype), jnp.asarray(np.asarray(radii) / nz.extent, dtype), seg,
                           jnp.asarray(nz.points(points), dtype))
     return np.asarray(d, np.float64) * nz.extent
+
+
+def plane_margin_min(joints, radii, parents) -> float | None:
+    """The smallest ``plane_margins`` value of a skeleton (None without shared planes)."""
+    seg = segments_of(joints, radii, parents, "skeleton")
+    if not len(seg.cont_b):
+        return None
+    return float(np.min(np.asarray(plane_margins(jnp.asarray(joints, jnp.float32), jnp.asarray(radii, jnp.float32), seg))))
 
 
 # ----------------------------------------------------------------------------- the command
@@ -602,6 +620,8 @@ def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
         "restarts": res.restarts,
         "restart_losses": res.restart_losses,
         "residuals": residual_stats(d, 3.0 * cfg.solver.scale * ext),
+        # n . m - sin(half-angle) of the worst shared cutting plane (< 0: a piece is unbounded)
+        "plane_margin_min": plane_margin_min(res.joints, res.radii, res.parents),
         "dtype": cfg.dtype,
     }
     if truth is not None and len(truth[0]) == len(res.joints) and np.array_equal(truth[2], res.parents):
