@@ -286,3 +286,47 @@ def test_jitted_distance_of_a_long_chain_is_zero_on_its_surface():
     d = jax.jit(lambda a, b, q: distances(a, b, seg, q))(jnp.asarray(j, jnp.float32), jnp.asarray(r, jnp.float32),
                                                           jnp.asarray(pts, jnp.float32))
     assert np.max(np.abs(np.asarray(d))) < 1e-4
+
+
+def test_culled_distances_equal_all_segments_where_certified():
+    """Each point measured against its 8 nearest segments (by a lower bound) of a 50-segment
+    chain: on and off the surface, inside, and far outliers, the culled distance equals the
+    distance over all 50 segments wherever ``culling_exact`` certifies it, and it certifies
+    nearly every point; the smallest lower bound never exceeds the distance over all segments."""
+    from jskel.fit import culling_exact, sample_surface
+    from jskel.fit._bench import bent_chain
+
+    j, r, p = bent_chain(50, 0)
+    seg = segments_of(j, r, p)
+    rng = np.random.default_rng(4)
+    surf = sample_surface(j, r, p, 1500, rng)
+    pts = np.concatenate([surf + rng.normal(0, 0.05, surf.shape), surf + 0.3 * (j.mean(0) - surf) / np.linalg.norm(j.mean(0) - surf, axis=1, keepdims=True),
+                          rng.uniform(j.min(0) - 3, j.max(0) + 3, (500, 3))])
+    args = (jnp.asarray(j, jnp.float32), jnp.asarray(r, jnp.float32), seg, jnp.asarray(pts, jnp.float32))
+    full = np.asarray(distances(*args))
+    culled = np.asarray(distances(*args, 8))
+    ok = np.asarray(culling_exact(*args, 8))
+    assert ok.mean() > 0.99
+    np.testing.assert_allclose(culled[ok], full[ok], atol=1e-6)
+    # the bound the choice rests on: no piece is nearer than its bound (outside points)
+    from jskel.fit._distance import _lower_bounds, _reach, geometry
+
+    g = geometry(*args[:3])
+    lb = np.asarray(jax.vmap(lambda x: jnp.min(_lower_bounds(g, _reach(g), x)))(args[3]))
+    assert np.all(lb[full > 0] <= full[full > 0] + 1e-5)
+
+
+@pytest.mark.parametrize("kind", ["l2", "huber", "cauchy", "geman_mcclure"])
+def test_robust_residuals_square_to_their_loss(kind):
+    """Half the square of each robust residual is its loss, written here in float64 NumPy:
+    Huber's, Cauchy's scale^2/2 log(1 + x), Geman-McClure's scale^2/2 x / (1 + x) (bounded)."""
+    from jskel.fit import robust_residuals
+
+    s = 0.3
+    r = np.concatenate([np.linspace(-50, 50, 401), [0.0, 1e-4, -1e-4, s, -s]])
+    x = (r / s) ** 2
+    want = {"l2": 0.5 * r**2, "huber": np.where(np.abs(r) <= s, 0.5 * r**2, s * np.abs(r) - 0.5 * s * s),
+            "cauchy": 0.5 * s * s * np.log1p(x), "geman_mcclure": 0.5 * s * s * x / (1 + x)}[kind]
+    got = np.asarray(robust_residuals(jnp.asarray(r, jnp.float32), kind, s), np.float64)
+    np.testing.assert_allclose(0.5 * got**2, want, rtol=2e-5, atol=1e-9)
+    assert np.all(np.sign(got) == np.sign(r))

@@ -3,7 +3,9 @@
 Public API:
 
 * :func:`distances` / :func:`signed_distance`: differentiable signed distance from points to a
-  skeleton's frusta (``_distance``), with :func:`segments_of` for the static topology;
+  skeleton's frusta (``_distance``), with :func:`segments_of` for the static topology, each
+  point against its ``candidates`` nearest segments (:func:`culling_exact` certifies it);
+  :func:`plane_margins`: how far each shared cutting plane is from leaving a piece unbounded;
 * :func:`fit_points`: fit joints and radii of a fixed topology (jaxopt LM / Gauss-Newton /
   L-BFGS or optax Adam through the adapter in ``_solvers``);
 * :func:`pca_chain`, :func:`mst_skeleton`: starting skeletons estimated from points;
@@ -12,7 +14,9 @@ Public API:
 from ._config import FitFile as FitFile
 from ._distance import Segments as Segments
 from ._distance import checked_distances as checked_distances
+from ._distance import culling_exact as culling_exact
 from ._distance import cutting_planes as cutting_planes
+from ._distance import plane_margins as plane_margins
 from ._distance import distances as distances
 from ._distance import geometry as geometry
 from ._distance import sample_surface as sample_surface
@@ -30,6 +34,6 @@ from ._fit import read_points as read_points
 from ._fit import run_fit as run_fit
 from ._solvers import robust_residuals as robust_residuals
 
-__all__ = ["FitFile", "FitResult", "Segments", "checked_distances", "cutting_planes", "distances", "fit_many", "fit_points", "geometry", "load_points",
+__all__ = ["FitFile", "FitResult", "Segments", "checked_distances", "culling_exact", "cutting_planes", "plane_margins", "distances", "fit_many", "fit_points", "geometry", "load_points",
            "mst_skeleton", "pca_chain", "perturbed", "point_distances", "read_points", "robust_residuals", "run_fit",
            "sample_surface", "segments_of", "signed_distance"]

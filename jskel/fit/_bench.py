@@ -20,7 +20,8 @@ from pydantic import Field
 from ..config import StrictModel
 from ._config import SolverConfig
 from ._distance import sample_surface
-from ._fit import fit_many, fit_points, perturbed
+from ._distance import segments_of
+from ._fit import culling_exact_fraction, fit_many, fit_points, loss, normaliser_of, perturbed, problem_of
 
 
 class FitBench(StrictModel):
@@ -29,12 +30,13 @@ class FitBench(StrictModel):
     points: list[Annotated[int, Field(ge=10, le=10_000_000)]] = [1000, 10000, 100000]
     segments: list[Annotated[int, Field(ge=1, le=100_000)]] = [5, 50, 500]
     solvers: list[Literal["lm", "gauss_newton", "lbfgs", "adam"]] = ["lm", "gauss_newton", "lbfgs", "adam"]
-    loss: Literal["l2", "huber", "cauchy"] = "cauchy"
+    loss: Literal["l2", "huber", "cauchy", "geman_mcclure"] = "cauchy"
     noise_sd: Annotated[float, Field(ge=0.0)] = 0.05  # world units (segments are 1 long, radii 0.5 -> 0.25)
     outliers: Annotated[float, Field(ge=0.0, le=1.0)] = 0.05
     perturb: Annotated[float, Field(ge=0.0, le=1.0)] = 0.1
     maxiter: Annotated[int, Field(ge=1)] = 200
     smoothness: Annotated[float, Field(ge=0.0)] = 0.0  # the solver's joint smoothness weight
+    candidates: Annotated[int, Field(ge=0, le=4096)] = 8  # segments each point is measured against (0: all)
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.003
     max_work: Annotated[float, Field(gt=0.0)] = 1e7  # points x segments above which a combination is skipped
     batch: list[Annotated[int, Field(ge=1, le=4096)]] = [1, 8, 32]
@@ -77,6 +79,18 @@ def _cloud(j, r, p, n, noise_sd, outliers, rng):
     return pts, length
 
 
+def _loss_at(points, joints, radii, parents, s: SolverConfig) -> float:
+    """The fit's loss (normalised units, penalties included) at a given skeleton: at the truth
+    it says whether a fit that ended off the truth found a lower loss (the objective's fault)
+    or a higher one (the solver's)."""
+    import jax.numpy as jnp
+
+    seg = segments_of(joints, radii, parents)
+    pr = problem_of(seg, s)
+    nz = normaliser_of(points)
+    return float(loss(jnp.asarray(nz.start(joints, radii, pr), jnp.float32), jnp.asarray(nz.points(points), jnp.float32), pr))
+
+
 def run_fit_bench(b: FitBench, emit) -> list[dict]:
     """Run the benchmark, calling ``emit(row)`` for each JSON row as it is measured."""
     import jax
@@ -98,7 +112,7 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
             j0, r0 = perturbed(j, r, p, b.perturb, np.random.default_rng(b.seed + 2))
             for name in b.solvers:
                 s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter if name != "adam" else 10 * b.maxiter,
-                                 learning_rate=b.learning_rate, smoothness=b.smoothness)
+                                 learning_rate=b.learning_rate, smoothness=b.smoothness, candidates=b.candidates)
                 try:
                     res = fit_points(pts, j0, r0, p, s)
                 except ValueError as e:  # too few points, a diverged solver: a row that says so
@@ -111,7 +125,8 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                        "s_per_iteration": round(res.seconds / max(res.iterations, 1), 5),
                        "joint_error_max_of_length": round(float(np.max(np.linalg.norm(res.joints - j, axis=1)) / length), 5),
                        "radius_error_max_rel": round(float(np.max(np.abs(res.radii / r - 1))), 4),
-                       "loss_final": res.history[-1], **common}
+                       "loss_final": res.history[-1], "loss_truth": _loss_at(pts, j, r, p, s),
+                       "culling_exact_fraction": round(culling_exact_fraction(pts, res.joints, res.radii, p, b.candidates), 5), **common}
                 emit(row)
                 rows.append(row)
     j, r, p = bent_chain(b.batch_segments, b.seed)

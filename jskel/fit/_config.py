@@ -73,14 +73,16 @@ class InitConfig(StrictModel):
 
 class SolverConfig(StrictModel):
     """``name``: lm (Levenberg-Marquardt), gauss_newton, lbfgs (jaxopt) or adam (optax).
-    ``loss``: l2, huber or cauchy, with ``scale`` a fraction of the cloud's extent.
+    ``loss``: l2, huber, cauchy or geman_mcclure (bounded), with ``scale`` a fraction of the cloud's extent.
     ``smoothness``: weight of the joints' second differences along chains. ``restarts``: fits
     from that many perturbed starts at once (vmap), the best kept. ``validity``: weight of the
     penalty that keeps every shared cutting plane cutting both its cones in ellipses and facing
-    its segments (``_distance.plane_margins``), so no piece becomes an unbounded wedge."""
+    its segments (``_distance.plane_margins``), so no piece becomes an unbounded wedge.
+    ``candidates``: each point is measured against its that many nearest segments (by a lower
+    bound; 0: all); fit.json reports the fraction of points for which that is certainly exact."""
 
     name: Literal["lm", "gauss_newton", "lbfgs", "adam"] = "lm"
-    loss: Literal["l2", "huber", "cauchy"] = "huber"
+    loss: Literal["l2", "huber", "cauchy", "geman_mcclure"] = "huber"
     scale: Annotated[float, Field(gt=0.0, le=1.0)] = 0.01
     maxiter: Annotated[int, Field(ge=1, le=100_000)] = 100
     tol: Annotated[float, Field(gt=0.0)] = 1e-6  # the solver's own criterion (gradient norm, normalised units)
@@ -90,6 +92,7 @@ class SolverConfig(StrictModel):
     smoothness: Annotated[float, Field(ge=0.0)] = 0.0
     restarts: Annotated[int, Field(ge=1, le=4096)] = 1
     min_radius: Annotated[float, Field(ge=0.0, le=1.0)] = 1e-4  # fraction of extent: radii = min + softplus(u)
+    candidates: Annotated[int, Field(ge=0, le=4096)] = 8  # segments each point is measured against (0: all)
     validity: Annotated[float, Field(ge=0.0)] = 1.0  # weight keeping shared cutting planes cutting ellipses (0: off)
 
 

@@ -23,7 +23,8 @@ import numpy as np
 
 from . import _solvers
 from ._config import EstimateConfig, FitFile, PointsConfig, SolverConfig
-from ._distance import ELLIPSE_MARGIN, Segments, checked_distances, distances, plane_margins, sample_surface, segments_of
+from ._distance import (ELLIPSE_MARGIN, Segments, checked_distances, culling_exact, distances, plane_margins, sample_surface,
+                        segments_of)
 
 
 def _softplus_inv(y):
@@ -286,6 +287,7 @@ class Problem(NamedTuple):
     smoothness: float
     min_radius: float
     validity: float
+    candidates: int
 
 
 VALID_MARGIN = 2.0 * ELLIPSE_MARGIN  # the penalty starts where |n . m| - sin(half-angle) falls below this
@@ -293,7 +295,7 @@ VALID_MARGIN = 2.0 * ELLIPSE_MARGIN  # the penalty starts where |n . m| - sin(ha
 
 def problem_of(seg: Segments, s: SolverConfig) -> Problem:
     triples = tuple((int(seg.start[a]), int(seg.start[b]), int(seg.end[b])) for a, b in zip(seg.cont_a, seg.cont_b))
-    return Problem(seg, triples, s.loss, float(s.scale), float(s.smoothness), float(s.min_radius), float(s.validity))
+    return Problem(seg, triples, s.loss, float(s.scale), float(s.smoothness), float(s.min_radius), float(s.validity), int(s.candidates))
 
 
 def radii_of(u, pr: Problem):
@@ -310,7 +312,7 @@ def unpack(x):
 def residuals(x, points, pr: Problem):
     """Robust point residuals (N,) and the smoothness terms, in normalised units."""
     joints, u = unpack(x)
-    d = distances(joints, radii_of(u, pr), pr.seg, points)
+    d = distances(joints, radii_of(u, pr), pr.seg, points, pr.candidates)
     r = _solvers.robust_residuals(d, pr.loss, pr.scale)
     if pr.smoothness > 0 and pr.triples:
         t = np.asarray(pr.triples)
@@ -509,6 +511,16 @@ def point_distances(points, joints, radii, parents, dtype=np.float32) -> np.ndar
     return np.asarray(d, np.float64) * nz.extent
 
 
+def culling_exact_fraction(points, joints, radii, parents, candidates: int) -> float:
+    """Fraction of ``points`` whose distance over their ``candidates`` nearest segments is
+    certainly their distance over all segments (``culling_exact``), at this skeleton."""
+    seg = segments_of(joints, radii, parents, "skeleton")
+    nz = normaliser_of(np.asarray(points, np.float64))
+    ok = culling_exact(jnp.asarray(nz.points(joints), jnp.float32), jnp.asarray(np.asarray(radii) / nz.extent, jnp.float32), seg,
+                       jnp.asarray(nz.points(points), jnp.float32), candidates)
+    return float(np.mean(np.asarray(ok)))
+
+
 def plane_margin_min(joints, radii, parents) -> float | None:
     """The smallest ``plane_margins`` value of a skeleton (None without shared planes)."""
     seg = segments_of(joints, radii, parents, "skeleton")
@@ -622,6 +634,7 @@ def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
         "residuals": residual_stats(d, 3.0 * cfg.solver.scale * ext),
         # n . m - sin(half-angle) of the worst shared cutting plane (< 0: a piece is unbounded)
         "plane_margin_min": plane_margin_min(res.joints, res.radii, res.parents),
+        "culling_exact_fraction": culling_exact_fraction(points, res.joints, res.radii, res.parents, cfg.solver.candidates),
         "dtype": cfg.dtype,
     }
     if truth is not None and len(truth[0]) == len(res.joints) and np.array_equal(truth[2], res.parents):

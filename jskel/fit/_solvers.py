@@ -29,7 +29,8 @@ import jax.numpy as jnp
 def robust_residuals(r, kind: str, scale):
     """Residuals whose half sum of squares is the robust loss: ``l2``: r; ``huber``: the
     residual of Huber's loss (quadratic within ``scale``, linear beyond); ``cauchy``:
-    ``scale^2 log(1 + (r/scale)^2)``. Written as r times a weight that is 1 near zero, so the
+    ``scale^2 log(1 + (r/scale)^2)``; ``geman_mcclure``: ``scale^2 x / (1 + x)``, ``x = (r/scale)^2``
+    (bounded: redescending, needs a start within a few ``scale`` of the surface). Written as r times a weight that is 1 near zero, so the
     map is smooth at r = 0 (a sign(r) sqrt(loss) form has an infinite slope there)."""
     if kind == "l2":
         return r
@@ -43,7 +44,12 @@ def robust_residuals(r, kind: str, scale):
         small = x2 < 1e-6
         w2 = jnp.where(small, 1.0 - 0.5 * x2, jnp.log1p(x2) / jnp.where(small, 1.0, x2))
         return r * jnp.sqrt(w2)
-    raise ValueError(f"solver.loss: unknown robust loss {kind!r} (l2, huber, cauchy)")
+    if kind == "geman_mcclure":
+        # 0.5 rho^2 = 0.5 s^2 x2 / (1 + x2): bounded by s^2 / 2, so a point far away costs the
+        # same wherever the surface is (Cauchy's log keeps rewarding a surface that reaches
+        # towards outliers: on a 50-segment chain with 5 % outliers L-BFGS grew a 6-unit spike)
+        return r * jax.lax.rsqrt(1.0 + x2)
+    raise ValueError(f"solver.loss: unknown robust loss {kind!r} (l2, huber, cauchy, geman_mcclure)")
 
 
 class Stepper(NamedTuple):
