@@ -330,3 +330,9 @@ def test_robust_residuals_square_to_their_loss(kind):
     got = np.asarray(robust_residuals(jnp.asarray(r, jnp.float32), kind, s), np.float64)
     np.testing.assert_allclose(0.5 * got**2, want, rtol=2e-5, atol=1e-9)
     assert np.all(np.sign(got) == np.sign(r))
+
+
+def test_a_time_budget_stops_the_fit_and_says_so(noisy_branch):
+    pts, _ = noisy_branch
+    res = fit_points(pts, BENT, BENT_R, CHAIN, SolverConfig(name="lm", loss="cauchy", maxiter=50, max_seconds=1e-9))
+    assert res.iterations == 1 and not res.converged and len(res.history) == 2

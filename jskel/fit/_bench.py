@@ -37,6 +37,7 @@ class FitBench(StrictModel):
     maxiter: Annotated[int, Field(ge=1)] = 200
     smoothness: Annotated[float, Field(ge=0.0)] = 0.0  # the solver's joint smoothness weight
     candidates: Annotated[int, Field(ge=0, le=4096)] = 8  # segments each point is measured against (0: all)
+    max_seconds: Annotated[float, Field(gt=0.0)] | None = 300.0  # per fit's stepping loop; a row says when it ran out
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.003
     max_work: Annotated[float, Field(gt=0.0)] = 1e7  # points x segments above which a combination is skipped
     batch: list[Annotated[int, Field(ge=1, le=4096)]] = [1, 8, 32]
@@ -112,7 +113,8 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
             j0, r0 = perturbed(j, r, p, b.perturb, np.random.default_rng(b.seed + 2))
             for name in b.solvers:
                 s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter if name != "adam" else 10 * b.maxiter,
-                                 learning_rate=b.learning_rate, smoothness=b.smoothness, candidates=b.candidates)
+                                 learning_rate=b.learning_rate, smoothness=b.smoothness, candidates=b.candidates,
+                                 max_seconds=b.max_seconds)
                 try:
                     res = fit_points(pts, j0, r0, p, s)
                 except ValueError as e:  # too few points, a diverged solver: a row that says so
@@ -125,6 +127,7 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                        "s_per_iteration": round(res.seconds / max(res.iterations, 1), 5),
                        "joint_error_max_of_length": round(float(np.max(np.linalg.norm(res.joints - j, axis=1)) / length), 5),
                        "radius_error_max_rel": round(float(np.max(np.abs(res.radii / r - 1))), 4),
+                       "out_of_time": bool(b.max_seconds is not None and not res.converged and res.iterations < s.maxiter),
                        "loss_final": res.history[-1], "loss_truth": _loss_at(pts, j, r, p, s),
                        "culling_exact_fraction": round(culling_exact_fraction(pts, res.joints, res.radii, p, b.candidates), 5), **common}
                 emit(row)

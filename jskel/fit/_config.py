@@ -93,6 +93,7 @@ class SolverConfig(StrictModel):
     restarts: Annotated[int, Field(ge=1, le=4096)] = 1
     min_radius: Annotated[float, Field(ge=0.0, le=1.0)] = 1e-4  # fraction of extent: radii = min + softplus(u)
     candidates: Annotated[int, Field(ge=0, le=4096)] = 8  # segments each point is measured against (0: all)
+    max_seconds: Annotated[float, Field(gt=0.0)] | None = None  # stop the stepping loop after this long (reported)
     validity: Annotated[float, Field(ge=0.0)] = 1.0  # weight keeping shared cutting planes cutting ellipses (0: off)
 
 

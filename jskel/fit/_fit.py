@@ -452,9 +452,12 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
     converged = False
     it = 0
     stalled = 0
+    t_loop = time.perf_counter()
     for it in range(1, s.maxiter + 1):  # host loop over iterations: one compiled update each
         x, st = upd(x, st)
         history.append(float(lossf(x)))
+        if s.max_seconds is not None and time.perf_counter() - t_loop > s.max_seconds:
+            break  # not converged: the time budget ran out (FitResult.converged says so)
         if float(step.error(st)) <= s.tol:
             converged = True
             break
