@@ -184,9 +184,13 @@ def plane_margins(joints, radii, seg: Segments):
     back to 0.26 of its length, its cone reaching 25 units out; a plane with n . m = -0.45
     putting an outlier 16 units behind a segment inside it), so the fit keeps these above a
     margin by a penalty (``_fit.residuals``)."""
-    g = geometry(joints, radii, seg)
+    return margins_of(geometry(joints, radii, seg), seg)
+
+
+def margins_of(g: Geometry, seg: Segments):
+    """:func:`plane_margins` from an already built :class:`Geometry`."""
     if not len(seg.cont_b):
-        return jnp.zeros((0, 2), joints.dtype)
+        return jnp.zeros((0, 2), g.h.dtype)
     a, b = seg.cont_a, seg.cont_b
     n = g.nt[a]
 
@@ -359,28 +363,30 @@ def distances(joints, radii, seg: Segments, points, candidates: int = 0):
     smallest lower bound (distance to the axis segment less the piece's reach, chosen without
     gradient), so the work is points x candidates plus a cheap points x segments selection,
     and each residual depends on a few joints. Exact wherever :func:`culling_exact` says so."""
-    g = geometry(joints, radii, seg)
+    return distances_of(geometry(joints, radii, seg), seg, points, candidates)[0]
+
+
+def distances_of(g: Geometry, seg: Segments, points, candidates: int = 0):
+    """:func:`distances` from an already built :class:`Geometry`, with (N,) the (k+1)-th
+    smallest lower bound of each point (inf without culling) for :func:`culling_exact`."""
     if candidates <= 0 or candidates >= len(seg.start):
-        return jax.vmap(lambda p: signed_distance(g, p, seg))(points)
+        d = jax.vmap(lambda p: signed_distance(g, p, seg))(points)
+        return d, jnp.full(d.shape, jnp.inf, d.dtype)
     cap_b, cap_t = (jnp.asarray(c) for c in caps_of(seg))
-    idx, _ = _candidates(g, points, candidates)
+    idx, nxt = _candidates(g, points, candidates)
 
     def one(p, i):
         sub = jax.tree_util.tree_map(lambda a: a[i], g)
         return _signed(sub, p, cap_b[i], cap_t[i])
 
-    return jax.vmap(one)(points, idx)
+    return jax.vmap(one)(points, idx), nxt
 
 
 def culling_exact(joints, radii, seg: Segments, points, candidates: int):
     """(N,) bool: whether the distance over each point's ``candidates`` nearest segments (by
     lower bound) is certainly the distance over all: outside, no other piece's lower bound is
     below the distance found; inside, no other piece can contain the point (bound > 0)."""
-    if candidates <= 0 or candidates >= len(seg.start):
-        return jnp.ones(points.shape[:1], bool)
-    g = geometry(joints, radii, seg)
-    _, nxt = _candidates(g, points, candidates)
-    d = distances(joints, radii, seg, points, candidates)
+    d, nxt = distances_of(geometry(joints, radii, seg), seg, points, candidates)
     return jnp.where(d >= 0, nxt >= d, nxt > 0)
 
 
@@ -489,6 +495,6 @@ def sample_surface(joints, radii, parents, count: int, rng: np.random.Generator)
     return np.concatenate(out)
 
 
-__all__ = ["Geometry", "Segments", "caps_of", "checked_distances", "culling_exact", "cutting_planes", "distances", "geometry", "plane_margins",
+__all__ = ["Geometry", "Segments", "caps_of", "checked_distances", "culling_exact", "cutting_planes", "distances", "distances_of", "geometry", "margins_of", "plane_margins",
            "sample_surface",
            "segment_distances", "segments_of", "signed_distance"]

@@ -23,8 +23,8 @@ import numpy as np
 
 from . import _solvers
 from ._config import EstimateConfig, FitFile, PointsConfig, SolverConfig
-from ._distance import (ELLIPSE_MARGIN, Segments, checked_distances, culling_exact, distances, plane_margins, sample_surface,
-                        segments_of)
+from ._distance import (ELLIPSE_MARGIN, Segments, checked_distances, culling_exact, distances_of, geometry, margins_of,
+                        plane_margins, sample_surface, segments_of)
 
 
 def _softplus_inv(y):
@@ -312,7 +312,8 @@ def unpack(x):
 def residuals(x, points, pr: Problem):
     """Robust point residuals (N,) and the smoothness terms, in normalised units."""
     joints, u = unpack(x)
-    d = distances(joints, radii_of(u, pr), pr.seg, points, pr.candidates)
+    g = geometry(joints, radii_of(u, pr), pr.seg)  # once, for the distances and the plane margins
+    d = distances_of(g, pr.seg, points, pr.candidates)[0]
     r = _solvers.robust_residuals(d, pr.loss, pr.scale)
     if pr.smoothness > 0 and pr.triples:
         t = np.asarray(pr.triples)
@@ -323,7 +324,7 @@ def residuals(x, points, pr: Problem):
         # keep every shared cutting plane cutting both its cones in ellipses (the geometry the
         # renderer and its bounds assume); an invalid plane leaves an unbounded piece that can
         # claim far outliers and so lower the loss below the truth's (see plane_margins)
-        v = plane_margins(joints, radii_of(u, pr), pr.seg).reshape(-1)
+        v = margins_of(g, pr.seg).reshape(-1)
         r = jnp.concatenate([r, jnp.sqrt(pr.validity) * jnp.maximum(VALID_MARGIN - v, 0.0) / VALID_MARGIN])
     return r
 
