@@ -133,11 +133,13 @@ def noisy_branch():
 def test_recovers_a_known_chain_from_noisy_points_with_outliers(noisy_branch, solver):
     """5 segments, Gaussian noise of 1 % of the chain's length, 5 % outliers, a start moved by
     10 % (joints by 10 % of a segment, radii by 10 %): joints within 2 % of the length, radii
-    within 5 %. L-BFGS runs 4 starts at once under vmap (the given one and 3 perturbed copies)
-    and keeps the best: from single starts it stopped in a local minimum once in two tries."""
+    within 5 %. LM with jaxopt's dense Jacobian, and the same algorithm on the sparse normal
+    equations (``solver.jacobian: sparse``) takes the same steps to the same skeleton. L-BFGS
+    runs 4 starts at once under vmap (the given one and 3 perturbed copies) and keeps the best:
+    from single starts it stopped in a local minimum once in two tries."""
     pts, length = noisy_branch
     j0, r0 = perturbed(BENT, BENT_R, CHAIN, 0.1, np.random.default_rng(3))
-    s = SolverConfig(name=solver, loss="cauchy", scale=0.01, maxiter=300, restarts=1 if solver == "lm" else 4)
+    s = SolverConfig(name=solver, loss="cauchy", scale=0.01, maxiter=300, restarts=1 if solver == "lm" else 4, jacobian="dense")
     res = fit_points(pts, j0, r0, CHAIN, s)
     assert np.max(np.linalg.norm(j0 - BENT, axis=1)) > 0.05 * length / 5  # the start is really off
     assert np.max(np.linalg.norm(res.joints - BENT, axis=1)) < 0.02 * length
@@ -145,6 +147,12 @@ def test_recovers_a_known_chain_from_noisy_points_with_outliers(noisy_branch, so
     assert res.history[-1] < res.history[0] and res.converged
     if solver == "lbfgs":
         assert len(res.restart_losses) == 4
+    else:
+        sp = fit_points(pts, j0, r0, CHAIN, s.model_copy(update={"jacobian": "sparse"}))
+        np.testing.assert_allclose(sp.history[:6], res.history[:6], rtol=1e-4)  # the same first steps
+        assert abs(sp.iterations - res.iterations) <= 2 and abs(sp.history[-1] / res.history[-1] - 1) < 1e-4
+        np.testing.assert_allclose(sp.joints, res.joints, atol=1e-3 * length)
+        np.testing.assert_allclose(sp.radii, res.radii, rtol=1e-3)
 
 
 def test_batched_fits_match_the_truth_for_every_cloud():

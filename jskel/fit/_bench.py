@@ -21,7 +21,7 @@ from ..config import StrictModel
 from ._config import SolverConfig
 from ._distance import sample_surface
 from ._distance import segments_of
-from ._fit import culling_exact_fraction, fit_many, fit_points, loss, normaliser_of, perturbed, problem_of
+from ._fit import culling_exact_fraction, fit_many, fit_points, loss, normaliser_of, perturbed, problem_of, uses_sparse
 
 
 class FitBench(StrictModel):
@@ -38,6 +38,7 @@ class FitBench(StrictModel):
     smoothness: Annotated[float, Field(ge=0.0)] = 0.0  # the solver's joint smoothness weight
     candidates: Annotated[int, Field(ge=0, le=4096)] = 8  # segments each point is measured against (0: all)
     max_seconds: Annotated[float, Field(gt=0.0)] | None = 300.0  # per fit's stepping loop; a row says when it ran out
+    jacobian: Literal["auto", "dense", "sparse"] = "auto"  # lm / gauss_newton (solver.jacobian); rows say which ran
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.003
     max_work: Annotated[float, Field(gt=0.0)] = 1e7  # points x segments above which a combination is skipped
     batch: list[Annotated[int, Field(ge=1, le=4096)]] = [1, 8, 32]
@@ -114,7 +115,7 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
             for name in b.solvers:
                 s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter if name != "adam" else 10 * b.maxiter,
                                  learning_rate=b.learning_rate, smoothness=b.smoothness, candidates=b.candidates,
-                                 max_seconds=b.max_seconds)
+                                 max_seconds=b.max_seconds, jacobian=b.jacobian)
                 try:
                     res = fit_points(pts, j0, r0, p, s)
                 except ValueError as e:  # too few points, a diverged solver: a row that says so
@@ -122,7 +123,8 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                     emit(row)
                     rows.append(row)
                     continue
-                row = {"solver": name, "loss": b.loss, "smoothness": b.smoothness, "points": n, "segments": segs, "compile_s": round(res.compile_s, 3),
+                jac = ("sparse" if uses_sparse(s, n + 5 * (segs - 1), 4 * (segs + 1)) else "dense") if name in ("lm", "gauss_newton") else None
+                row = {"solver": name, "jacobian": jac, "loss": b.loss, "smoothness": b.smoothness, "points": n, "segments": segs, "compile_s": round(res.compile_s, 3),
                        "seconds": round(res.seconds, 4), "iterations": res.iterations, "converged": res.converged,
                        "s_per_iteration": round(res.seconds / max(res.iterations, 1), 5),
                        "joint_error_max_of_length": round(float(np.max(np.linalg.norm(res.joints - j, axis=1)) / length), 5),

@@ -1,0 +1,188 @@
+"""The fit's normal equations assembled from its sparsity (issue 10): J^T J and J^T r without
+a dense Jacobian, so Levenberg-Marquardt and Gauss-Newton fit chains of hundreds of segments.
+
+A point's residual is a function of one segment's frusta geometry: the signed distance is a
+minimum over the point's candidate segments (``_distance._signed``), so its gradient reaches
+only the segment that attains it (ties, of measure zero, split it; :func:`point_rows` reports
+the gradient left outside the kept segment as ``spill``, which tests assert is zero). A
+segment's geometry (``Geometry``: axis start, direction, length, radii, its two cutting planes:
+17 numbers) depends on at most four joints: its own two, and the far joints of the segment it
+continues and of the one continuing it (the shared planes of Eq. 3-5 of Bhagvat et al. 2009,
+Sec. 2.2, see ``_distance.cutting_planes``). So with ``R_i`` the residual's gradient with
+respect to its segment's 17 numbers and ``G_s`` the 17 x 16 Jacobian of segment s's geometry
+with respect to its joints' 16 unknowns,
+
+    J^T J = sum_s G_s^T (sum_{i on s} R_i^T R_i) G_s,      J^T r = sum_s G_s^T sum_{i on s} R_i r_i,
+
+(the inner sums a ``segment_sum`` over points, the outer 16 x 16 blocks scattered into the
+dense (4J, 4J) matrix). The per-point gradients are one reverse pass over the point's few
+candidates (as L-BFGS's gradient), the geometry Jacobian one forward pass with a handful of
+tangents: joints are coloured so that no two joints of a colour touch the same segment (or the
+same penalty row), and one tangent per colour and unknown (x, y, z, radius) carries all joints
+of that colour at once, each output reading back only its own joints (Curtis, Powell and Reid
+1974's compressed Jacobian; a chain needs 5 colours, 20 tangents, for any length). The
+smoothness and plane-validity penalties (``_fit.penalty_residuals``) are rows of their own
+through the same forward pass.
+
+Memory is O(points x 17 x 17 + (4J)^2) instead of the dense Jacobian's O(points x 4J), and the
+work per iteration is one residual pass, its gradients and a (4J)^2 Cholesky. The dense
+matrix limits this to a few thousand joints (a 5,000-segment chain's 20,004^2 float32 matrix is
+1.6 GB); beyond that a banded or sparse factorisation would be next.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._distance import Geometry, Segments, _candidates, _signed, caps_of
+
+FIELDS = 17  # numbers per segment in Geometry (c1 3, m 3, h, r1, r2, nb 3, db, nt 3, dt)
+
+
+def flat_geometry(g: Geometry):
+    """(S, 17) the per-segment numbers of ``g`` in one array."""
+    one = lambda a: a[:, None]  # noqa: E731
+    return jnp.concatenate([g.c1, g.m, one(g.h), one(g.r1), one(g.r2), g.nb, one(g.db), g.nt, one(g.dt)], -1)
+
+
+def geometry_of_flat(f) -> Geometry:
+    """:func:`flat_geometry`'s inverse (any leading shape)."""
+    return Geometry(f[..., 0:3], f[..., 3:6], f[..., 6], f[..., 7], f[..., 8], f[..., 9:12], f[..., 12], f[..., 13:16], f[..., 16])
+
+
+class Structure(NamedTuple):
+    """Static (NumPy) sparsity of a skeleton's fit."""
+
+    seg_joints: np.ndarray  # (S, 4) joints a segment's geometry depends on (padding: joint 0, masked)
+    seg_mask: np.ndarray  # (S, 4) bool
+    pen_joints: np.ndarray  # (K, Dp) joints each continuation's penalty rows depend on
+    pen_mask: np.ndarray  # (K, Dp) bool
+    colors: np.ndarray  # (J,) a colour per joint: no two joints of a row's set share one
+    n_colors: int
+
+
+def _padded(sets):
+    width = max((len(s) for s in sets), default=1) or 1
+    idx = np.zeros((len(sets), width), np.int64)
+    mask = np.zeros((len(sets), width), bool)
+    for i, s in enumerate(sets):
+        idx[i, : len(s)] = s
+        mask[i, : len(s)] = True
+    return idx, mask
+
+
+def structure(seg: Segments, n_joints: int) -> Structure:
+    """Which joints each segment's geometry and each continuation's penalty rows depend on,
+    and a greedy colouring of the joints that keeps every such set's joints apart."""
+    start, end = np.asarray(seg.start, np.int64), np.asarray(seg.end, np.int64)
+    deps = [[int(start[s]), int(end[s])] for s in range(len(start))]
+    for a, b in zip(np.asarray(seg.cont_a), np.asarray(seg.cont_b)):
+        deps[b].insert(0, int(start[a]))  # the continued segment's far joint (its plane with b)
+        deps[a].append(int(end[b]))  # the continuing segment's far joint
+    deps = [list(dict.fromkeys(d)) for d in deps]
+    pen = [list(dict.fromkeys(deps[a] + deps[b])) for a, b in zip(np.asarray(seg.cont_a), np.asarray(seg.cont_b))]
+    neighbours = [set() for _ in range(n_joints)]
+    for group in deps + pen:
+        for j in group:
+            neighbours[j].update(group)
+    colors = -np.ones(n_joints, np.int64)
+    for j in range(n_joints):  # host loop over joints, once per problem (static topology)
+        used = {int(colors[k]) for k in neighbours[j] if k != j and colors[k] >= 0}
+        c = 0
+        while c in used:
+            c += 1
+        colors[j] = c
+    sj, sm = _padded(deps)
+    pj, pm = _padded(pen) if pen else (np.zeros((0, 1), np.int64), np.zeros((0, 1), bool))
+    return Structure(sj, sm, pj, pm, colors, int(colors.max()) + 1 if n_joints else 0)
+
+
+def _param_index(joints, n_joints: int):
+    """(..., 4) flat parameter indices of joints (x, y, z, radius) in ``_fit.unpack``'s layout."""
+    j = np.asarray(joints, np.int64)[..., None]
+    return np.concatenate([3 * j + np.arange(3), 3 * n_joints + j], -1)
+
+
+def _seeds(st: Structure, n_joints: int, dtype):
+    """(4C, 4J) tangents: for colour c and unknown p, 1 on unknown p of every joint of colour c."""
+    t = np.zeros((st.n_colors, 4, 4 * n_joints))
+    pidx = _param_index(np.arange(n_joints), n_joints)  # (J, 4)
+    for p in range(4):
+        t[st.colors, p, pidx[:, p]] = 1.0
+    return jnp.asarray(t.reshape(-1, 4 * n_joints), dtype)
+
+
+def _decode(out, colors, joints, mask):
+    """Read back, for each row of ``out`` (4C, R, F) and each of its joints (R, D), the
+    derivative with respect to that joint's 4 unknowns: (R, F, D, 4), zero where masked."""
+    c = np.asarray(colors)[joints]  # (R, D)
+    col = c[..., None] * 4 + np.arange(4)  # (R, D, 4)
+    o = jnp.moveaxis(out, 0, -1)  # (R, F, 4C)
+    rows = np.arange(joints.shape[0])[:, None, None]
+    vals = o[rows, :, col]  # (R, D, 4, F)
+    vals = jnp.moveaxis(vals, -1, 1) * jnp.asarray(mask, out.dtype)[:, None, :, None]
+    return vals
+
+
+def point_rows(flat, seg: Segments, points, candidates: int, robust):
+    """Each point's robust residual (N,), its gradient with respect to the 17 numbers of the
+    one segment it depends on (N, 17), that segment (N,), and ``spill`` (N,): the squared
+    gradient norm on its other candidates (zero unless a tie split it)."""
+    s = flat.shape[0]
+    cap_b, cap_t = (jnp.asarray(c) for c in caps_of(seg))
+    if 0 < candidates < s:
+        idx, _ = _candidates(geometry_of_flat(flat), points, candidates)
+    else:
+        idx = jnp.broadcast_to(jnp.arange(s), (points.shape[0], s))
+
+    def one(p, i):
+        def f(sub):
+            return robust(_signed(geometry_of_flat(sub), p, cap_b[i], cap_t[i]))
+
+        r, gsub = jax.value_and_grad(f)(flat[i])
+        n2 = jnp.sum(gsub * gsub, -1)
+        a = jnp.argmax(n2)
+        return r, gsub[a], i[a], jnp.sum(n2) - n2[a]
+
+    return jax.vmap(one)(points, idx)
+
+
+def normal_equations(x, points, model_fn, seg: Segments, n_joints: int, candidates: int, robust):
+    """(r, J^T J, J^T r) of the fit's residuals at ``x`` (4J,): ``r`` in ``_fit.residuals``'s
+    order (points, then penalty rows).
+
+    ``model_fn(x) -> (Geometry, (K, E))``: the frusta, and ``E`` penalty rows per continuation
+    (each depending only on its two segments' joints)."""
+    st = structure(seg, n_joints)
+    nseg = len(seg.start)
+    seeds = _seeds(st, n_joints, x.dtype)
+
+    def both(x):
+        g, pen = model_fn(x)
+        return flat_geometry(g), pen
+
+    (flat, pen), lin = jax.linearize(both, x)
+    dflat, dpen = jax.vmap(lin)(seeds)  # (4C, S, 17), (4C, K, E)
+    gj = _decode(dflat, st.colors, st.seg_joints, st.seg_mask).reshape(nseg, FIELDS, -1)  # (S, 17, 4D)
+    sidx = _param_index(st.seg_joints, n_joints).reshape(nseg, -1)  # (S, 4D)
+
+    r, rows, which, _ = point_rows(flat, seg, points, candidates, robust)
+    m = jax.ops.segment_sum(rows[:, :, None] * rows[:, None, :], which, nseg)  # (S, 17, 17)
+    v = jax.ops.segment_sum(rows * r[:, None], which, nseg)  # (S, 17)
+    h = jnp.einsum("sfa,sfg,sgb->sab", gj, m, gj)
+    p = 4 * n_joints
+    jtj = jnp.zeros((p, p), x.dtype).at[sidx[:, :, None], sidx[:, None, :]].add(h)
+    jtr = jnp.zeros((p,), x.dtype).at[sidx].add(jnp.einsum("sfa,sf->sa", gj, v))
+    if pen.shape[0] and pen.shape[1]:
+        k, e = pen.shape
+        pv = _decode(dpen, st.colors, st.pen_joints, st.pen_mask)  # (K, E, Dp, 4)
+        pv = pv.reshape(k, e, -1)
+        pidx = _param_index(st.pen_joints, n_joints).reshape(k, -1)
+        jtj = jtj.at[pidx[:, :, None], pidx[:, None, :]].add(jnp.einsum("kea,keb->kab", pv, pv))
+        jtr = jtr.at[pidx].add(jnp.einsum("kea,ke->ka", pv, pen))
+        r = jnp.concatenate([r, pen.reshape(-1)])
+    return r, jtj, jtr

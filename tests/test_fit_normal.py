@@ -1,0 +1,129 @@
+"""The fit's sparse normal equations and the solver that uses them (issue 10): J^T J and J^T r
+assembled from each point's one segment and each segment's four joints equal those of the
+dense Jacobian; the colouring keeps every dependency set apart; the Levenberg-Marquardt and
+Gauss-Newton steps on supplied normal equations solve closed-form problems. (That they take
+jaxopt's Levenberg-Marquardt's steps on a real fit is asserted in ``test_fit``'s recovery test.)"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jskel.fit import perturbed, segments_of
+from jskel.fit._bench import bent_chain
+from jskel.fit._config import SolverConfig
+from jskel.fit._fit import normal_equations, normaliser_of, problem_of, residuals
+from jskel.fit._normal import point_rows, structure
+from jskel.fit._solvers import normal_solver
+
+from conftest import random_tree
+
+
+def _problem(j, r, p, n, candidates, seed, smoothness=0.1, validity=1.0):
+    from jskel.fit import sample_surface
+
+    rng = np.random.default_rng(seed)
+    pts = sample_surface(j, r, p, n, rng)
+    pts = pts + rng.normal(0, 0.05, pts.shape)
+    k = n // 20
+    pts[:k] = rng.uniform(pts.min(0) - 1, pts.max(0) + 1, (k, 3))  # outliers
+    seg = segments_of(j, r, p)
+    pr = problem_of(seg, SolverConfig(loss="cauchy", smoothness=smoothness, validity=validity, candidates=candidates))
+    nz = normaliser_of(pts)
+    j0, r0 = perturbed(j, r, np.asarray(p), 0.1, rng)
+    return pr, jnp.asarray(nz.start(j0, r0, pr), jnp.float32), jnp.asarray(nz.points(pts), jnp.float32)
+
+
+@pytest.mark.parametrize("case", ["chain", "tree"])
+def test_sparse_normal_equations_equal_the_dense_jacobians(case):
+    """A bent 12-segment chain (each point against its 4 nearest segments) and a random
+    branching tree (side branches start capped; every segment): r, J^T J and J^T r from the
+    sparse assembly against the dense forward-mode Jacobian of the same residuals, with the
+    smoothness and plane-validity rows in; every point's gradient lies on one segment."""
+    if case == "chain":
+        j, r, p = bent_chain(12, 0)
+        pr, x, pts = _problem(j, r, p, 1200, 4, 1)
+    else:
+        j, r, p = random_tree(np.random.default_rng(11), 9)
+        pr, x, pts = _problem(j, r, p, 1200, 0, 2)
+    assert len(pr.seg.cont_b) >= 3 and (case == "chain" or len(pr.seg.cont_b) < len(pr.seg.start) - 1)
+    rr, jtj, g = jax.jit(lambda x: normal_equations(x, pts, pr))(x)
+    rd = residuals(x, pts, pr)
+    jac = np.asarray(jax.jacfwd(lambda x: residuals(x, pts, pr))(x), np.float64)
+    assert np.count_nonzero(np.abs(jac[-5 * len(pr.triples):]).sum(1)) > 0  # penalty rows are live
+    np.testing.assert_allclose(np.asarray(rr), np.asarray(rd), atol=1e-6)
+    want = jac.T @ jac
+    np.testing.assert_allclose(np.asarray(jtj), want, atol=2e-5 * np.abs(want).max())
+    want_g = jac.T @ np.asarray(rd, np.float64)
+    np.testing.assert_allclose(np.asarray(g), want_g, atol=2e-5 * np.abs(want_g).max())
+    from jskel.fit._normal import flat_geometry
+    from jskel.fit._distance import geometry
+    from jskel.fit._fit import radii_of, unpack
+    from jskel.fit._solvers import robust_residuals
+
+    jj, u = unpack(x)
+    flat = flat_geometry(geometry(jj, radii_of(u, pr), pr.seg))
+    spill = point_rows(flat, pr.seg, pts, pr.candidates, lambda d: robust_residuals(d, pr.loss, pr.scale))[3]
+    assert float(jnp.max(spill)) == 0.0
+
+
+def test_the_colouring_keeps_every_dependency_set_apart():
+    """Each segment's geometry depends on its joints and its continuations' far joints; each
+    penalty row on both segments of its continuation: within every set the colours differ,
+    and a chain of any length needs 5 colours (20 forward tangents)."""
+    for n in (3, 50, 500):
+        j, r, p = bent_chain(n, 0)
+        st = structure(segments_of(j, r, p), n + 1)
+        assert st.n_colors == min(5, n + 1)
+        for idx, mask in ((st.seg_joints, st.seg_mask), (st.pen_joints, st.pen_mask)):
+            for row, m in zip(idx, mask):
+                c = st.colors[row[m]]
+                assert len(set(c.tolist())) == len(c)
+        # a middle segment depends on 4 joints: the one before it, its own two, the one after
+        assert sorted(st.seg_joints[n // 2][st.seg_mask[n // 2]].tolist()) == [n // 2 - 1, n // 2, n // 2 + 1, n // 2 + 2]
+    jt, rt, pt = random_tree(np.random.default_rng(3), 30)
+    st = structure(segments_of(jt, rt, pt), len(jt))
+    for row, m in zip(st.pen_joints, st.pen_mask):
+        assert len(set(st.colors[row[m]].tolist())) == int(m.sum())
+
+
+def _linear_system(a, b):
+    def system(x):
+        r = a @ x - b
+        return r, a.T @ a, a.T @ r
+
+    return system, lambda x: 0.5 * jnp.sum((a @ x - b) ** 2)
+
+
+@pytest.mark.parametrize("damped", [True, False], ids=["lm", "gauss_newton"])
+def test_normal_solver_reaches_closed_form_minima(damped):
+    """A linear least-squares problem (truth: NumPy's float64 lstsq) and Rosenbrock's function
+    as residuals (10 (y - x^2), 1 - x; minimum at (1, 1))."""
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(30, 4))
+    b = rng.normal(size=30)
+    want = np.linalg.lstsq(a, b, rcond=None)[0]
+    system, loss = _linear_system(jnp.asarray(a, jnp.float32), jnp.asarray(b, jnp.float32))
+    step = normal_solver(lambda x: system(x), loss, damped=damped)
+    x = jnp.zeros(4, jnp.float32)
+    st = step.init(x)
+    upd = jax.jit(step.update)
+    for _ in range(8):
+        x, st = upd(x, st)
+    np.testing.assert_allclose(np.asarray(x), want, atol=2e-5)
+    assert float(step.error(st)) < 1e-3
+
+    def ros(x):
+        r = jnp.stack([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]])
+        jac = jnp.stack([jnp.stack([-20.0 * x[0], 10.0]), jnp.stack([-1.0, 0.0])])
+        return r, jac.T @ jac, jac.T @ r
+
+    step = normal_solver(ros, lambda x: 0.5 * jnp.sum(ros(x)[0] ** 2), damped=damped)
+    x = jnp.asarray([-1.2, 1.0], jnp.float32)
+    st = step.init(x)
+    upd = jax.jit(step.update)
+    for _ in range(60):
+        x, st = upd(x, st)
+    np.testing.assert_allclose(np.asarray(x), [1.0, 1.0], atol=1e-4)
