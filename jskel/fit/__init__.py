@@ -7,7 +7,8 @@ Public API:
   point against its ``candidates`` nearest segments (:func:`culling_exact` certifies it);
   :func:`plane_margins`: how far each shared cutting plane is from leaving a piece unbounded;
 * :func:`fit_points`: fit joints and radii of a fixed topology (jaxopt LM / Gauss-Newton /
-  L-BFGS or optax Adam through the adapter in ``_solvers``);
+  L-BFGS or optax Adam through the adapter in ``_solvers``; for large problems LM and
+  Gauss-Newton on normal equations assembled from the problem's sparsity, ``_normal``);
 * :func:`pca_chain`, :func:`mst_skeleton`: starting skeletons estimated from points;
 * :func:`run_fit` and :class:`FitFile`: what ``python -m jskel fit FILE --out DIR`` runs."""
 
