@@ -135,7 +135,7 @@ def test_recovers_a_known_chain_from_noisy_points_with_outliers(noisy_branch, so
     10 % (joints by 10 % of a segment, radii by 10 %): joints within 2 % of the length, radii
     within 5 %. LM with jaxopt's dense Jacobian, and the same algorithm on the sparse normal
     equations (``solver.jacobian: sparse``) takes the same steps to the same skeleton. L-BFGS
-    runs 4 starts at once under vmap (the given one and 3 perturbed copies) and keeps the best:
+    runs 4 starts in one call (the given one and 3 perturbed copies, in turn under lax.map) and keeps the best:
     from single starts it stopped in a local minimum once in two tries."""
     pts, length = noisy_branch
     j0, r0 = perturbed(BENT, BENT_R, CHAIN, 0.1, np.random.default_rng(3))

@@ -75,7 +75,7 @@ class SolverConfig(StrictModel):
     """``name``: lm (Levenberg-Marquardt), gauss_newton, lbfgs (jaxopt) or adam (optax).
     ``loss``: l2, huber, cauchy or geman_mcclure (bounded), with ``scale`` a fraction of the cloud's extent.
     ``smoothness``: weight of the joints' second differences along chains. ``restarts``: fits
-    from that many perturbed starts at once (vmap), the best kept. ``validity``: weight of the
+    from that many perturbed starts in one call (``_fit.over_batch``), the best kept. ``validity``: weight of the
     penalty that keeps every shared cutting plane cutting both its cones in ellipses and facing
     its segments (``_distance.plane_margins``), so no piece becomes an unbounded wedge.
     ``candidates``: each point is measured against its that many nearest segments (by a lower

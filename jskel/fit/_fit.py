@@ -468,7 +468,7 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
                perturb: float = 0.0) -> FitResult:
     """Fit a skeleton of ``parents``' topology to ``points`` from (joints0, radii0): the
     stepping loop records the loss after every iteration; with ``s.restarts > 1`` that many
-    starts (the given one and perturbed copies) are first solved at once under ``vmap`` and
+    starts (the given one and perturbed copies) are first solved in one call (:func:`over_batch`) and
     the best is stepped again for its loss curve (one more fit, counted in ``seconds``)."""
     seg = segments_of(joints0, radii0, parents, "init.skeleton")
     n_par = 4 * len(joints0)
@@ -532,7 +532,8 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
 def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32):
     """Fit one topology to B clouds at once (B, N, 3), each from its own start (B, J, 3) and
     (B, J) or one shared start: every cloud is normalised on the host, then the solver's whole
-    run is ``vmap``-ed (one compiled call; the batch runs until its slowest fit stops).
+    run is mapped over the batch in one compiled call (:func:`over_batch`: in lockstep under
+    ``vmap``, the batch running until its slowest fit stops, or for L-BFGS one after another).
     Returns (joints (B,J,3), radii (B,J), final losses (B,), seconds, compile seconds)."""
     clouds = np.asarray(clouds, np.float64)
     b = clouds.shape[0]
