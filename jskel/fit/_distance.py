@@ -481,8 +481,8 @@ def sample_surface(joints, radii, parents, count: int, rng: np.random.Generator)
         q = p - a.c1[i]
         tol = 1e-9 * (1 + np.abs(a.h[i]))
         ok = (np.sum(a.nb[i] * q, -1) >= a.db[i] - tol) & (np.sum(a.nt[i] * q, -1) <= a.dt[i] + tol)
-        # not strictly inside another segment (proposals x segments, in blocks: at 500
-        # segments and 400,000 proposals one block held 4.8 GB per array and the sampler 19 GB)
+        # not strictly inside another segment (proposals x segments, in blocks: at 500 segments
+        # and 400,000 proposals one float64 block of (proposals, segments, 3) is 4.8 GB)
         block = max(1, (1 << 21) // s)
         for b0 in range(0, m, block):  # host loop over proposal blocks (bounded memory)
             sl = slice(b0, b0 + block)
