@@ -83,5 +83,16 @@ class FrustaConfig(StrictModel):
     frame: float = 0.0  # animation frame, for animated generators (dancing_cacti)
     accel: Literal["auto", "blocks", "bvh", "none"] = "auto"  # plain segments: auto = bvh from 16 segments; none = brute force
     leaf: Annotated[int, Field(ge=1, le=64)] = 4  # segments per BVH leaf
-    group: Annotated[int, Field(ge=1, le=65536)] = 512  # rays per vmapped BVH traversal (packet: 0)
+    group: Annotated[int, Field(ge=1, le=1 << 24)] = 512  # rays per vmapped BVH traversal (packet: 0)
     packet: Annotated[int, Field(ge=0, le=65536)] = 256  # rays sharing one BVH traversal; 0: one walk per ray
+    # how rays walk the BVH: packets (CPU default), per-ray walks under vmap, or the Pallas kernel
+    # (accelerator default, ``jskel.frusta._kernel``); auto picks by the default backend
+    traversal: Literal["auto", "packets", "walks", "kernel"] = "auto"
+    kernel_block: Annotated[int, Field(ge=1, le=1024)] = 32  # rays per kernel program (a power of two)
+    kernel_warps: Annotated[int, Field(ge=1, le=32)] = 1  # warps per kernel program
+
+    @model_validator(mode="after")
+    def _block_pow2(self):
+        if self.kernel_block & (self.kernel_block - 1):
+            raise ValueError(f"kernel_block: must be a power of two (got {self.kernel_block})")
+        return self
