@@ -17,7 +17,7 @@ from typing import Annotated, Any, Literal, NamedTuple
 
 from pydantic import Field
 
-from .config import StrictModel
+from .config import StrictModel, chunk_of
 
 
 class BenchFile(StrictModel):
@@ -277,7 +277,7 @@ def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
         "height": exp.camera.height,
         "rays": r["rays"],
         "dtype": exp.render.dtype,
-        "chunk": exp.render.chunk,
+        "chunk": chunk_of(exp.render),
         "compile_s": round(r["compile_s"], 4),
         "render_s_median": round(med, 4),
         "render_s_min": round(min(times), 4),

@@ -15,7 +15,7 @@ import numpy as np
 from pathlib import Path
 from pydantic import ValidationError
 
-from .config import ConfigError, _format, apply_overrides, read_yaml, validate
+from .config import ConfigError, _format, apply_overrides, chunk_of, read_yaml, validate
 
 
 def _enable_x64_if_asked(raw: dict):
@@ -116,7 +116,7 @@ def _bvh_stats(exp, obj) -> dict:
 
     built = frusta.build(obj, dtype_of(exp))
     rays = camera_of(exp).rays(anchor=built.anchor, dtype=dtype_of(exp))
-    return {k: round(v, 3) if isinstance(v, float) else v for k, v in frusta.traversal_stats(built, rays, exp.render.chunk).items()}
+    return {k: round(v, 3) if isinstance(v, float) else v for k, v in frusta.traversal_stats(built, rays, chunk_of(exp.render)).items()}
 
 
 def cmd_fit_bench(args) -> int:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 from pathlib import Path
+import re
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -120,6 +121,22 @@ class ShadingConfig(StrictModel):
     gamma: Annotated[float, Field(gt=0.0)] = 2.2
 
 
+AUTO_CHUNK_CPU = 4096
+AUTO_CHUNK_ACCELERATOR = 1 << 20
+
+
+def chunk_of(render) -> int:
+    """``render.chunk`` resolved: ``auto`` is 4,096 rays per call on the CPU (small calls keep
+    per-ray work in cache; README's chunk rows) and 1,048,576 on an accelerator, where one call
+    per frame is what fills the device (on the H100 the per-ray walk of the palm at 1024x768 took
+    0.10 s in one call, 0.24 s in 65,536-ray calls; ``experiments/bench_scale_device.yaml``)."""
+    import jax
+
+    if render.chunk != "auto":
+        return int(render.chunk)
+    return AUTO_CHUNK_CPU if jax.default_backend() == "cpu" else AUTO_CHUNK_ACCELERATOR
+
+
 class RenderConfig(StrictModel):
     """How rays are evaluated: rays per compiled call, screen tile order, precision, progress bar.
 
@@ -135,7 +152,7 @@ class RenderConfig(StrictModel):
     depth; ``lanes`` is the size of the dense sub-batches that compacted rays are traced in.
     """
 
-    chunk: Annotated[int, Field(ge=1, le=1 << 24)] = 4096
+    chunk: Annotated[int, Field(ge=1, le=1 << 24)] | Literal["auto"] = "auto"  # rays per call; auto: see chunk_of
     tile: Annotated[int, Field(ge=1, le=4096)] = 64
     dtype: Literal["float32", "float64"] = "float32"
     progress: bool | None = None
@@ -252,10 +269,17 @@ def _short(v) -> str:
     return s if len(s) <= 80 else s[:77] + "..."
 
 
+_UNION_TAG = re.compile(r"^(constrained-|literal\[|function-|nullable|union\[|json-or-python|(int|float|str|bool)$|(list|dict|tuple)\[)")
+
+
 def _format(err: ValidationError, prefix: tuple = ()) -> list[str]:
-    lines = []
+    """One line per bad key; a value that fails every branch of a union (``chunk: 0`` against
+    ``int >= 1 | 'auto'``) is one line with the branches' messages joined by "or"."""
+    lines: list[str] = []
+    merged: dict[tuple, int] = {}  # (loc, input) of a union's first branch -> its line
     for e in err.errors(include_url=False):
-        loc = prefix + tuple(e["loc"])
+        loc = prefix + tuple(x for x in e["loc"] if not (isinstance(x, str) and _UNION_TAG.match(x)))
+        union = len(loc) != len(prefix) + len(e["loc"])
         msg = e["msg"]
         if e["type"] == "value_error":
             msg = msg.removeprefix("Value error, ")
@@ -263,7 +287,12 @@ def _format(err: ValidationError, prefix: tuple = ()) -> list[str]:
             lines.append(f"{_loc(loc)}: required key is missing")
         elif e["type"] == "extra_forbidden":
             lines.append(f"{_loc(loc)}: unknown key (got {_short(e['input'])})")
+        elif union and (loc, _short(e["input"])) in merged:
+            i = merged[(loc, _short(e["input"]))]
+            lines[i] = lines[i].replace(" (got ", f", or {msg[0].lower() + msg[1:]} (got ", 1)
         else:
+            if union:
+                merged[(loc, _short(e["input"]))] = len(lines)
             lines.append(f"{_loc(loc)}: {msg} (got {_short(e['input'])})")
     return lines
 

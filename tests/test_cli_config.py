@@ -86,8 +86,11 @@ def no_compile(monkeypatch):
         (BASE.replace("eye: [0, 1, 5]", "eye: [0, 6, 0]").replace("target: [0, 1, 0]", "target: [0, 1, 0], up: [0, 1, 0]"), ["camera.up", "up vector"]),
         (BASE.replace("type: frusta", "type: frustum"), ["object.type", "frustum"]),
         (BASE.replace("normals", "x") + "render: {chunk: 0}\n", ["render.chunk", "0"]),
+        (BASE + "render: {chunk: big}\n", ["render.chunk", "big", "'auto'"]),  # both branches of int | 'auto', one line
+        (BASE.replace("type: frusta", "type: frusta\n  kernel_block: 48"), ["object.kernel_block", "power of two", "48"]),
     ],
-    ids=["unknown_key", "wrong_type", "negative_radius", "nan_radius", "zero_length", "cycle", "up_parallel", "unknown_type", "bad_range"],
+    ids=["unknown_key", "wrong_type", "negative_radius", "nan_radius", "zero_length", "cycle", "up_parallel", "unknown_type", "bad_range",
+         "union_one_line", "kernel_block"],
 )
 def test_bad_input_one_line_exit_2(tmp_path, capsys, no_compile, body, needle):
     rc, err = _run(tmp_path, capsys, body)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from ..config import RGB, StrictModel, Vec3
 
@@ -91,8 +91,9 @@ class FrustaConfig(StrictModel):
     kernel_block: Annotated[int, Field(ge=1, le=1024)] = 32  # rays per kernel program (a power of two)
     kernel_warps: Annotated[int, Field(ge=1, le=32)] = 1  # warps per kernel program
 
-    @model_validator(mode="after")
-    def _block_pow2(self):
-        if self.kernel_block & (self.kernel_block - 1):
-            raise ValueError(f"kernel_block: must be a power of two (got {self.kernel_block})")
-        return self
+    @field_validator("kernel_block")
+    @classmethod
+    def _block_pow2(cls, v: int) -> int:
+        if v & (v - 1):
+            raise ValueError("must be a power of two")
+        return v

@@ -22,6 +22,7 @@ from ._intersect import Quality as Quality
 from ._intersect import inside_one as _inside_one
 from ._intersect import _finish, _segment_t, nearest_batch, nearest_batch_compact, nearest_one
 from ._accel import build_bvh, nearest_groups, nearest_packets
+from ._kernel import nearest_kernel
 from ._relief import ReliefMaps as ReliefMaps
 from ._relief import ReliefQuality as ReliefQuality
 from ._relief import enters_shell, make_relief_finish, make_relief_t
@@ -67,6 +68,9 @@ class Static(NamedTuple):
     leaf: int = 4
     group: int = 512
     packet: int = 256  # bvh: rays per shared traversal (0: per-ray walks in groups of ``group``)
+    traversal: str = "packets"  # bvh: packets | walks | kernel (resolved from ``object.traversal``)
+    kernel_block: int = 32
+    kernel_warps: int = 1
 
 
 def _pad(a: np.ndarray, n: int, fill) -> np.ndarray:
@@ -100,16 +104,18 @@ def _block_size(cfg_block: int, count: int) -> int:
     return int(min(cfg_block, max(8, 1 << int(np.ceil(np.log2(max(count, 1)))))))
 
 
-def make_group(arr: FrustaArrays, ids, anchor, cfg_block: int, dtype, shell=None) -> tuple[Group, int]:
-    """Device arrays of the segments ``ids`` (plain or relief): their padded params, block
-    bounding spheres and BVH; returns (group, block size used)."""
+def make_group(arr: FrustaArrays, ids, anchor, cfg_block: int, dtype, shell=None, spheres: bool = True) -> tuple[Group, int]:
+    """Device arrays of the segments ``ids`` (plain or relief): their padded params and block
+    bounding spheres (``spheres=False``: one dummy sphere, for a group cast through the BVH,
+    which never reads them: the host loop over blocks took 34 of the cacti's 80 ms of build);
+    returns (group, block size used)."""
     block = _block_size(cfg_block, len(ids))
     params = to_params(arr, anchor, block, dtype, ids, shell)
     sub = FrustaArrays(*(np.asarray(v)[ids] for v in arr))
     if shell is not None:  # bound the outer frusta of the shell
         t = np.asarray(shell)[ids]
         sub = sub._replace(r1=sub.r1 + t, r2=sub.r2 + t)
-    bc, br = block_spheres(sub, anchor, block)
+    bc, br = block_spheres(sub, anchor, block) if spheres else (np.zeros((0, 3)), np.zeros(0))
     if bc.shape[0] == 0:
         bc, br = np.zeros((1, 3)), np.full(1, -1.0)
     return Group(params, jnp.asarray(bc, dtype), jnp.asarray(br, dtype)), block
@@ -309,8 +315,8 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
     plain = relief = maps = None
     plain_block = relief_block = 8
     if plain_ids.size:
-        plain, plain_block = make_group(arrays, plain_ids, anchor, cfg.block, dtype)
         accel = cfg.accel if cfg.accel != "auto" else ("bvh" if plain_ids.size >= AUTO_BVH_SEGMENTS else "blocks")
+        plain, plain_block = make_group(arrays, plain_ids, anchor, cfg.block, dtype, spheres=accel != "bvh")
         if accel == "bvh":
             plain = plain._replace(bvh=_build_bvh_jit(plain.frusta, cfg.leaf))
     if relief_ids.size:
@@ -338,12 +344,23 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         info = dict(info, relief_uv=uv)
     static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block,
                     "none" if cfg.accel == "none" else ("bvh" if plain is not None and plain.bvh is not None else "blocks"),
-                    cfg.leaf, cfg.group, cfg.packet)
+                    cfg.leaf, cfg.group, cfg.packet, traversal_of(cfg), cfg.kernel_block, cfg.kernel_warps)
     info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size))
     return Built(scene, static, anchor, (lo, hi), info)
 
 
 _build_bvh_jit = jax.jit(build_bvh, static_argnums=1)
+
+
+def traversal_of(cfg: FrustaConfig) -> str:
+    """``object.traversal`` resolved: ``auto`` is the Pallas kernel on an accelerator (on the
+    H100 it beat XLA's per-ray walks, which beat packets there by 20-60x: README) and on the CPU
+    packets, or per-ray walks where ``packet: 0``."""
+    if cfg.traversal != "auto":
+        return cfg.traversal
+    if jax.default_backend() != "cpu":
+        return "kernel"
+    return "packets" if cfg.packet > 0 else "walks"
 
 # below this many plain segments the block scan beat the BVH (256x192: the 8-segment well 0.11 s
 # with blocks, 0.16 s with the tree; the 30-segment saguaro 0.24 s vs 0.10 s)
@@ -388,7 +405,9 @@ def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
     hits = []
     if scene.plain is not None:
         g = scene.plain
-        if static.accel == "bvh" and static.packet > 0:
+        if static.accel == "bvh" and static.traversal == "kernel":
+            t, s, c, i, _, _ = nearest_kernel(g.frusta, g.bvh, static.leaf, o, d, a, b, static.kernel_block, static.kernel_warps)
+        elif static.accel == "bvh" and static.traversal == "packets" and static.packet > 0:
             t, s, c, i, _ = nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, o, d, a, b)
         elif static.accel == "bvh":
             t, s, c, i, _, _ = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, o, d, a, b)
@@ -414,8 +433,10 @@ def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
 def _stats_batch(static: Static):
     def fn(params, rays: Rays):
         g = params.plain
+        if static.traversal == "kernel":  # the same walk, counted by the kernel (tests/test_accel.py)
+            return nearest_kernel(g.frusta, g.bvh, static.leaf, *rays, block=static.kernel_block, num_warps=static.kernel_warps)[4:]
         out = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, *rays)[4:]
-        if static.packet > 0:
+        if static.packet > 0 and static.traversal == "packets":
             out = out + nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, *rays)[4:]
         return out
 

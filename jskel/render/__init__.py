@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from .. import registry
-from ..config import Experiment, resolved
+from ..config import Experiment, chunk_of, resolved
 from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Camera, Hit, Rays, make_rays, map_chunks, permute, tile_order
 from ._aov import write_aovs as write_aovs
 from ._shade import Lights as Lights
@@ -129,12 +129,12 @@ def _trace(exp: Experiment, fn, params, rays: Rays, progress):
     if n_proc > 1:
         from ..distributed import gather, share
 
-        lo, hi = share(rays.size, exp.render.chunk, n_proc, jax.process_index())
+        lo, hi = share(rays.size, chunk_of(exp.render), n_proc, jax.process_index())
         mine = Rays(*(a[lo:hi] for a in rays))
-        res = map_chunks(fn, params, mine, chunk=exp.render.chunk, progress=progress, desc="render", devices=devices_of(exp), memory_budget=budget)
-        per = share(rays.size, exp.render.chunk, n_proc, 0)[1]
+        res = map_chunks(fn, params, mine, chunk=chunk_of(exp.render), progress=progress, desc="render", devices=devices_of(exp), memory_budget=budget)
+        per = share(rays.size, chunk_of(exp.render), n_proc, 0)[1]
         return res._replace(out=gather(res.out, hi - lo, per))
-    return map_chunks(fn, params, rays, chunk=exp.render.chunk, progress=progress, desc="render", devices=devices_of(exp), memory_budget=budget)
+    return map_chunks(fn, params, rays, chunk=chunk_of(exp.render), progress=progress, desc="render", devices=devices_of(exp), memory_budget=budget)
 
 
 def _run_base(exp: Experiment, obj, build_s: float, res, n: int) -> dict:
@@ -147,6 +147,7 @@ def _run_base(exp: Experiment, obj, build_s: float, res, n: int) -> dict:
         "compile_cached": res.compile_s == 0.0,
         "render_s": res.run_s,
         "rays": n,
+        "chunk": chunk_of(exp.render),
         "devices_used": len(devices_of(exp) or [None]),
         "processes": jax.process_count(),
         "mrays_per_s": n / res.run_s / 1e6 if res.run_s > 0 else None,
