@@ -51,13 +51,13 @@ def validate_skeleton(joints, radii, parents, path: str = "object.skeleton"):
         raise ValueError(f"{path}.radii: has {r.shape[0]} entries for {nj} joints")
     if p_raw.reshape(-1).shape[0] != nj:
         raise ValueError(f"{path}.parents: has {p_raw.size} entries for {nj} joints")
-    for i in range(nj):
+    bad = ~np.all(np.isfinite(j), axis=1) | ~np.isfinite(r) | (r < 0)
+    for i in np.nonzero(bad)[0][:1]:  # vectorised test; the first bad joint named as before
         if not np.all(np.isfinite(j[i])):
             raise ValueError(f"{path}.joints[{i}]: not finite: {_fmt(j[i])}")
         if not np.isfinite(r[i]):
             raise ValueError(f"{path}.radii[{i}]: not finite: {r[i]}")
-        if r[i] < 0:
-            raise ValueError(f"{path}.radii[{i}]: negative radius {r[i]:.6g}")
+        raise ValueError(f"{path}.radii[{i}]: negative radius {r[i]:.6g}")
     p = p_raw.reshape(-1)
     if not np.issubdtype(p.dtype, np.integer):
         pf = p.astype(np.float64)
@@ -65,14 +65,18 @@ def validate_skeleton(joints, radii, parents, path: str = "object.skeleton"):
             i = int(np.argmax(pf != np.round(pf)))
             raise ValueError(f"{path}.parents[{i}]: not an integer: {p[i]}")
     p = p.astype(np.int64)
-    for i in range(nj):
+    bad = (p < -1) | (p >= nj) | (p == np.arange(nj))
+    for i in np.nonzero(bad)[0][:1]:
         if p[i] < -1 or p[i] >= nj:
             raise ValueError(f"{path}.parents[{i}]: index {p[i]} out of range [-1, {nj - 1}]")
-        if p[i] == i:
-            raise ValueError(f"{path}.parents[{i}]: joint is its own parent")
-    # cycles: follow parents at most nj steps
+        raise ValueError(f"{path}.parents[{i}]: joint is its own parent")
+    # cycles: pointer doubling (every joint's 2^k-th ancestor) finds whether any joint fails to
+    # reach a root in nj steps; only then the walk below names the cycle
+    anc = p.copy()
+    for _ in range(max(1, int(nj).bit_length())):
+        anc = np.where(anc >= 0, anc[np.maximum(anc, 0)], -1)
     state = np.zeros(nj, np.int8)  # 0 unknown, 1 reaches a root
-    for i in range(nj):
+    for i in (range(nj) if np.any(anc >= 0) else ()):
         chain = []
         k = i
         while k != -1 and state[k] == 0:
@@ -89,7 +93,10 @@ def validate_skeleton(joints, radii, parents, path: str = "object.skeleton"):
     if np.all(p == -1):
         raise ValueError(f"{path}.parents: every joint is a root, so there is no segment")
     scale = float(np.max(np.ptp(j, axis=0))) or 1.0
-    for i in np.nonzero(p >= 0)[0]:
+    kids = np.nonzero(p >= 0)[0]
+    lengths = np.linalg.norm(j[kids] - j[p[kids]], axis=1)
+    bad = ~(lengths > 1e-9 * scale) | ((r[kids] == 0) & (r[p[kids]] == 0))
+    for i in kids[bad][:1]:
         length = float(np.linalg.norm(j[i] - j[p[i]]))
         if not length > 1e-9 * scale:
             raise ValueError(
@@ -112,14 +119,20 @@ def topology(joints: np.ndarray, parents: np.ndarray, path: str = "object.skelet
     axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
     continuation = -np.ones(nj, np.int64)
     best = np.full(nj, -np.inf)
-    for s in range(ns):  # host loop over segments at build time (not over rays)
-        a = starts[s]
-        if incoming[a] < 0:
-            continue
-        d = float(axis[incoming[a]] @ axis[s])
-        if d > best[a]:
-            best[a] = d
-            continuation[a] = s
+    # each joint continues the outgoing segment best aligned with its incoming one (the first
+    # such segment on a tie): sorted by joint, then alignment descending, then segment index
+    seg = np.nonzero(incoming[starts] >= 0)[0]
+    if seg.size:
+        a = starts[seg]
+        inc = incoming[a]
+        d = axis[inc, 0] * axis[seg, 0] + axis[inc, 1] * axis[seg, 1] + axis[inc, 2] * axis[seg, 2]
+        order = np.lexsort((seg, -d, a))
+        first = np.ones(order.size, bool)
+        first[1:] = a[order][1:] != a[order][:-1]
+        pick = order[first]
+        keep = d[pick] > -np.inf
+        best[a[pick][keep]] = d[pick][keep]
+        continuation[a[pick][keep]] = seg[pick][keep]
     cos_max = np.cos(np.radians(MAX_BEND_DEG))
     for jnt in np.nonzero(continuation >= 0)[0]:
         if best[jnt] < cos_max:
@@ -130,9 +143,8 @@ def topology(joints: np.ndarray, parents: np.ndarray, path: str = "object.skelet
             )
     parent_seg = -np.ones(ns, np.int64)
     branch_parent = incoming[starts]
-    for s in range(ns):
-        if continuation[starts[s]] == s:
-            parent_seg[s] = incoming[starts[s]]
+    cont = continuation[starts] == np.arange(ns)
+    parent_seg[cont] = incoming[starts[cont]]
     depth = -np.ones(ns, np.int64)
     depth[branch_parent < 0] = 0
     while np.any(depth < 0):
