@@ -156,6 +156,19 @@ def _inv_d(d):
     return jnp.where(d == 0, jnp.where(jnp.signbit(d), -jnp.inf, jnp.inf), 1.0 / jnp.where(d == 0, 1.0, d))
 
 
+def descend(node, trail, row, meets: Callable, pop_fn: Callable = pop):
+    """One internal-node step of a bit-trail walk: ``row`` holds the node's two child boxes
+    (lo, hi of the left, then of the right) and ``meets(lo, hi) -> (hit, entry t)`` tests one;
+    the walk goes to the nearer child it meets, pushing a 1 on the trail when it meets both,
+    or finishes the subtree (``pop_fn``) when it meets neither. Returns (next node, trail)."""
+    hl, tl = meets(row[0:3], row[3:6])
+    hr, tr = meets(row[6:9], row[9:12])
+    near = jnp.where(hr & (~hl | (tr < tl)), 2 * node + 1, 2 * node)
+    pn, pt = pop_fn(node, trail)
+    anyhit = hl | hr
+    return jnp.where(anyhit, near, pn), jnp.where(anyhit, (trail << jnp.uint32(1)) | (hl & hr).astype(jnp.uint32), pt)
+
+
 def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Best):
     """Nearest hit of one ray. ``leaf_fn(slot_ids (leaf,), o, d, t_min, t_max) -> Best`` of a
     leaf's primitives (slot ids index ``bvh.order``); returns (Best, nodes visited, leaves
@@ -172,7 +185,6 @@ def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Be
     under vmap the costly leaf test runs once per outer step for all lanes."""
     n_leaves = bvh.lo.shape[0] // 2
     inv_d = _inv_d(d)
-    one = jnp.uint32(1)
 
     def meets(lo, hi, t_hi):
         t0, t1 = slab(lo, hi, o, inv_d)
@@ -181,14 +193,7 @@ def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Be
     def to_leaf(node, trail, t_hi, visits):
         def body(st):
             node, trail, v = st
-            row = bvh.children[node]
-            hl, tl = meets(row[0:3], row[3:6], t_hi)
-            hr, tr = meets(row[6:9], row[9:12], t_hi)
-            near = jnp.where(hr & (~hl | (tr < tl)), 2 * node + 1, 2 * node)
-            pn, pt = pop(node, trail)
-            anyhit = hl | hr
-            nxt = jnp.where(anyhit, near, pn)
-            ntrail = jnp.where(anyhit, (trail << one) | (hl & hr).astype(jnp.uint32), pt)
+            nxt, ntrail = descend(node, trail, bvh.children[node], lambda lo, hi: meets(lo, hi, t_hi))
             return nxt, ntrail, v + 1
 
         def cond(st):

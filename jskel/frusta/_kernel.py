@@ -31,6 +31,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from ..accel._lbvh import descend
 from ._accel import _PACKED, FrustaBVH
 from ._intersect import SIDE, FrustaParams, _segment_t
 
@@ -146,7 +147,6 @@ def _kernel(ox, oy, oz, dx, dy, dz, tmin, tmax, kids, lo, hi, rows, order,
     def anyv(x):
         return jnp.max(x.astype(jnp.int32)) > 0
 
-    one = jnp.uint32(1)
 
     def to_leaf(node, trail, t_hi, visits):
         def cond(st):
@@ -158,13 +158,7 @@ def _kernel(ox, oy, oz, dx, dy, dz, tmin, tmax, kids, lo, hi, rows, order,
             walking = (node > 0) & (node < n_leaves)
             base = jnp.where(walking, node, 0) * 12
             row = [kids[base + k] for k in range(12)]
-            hl, tl = meets(row[0:3], row[3:6], t_hi)
-            hr, tr = meets(row[6:9], row[9:12], t_hi)
-            near = jnp.where(hr & (~hl | (tr < tl)), 2 * node + 1, 2 * node)
-            pn, pt = pop(node, trail)
-            anyhit = hl | hr
-            nxt = jnp.where(anyhit, near, pn)
-            ntrail = jnp.where(anyhit, (trail << one) | (hl & hr).astype(jnp.uint32), pt)
+            nxt, ntrail = descend(node, trail, row, lambda lo, hi: meets(lo, hi, t_hi), pop)
             return (jnp.where(walking, nxt, node), jnp.where(walking, ntrail, trail), v + walking.astype(jnp.int32))
 
         return jax.lax.while_loop(cond, body, (node, trail, visits))
