@@ -197,7 +197,8 @@ def test_pallas_kernel_walk_equals_brute_force_on_random_skeletons(skeletons, le
     np.testing.assert_array_equal(hit, np.isfinite(b.t))
     np.testing.assert_allclose(b.t[hit], a.t[hit], rtol=8 * np.finfo(np.float32).eps, atol=0)
     same = a.prim == b.prim
-    near_tie = np.abs(a.t - b.t) <= 8 * np.finfo(np.float32).eps * np.abs(a.t)
+    with np.errstate(invalid="ignore"):  # inf - inf on the misses (their ids are both -1)
+        near_tie = np.abs(a.t - b.t) <= 8 * np.finfo(np.float32).eps * np.abs(a.t)
     assert np.all(same | near_tie) and same.mean() > 0.999
     g = fast.params.plain
     rays = make_rays(np.asarray(O) - fast.anchor, D, 0.0, np.inf)
