@@ -59,10 +59,14 @@ def _pack(f: FrustaParams, order):
     return rows.at[:, -1].set(jnp.where(order >= 0, rows[:, -1], 0.0))
 
 
+def packed_widths(f: FrustaParams) -> tuple[int, ...]:
+    """Columns of each ``_PACKED`` field in a packed row (1 for scalars, 3 for vectors)."""
+    return tuple(1 if getattr(f, name).ndim == 1 else 3 for name in _PACKED)
+
+
 def _unpack(rows, f: FrustaParams) -> FrustaParams:
     out, i = {}, 0
-    for name in _PACKED:
-        w = 1 if getattr(f, name).ndim == 1 else 3
+    for name, w in zip(_PACKED, packed_widths(f)):
         col = rows[..., i : i + w]
         out[name] = col[..., 0] if w == 1 else col
         i += w

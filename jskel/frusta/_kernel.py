@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 
 from ..accel._lbvh import descend
-from ._accel import _PACKED, FrustaBVH
+from ._accel import _PACKED, FrustaBVH, packed_widths
 from ._intersect import SIDE, FrustaParams, _segment_t
 
 
@@ -90,10 +90,6 @@ def pop(node, trail):
     trail = trail >> z.astype(jnp.uint32)
     done = trail == 0
     return jnp.where(done, 0, node ^ 1), jnp.where(done, trail, trail ^ one)
-
-
-def _widths(f: FrustaParams):
-    return [1 if getattr(f, n).ndim == 1 else 3 for n in _PACKED]
 
 
 def _row_fields(load, slot, widths, n_cols: int):
@@ -171,6 +167,7 @@ def _kernel(ox, oy, oz, dx, dy, dz, tmin, tmax, kids, lo, hi, rows, order,
         t_hi = bt
         for j in range(leaf):  # the leaf's slots in order: the first of equal t wins, as in _leaf_best
             seg = _row_fields(lambda i: rows[i], slot0 + j, widths, n_cols)
+            # u_off, twist, sid, shell, v_off are shading fields _segment_t never reads: placeholders
             seg = FrustaParams(**seg, u_off=t_hi, twist=t_hi, sid=node, shell=t_hi, v_off=t_hi)
             tc, sc, cc = _segment_t(seg, o, d, t_min, t_hi)
             better = found & (tc < bt)
@@ -236,6 +233,6 @@ def nearest_kernel(f: FrustaParams, fb: FrustaBVH, leaf: int, origins, direction
     runs the kernel through Pallas's interpreter, which is how it is tested without a GPU."""
     if interpret is None:
         interpret = jax.default_backend() == "cpu"
-    widths = tuple(_widths(f))
+    widths = packed_widths(f)
     return _walk(fb, origins, directions, t_min, t_max, f_shape=(widths, sum(widths)), leaf=leaf,
                  block=block, num_warps=num_warps, interpret=interpret)
