@@ -112,10 +112,13 @@ def _read_model(model, path, overrides):
 
 def _bvh_stats(exp, obj) -> dict:
     from . import frusta
+    from .rays import permute, tile_order
     from .render import camera_of, dtype_of
 
     built = frusta.build(obj, dtype_of(exp))
-    rays = camera_of(exp).rays(anchor=built.anchor, dtype=dtype_of(exp))
+    cam = camera_of(exp)
+    # in the render's order (screen tiles): packets and bins depend on it
+    rays = permute(cam.rays(anchor=built.anchor, dtype=dtype_of(exp)), tile_order(cam.width, cam.height, exp.render.tile))
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in frusta.traversal_stats(built, rays, chunk_of(exp.render)).items()}
 
 

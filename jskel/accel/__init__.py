@@ -1,6 +1,9 @@
 """Acceleration structures shared by the representations (issue 6): a linear BVH built in JAX
-per frame (``_lbvh``), traversed stacklessly under vmap."""
+per frame (``_lbvh``), traversed stacklessly under vmap; and candidate lists for packets of
+coherent rays (``_bins``)."""
 
+from ._bins import nearest_binned as nearest_binned
+from ._bins import packet_meets as packet_meets
 from ._lbvh import BVH as BVH
 from ._lbvh import Best as Best
 from ._lbvh import build as build
@@ -11,4 +14,4 @@ from ._lbvh import nearest as nearest
 from ._lbvh import nearest_packet as nearest_packet
 from ._lbvh import ray_box as ray_box
 
-__all__ = ["BVH", "Best", "build", "escape", "leaves_for", "morton_codes", "nearest", "nearest_packet", "ray_box"]
+__all__ = ["BVH", "Best", "build", "escape", "leaves_for", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "packet_meets", "ray_box"]

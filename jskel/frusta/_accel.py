@@ -14,7 +14,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..accel import BVH, Best, build, nearest, nearest_packet
+from ..accel import BVH, Best, build, nearest, nearest_binned, nearest_packet
 from ._intersect import SIDE, FrustaParams, _segment_t
 
 
@@ -48,6 +48,8 @@ class FrustaBVH(NamedTuple):
 
     tree: BVH
     rows: jnp.ndarray  # (L * leaf, 30) packed _PACKED fields, padding slots invalid
+    box_lo: jnp.ndarray  # (S, 3) each segment's box, in ``f``'s order (empty for padding)
+    box_hi: jnp.ndarray  # (S, 3)
 
 
 def _pack(f: FrustaParams, order):
@@ -80,7 +82,8 @@ def _unpack(rows, f: FrustaParams) -> FrustaParams:
 def build_bvh(f: FrustaParams, leaf: int) -> FrustaBVH:
     lo, hi = segment_boxes(f)
     tree = build(lo, hi, f.valid, leaf)
-    return FrustaBVH(tree, _pack(f, tree.order))
+    inf = jnp.asarray(jnp.inf, lo.dtype)
+    return FrustaBVH(tree, _pack(f, tree.order), jnp.where(f.valid[:, None], lo, inf), jnp.where(f.valid[:, None], hi, -inf))
 
 
 def _leaf_best(f: FrustaParams, fb: FrustaBVH, leaf: int, slots, o, d, t_min, t_hi):
@@ -145,3 +148,18 @@ def nearest_groups(f: FrustaParams, bvh, leaf: int, group: int, origins, directi
     one = jax.vmap(lambda o, d, a, b: nearest_bvh(f, bvh, leaf, o, d, a, b))
     out = jax.lax.map(lambda xs: one(*xs), tuple(_pad_groups([origins, directions, t_min, t_max], min(group, n))))
     return tuple(x.reshape((-1,) + x.shape[2:])[:n] for x in out)
+
+
+def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, pairs: int, origins, directions, t_min, t_max):
+    """(t, s, code, idx, (n_batch, n_pairs)) of a batch through packet candidate lists
+    (``accel.nearest_binned``): each packet of ``packet`` consecutive rays tests only the
+    segments whose box one of its rays may meet; equal to brute force, ties included."""
+
+    def pair_fn(ids, o, d, a, b):
+        seg = jax.tree_util.tree_map(lambda x: x[ids], f)
+        per_ray = jax.vmap(_segment_t, in_axes=(None, 0, 0, 0, 0))
+        t, s, c = jax.vmap(per_ray)(seg, o, d, a, b)
+        return t, (s, c)
+
+    t, (s, c), idx, counts = nearest_binned(fb.box_lo, fb.box_hi, pair_fn, packet, candidates, pairs, origins, directions, t_min, t_max)
+    return t, s, c, idx, counts

@@ -85,9 +85,13 @@ class FrustaConfig(StrictModel):
     leaf: Annotated[int, Field(ge=1, le=64)] = 4  # segments per BVH leaf
     group: Annotated[int, Field(ge=1, le=1 << 24)] = 512  # rays per vmapped BVH traversal (packet: 0)
     packet: Annotated[int, Field(ge=0, le=65536)] = 256  # rays sharing one BVH traversal; 0: one walk per ray
-    # how rays walk the BVH: packets (CPU default), per-ray walks under vmap, or the Pallas kernel
+    # how rays find their segments: candidate lists of packets of coherent rays (CPU default,
+    # ``jskel.accel._bins``), BVH packets, per-ray BVH walks under vmap, or the Pallas kernel
     # (accelerator default, ``jskel.frusta._kernel``); auto picks by the default backend
-    traversal: Literal["auto", "packets", "walks", "kernel"] = "auto"
+    traversal: Literal["auto", "bins", "packets", "walks", "kernel"] = "auto"
+    bin_packet: Annotated[int, Field(ge=1, le=65536)] = 64  # bins: consecutive rays sharing one candidate list
+    bin_candidates: Annotated[int, Field(ge=1, le=65536)] = 128  # bins: segments tested against every packet at once
+    bin_pairs: Annotated[int, Field(ge=1, le=65536)] = 256  # bins: (packet, segment) pairs cast at once
     kernel_block: Annotated[int, Field(ge=1, le=1024)] = 32  # rays per kernel program (a power of two)
     kernel_warps: Annotated[int, Field(ge=1, le=32)] = 1  # warps per kernel program
 

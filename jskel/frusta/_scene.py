@@ -21,7 +21,7 @@ from ._intersect import FrustaParams as FrustaParams
 from ._intersect import Quality as Quality
 from ._intersect import inside_one as _inside_one
 from ._intersect import _finish, _segment_t, nearest_batch, nearest_batch_compact, nearest_one
-from ._accel import build_bvh, nearest_groups, nearest_packets
+from ._accel import build_bvh, nearest_bins, nearest_groups, nearest_packets
 from ._kernel import nearest_kernel
 from ._relief import ReliefMaps as ReliefMaps
 from ._relief import ReliefQuality as ReliefQuality
@@ -68,9 +68,10 @@ class Static(NamedTuple):
     leaf: int = 4
     group: int = 512
     packet: int = 256  # bvh: rays per shared traversal (0: per-ray walks in groups of ``group``)
-    traversal: str = "packets"  # bvh: packets | walks | kernel (resolved from ``object.traversal``)
+    traversal: str = "packets"  # bvh: bins | packets | walks | kernel (resolved from ``object.traversal``)
     kernel_block: int = 32
     kernel_warps: int = 1
+    bins: tuple[int, int, int] = (64, 128, 256)  # bins: rays per packet, candidates and pairs per step
 
 
 def _pad(a: np.ndarray, n: int, fill) -> np.ndarray:
@@ -344,7 +345,8 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         info = dict(info, relief_uv=uv)
     static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block,
                     "none" if cfg.accel == "none" else ("bvh" if plain is not None and plain.bvh is not None else "blocks"),
-                    cfg.leaf, cfg.group, cfg.packet, traversal_of(cfg), cfg.kernel_block, cfg.kernel_warps)
+                    cfg.leaf, cfg.group, cfg.packet, traversal_of(cfg), cfg.kernel_block, cfg.kernel_warps,
+                    (cfg.bin_packet, cfg.bin_candidates, cfg.bin_pairs))
     info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size))
     return Built(scene, static, anchor, (lo, hi), info)
 
@@ -406,7 +408,9 @@ def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
     hits = []
     if scene.plain is not None:
         g = scene.plain
-        if static.accel == "bvh" and static.traversal == "kernel":
+        if static.accel == "bvh" and static.traversal == "bins":
+            t, s, c, i, _ = nearest_bins(g.frusta, g.bvh, *static.bins, o, d, a, b)
+        elif static.accel == "bvh" and static.traversal == "kernel":
             t, s, c, i, _, _ = nearest_kernel(g.frusta, g.bvh, static.leaf, o, d, a, b, static.kernel_block, static.kernel_warps)
         elif static.accel == "bvh" and static.traversal == "packets" and static.packet > 0:
             t, s, c, i, _ = nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, o, d, a, b)
@@ -439,6 +443,11 @@ def _stats_batch(static: Static):
         out = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, *rays)[4:]
         if static.packet > 0 and static.traversal == "packets":
             out = out + nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, *rays)[4:]
+        if static.traversal == "bins":  # segment tests per ray: the batch's pairs times rays per packet
+            n = rays.size
+            n_list, pairs = nearest_bins(g.frusta, g.bvh, *static.bins, *rays)[4]
+            g_rays = min(static.bins[0], n)
+            out = out + (jnp.full((n,), pairs * g_rays / n), jnp.full((n,), n_list))
         return out
 
     return fn
@@ -463,7 +472,10 @@ def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
     stats = {"nodes_per_ray_mean": float(np.mean(visits)), "nodes_per_ray_max": int(np.max(visits)),
              "leaves_per_ray_mean": float(np.mean(leaves)), "leaves_per_ray_max": int(np.max(leaves)),
              "leaf_tests_per_ray_mean": float(np.mean(leaves)) * built.static.leaf}
-    if len(out) > 2:  # packets: steps of each packet's shared loop (every ray carries its packet's)
+    if built.static.traversal == "bins":  # per-ray shares of each batch's counts
+        stats["bin_tests_per_ray_mean"] = float(np.mean(out[2]))
+        stats["bin_batch_list_mean"] = float(np.mean(out[3]))
+    elif len(out) > 2:  # packets: steps of each packet's shared loop (every ray carries its packet's)
         stats["packet_steps_mean"] = float(np.mean(out[2]))
     return stats
 
