@@ -39,6 +39,9 @@ class BenchFile(StrictModel):
     frames: list[float] = []
     mitsuba_variant: str = "llvm_ad_rgb"
     stats: bool = False  # frusta BVH: nodes and leaves visited per ray (one extra untimed pass)
+    # also time the cast alone (nearest t and primitive of every ray, on the device, no shading
+    # and no other output; what the peers' cast times hold): ``cast_s_median`` in each row
+    cast: bool = False
     labels: list[str] | None = None  # a name per sweep setting (rows and the bar chart of a timing-only sweep)
 
 
@@ -149,6 +152,7 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
     ref_t = np.asarray(ref_hits.t, np.float64)
     jsk = [r for r in rows if r.get("setting", {}).get("object.accel") in ("bvh", "auto")]
     jskel_s = jsk[0]["render_s_median"] if jsk else None
+    jskel_cast_s = jsk[0].get("cast_s_median") if jsk else None
     base = {"scene": exp.name, "rays": int(O.shape[0])}
 
     def agree(t):
@@ -178,6 +182,8 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
                    mrays_per_s=round(O.shape[0] / med / 1e6, 3), **agree(casts[0][0]))
         if jskel_s:
             row["jskel_over_peer"] = round(jskel_s / med, 2)
+        if jskel_cast_s:
+            row["jskel_cast_over_peer"] = round(jskel_cast_s / med, 2)
         out.append(row)
     mc = None
     for variant in dict.fromkeys([bench.mitsuba_variant, "scalar_rgb"]):
@@ -193,6 +199,8 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
                    cast_s_median=med, runs=runs, mrays_per_s=round(O.shape[0] / med / 1e6, 3), **agree(casts[0][0]))
         if jskel_s:
             row["jskel_over_peer"] = round(jskel_s / med, 2)
+        if jskel_cast_s:
+            row["jskel_cast_over_peer"] = round(jskel_cast_s / med, 2)
         out.append(row)
         break
     from .frusta._scene import ANIMATED
@@ -204,7 +212,8 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
 
 def _frames_rows(bench, exp, obj, O, D, level, mc, base):
     """Seconds per animated frame, rebuild included: jskel (skeleton, cutting planes, BVH built in
-    JAX, cast; the compile is shared by all frames and reported apart), Embree (skeleton, cutting
+    JAX, render with shading; and again with the cast alone, ``jskel_cast_frame_s_median``; the
+    compile is shared by all frames and reported apart), Embree (skeleton, cutting
     planes, tessellation, BVH build, cast) and Mitsuba (skeleton, control-point update with its
     rebuild, cast)."""
     from .frusta import host_frusta
@@ -212,8 +221,8 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base):
     from .peers.skeleton import EmbreeMesh, frusta_mesh
     from .render import render
 
-    jt, et, mt = [], [], []
-    parts = {"jskel_build": [], "jskel_cast": [], "embree_skeleton": [], "embree_tess": [], "embree_build": [],
+    jt, jc, et, mt = [], [], [], []
+    parts = {"jskel_build": [], "jskel_cast": [], "jskel_cast_only": [], "embree_skeleton": [], "embree_tess": [], "embree_build": [],
              "embree_cast": [], "mitsuba_skeleton": [], "mitsuba_update": [], "mitsuba_cast": []}
     compile_s = None
     for f in bench.frames:  # host loop over frames
@@ -222,9 +231,14 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base):
         if compile_s is None:
             compile_s = res.run["compile_s"]
             res = render(exp, o, progress=False)  # the first call compiled: time a warm one
+            cast_once(exp, o)  # and compile the cast alone
         parts["jskel_build"].append(res.run["build_s"])
         parts["jskel_cast"].append(res.run["render_s"])
         jt.append(res.run["build_s"] + res.run["render_s"])
+        # the same frame again, built anew and cast alone (t and primitive, as the peers' casts)
+        b_s, c_s, _ = cast_once(exp, o)
+        parts["jskel_cast_only"].append(c_s)
+        jc.append(b_s + c_s)
         t0 = time.perf_counter()
         arrays = host_frusta(o)[0]
         t1 = time.perf_counter()
@@ -251,11 +265,73 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base):
                jskel_frame_s_median=_median(jt), embree_frame_s_median=_median(et),
                **{f"{k}_s_median": _median(v) for k, v in parts.items() if v})
     row["jskel_over_embree"] = round(row["jskel_frame_s_median"] / row["embree_frame_s_median"], 2)
+    # a frame with the cast alone (build, then t and primitive per ray: what the peers' frames hold)
+    row["jskel_cast_frame_s_median"] = _median(jc)
+    row["jskel_cast_frame_over_embree"] = round(row["jskel_cast_frame_s_median"] / row["embree_frame_s_median"], 2)
     if mt:
         row["mitsuba_variant"] = mc.variant
         row["mitsuba_frame_s_median"] = _median(mt)
         row["jskel_over_mitsuba"] = round(row["jskel_frame_s_median"] / row["mitsuba_frame_s_median"], 2)
+        row["jskel_cast_frame_over_mitsuba"] = round(row["jskel_cast_frame_s_median"] / row["mitsuba_frame_s_median"], 2)
     return [row]
+
+
+_CAST_FNS: dict = {}
+
+
+def _cast_fn(rep_name: str, static):
+    """``(params, rays) -> (t, prim)``: the representation's batch intersection with nothing
+    else kept (XLA drops the hit's position, normal and uv, which no output needs)."""
+    key = (rep_name, static)
+    if key not in _CAST_FNS:
+        import jax
+
+        from . import registry
+
+        rep = registry.get(rep_name)
+
+        def fn(params, rays):
+            if hasattr(rep, "intersect_batch"):
+                h = rep.intersect_batch(params, static, rays)
+            else:
+                h = jax.vmap(lambda o, d, a, b: rep.intersect_one(params, static, o, d, a, b))(*rays)
+            return h.t, h.prim
+
+        _CAST_FNS[key] = fn
+    return _CAST_FNS[key]
+
+
+def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
+    """(build seconds, cast seconds, compile seconds) of one frame: the representation's build,
+    then the cast alone (``_cast_fn``) of the camera's rays in screen-tile order, chunked as the
+    render chunks them; the outputs come back to the host as ``t`` and ``prim`` only."""
+    from . import registry
+    from .rays import map_chunks, permute, tile_order
+    from .render import camera_of, dtype_of
+
+    dtype = dtype_of(exp)
+    rep = registry.get(obj.type)
+    t0 = time.perf_counter()
+    built = rep.build(obj, dtype) if built is None else built
+    build_s = time.perf_counter() - t0
+    cam = camera_of(exp)
+    rays = permute(cam.rays(anchor=built.anchor, dtype=dtype), tile_order(cam.width, cam.height, exp.render.tile))
+    res = map_chunks(_cast_fn(obj.type, built.static), built.params, rays, chunk=chunk_of(exp.render), progress=False)
+    return build_s, res.run_s, res.compile_s
+
+
+def timed_cast(exp, obj, runs: int, warmup: int) -> dict:
+    """``cast_s_median`` (and min, max) over ``runs`` warm casts of one build (``cast_once``)."""
+    from . import registry
+    from .render import dtype_of
+
+    built = registry.get(obj.type).build(obj, dtype_of(exp))
+    for _ in range(max(warmup, 1)):
+        cast_once(exp, obj, built)
+    times = [cast_once(exp, obj, built)[1] for _ in range(runs)]
+    med = statistics.median(times)
+    return {"cast_s_median": round(med, 4), "cast_s_min": round(min(times), 4), "cast_s_max": round(max(times), 4),
+            "cast_mrays_per_s": round(exp.camera.width * exp.camera.height / med / 1e6, 4)}
 
 
 def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
@@ -412,15 +488,18 @@ def plot_scaling(rows: list[dict], path: Path, title: str):
         ax[1].plot(n, [r["nodes_per_ray_mean"] for r in rs], "o-", c=f"C{i}", label=f"nodes ({label})")
         ax[1].plot(n, [r["leaves_per_ray_mean"] for r in rs], "s--", c=f"C{i}", label=f"leaves ({label})")
         if any("packet_steps_mean" in r for r in rs):
-            ax[2].plot(n, [r.get("packet_steps_mean", np.nan) for r in rs], "o-", c=f"C{i}", label=label)
+            ax[2].plot(n, [r.get("packet_steps_mean", np.nan) for r in rs], "o-", c=f"C{i}", label=f"packet steps ({label})")
+        if any("bin_tests_per_ray_mean" in r for r in rs):
+            ax[2].plot(n, [r.get("bin_tests_per_ray_mean", np.nan) for r in rs], "s--", c=f"C{i}", label=f"bin tests per ray ({label})")
     ax[0].set_ylabel("warm median microseconds per ray")
     ax[1].set_ylabel("per ray, its own walk (mean)")
-    ax[2].set_ylabel("steps of a packet's shared loop (mean)")
+    ax[2].set_ylabel("packets: loop steps; bins: segment tests per ray")
     for a in ax:
         a.set_xscale("log", base=2)
         a.set_xlabel("segments")
         a.set_ylim(bottom=0)
-        a.legend(fontsize=7)
+        if a.get_legend_handles_labels()[0]:
+            a.legend(fontsize=7)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

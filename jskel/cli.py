@@ -144,7 +144,7 @@ def cmd_fit_bench(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from .bench import BenchFile, plot_sweep, sweep_settings, timed_render
+    from .bench import BenchFile, plot_sweep, sweep_settings, timed_cast, timed_render
 
     raw = read_yaml(args.file)
     if isinstance(raw, dict) and "fit" in raw:
@@ -188,6 +188,8 @@ def cmd_bench(args) -> int:
         group_rows = []
         for file, (exp, obj), setting in jobs:
             row, first = timed_render(exp, obj, runs, bench.warmup)
+            if bench.cast:
+                row.update(timed_cast(exp, obj, runs, bench.warmup))
             row["file"] = file
             if bench.stats and obj.type == "frusta":
                 row.update(_bvh_stats(exp, obj))

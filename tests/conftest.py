@@ -71,3 +71,18 @@ def random_tree(rng, n, lift=0.3, length=0.8, r_max=0.3):
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+def assert_hits_agree(a, b, rtol: float = 0.0):
+    """Two casts of the same rays (NumPy Hits): the same hits and misses, t equal (``rtol`` 0)
+    or within ``rtol`` (programs that XLA fuses apart may round differently), and the same
+    primitive wherever t does not tie within that tolerance."""
+    h = np.isfinite(a.t)
+    np.testing.assert_array_equal(h, np.isfinite(b.t))
+    if rtol == 0.0:
+        np.testing.assert_array_equal(a.t, b.t)
+    else:
+        np.testing.assert_allclose(b.t[h], a.t[h], rtol=rtol, atol=0)
+    same = a.prim == b.prim
+    assert np.all(same[~h])
+    assert np.all(same[h] | (np.abs(a.t[h] - b.t[h]) <= rtol * a.t[h]))  # another id only on a tie

@@ -355,15 +355,17 @@ _build_bvh_jit = jax.jit(build_bvh, static_argnums=1)
 
 
 def traversal_of(cfg: FrustaConfig) -> str:
-    """``object.traversal`` resolved: ``auto`` is the Pallas kernel on an accelerator and on the
-    CPU packets, or per-ray walks where ``packet: 0``. On the H100 at 1024x768 the kernel took
-    13-16 ms on the palm, oasis and cacti, XLA's per-ray walk over the whole frame 48-162 ms, and
-    packets 4.6-9.2 s (a ``lax.map`` of scalar loops is bound by launches there; README)."""
+    """``object.traversal`` resolved: ``auto`` is the Pallas kernel on an accelerator and packet
+    candidate lists (``bins``) on the CPU. On the H100 at 1024x768 the kernel took 13-16 ms on
+    the palm, oasis and cacti, XLA's per-ray walk over the whole frame 48-162 ms, and packets
+    4.6-9.2 s (a ``lax.map`` of scalar loops is bound by launches there). On the 2-core CPU bins
+    beat the BVH packets on every scene of ``experiments/bench_scale_bins.yaml``, and on the
+    scene_cacti scene, whose shadow and reflection rays reach the cacti too (README)."""
     if cfg.traversal != "auto":
         return cfg.traversal
     if jax.default_backend() != "cpu":
         return "kernel"
-    return "packets" if cfg.packet > 0 else "walks"
+    return "bins"
 
 # below this many plain segments the block scan beat the BVH (256x192: the 8-segment well 0.11 s
 # with blocks, 0.16 s with the tree; the 30-segment saguaro 0.24 s vs 0.10 s)
