@@ -293,3 +293,25 @@ def test_bins_equal_brute_force_on_random_skeletons(skeletons, sizes):
         assert 0.05 < np.isfinite(a.t).mean() < 0.95
         assert_hits_agree(a, b, 2e-5)
         assert (a.prim == b.prim).mean() > 0.999
+
+
+@pytest.mark.parametrize("traversal", ["bins", "walks"])
+def test_grazing_rays_from_far_origins_keep_their_hits(traversal):
+    """Rays parallel to a cylinder's box face, 1e-7 to 1e-2 radii inside its silhouette (the
+    hit lies on the face of the segment's box), from 10 to 1e4 units away: the box tests of the
+    packet and of the walk keep every hit brute force finds (no hit lost to float rounding of a
+    far origin against a near box)."""
+    joints = [[0, 0, 0], [0, 2, 0], [0.0, 4.0, 0.0], [3, 0, 0], [3, 2, 0]]
+    radii, parents = [0.5, 0.5, 0.5, 0.3, 0.3], [-1, 0, 1, -1, 3]
+    brute = build_skeleton(joints, radii, parents, accel="none")
+    fast = build_skeleton(joints, radii, parents, accel="bvh", traversal=traversal)
+    n = 4096
+    x = 0.5 * (1 - np.geomspace(1e-7, 1e-2, n))
+    y = np.linspace(0.1, 3.9, n)
+    for dist in (10.0, 1e3, 1e4):
+        O = np.stack([x, y, np.full(n, dist)], 1)
+        D = np.tile([0.0, 0.0, -1.0], (n, 1))
+        a = cast(brute, O, D, culled=True)
+        b = cast(fast, O, D, culled=True)
+        assert np.all(np.isfinite(a.t))  # every ray is inside the silhouette
+        assert_hits_agree(a, b, 2e-5 if traversal == "bins" else 0.0)
