@@ -212,19 +212,29 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
 
 def _frames_rows(bench, exp, obj, O, D, level, mc, base):
     """Seconds per animated frame, rebuild included: jskel (skeleton, cutting planes, BVH built in
-    JAX, render with shading; and again with the cast alone, ``jskel_cast_frame_s_median``; the
-    compile is shared by all frames and reported apart), Embree (skeleton, cutting
+    JAX, render with shading; again with the cast alone, ``jskel_cast_frame_s_median``; and with
+    the frusta rebuilt on the device from the frame's joints, ``jskel_device_frame_s_median``; the
+    compiles are shared by all frames and not counted), Embree (skeleton, cutting
     planes, tessellation, BVH build, cast) and Mitsuba (skeleton, control-point update with its
     rebuild, cast)."""
-    from .frusta import host_frusta
+    import jax
+
+    from .frusta import host_frusta, rebuilder
     from .frusta._scene import _skeleton_arrays
     from .peers.skeleton import EmbreeMesh, frusta_mesh
-    from .render import render
+    from .render import dtype_of, render
 
-    jt, jc, et, mt = [], [], [], []
-    parts = {"jskel_build": [], "jskel_cast": [], "jskel_cast_only": [], "embree_skeleton": [], "embree_tess": [], "embree_build": [],
+    jt, jc, jd, et, mt = [], [], [], [], []
+    parts = {"jskel_build": [], "jskel_cast": [], "jskel_cast_only": [], "jskel_device_build": [], "jskel_device_cast": [],
+             "embree_skeleton": [], "embree_tess": [], "embree_build": [],
              "embree_cast": [], "mitsuba_skeleton": [], "mitsuba_update": [], "mitsuba_cast": []}
     compile_s = None
+    try:  # the frusta rebuilt on the device from each frame's joints (frusta._device)
+        rb = rebuilder(obj, dtype_of(exp))
+        j0, r0, _, _ = _skeleton_arrays(obj.skeleton, obj.frame)
+        cast_once(exp, obj, rb(j0, r0))  # compiles the rebuild and its cast
+    except ValueError:
+        rb = None
     for f in bench.frames:  # host loop over frames
         o = obj.model_copy(update={"frame": f})
         res = render(exp, o, progress=False)
@@ -239,6 +249,16 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base):
         b_s, c_s, _ = cast_once(exp, o)
         parts["jskel_cast_only"].append(c_s)
         jc.append(b_s + c_s)
+        if rb is not None:  # skeleton on the host, frusta and BVH on the device, cast alone
+            t0 = time.perf_counter()
+            j, r, _, _ = _skeleton_arrays(o.skeleton, o.frame)
+            built = rb(j, r)
+            jax.block_until_ready(built.params)
+            d_build = time.perf_counter() - t0
+            _, c_s, _ = cast_once(exp, o, built)
+            parts["jskel_device_build"].append(d_build)
+            parts["jskel_device_cast"].append(c_s)
+            jd.append(d_build + c_s)
         t0 = time.perf_counter()
         arrays = host_frusta(o)[0]
         t1 = time.perf_counter()
@@ -268,11 +288,16 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base):
     # a frame with the cast alone (build, then t and primitive per ray: what the peers' frames hold)
     row["jskel_cast_frame_s_median"] = _median(jc)
     row["jskel_cast_frame_over_embree"] = round(row["jskel_cast_frame_s_median"] / row["embree_frame_s_median"], 2)
+    if jd:  # the same with the frusta rebuilt on the device
+        row["jskel_device_frame_s_median"] = _median(jd)
+        row["jskel_device_frame_over_embree"] = round(row["jskel_device_frame_s_median"] / row["embree_frame_s_median"], 2)
     if mt:
         row["mitsuba_variant"] = mc.variant
         row["mitsuba_frame_s_median"] = _median(mt)
         row["jskel_over_mitsuba"] = round(row["jskel_frame_s_median"] / row["mitsuba_frame_s_median"], 2)
         row["jskel_cast_frame_over_mitsuba"] = round(row["jskel_cast_frame_s_median"] / row["mitsuba_frame_s_median"], 2)
+        if jd:
+            row["jskel_device_frame_over_mitsuba"] = round(row["jskel_device_frame_s_median"] / row["mitsuba_frame_s_median"], 2)
     return [row]
 
 

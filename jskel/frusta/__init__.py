@@ -17,6 +17,7 @@ from ._scene import RELIEF_TEXTURES as RELIEF_TEXTURES
 from ._scene import REPRESENTATION as REPRESENTATION
 from ._scene import ReliefMaps as ReliefMaps
 from ._scene import ReliefQuality as ReliefQuality
+from ._device import rebuilder as rebuilder
 from ._scene import SkeletonConfig as SkeletonConfig
 from ._scene import Static as Static
 from ._scene import albedo as albedo
@@ -40,4 +41,4 @@ from ._scene import topology as topology
 from ._scene import traversal_stats as traversal_stats
 from ._scene import validate_skeleton as validate_skeleton
 
-__all__ = ["FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cutting_planes", "frusta_from_skeleton", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "load_height_map", "make_group", "minor_semi_axis", "relief_memory", "rim_points", "to_params", "topology", "traversal_stats", "validate_skeleton"]
+__all__ = ["FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cutting_planes", "frusta_from_skeleton", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "load_height_map", "make_group", "minor_semi_axis", "rebuilder", "relief_memory", "rim_points", "to_params", "topology", "traversal_stats", "validate_skeleton"]
