@@ -83,8 +83,8 @@ class FrustaConfig(StrictModel):
     frame: float = 0.0  # animation frame, for animated generators (dancing_cacti)
     accel: Literal["auto", "blocks", "bvh", "none"] = "auto"  # plain segments: auto = bvh from 16 segments; none = brute force
     leaf: Annotated[int, Field(ge=1, le=64)] = 4  # segments per BVH leaf
-    group: Annotated[int, Field(ge=1, le=1 << 24)] = 512  # rays per vmapped BVH traversal (packet: 0)
-    packet: Annotated[int, Field(ge=0, le=65536)] = 256  # rays sharing one BVH traversal; 0: one walk per ray
+    group: Annotated[int, Field(ge=1, le=1 << 24)] = 512  # traversal walks: rays per vmapped group of walks
+    packet: Annotated[int, Field(ge=0, le=65536)] = 256  # traversal packets: rays sharing one BVH walk (0: walks)
     # how rays find their segments: candidate lists of packets of coherent rays (CPU default,
     # ``jskel.accel._bins``), BVH packets, per-ray BVH walks under vmap, or the Pallas kernel
     # (accelerator default, ``jskel.frusta._kernel``); auto picks by the default backend
