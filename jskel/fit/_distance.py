@@ -3,8 +3,8 @@
 The surface is the one the renderer casts rays at (Bhagvat et al. 2009, Sec. 2.1-2.2): each
 segment a cone ``x^2 + z^2 = (r1 + k y)^2`` (slope form, ``k = (r2 - r1) / h``, no apex term, so
 cylinders and closed tips are one formula) between two planes; a segment and its continuation
-share the cutting plane of Eq. 3-5 (:func:`cutting_planes`, a JAX port of the host build's
-``jskel.frusta._build.cutting_planes``, same fallbacks); free ends and side-branch bases are cut
+share the cutting plane of Eq. 3-5 (``jskel.frusta._device.cutting_planes``, the JAX port of the
+host build's ``jskel.frusta._build.cutting_planes`` that the device rebuild uses too, same fallbacks); free ends and side-branch bases are cut
 perpendicular to the axis and capped.
 
 Per segment the signed distance combines ``cone``, the distance to the generator line in the
@@ -30,10 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..frusta import topology, validate_skeleton
+from ..frusta._device import _dot, _norm3, cutting_planes
 from ..numerics import safe_div, safe_norm, safe_sqrt
 
-_COLLINEAR_SIN = 1e-7
-ELLIPSE_MARGIN = 0.05  # as the host build: |n . m| must exceed sin(half-angle) by this much
 
 
 class Segments(NamedTuple):
@@ -73,85 +72,6 @@ class Geometry(NamedTuple):
     db: jnp.ndarray
     nt: jnp.ndarray
     dt: jnp.ndarray
-
-
-def _dot(a, b):
-    """Written out per component (as ``frusta._intersect`` does): with ``jnp.sum(a * b, -1)``
-    the jitted distance of a 50-segment chain came out wrong for points past the 655th of a
-    batch on XLA CPU (jax 0.10.2) while the same ops run one by one were right."""
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-
-
-def _norm3(v):
-    """|v| over a last axis of 3, per component (see :func:`_dot`), zero gradient at 0."""
-    return safe_sqrt(_dot(v, v))
-
-
-def _unit(v):
-    return safe_div(v, safe_norm(v, keepdims=True), 0.0)
-
-
-def _any_perp(m):
-    ax = jnp.eye(3, dtype=m.dtype)[jnp.argmin(jnp.abs(m), axis=-1)]
-    return _unit(ax - _dot(ax, m)[..., None] * m)
-
-
-def _cross2(a, b):
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-
-
-def _cuts_ellipse(n, m, r0, r1, h):
-    k = safe_div(r1 - r0, h, 0.0)
-    return jnp.abs(_dot(n, m)) > jnp.abs(k) / jnp.sqrt(1.0 + k * k) + ELLIPSE_MARGIN
-
-
-def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
-    """Eq. 3-5 cutting planes at K joints, vectorised (see the host build's docstring):
-    returns unit normals ``n`` (K,3) with n . (ma + mb) > 0 and points ``p`` (K,3) on them."""
-    cr = jnp.cross(ma, mb)
-    sin = safe_norm(cr)
-    collinear = sin < _COLLINEAR_SIN
-    nm = jnp.where(collinear[:, None], _any_perp(ma), safe_div(cr, sin[:, None], 0.0))
-    e1 = ma
-    e2 = jnp.cross(nm, ma)
-    da = jnp.stack([jnp.ones_like(sin), jnp.zeros_like(sin)], -1)
-    db = jnp.stack([_dot(mb, e1), _dot(mb, e2)], -1)
-    ca2 = jnp.stack([_dot(ca - j, e1), _dot(ca - j, e2)], -1)
-    cb2 = db * hb[:, None]
-
-    def side(d):
-        return jnp.stack([d[:, 1], -d[:, 0]], -1)
-
-    sa, sb = side(da), side(db)
-    zero = jnp.zeros_like(ca2)
-
-    def meet(sign):
-        l1 = ca2 - sign * ra0[:, None] * sa
-        l2 = zero - sign * ra1[:, None] * sa
-        l3 = zero - sign * rb0[:, None] * sb
-        l4 = cb2 - sign * rb1[:, None] * sb
-        d1, d2 = l2 - l1, l4 - l3
-        den = _cross2(d1, d2)
-        scale = safe_norm(d1) * safe_norm(d2)
-        ok = jnp.abs(den) > 1e-9 * scale
-        s = safe_div(_cross2(l3 - l1, d2), jnp.where(ok, den, 0.0), 0.0)
-        return l1 + s[:, None] * d1, ok
-
-    a2, oka = meet(1.0)
-    b2, okb = meet(-1.0)
-    ab = a2 - b2
-    ab3 = ab[:, :1] * e1 + ab[:, 1:] * e2
-    n = _unit(jnp.cross(ab3, nm))
-    p = j + a2[:, :1] * e1 + a2[:, 1:] * e2
-    bis = _unit(ma + mb)
-    fallback = ~(oka & okb) & ~collinear
-    fallback |= ~collinear & ~(_cuts_ellipse(n, ma, ra0, ra1, ha) & _cuts_ellipse(n, mb, rb0, rb1, hb))
-    n = jnp.where(fallback[:, None], bis, n)
-    p = jnp.where(fallback[:, None], j, p)
-    n = jnp.where(collinear[:, None], ma, n)
-    p = jnp.where(collinear[:, None], j, p)
-    n = n * jnp.where(_dot(n, ma + mb) < 0, -1.0, 1.0)[:, None]
-    return n, p
 
 
 def geometry(joints, radii, seg: Segments) -> Geometry:

@@ -21,9 +21,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..frusta._build import ELLIPSE_MARGIN
 from . import _normal, _solvers
 from ._config import EstimateConfig, FitFile, PointsConfig, SolverConfig
-from ._distance import (ELLIPSE_MARGIN, Segments, checked_distances, culling_exact, distances_of, geometry, margins_of,
+from ._distance import (Segments, checked_distances, culling_exact, distances_of, geometry, margins_of,
                         plane_margins, sample_surface, segments_of)
 
 

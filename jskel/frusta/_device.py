@@ -26,9 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..numerics import safe_div, safe_norm, safe_sqrt
 from ._accel import build_bvh
 from ._build import _COLLINEAR_SIN, ELLIPSE_MARGIN
-from ..numerics import safe_div, safe_sqrt
 from ._intersect import FrustaParams
 
 
@@ -44,11 +44,19 @@ class DeviceTopology(NamedTuple):
 
 
 def _dot(a, b):
+    """Written out per component (as ``frusta._intersect`` does): with ``jnp.sum(a * b, -1)``
+    the jitted distance of a 50-segment chain came out wrong for points past the 655th of a
+    batch on XLA CPU (jax 0.10.2) while the same ops run one by one were right."""
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
+def _norm3(v):
+    """|v| over a last axis of 3, per component (see :func:`_dot`), zero gradient at 0."""
+    return safe_sqrt(_dot(v, v))
+
+
 def _unit(v):
-    return safe_div(v, safe_sqrt(_dot(v, v))[..., None], 0.0)
+    return safe_div(v, safe_norm(v, keepdims=True), 0.0)
 
 
 def _any_perp(m):
@@ -66,9 +74,11 @@ def _cuts_ellipse(n, m, r0, r1, h):
 
 
 def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
-    """``_build.cutting_planes`` in JAX (the same construction, fallbacks and orientation)."""
+    """``_build.cutting_planes`` in JAX (Eq. 3-5 at K joints, vectorised; the same construction,
+    fallbacks and orientation): unit normals ``n`` (K,3) with n . (ma + mb) > 0 and points ``p``
+    (K,3) on them. Differentiable (``numerics.safe_*``); the fit's distances use it too."""
     cr = jnp.cross(ma, mb)
-    sin = safe_sqrt(_dot(cr, cr))
+    sin = safe_norm(cr)
     collinear = sin < _COLLINEAR_SIN
     nm = jnp.where(collinear[:, None], _any_perp(ma), safe_div(cr, sin[:, None], 0.0))
     e1 = ma
@@ -89,24 +99,21 @@ def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
         l2 = zero - sign * ra1[:, None] * sa
         l3 = zero - sign * rb0[:, None] * sb
         l4 = cb2 - sign * rb1[:, None] * sb
-        d1 = l2 - l1
-        d2 = l4 - l3
+        d1, d2 = l2 - l1, l4 - l3
         den = _cross2(d1, d2)
-        s = safe_div(_cross2(l3 - l1, d2), den, 0.0)
-        pt = l1 + s[:, None] * d1
-        scale = safe_sqrt(_dot2(d1)) * safe_sqrt(_dot2(d2))
-        return pt, jnp.abs(den) > 1e-9 * scale
+        scale = safe_norm(d1) * safe_norm(d2)
+        ok = jnp.abs(den) > 1e-9 * scale
+        s = safe_div(_cross2(l3 - l1, d2), jnp.where(ok, den, 0.0), 0.0)
+        return l1 + s[:, None] * d1, ok
 
     a2, oka = meet(1.0)
     b2, okb = meet(-1.0)
     ab = a2 - b2
     ab3 = ab[:, :1] * e1 + ab[:, 1:] * e2
-    n = jnp.cross(ab3, nm)
-    nn = safe_sqrt(_dot(n, n))
-    n = safe_div(n, nn[:, None], 0.0)
+    n = _unit(jnp.cross(ab3, nm))
     p = j + a2[:, :1] * e1 + a2[:, 1:] * e2
     bis = _unit(ma + mb)
-    fallback = (~(oka & okb) | (nn == 0)) & ~collinear
+    fallback = ~(oka & okb) & ~collinear
     fallback |= ~collinear & ~(_cuts_ellipse(n, ma, ra0, ra1, ha) & _cuts_ellipse(n, mb, rb0, rb1, hb))
     n = jnp.where(fallback[:, None], bis, n)
     p = jnp.where(fallback[:, None], j, p)
@@ -114,10 +121,6 @@ def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
     p = jnp.where(collinear[:, None], j, p)
     n = n * jnp.where(_dot(n, ma + mb) < 0, -1.0, 1.0)[:, None]
     return n, p
-
-
-def _dot2(v):
-    return v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1]
 
 
 def device_topology(topo, n: int) -> DeviceTopology:
