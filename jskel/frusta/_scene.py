@@ -461,9 +461,12 @@ _STATS_FNS: dict = {}
 def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
     """Work per ray of the BVH traversal of the plain segments: mean and max internal nodes
     visited and leaves tested by each ray's own walk (deterministic counts, free of timing
-    noise; issue 6's "cost per ray grows no faster than log(segments)"), and with packets the
-    mean steps of a packet's shared loop (nodes and leaves of the union of its rays' walks, in
-    the given ray order). Empty when the scene has no BVH."""
+    noise; issue 6's "cost per ray grows no faster than log(segments)"); with packets the
+    mean steps of a packet's shared loop (nodes and leaves of the union of its rays' walks);
+    with bins the segment tests per ray (each chunk's (packet, segment) pairs times the rays per
+    packet, shared among the chunk's rays) and the mean length of a chunk's first list. Packets
+    and bins depend on the given ray order (the render's: ``rays.tile_order``). Empty when the
+    scene has no BVH."""
     from ..rays import map_chunks
 
     if built.static.accel != "bvh" or built.params.plain is None:
