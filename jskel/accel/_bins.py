@@ -109,7 +109,8 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
     meets = jax.vmap(packet_meets, in_axes=(0, 0, 0, 0, 0, 0, None, None))
 
     dtype = origins.dtype
-    t0, aux0 = jax.eval_shape(pair_fn, jnp.zeros((q,), jnp.int32), po[:1].repeat(q, 0), pd[:1].repeat(q, 0), pa[:1].repeat(q, 0), pb[:1].repeat(q, 0))
+    spec = lambda x: jax.ShapeDtypeStruct((q,) + x.shape[1:], x.dtype)  # noqa: E731 - (Q, G, ...) pair rays
+    _, aux0 = jax.eval_shape(pair_fn, jax.ShapeDtypeStruct((q,), jnp.int32), spec(po), spec(pd), spec(pa), spec(pb))
     big = jnp.int32(jnp.iinfo(jnp.int32).max)
     best = (jnp.full((p, g), jnp.inf, dtype), tuple(jnp.zeros((p, g), a.dtype) for a in aux0), jnp.full((p, g), -1, jnp.int32))
 

@@ -155,13 +155,11 @@ def frusta_fields(joints, radii, topo: DeviceTopology, twist_turns, levels: int)
     db = jnp.where(cont, _dot(n, p - c1), 0.0)
     cap_b = ~cont
     # the top of a segment is cut by its continuation's plane (scatter from the child row)
-    rows = jnp.arange(h.shape[0])
     tgt = jnp.where(cont, topo.parent, h.shape[0])  # out of range: dropped
     nt = m.at[tgt].set(n, mode="drop")
     has_child = jnp.zeros(h.shape, bool).at[tgt].set(True, mode="drop")
     dt = jnp.where(has_child, _dot(nt, jnp.zeros_like(c1).at[tgt].set(p, mode="drop") - c1), h)
     cap_t = ~has_child
-    del rows
 
     # frames in depth order (Sec. 2.3): roots take +z projected, side branches parallel-transport
     # the frame of the segment they grow from, continuations pass through Q
