@@ -15,7 +15,10 @@ close on screen):
 3. that list is taken ``candidates`` at a time, each block tested against every packet, and the
    (packet, primitive) pairs that pass are compacted, ``pairs`` at a time, into dense tests of
    every ray of the packet against the pair's primitive; a ``segment_min`` over the packet keeps
-   each ray's nearest hit.
+   each ray's nearest t, a second its primitive. Nothing else rides through the loop: the
+   caller recomputes what it needs of the hit (surface parameter, code) from the winning
+   primitive, one test per ray. On the cacti that took the cast from 0.112 s to 0.097 s (the
+   four scatters of (t, index, parameter, code) cost as much as the tests themselves).
 
 Both loops run as many times as the lists are long (compaction; nothing is tested that no
 packet may meet, and no static capacity can overflow). The result equals brute force: every
@@ -89,8 +92,7 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
     """Nearest hit of every ray of a batch (N,) through packet candidate lists (module docstring).
 
     lo, hi: (S, 3) primitive boxes (empty boxes for padding). ``pair_fn(ids (Q,), o, d, t_min,
-    t_max)`` with rays (Q, G, ...) returns ``(t, aux)``: t (Q, G) (inf on a miss) and a tuple of
-    (Q, G) arrays for the hit (a surface parameter, a code). Returns ``(t, aux, idx)`` with
+    t_max)`` with rays (Q, G, ...) returns t (Q, G) (inf on a miss). Returns ``(t, idx)`` with
     leading axis N and idx the primitive index (-1 on a miss), plus (n_batch, n_pairs): the
     batch's list length and the pairs tested, for statistics."""
     n = origins.shape[0]
@@ -108,11 +110,8 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
     list1 = jnp.concatenate([jnp.nonzero(m1, size=s, fill_value=0)[0].astype(jnp.int32), jnp.zeros((k,), jnp.int32)])
     meets = jax.vmap(packet_meets, in_axes=(0, 0, 0, 0, 0, 0, None, None))
 
-    dtype = origins.dtype
-    spec = lambda x: jax.ShapeDtypeStruct((q,) + x.shape[1:], x.dtype)  # noqa: E731 - (Q, G, ...) pair rays
-    _, aux0 = jax.eval_shape(pair_fn, jax.ShapeDtypeStruct((q,), jnp.int32), spec(po), spec(pd), spec(pa), spec(pb))
     big = jnp.int32(jnp.iinfo(jnp.int32).max)
-    best = (jnp.full((p, g), jnp.inf, dtype), tuple(jnp.zeros((p, g), a.dtype) for a in aux0), jnp.full((p, g), -1, jnp.int32))
+    best = (jnp.full((p, g), jnp.inf, origins.dtype), jnp.full((p, g), -1, jnp.int32))
 
     def block(j, carry):
         best, tested = carry
@@ -123,21 +122,19 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
         flat = jnp.concatenate([jnp.nonzero(m2.reshape(-1), size=p * k, fill_value=0)[0].astype(jnp.int32), jnp.zeros((q,), jnp.int32)])
 
         def pairs_step(r, best):
-            bt, baux, bi = best
+            bt, bi = best
             at = jax.lax.dynamic_slice_in_dim(flat, r * q, q)
             ok = r * q + jnp.arange(q) < n2
             pk = jnp.where(ok, at // k, p)  # p: dropped by the segment reductions (still sorted)
             prim = ids[at % k]
             rows = jnp.minimum(pk, p - 1)
-            t, aux = pair_fn(prim, po[rows], pd[rows], pa[rows], pb[rows])
+            t = pair_fn(prim, po[rows], pd[rows], pa[rows], pb[rows])
             t = jnp.where(ok[:, None], t, jnp.inf)
             tm = jax.ops.segment_min(t, pk, num_segments=p, indices_are_sorted=True)
             hit = (t == tm[rows]) & ok[:, None] & jnp.isfinite(t)
             im = jax.ops.segment_min(jnp.where(hit, prim[:, None], big), pk, num_segments=p, indices_are_sorted=True)
-            sel = hit & (prim[:, None] == im[rows])
-            am = tuple(jax.ops.segment_sum(jnp.where(sel, a, jnp.zeros((), a.dtype)), pk, num_segments=p, indices_are_sorted=True) for a in aux)
             better = jnp.isfinite(tm) & ((tm < bt) | ((tm == bt) & (im < bi)))
-            return (jnp.where(better, tm, bt), tuple(jnp.where(better, a, b) for a, b in zip(am, baux)), jnp.where(better, im, bi))
+            return jnp.where(better, tm, bt), jnp.where(better, im, bi)
 
         def cond(st):
             return st[0] * q < n2
@@ -156,6 +153,5 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
         return st[0] + 1, best, tested
 
     _, best, tested = jax.lax.while_loop(cond1, body1, (jnp.int32(0), best, jnp.int32(0)))
-    t, aux, idx = best
-    flat_out = lambda x: x.reshape((n_pad,) + x.shape[2:])[:n]  # noqa: E731
-    return flat_out(t), tuple(flat_out(a) for a in aux), flat_out(idx), (n1, tested)
+    t, idx = best
+    return t.reshape(n_pad)[:n], idx.reshape(n_pad)[:n], (n1, tested)

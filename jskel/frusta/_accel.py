@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from ..accel import BVH, Best, build, nearest, nearest_binned, nearest_packet
-from ._intersect import SIDE, FrustaParams, _segment_t
+from ._intersect import SIDE, FrustaParams, _segment_t, recentre
 
 
 def segment_boxes(f: FrustaParams, n_ang: int = 32):
@@ -153,13 +153,20 @@ def nearest_groups(f: FrustaParams, bvh, leaf: int, group: int, origins, directi
 def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, pairs: int, origins, directions, t_min, t_max):
     """(t, s, code, idx, (n_batch, n_pairs)) of a batch through packet candidate lists
     (``accel.nearest_binned``): each packet of ``packet`` consecutive rays tests only the
-    segments whose box one of its rays may meet; equal to brute force, ties included."""
+    segments whose box one of its rays may meet; equal to brute force, ties included.
+
+    The loop keeps t and the segment only; (s, code) come from one more test of each ray
+    against its segment. That test is a program of its own, which XLA may round apart from the
+    loop's: where it misses a hit the loop found (a graze), s is taken as t - t0 and the code
+    as the side."""
 
     def pair_fn(ids, o, d, a, b):
         seg = jax.tree_util.tree_map(lambda x: x[ids], f)
-        per_ray = jax.vmap(_segment_t, in_axes=(None, 0, 0, 0, 0))
-        t, s, c = jax.vmap(per_ray)(seg, o, d, a, b)
-        return t, (s, c)
+        return jax.vmap(jax.vmap(_segment_t, in_axes=(None, 0, 0, 0, 0)))(seg, o, d, a, b)[0]
 
-    t, (s, c), idx, counts = nearest_binned(fb.box_lo, fb.box_hi, pair_fn, packet, candidates, pairs, origins, directions, t_min, t_max)
-    return t, s, c, idx, counts
+    t, idx, counts = nearest_binned(fb.box_lo, fb.box_hi, pair_fn, packet, candidates, pairs, origins, directions, t_min, t_max)
+    seg = jax.tree_util.tree_map(lambda x: x[jnp.maximum(idx, 0)], f)
+    t_again, s, c = jax.vmap(_segment_t)(seg, origins, directions, t_min, t_max)
+    t0 = jax.vmap(recentre)(seg, origins, directions)[0]
+    again = jnp.isfinite(t_again)
+    return t, jnp.where(again, s, t - t0), jnp.where(again, c, SIDE), idx, counts

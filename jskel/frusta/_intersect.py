@@ -94,10 +94,14 @@ def recentre(seg: FrustaParams, o, d):
 
 def side_roots(seg: FrustaParams, e, d, dr=0.0):
     """Roots (s_lo, s_hi) of the ray e + s d with the cone of radii (r1 + dr, r2 + dr)."""
-    ex, ey, ez = _dot(e, seg.u), _dot(e, seg.m), _dot(e, seg.w)
-    dx, dy, dz = _dot(d, seg.u), _dot(d, seg.m), _dot(d, seg.w)
     k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
-    re = seg.r1 + dr + k * ey
+    return _cone_roots(k, seg.r1 + dr, _dot(e, seg.u), _dot(e, seg.m), _dot(e, seg.w), _dot(d, seg.u), _dot(d, seg.m), _dot(d, seg.w))
+
+
+def _cone_roots(k, r1, ex, ey, ez, dx, dy, dz):
+    """Roots of the ray (ex, ey, ez) + s (dx, dy, dz), in the frame (u, m, w), with the cone
+    x^2 + z^2 = (r1 + k y)^2."""
+    re = r1 + k * ey
     a = dx * dx + dz * dz - k * k * dy * dy
     hb = ex * dx + ez * dz - k * dy * re
     c = ex * ex + ez * ez - re * re
@@ -105,19 +109,26 @@ def side_roots(seg: FrustaParams, e, d, dr=0.0):
 
 
 def _segment_t(seg: FrustaParams, o, d, t_min, t_max):
-    """Nearest hit of one ray with one frustum: (t, s, code); t = inf on a miss."""
+    """Nearest hit of one ray with one frustum: (t, s, code); t = inf on a miss.
+
+    The ray is projected once on the frame (u, m, w) and on the two cutting-plane normals (ten
+    dot products); every candidate point e + s d is then tested through those projections
+    (x = ex + s dx, ...), not re-projected (the projected form took the CPU's bins cast of the
+    cacti from 0.138 s to the figure in README's performance section)."""
     inf = jnp.asarray(jnp.inf, o.dtype)
     t0, e = recentre(seg, o, d)
-    ey, dy = _dot(e, seg.m), _dot(d, seg.m)
+    ex, ey, ez = _dot(e, seg.u), _dot(e, seg.m), _dot(e, seg.w)
+    dx, dy, dz = _dot(d, seg.u), _dot(d, seg.m), _dot(d, seg.w)
+    be, bd = _dot(seg.nb, e), _dot(seg.nb, d)
+    te, td = _dot(seg.nt, e), _dot(seg.nt, d)
     k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
     # a, hb, c are all zero only for a ray along a cylinder's axis: no side hit then
-    s_lo, s_hi = side_roots(seg, e, d)
+    s_lo, s_hi = _cone_roots(k, seg.r1, ex, ey, ez, dx, dy, dz)
 
     tol = 32.0 * eps_of(o) * (seg.h + seg.r1 + seg.r2)
 
     def in_slab(s):
-        p = e + s * d
-        return (_dot(seg.nb, p) >= seg.db - tol) & (_dot(seg.nt, p) <= seg.dt + tol)
+        return (be + s * bd >= seg.db - tol) & (te + s * td <= seg.dt + tol)
 
     def accept(s, ok):
         t = t0 + s
@@ -128,12 +139,9 @@ def _segment_t(seg: FrustaParams, o, d, t_min, t_max):
         y = ey + s * dy
         return accept(s, in_slab(s) & (seg.r1 + k * y >= 0))
 
-    def cap(n, dist, flag):
-        s = safe_div(dist - _dot(n, e), _dot(n, d), inf)
-        p = e + s * d
-        y = _dot(p, seg.m)
-        x = _dot(p, seg.u)
-        z = _dot(p, seg.w)
+    def cap(ne, nd, dist, flag):
+        s = safe_div(dist - ne, nd, inf)
+        x, y, z = ex + s * dx, ey + s * dy, ez + s * dz
         ry = seg.r1 + k * y
         inside = (x * x + z * z <= ry * ry) & (ry >= 0) & in_slab(s)
         return accept(s, inside & flag)
@@ -144,8 +152,8 @@ def _segment_t(seg: FrustaParams, o, d, t_min, t_max):
     best_c = jnp.int32(SIDE)
     for (tc, sc), code in (
         (side(s_hi), SIDE),
-        (cap(seg.nb, seg.db, seg.cap_b), CAP_BOTTOM),
-        (cap(seg.nt, seg.dt, seg.cap_t), CAP_TOP),
+        (cap(be, bd, seg.db, seg.cap_b), CAP_BOTTOM),
+        (cap(te, td, seg.dt, seg.cap_t), CAP_TOP),
     ):
         better = tc < best_t
         best_t = jnp.where(better, tc, best_t)
