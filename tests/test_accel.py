@@ -159,7 +159,7 @@ def test_a_strong_change_of_taper_keeps_every_cut_an_ellipse():
     assert np.all(np.hypot(hit.position[h, 0] - 0.03, hit.position[h, 2]) < 0.1)
     fast = build_skeleton(joints, radii, [-1, 0, 1, 2], accel="bvh", traversal="walks")
     np.testing.assert_array_equal(cast(fast, O, D, culled=True).t, hit.t)
-    bins = build_skeleton(joints, radii, [-1, 0, 1, 2], accel="bvh", traversal="bins")
+    bins = build_skeleton(joints, radii, [-1, 0, 1, 2], accel="bvh", traversal="bins", bin_group=0)  # the flat batch list
     assert_hits_agree(hit, cast(bins, O, D, culled=True), 2e-5)
 
 
@@ -266,21 +266,21 @@ def test_packet_meets_keeps_every_box_a_ray_of_the_packet_meets():
     assert truth.any() and max(kept_narrow) < 0.5
 
 
-@pytest.mark.parametrize("sizes", [(64, 128, 256), (8, 3, 5)])
+@pytest.mark.parametrize("sizes", [(64, 128, 256, 32), (8, 3, 5, 4)])
 def test_bins_equal_brute_force_on_random_skeletons(skeletons, sizes):
     """Candidate lists per packet (``traversal: bins``) against brute force, on incoherent rays
-    (long lists) and on a pinhole camera's rays in screen tiles; (8, 3, 5) runs the candidate
-    and pair loops many times per batch. XLA fuses the two programs apart and contracts
+    (long lists) and on a pinhole camera's rays in screen tiles; (8, 3, 5, 4) runs the group,
+    candidate and pair loops many times per batch. XLA fuses the two programs apart and contracts
     different products into FMAs, so t may differ by float rounding (the bench's largest depth
     difference on the cacti at 1024 x 768: 4e-5 at about 16 units, 2.5e-6 relative; the bound
     here is 2e-5 relative); hits, misses and segments agree."""
     from jskel.rays import Camera, tile_order
 
     rng = np.random.default_rng(8)
-    packet, cands, pairs = sizes
+    packet, cands, pairs, group = sizes
     for j, r, p in skeletons:
         brute = build_skeleton(j, r, p)
-        fast = build_skeleton(j, r, p, accel="bvh", traversal="bins", bin_packet=packet, bin_candidates=cands, bin_pairs=pairs)
+        fast = build_skeleton(j, r, p, accel="bvh", traversal="bins", bin_packet=packet, bin_candidates=cands, bin_pairs=pairs, bin_group=group)
         assert fast.static.traversal == "bins"
         O1, D1 = ref.random_rays(rng, j.min(0) - 0.5, j.max(0) + 0.5, 4096, spread=1.0)
         c = 0.5 * (j.min(0) + j.max(0))

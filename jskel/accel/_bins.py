@@ -88,7 +88,42 @@ def _pad_rows(x, n: int):
     return jnp.concatenate([x, jnp.broadcast_to(x[-1:], (pad,) + x.shape[1:])]) if pad else x
 
 
-def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pairs: int, origins, directions, t_min, t_max):
+def batch_list(whole, lo, hi, groups=None):
+    """(list (S + extra,) int32, count): the primitives whose boxes a batch of rays bounded by
+    ``whole`` may meet, first ``count`` entries valid.
+
+    ``groups = (g_lo, g_hi, slots)``: boxes (NG, 3) over groups of primitives and each group's
+    primitives (NG, per) (-1 for padding), e.g. one level of a BVH. The groups are tested
+    first and only the primitives of met groups, ``per * 8`` at a time in a while loop; a
+    batch that sees a small part of the scene then tests far fewer boxes than S."""
+    s = lo.shape[0]
+    if groups is None:
+        m1 = packet_meets(*whole, lo, hi)
+        return jnp.nonzero(m1, size=s, fill_value=0)[0].astype(jnp.int32), jnp.sum(m1.astype(jnp.int32))
+    g_lo, g_hi, slots = groups
+    ng_all, per = slots.shape
+    b = min(8, ng_all)
+    mg = packet_meets(*whole, g_lo, g_hi)
+    ng = jnp.sum(mg.astype(jnp.int32))
+    glist = jnp.concatenate([jnp.nonzero(mg, size=ng_all, fill_value=0)[0].astype(jnp.int32), jnp.zeros((b,), jnp.int32)])
+    out = jnp.zeros((s + b * per,), jnp.int32)
+
+    def body(st):
+        j, out, n1 = st
+        gi = jax.lax.dynamic_slice_in_dim(glist, j * b, b)
+        ids = slots[gi].reshape(-1)
+        ok = ((j * b + jnp.arange(b) < ng)[:, None] & (slots[gi] >= 0)).reshape(-1)
+        safe = jnp.maximum(ids, 0)
+        m = packet_meets(*whole, lo[safe], hi[safe]) & ok
+        found = jnp.nonzero(m, size=b * per, fill_value=0)[0]
+        out = jax.lax.dynamic_update_slice_in_dim(out, safe[found], n1, 0)
+        return j + 1, out, n1 + jnp.sum(m.astype(jnp.int32))
+
+    _, out, n1 = jax.lax.while_loop(lambda st: st[0] * b < ng, body, (jnp.int32(0), out, jnp.int32(0)))
+    return out, n1
+
+
+def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pairs: int, origins, directions, t_min, t_max, groups=None):
     """Nearest hit of every ray of a batch (N,) through packet candidate lists (module docstring).
 
     lo, hi: (S, 3) primitive boxes (empty boxes for padding). ``pair_fn(ids (Q,), o, d, t_min,
@@ -105,9 +140,8 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
     s = lo.shape[0]
     k = min(candidates, s)
     q = min(pairs, p * k)
-    m1 = packet_meets(*whole, lo, hi)
-    n1 = jnp.sum(m1.astype(jnp.int32))
-    list1 = jnp.concatenate([jnp.nonzero(m1, size=s, fill_value=0)[0].astype(jnp.int32), jnp.zeros((k,), jnp.int32)])
+    list1, n1 = batch_list(whole, lo, hi, groups)
+    list1 = jnp.concatenate([list1, jnp.zeros((k,), jnp.int32)])
     meets = jax.vmap(packet_meets, in_axes=(0, 0, 0, 0, 0, 0, None, None))
 
     big = jnp.int32(jnp.iinfo(jnp.int32).max)

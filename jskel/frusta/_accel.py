@@ -150,10 +150,21 @@ def nearest_groups(f: FrustaParams, bvh, leaf: int, group: int, origins, directi
     return tuple(x.reshape((-1,) + x.shape[2:])[:n] for x in out)
 
 
-def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, pairs: int, origins, directions, t_min, t_max):
+def bin_groups(tree: BVH, per: int):
+    """The tree's nodes at the level whose subtrees hold ``per`` leaf slots: their boxes and
+    slots, the groups that ``accel.batch_list`` tests before their primitives."""
+    slots = tree.order.shape[0]
+    ng = max(1, slots // max(per, 1))
+    return tree.lo[ng : 2 * ng], tree.hi[ng : 2 * ng], tree.order.reshape(ng, -1)
+
+
+def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, pairs: int, group: int, origins, directions, t_min, t_max):
     """(t, s, code, idx, (n_batch, n_pairs)) of a batch through packet candidate lists
     (``accel.nearest_binned``): each packet of ``packet`` consecutive rays tests only the
     segments whose box one of its rays may meet; equal to brute force, ties included.
+    ``group`` > 0: the batch's list is found through the tree's nodes of ``group`` leaf slots
+    (``accel.batch_list``); on the 18,557-segment oasis that took the cast from 0.144 s to
+    0.103 s, on the 2,158-segment cacti from 0.107 s to 0.097 s (1024 x 768, 2-core CPU).
 
     The loop keeps t and the segment only; (s, code) come from one more test of each ray
     against its segment. That test is a program of its own, which XLA may round apart from the
@@ -164,7 +175,8 @@ def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, p
         seg = jax.tree_util.tree_map(lambda x: x[ids], f)
         return jax.vmap(jax.vmap(_segment_t, in_axes=(None, 0, 0, 0, 0)))(seg, o, d, a, b)[0]
 
-    t, idx, counts = nearest_binned(fb.box_lo, fb.box_hi, pair_fn, packet, candidates, pairs, origins, directions, t_min, t_max)
+    groups = bin_groups(fb.tree, group) if group else None
+    t, idx, counts = nearest_binned(fb.box_lo, fb.box_hi, pair_fn, packet, candidates, pairs, origins, directions, t_min, t_max, groups)
     seg = jax.tree_util.tree_map(lambda x: x[jnp.maximum(idx, 0)], f)
     t_again, s, c = jax.vmap(_segment_t)(seg, origins, directions, t_min, t_max)
     t0 = jax.vmap(recentre)(seg, origins, directions)[0]

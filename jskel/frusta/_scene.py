@@ -71,7 +71,7 @@ class Static(NamedTuple):
     traversal: str = "packets"  # bvh: bins | packets | walks | kernel (resolved from ``object.traversal``)
     kernel_block: int = 32
     kernel_warps: int = 1
-    bins: tuple[int, int, int] = (64, 128, 256)  # bins: rays per packet, candidates and pairs per step
+    bins: tuple[int, int, int, int] = (64, 128, 256, 32)  # bins: rays per packet, candidates and pairs per step, slots per group
 
 
 def _pad(a: np.ndarray, n: int, fill) -> np.ndarray:
@@ -346,7 +346,7 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
     static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block,
                     "none" if cfg.accel == "none" else ("bvh" if plain is not None and plain.bvh is not None else "blocks"),
                     cfg.leaf, cfg.group, cfg.packet, traversal_of(cfg), cfg.kernel_block, cfg.kernel_warps,
-                    (cfg.bin_packet, cfg.bin_candidates, cfg.bin_pairs))
+                    (cfg.bin_packet, cfg.bin_candidates, cfg.bin_pairs, cfg.bin_group))
     info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size))
     return Built(scene, static, anchor, (lo, hi), info)
 
