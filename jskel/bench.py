@@ -206,17 +206,22 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
     from .frusta._scene import ANIMATED
 
     if bench.frames and obj.skeleton.procedural in ANIMATED:
-        out += _frames_rows(bench, exp, obj, O, D, level, mc, base)
+        out += _frames_rows(bench, exp, obj, O, D, level, mc, base, runs)
     return out
 
 
-def _frames_rows(bench, exp, obj, O, D, level, mc, base):
+def _frames_rows(bench, exp, obj, O, D, level, mc, base, runs: int = 1):
     """Seconds per animated frame, rebuild included: jskel (skeleton, cutting planes, BVH built in
     JAX, render with shading; again with the cast alone, ``jskel_cast_frame_s_median``; and with
     the frusta rebuilt on the device from the frame's joints, ``jskel_device_frame_s_median``; the
     compiles are shared by all frames and not counted), Embree (skeleton, cutting
     planes, tessellation, BVH build, cast) and Mitsuba (skeleton, control-point update with its
-    rebuild, cast)."""
+    rebuild, cast).
+
+    Each frame is done ``runs`` times by every system in turn (jskel, Embree, Mitsuba, then
+    again), and a frame's figure is the median of its runs; the row holds the median over frames.
+    This shared 2-core machine has slow spells of seconds (the same cast then takes 1.5-2x as
+    long); one run per frame put some systems' frames in a spell and not others'."""
     import jax
 
     from .frusta import host_frusta, rebuilder
@@ -224,7 +229,7 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base):
     from .peers.skeleton import EmbreeMesh, frusta_mesh
     from .render import dtype_of, render
 
-    jt, jc, jd, et, mt = [], [], [], [], []
+    totals = {"jskel": [], "jskel_cast": [], "jskel_device": [], "embree": [], "mitsuba": []}
     parts = {"jskel_build": [], "jskel_cast": [], "jskel_cast_only": [], "jskel_device_build": [], "jskel_device_cast": [],
              "embree_skeleton": [], "embree_tess": [], "embree_build": [],
              "embree_cast": [], "mitsuba_skeleton": [], "mitsuba_update": [], "mitsuba_cast": []}
@@ -237,51 +242,60 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base):
         rb = None
     for f in bench.frames:  # host loop over frames
         o = obj.model_copy(update={"frame": f})
-        res = render(exp, o, progress=False)
         if compile_s is None:
-            compile_s = res.run["compile_s"]
-            res = render(exp, o, progress=False)  # the first call compiled: time a warm one
-            cast_once(exp, o)  # and compile the cast alone
-        parts["jskel_build"].append(res.run["build_s"])
-        parts["jskel_cast"].append(res.run["render_s"])
-        jt.append(res.run["build_s"] + res.run["render_s"])
-        # the same frame again, built anew and cast alone (t and primitive, as the peers' casts)
-        b_s, c_s, _ = cast_once(exp, o)
-        parts["jskel_cast_only"].append(c_s)
-        jc.append(b_s + c_s)
-        if rb is not None:  # skeleton on the host, frusta and BVH on the device, cast alone
+            compile_s = render(exp, o, progress=False).run["compile_s"]  # the first call compiles
+            cast_once(exp, o)  # and the cast alone
+        tot = {k: [] for k in totals}
+        part = {k: [] for k in parts}
+        for _ in range(max(runs, 1)):
+            res = render(exp, o, progress=False)
+            part["jskel_build"].append(res.run["build_s"])
+            part["jskel_cast"].append(res.run["render_s"])
+            tot["jskel"].append(res.run["build_s"] + res.run["render_s"])
+            # the same frame again, built anew and cast alone (t and primitive, as the peers' casts)
+            b_s, c_s, _ = cast_once(exp, o)
+            part["jskel_cast_only"].append(c_s)
+            tot["jskel_cast"].append(b_s + c_s)
+            if rb is not None:  # skeleton on the host, frusta and BVH on the device, cast alone
+                t0 = time.perf_counter()
+                j, r, _, _ = _skeleton_arrays(o.skeleton, o.frame)
+                built = rb(j, r)
+                jax.block_until_ready(built.params)
+                d_build = time.perf_counter() - t0
+                _, c_s, _ = cast_once(exp, o, built)
+                part["jskel_device_build"].append(d_build)
+                part["jskel_device_cast"].append(c_s)
+                tot["jskel_device"].append(d_build + c_s)
             t0 = time.perf_counter()
-            j, r, _, _ = _skeleton_arrays(o.skeleton, o.frame)
-            built = rb(j, r)
-            jax.block_until_ready(built.params)
-            d_build = time.perf_counter() - t0
-            _, c_s, _ = cast_once(exp, o, built)
-            parts["jskel_device_build"].append(d_build)
-            parts["jskel_device_cast"].append(c_s)
-            jd.append(d_build + c_s)
-        t0 = time.perf_counter()
-        arrays = host_frusta(o)[0]
-        t1 = time.perf_counter()
-        V, F = frusta_mesh(arrays, level)
-        t2 = time.perf_counter()
-        em = EmbreeMesh(V, F)
-        _, cast_s = em.cast(O, D)
-        parts["embree_skeleton"].append(t1 - t0)
-        parts["embree_tess"].append(t2 - t1)
-        parts["embree_build"].append(em.build_s)
-        parts["embree_cast"].append(cast_s)
-        et.append(t2 - t0 + em.build_s + cast_s)
-        if mc is not None:
-            t0 = time.perf_counter()
-            j, r, p, _ = _skeleton_arrays(o.skeleton, o.frame)
-            sk = time.perf_counter() - t0
-            up = mc.update(j, r, p)
-            _, cast_s = mc.cast(O, D)
-            parts["mitsuba_skeleton"].append(sk)
-            parts["mitsuba_update"].append(up)
-            parts["mitsuba_cast"].append(cast_s)
-            mt.append(sk + up + cast_s)
-    row = dict(base, peer="animated_frames", frames=len(bench.frames), gs_level=level, jskel_compile_s=round(compile_s, 3),
+            arrays = host_frusta(o)[0]
+            t1 = time.perf_counter()
+            V, F = frusta_mesh(arrays, level)
+            t2 = time.perf_counter()
+            em = EmbreeMesh(V, F)
+            _, cast_s = em.cast(O, D)
+            part["embree_skeleton"].append(t1 - t0)
+            part["embree_tess"].append(t2 - t1)
+            part["embree_build"].append(em.build_s)
+            part["embree_cast"].append(cast_s)
+            tot["embree"].append(t2 - t0 + em.build_s + cast_s)
+            if mc is not None:
+                t0 = time.perf_counter()
+                j, r, p, _ = _skeleton_arrays(o.skeleton, o.frame)
+                sk = time.perf_counter() - t0
+                up = mc.update(j, r, p)
+                _, cast_s = mc.cast(O, D)
+                part["mitsuba_skeleton"].append(sk)
+                part["mitsuba_update"].append(up)
+                part["mitsuba_cast"].append(cast_s)
+                tot["mitsuba"].append(sk + up + cast_s)
+        for k, v in part.items():
+            if v:
+                parts[k].append(statistics.median(v))
+        for k, v in tot.items():
+            if v:
+                totals[k].append(statistics.median(v))
+    jt, jc, jd, et, mt = (totals[k] for k in ("jskel", "jskel_cast", "jskel_device", "embree", "mitsuba"))
+    row = dict(base, peer="animated_frames", frames=len(bench.frames), runs_per_frame=max(runs, 1), gs_level=level, jskel_compile_s=round(compile_s, 3),
                jskel_frame_s_median=_median(jt), embree_frame_s_median=_median(et),
                **{f"{k}_s_median": _median(v) for k, v in parts.items() if v})
     row["jskel_over_embree"] = round(row["jskel_frame_s_median"] / row["embree_frame_s_median"], 2)
