@@ -17,7 +17,7 @@ from typing import Annotated, Any, Literal, NamedTuple
 
 from pydantic import Field
 
-from .config import StrictModel, chunk_of
+from .config import StrictModel, chunk_of, chunks_per_call_of
 
 
 class BenchFile(StrictModel):
@@ -355,7 +355,8 @@ def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
     build_s = time.perf_counter() - t0
     cam = camera_of(exp)
     rays = permute(cam.rays(anchor=built.anchor, dtype=dtype), tile_order(cam.width, cam.height, exp.render.tile))
-    res = map_chunks(_cast_fn(obj.type, built.static), built.params, rays, chunk=chunk_of(exp.render), progress=False)
+    res = map_chunks(_cast_fn(obj.type, built.static), built.params, rays, chunk=chunk_of(exp.render), progress=False,
+                     group=chunks_per_call_of(exp.render))
     return build_s, res.run_s, res.compile_s
 
 

@@ -317,6 +317,38 @@ def chunk_for_budget(batch_fn: Callable, params, rays: Rays, chunk: int, budget:
         c = max(1, min(c // 2, 1 << (fit.bit_length() - 1)))
 
 
+_GROUPED: dict = {}
+
+
+def grouped(batch_fn: Callable, group: int) -> Callable:
+    """``batch_fn`` over ``group`` chunks in one call: the rays (group * chunk,) are viewed as
+    (group, chunk) and ``lax.map`` runs ``batch_fn`` on each chunk in turn, inside one compiled
+    program. The same function object is returned for the same (batch_fn, group), so compiled
+    executables are reused."""
+    if group <= 1:
+        return batch_fn
+    key = (batch_fn, group)
+    if key not in _GROUPED:
+
+        def fn(params, rays):
+            r = type(rays)(*(a.reshape((group, -1) + a.shape[1:]) for a in rays))
+            out = jax.lax.map(lambda rr: batch_fn(params, rr), r)
+            return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
+
+        _GROUPED[key] = fn
+    return _GROUPED[key]
+
+
+def calls_grouping(n_chunks: int, group: int) -> int:
+    """Chunks per call for ``n_chunks`` chunks and at most ``group`` per call: 1 below
+    ``group`` chunks (small batches keep the one-chunk program every size shares), else the
+    fewest calls with their chunks spread evenly (padding under one chunk per call)."""
+    if group <= 1 or n_chunks < group:
+        return 1
+    calls = -(-n_chunks // group)
+    return -(-n_chunks // calls)
+
+
 def map_chunks(
     batch_fn: Callable,
     params,
@@ -326,6 +358,7 @@ def map_chunks(
     desc: str = "rays",
     devices=None,
     memory_budget: int | None = None,
+    group: int = 1,
 ) -> ChunkedResult:
     """Evaluate ``batch_fn(params, rays_chunk) -> pytree`` over ``rays`` in chunks of ``chunk``.
 
@@ -340,6 +373,12 @@ def map_chunks(
     bit as one device with the same ``chunk`` (tested). ``memory_budget`` (bytes per device):
     ``chunk`` is lowered by :func:`chunk_for_budget` until one call fits; the chunk used and
     the bytes it needs are returned in ``memory``.
+
+    ``group`` > 1: up to that many chunks per compiled call (:func:`grouped`, a ``lax.map``
+    over them), where the batch holds at least ``group`` chunks and no memory budget is set.
+    Each chunk is still computed by ``batch_fn`` alone; what is saved is the host's per-call
+    work (slicing, transfers, dispatch): on the 2-core CPU the cacti's bins cast at 1024x768
+    went from 0.095 s to 0.073 s with 16 chunks of 4,096 rays per call.
     """
     from tqdm.auto import tqdm
 
@@ -355,6 +394,9 @@ def map_chunks(
         c, tries = chunk_for_budget(batch_fn, params, rays, chunk * per_dev, int(memory_budget), mesh)
         chunk = max(1, c // per_dev)
         memory = {"budget_bytes": int(memory_budget), "chunk": chunk, "tries": tries, "seconds": time.perf_counter() - t_b}
+    per_call = 1 if memory_budget is not None else calls_grouping(-(-n // (chunk * (1 if mesh is None else mesh.size))), group)
+    batch_fn = grouped(batch_fn, per_call)
+    chunk *= per_call
     if mesh is not None:
         chunk *= mesh.size  # ``chunk`` rays per device per call
     n_chunks = -(-n // chunk)

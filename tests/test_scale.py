@@ -227,3 +227,29 @@ def test_packets_share_short_walks_on_coherent_rays_and_equal_per_ray_walks():
     assert np.isfinite(a.t).mean() > 0.2
     np.testing.assert_array_equal(a.t, b.t)
     assert np.all((a.prim == b.prim) | (a.t == b.t))
+
+
+def test_chunks_per_call_equal_one_chunk_per_call(rng):
+    """``map_chunks`` with several chunks per compiled call (a ``lax.map`` over them, the CPU's
+    default on big batches) returns what one chunk per call returns, bit for bit: the bins cast
+    of a random tree, 20 chunks of 512 rays run as 3 calls of 7 (the last call padded)."""
+    from conftest import batch_fn
+
+    from jskel.rays import calls_grouping, make_rays, map_chunks
+
+    assert [calls_grouping(n, 16) for n in (1, 15, 16, 17, 75, 192)] == [1, 1, 16, 9, 15, 16]
+    assert calls_grouping(20, 8) == 7 and calls_grouping(100, 1) == 1
+    j, r, p = random_tree(rng, 40)
+    built = build_skeleton(j, r, p, accel="bvh", traversal="bins")
+    n = 20 * 512 - 100
+    O = rng.uniform(j.min(0) - 1.0, j.max(0) + 1.0, (n, 3))
+    D = rng.normal(size=(n, 3)) + (j.mean(0) - O)
+    rays = make_rays(O - built.anchor, D / np.linalg.norm(D, axis=1, keepdims=True))
+    fn = batch_fn(built.static, True)
+    one = map_chunks(fn, built.params, rays, chunk=512, progress=False).out
+    many = map_chunks(fn, built.params, rays, chunk=512, progress=False, group=8).out
+    assert 0.05 < np.isfinite(one.t).mean() < 0.95
+    for name in ("t", "position", "normal", "uv", "prim"):
+        a, b = np.asarray(getattr(one, name)), np.asarray(getattr(many, name))
+        assert a.shape == b.shape and a.shape[0] == n
+        np.testing.assert_array_equal(a, b)

@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from .. import registry
-from ..config import Experiment, chunk_of, resolved
+from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
 from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Camera, Hit, Rays, make_rays, map_chunks, permute, tile_order
 from ._aov import write_aovs as write_aovs
 from ._shade import Lights as Lights
@@ -131,10 +131,12 @@ def _trace(exp: Experiment, fn, params, rays: Rays, progress):
 
         lo, hi = share(rays.size, chunk_of(exp.render), n_proc, jax.process_index())
         mine = Rays(*(a[lo:hi] for a in rays))
-        res = map_chunks(fn, params, mine, chunk=chunk_of(exp.render), progress=progress, desc="render", devices=devices_of(exp), memory_budget=budget)
+        res = map_chunks(fn, params, mine, chunk=chunk_of(exp.render), progress=progress, desc="render", devices=devices_of(exp),
+                         memory_budget=budget, group=chunks_per_call_of(exp.render))
         per = share(rays.size, chunk_of(exp.render), n_proc, 0)[1]
         return res._replace(out=gather(res.out, hi - lo, per))
-    return map_chunks(fn, params, rays, chunk=chunk_of(exp.render), progress=progress, desc="render", devices=devices_of(exp), memory_budget=budget)
+    return map_chunks(fn, params, rays, chunk=chunk_of(exp.render), progress=progress, desc="render", devices=devices_of(exp),
+                         memory_budget=budget, group=chunks_per_call_of(exp.render))
 
 
 def _run_base(exp: Experiment, obj, build_s: float, res, n: int) -> dict:
