@@ -2,6 +2,32 @@
 
 __version__ = "0.1.0"
 
+
+def _host_devices() -> None:
+    """One XLA host device per CPU core, set before JAX starts (``XLA_FLAGS``), so that a CPU
+    render shards its rays over the cores (``render.devices: all``) the way it shards them over
+    GPUs. Each device then runs whole chunks; XLA's own threading inside one chunk's small
+    operations gained 1.3x from a second core on the 2-core machine, two devices 1.6x (the
+    cacti's bins cast at 1024x768: 0.074 -> 0.058 s). Nothing is changed when JAX is already
+    imported, when ``XLA_FLAGS`` names a device count, or with ``JSKEL_HOST_DEVICES`` set (its
+    value is the count; 1 keeps one device, as the tests do)."""
+    import os
+    import sys
+
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "jax" in sys.modules or "xla_force_host_platform_device_count" in flags:
+        return
+    want = os.environ.get("JSKEL_HOST_DEVICES")
+    try:
+        n = int(want) if want else len(os.sched_getaffinity(0))
+    except (AttributeError, ValueError):
+        n = os.cpu_count() or 1
+    if n > 1:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
+
+
+_host_devices()
+
 from .config import ConfigError as ConfigError
 from .config import load as load
 from .interface import Built as Built

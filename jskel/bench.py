@@ -346,7 +346,7 @@ def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
     render chunks them; the outputs come back to the host as ``t`` and ``prim`` only."""
     from . import registry
     from .rays import map_chunks, permute, tile_order
-    from .render import camera_of, dtype_of
+    from .render import camera_of, devices_of, dtype_of
 
     dtype = dtype_of(exp)
     rep = registry.get(obj.type)
@@ -356,7 +356,7 @@ def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
     cam = camera_of(exp)
     rays = permute(cam.rays(anchor=built.anchor, dtype=dtype), tile_order(cam.width, cam.height, exp.render.tile))
     res = map_chunks(_cast_fn(obj.type, built.static), built.params, rays, chunk=chunk_of(exp.render), progress=False,
-                     group=chunks_per_call_of(exp.render))
+                     devices=devices_of(exp), group=chunks_per_call_of(exp.render))
     return build_s, res.run_s, res.compile_s
 
 

@@ -10,6 +10,9 @@ from __future__ import annotations
 import os
 
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(os.path.dirname(__file__), "..", ".jax_cache"))
+# one CPU device, as the tests' shapes assume (jskel would otherwise make one per core; the
+# sharding tests force their own count); subprocesses inherit it
+os.environ.setdefault("JSKEL_HOST_DEVICES", "1")
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
