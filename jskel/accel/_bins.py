@@ -12,23 +12,30 @@ close on screen):
    ``packet_meets``, a superset of the rays' own hits);
 2. the primitive boxes that the whole batch may meet are compacted into a list (``nonzero``,
    O(primitives) per batch);
-3. that list is taken ``candidates`` at a time, each block tested against every packet, and the
-   (packet, primitive) pairs that pass are compacted, ``pairs`` at a time, into dense tests of
-   every ray of the packet against the pair's primitive; a ``segment_min`` over the packet keeps
-   each ray's nearest t, a second its primitive. Nothing else rides through the loop: the
+3. that list is taken ``candidates`` at a time, nearest the batch first (sorted by where the
+   batch's bound enters each box), each block tested against every packet; the (packet,
+   primitive) pairs that pass are compacted, ``pairs`` at a time and in that near-to-far order,
+   into dense tests of every ray of the packet against the pair's primitive, and a
+   ``segment_min`` over the packet keeps each ray's nearest t, a second its primitive. Before
+   each step the pairs left are pruned: a box that every ray of its packet enters beyond its
+   best hit so far cannot hold a nearer one (``packet_entry``), the front-to-back cut-off a BVH
+   walk makes. On the cacti at 1024 x 768 that halved the segment tests per ray (7.5 -> 4.0)
+   and took the cast from 0.086 s to 0.071 s; on the sparse oasis (9 % of the pixels hit, few
+   packets ever resolved) it pruned 1 % and the extra compaction per step cost about 5 %
+   (0.088 -> 0.092 s; same-process A/B, one device). Nothing else rides through the loop: the
    caller recomputes what it needs of the hit (surface parameter, code) from the winning
-   primitive, one test per ray. On the cacti that took the cast from 0.112 s to 0.097 s (the
-   four scatters of (t, index, parameter, code) cost as much as the tests themselves).
+   primitive, one test per ray (the four scatters of (t, index, parameter, code) had cost as
+   much as the tests themselves).
 
-Both loops run as many times as the lists are long (compaction; nothing is tested that no
-packet may meet, and no static capacity can overflow). The result equals brute force: every
+The loops run as many times as the lists are long (compaction; nothing is tested that no
+packet may meet or that pruning has ruled out, and no static capacity can overflow). The result equals brute force: every
 primitive a ray hits is in its packet's list (the test is conservative), and ties in t go to the
 lowest primitive index, as ``frusta._intersect.nearest_one`` does.
 
 Why on the CPU: XLA runs dense elementwise work at full width, while a per-ray walk is a
 vmapped while loop that runs until its slowest ray ends. On the 2,158-segment cacti at
-1024 x 768 (packets of 64, 8 x 8 pixels) a packet's list held 7.5 segments on average against
-the 14 segments per ray that the BVH walk tests (README). Incoherent rays still get the right
+1024 x 768 (packets of 64, 8 x 8 pixels) a packet's list held 7.5 segments per ray on average,
+4.0 tested after pruning, against the 14 segments per ray that the BVH walk tests (README). Incoherent rays still get the right
 answer, only with long lists: the BVH traversals remain for them.
 """
 
@@ -50,6 +57,11 @@ def _products(t0, t1, dlo, dhi):
 
 
 def packet_meets(olo, ohi, dlo, dhi, tlo, thi, lo, hi):
+    """:func:`packet_entry`'s first result: whether the packet may meet each box."""
+    return packet_entry(olo, ohi, dlo, dhi, tlo, thi, lo, hi)[0]
+
+
+def packet_entry(olo, ohi, dlo, dhi, tlo, thi, lo, hi):
     """Whether some ray ``o + t d`` with o in [olo, ohi], d in [dlo, dhi] (3,) and t in
     [tlo, thi] may meet the boxes [lo, hi] (N, 3); conservative (never False for a box that one
     of the packet's rays meets). Empty boxes (lo = +inf) are never met.
@@ -58,7 +70,10 @@ def packet_meets(olo, ohi, dlo, dhi, tlo, thi, lo, hi):
     [min (lo - o) / d, max (hi - o) / d], whose ends interval arithmetic gives; the intersection
     over axes of those unions contains every ray's hit interval. An axis whose d interval holds
     0 gives no such bound; it is checked afterwards: over the t range left by the other axes,
-    o + t d stays in [olo + min(t d), ohi + max(t d)], which must overlap the box's slab."""
+    o + t d stays in [olo + min(t d), ohi + max(t d)], which must overlap the box's slab.
+
+    Returns (met, t0): t0 is at most every packet ray's entry t into the box, so a box whose t0
+    lies beyond every ray's best hit so far cannot hold a nearer hit."""
     neg = dhi < 0
     mono = neg | (dlo > 0)
     # mirror the axes where d < 0 so that d > 0 on every monotone axis
@@ -75,7 +90,7 @@ def packet_meets(olo, ohi, dlo, dhi, tlo, thi, lo, hi):
     t1 = jnp.minimum(jnp.min(jnp.where(mono, leave, inf), axis=-1), thi)
     p_lo, p_hi = _products(t0[:, None], t1[:, None], dlo, dhi)
     reach = (olo + p_lo <= hi) & (ohi + p_hi >= lo)
-    return (t0 <= t1) & jnp.all(mono | reach, axis=-1) & jnp.all(lo <= hi, axis=-1)
+    return (t0 <= t1) & jnp.all(mono | reach, axis=-1) & jnp.all(lo <= hi, axis=-1), t0
 
 
 def packet_bounds(origins, directions, t_min, t_max):
@@ -142,7 +157,7 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
     q = min(pairs, p * k)
     list1, n1 = batch_list(whole, lo, hi, groups)
     list1 = jnp.concatenate([list1, jnp.zeros((k,), jnp.int32)])
-    meets = jax.vmap(packet_meets, in_axes=(0, 0, 0, 0, 0, 0, None, None))
+    meets = jax.vmap(packet_entry, in_axes=(0, 0, 0, 0, 0, 0, None, None))
 
     big = jnp.int32(jnp.iinfo(jnp.int32).max)
     best = (jnp.full((p, g), jnp.inf, origins.dtype), jnp.full((p, g), -1, jnp.int32))
@@ -151,33 +166,43 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
         best, tested = carry
         ids = jax.lax.dynamic_slice_in_dim(list1, j * k, k)
         live = j * k + jnp.arange(k) < n1
-        m2 = meets(*bounds, lo[ids], hi[ids]) & live[None, :]  # (P, K)
-        n2 = jnp.sum(m2.astype(jnp.int32))
-        flat = jnp.concatenate([jnp.nonzero(m2.reshape(-1), size=p * k, fill_value=0)[0].astype(jnp.int32), jnp.zeros((q,), jnp.int32)])
+        # the block's boxes nearest the batch first (where the batch enters each box)
+        e1 = jnp.where(live, packet_entry(*whole, lo[ids], hi[ids])[1], jnp.inf)
+        perm = jnp.argsort(e1)
+        ids, live = ids[perm], live[perm]
+        m2, e2 = meets(*bounds, lo[ids], hi[ids])
+        m2 = (m2 & live[None, :]).T  # (K, P): candidate-major, nearest candidates first
+        e2 = e2.T
 
-        def pairs_step(r, best):
+        def alive(st):
+            left, best = st[1], st[2]
+            reach = jnp.max(best[0], axis=1)  # inf while a ray of the packet has no hit
+            return left & ~(e2 > reach[None, :])  # (a NaN bound keeps its pair)
+
+        def cond(st):
+            return jnp.any(alive(st))
+
+        def body(st):
+            nt, left, best = st
             bt, bi = best
-            at = jax.lax.dynamic_slice_in_dim(flat, r * q, q)
-            ok = r * q + jnp.arange(q) < n2
-            pk = jnp.where(ok, at // k, p)  # p: dropped by the segment reductions (still sorted)
-            prim = ids[at % k]
+            al = alive(st).reshape(-1)
+            na = jnp.sum(al.astype(jnp.int32))
+            at = jnp.nonzero(al, size=q, fill_value=0)[0].astype(jnp.int32)
+            ok = jnp.arange(q) < na
+            pk = jnp.where(ok, at % p, p)
+            prim = ids[at // p]
             rows = jnp.minimum(pk, p - 1)
             t = pair_fn(prim, po[rows], pd[rows], pa[rows], pb[rows])
             t = jnp.where(ok[:, None], t, jnp.inf)
-            tm = jax.ops.segment_min(t, pk, num_segments=p, indices_are_sorted=True)
+            tm = jax.ops.segment_min(t, pk, num_segments=p)
             hit = (t == tm[rows]) & ok[:, None] & jnp.isfinite(t)
-            im = jax.ops.segment_min(jnp.where(hit, prim[:, None], big), pk, num_segments=p, indices_are_sorted=True)
+            im = jax.ops.segment_min(jnp.where(hit, prim[:, None], big), pk, num_segments=p)
             better = jnp.isfinite(tm) & ((tm < bt) | ((tm == bt) & (im < bi)))
-            return jnp.where(better, tm, bt), jnp.where(better, im, bi)
+            left = left.reshape(-1).at[jnp.where(ok, at, k * p)].set(False, mode="drop").reshape(k, p)
+            return nt + jnp.minimum(na, q), left, (jnp.where(better, tm, bt), jnp.where(better, im, bi))
 
-        def cond(st):
-            return st[0] * q < n2
-
-        def body(st):
-            return st[0] + 1, pairs_step(st[0], st[1])
-
-        _, best = jax.lax.while_loop(cond, body, (jnp.int32(0), best))
-        return best, tested + n2
+        nt, _, best = jax.lax.while_loop(cond, body, (jnp.int32(0), m2, best))
+        return best, tested + nt
 
     def cond1(st):
         return st[0] * k < n1
