@@ -187,13 +187,17 @@ def _surface(seg: FrustaParams, o, d, s, code, normals: str):
 
     true_n = safe_normalize(radial - k * seg.m)
     if normals == "interpolated":
-        pl = p + s_l * g
-        pu = p + s_u * g
-        nl = safe_normalize(pl)
-        nu = safe_normalize(pu - seg.h * seg.m)
-        n_side = safe_normalize((1.0 - v) * nl + v * nu)
-        # at a closed tip N_u vanishes; fall back to the cone normal where the blend does
-        n_side = jnp.where(_dot(n_side, n_side) > 0.5, n_side, true_n)
+        nl_raw = p + s_l * g  # P_l - C1
+        nu_raw = p + s_u * g - seg.h * seg.m  # P_u - C2
+        # at a closed end (r = 0) every generator meets the joint, so N_l or N_u is zero up to
+        # rounding and its direction is noise: a normalised noise vector gave normals of any
+        # direction (and, with denormals, not of unit length) that changed with the compiled
+        # program. Where either is within rounding of zero the cone's own normal is used.
+        tiny = (1024 * eps_of(p) * (seg.h + seg.r1 + seg.r2)) ** 2
+        closed = (_dot(nl_raw, nl_raw) <= tiny) | (_dot(nu_raw, nu_raw) <= tiny)
+        n_side = safe_normalize((1.0 - v) * safe_normalize(nl_raw) + v * safe_normalize(nu_raw))
+        # where the blend itself vanishes (opposite N_l and N_u), the cone normal as well
+        n_side = jnp.where((_dot(n_side, n_side) > 0.5) & ~closed, n_side, true_n)
     elif normals == "geometric":
         n_side = true_n
     else:  # pragma: no cover - validated in config
