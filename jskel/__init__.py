@@ -18,10 +18,15 @@ def _host_devices() -> None:
     if "jax" in sys.modules or "xla_force_host_platform_device_count" in flags:
         return
     want = os.environ.get("JSKEL_HOST_DEVICES")
-    try:
-        n = int(want) if want else len(os.sched_getaffinity(0))
-    except (AttributeError, ValueError):
-        n = os.cpu_count() or 1
+    if want:
+        if not want.strip().isdigit() or int(want) < 1:
+            raise ValueError(f"JSKEL_HOST_DEVICES: {want!r} is not a positive integer (XLA host devices to make)")
+        n = int(want)
+    else:
+        try:
+            n = len(os.sched_getaffinity(0))
+        except AttributeError:  # not on Linux
+            n = os.cpu_count() or 1
     if n > 1:
         os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n}".strip()
 

@@ -129,3 +129,19 @@ def test_cli_process_exit_code(tmp_path):
     r = subprocess.run([sys.executable, "-m", "jskel", "render", str(p), "--out", str(tmp_path / "o")], capture_output=True, text=True)
     assert r.returncode == 2
     assert r.stderr.strip().count("\n") == 0 and "camera.width" in r.stderr
+
+
+def test_a_bad_host_device_count_is_an_error_naming_the_variable():
+    """``JSKEL_HOST_DEVICES`` (XLA host devices ``import jskel`` makes on a CPU) must be a
+    positive integer: anything else stops the import with one line naming it and the value."""
+    import os
+
+    for bad in ("abc", "0", "-2"):
+        env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+        env["JSKEL_HOST_DEVICES"] = bad
+        p = subprocess.run([sys.executable, "-c", "import jskel"], env=env, capture_output=True, text=True, timeout=120)
+        assert p.returncode != 0
+        assert f"ValueError: JSKEL_HOST_DEVICES: {bad!r} is not a positive integer" in p.stderr
+    env["JSKEL_HOST_DEVICES"] = "3"
+    p = subprocess.run([sys.executable, "-c", "import jskel, jax; print(len(jax.devices('cpu')))"], env=env, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and p.stdout.split()[-1] == "3", p.stderr[-500:]
