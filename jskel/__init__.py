@@ -6,9 +6,10 @@ __version__ = "0.1.0"
 def _host_devices() -> None:
     """One XLA host device per CPU core, set before JAX starts (``XLA_FLAGS``), so that a CPU
     render shards its rays over the cores (``render.devices: all``) the way it shards them over
-    GPUs. Each device then runs whole chunks; XLA's own threading inside one chunk's small
-    operations gained 1.3x from a second core on the 2-core machine, two devices 1.6x (the
-    cacti's bins cast at 1024x768: 0.074 -> 0.058 s). Nothing is changed when JAX is already
+    GPUs. Each device then runs whole chunks, where XLA's own threading inside one chunk's small
+    operations gains little: with 16 chunks per call the cacti's cast at 1024x768 took 0.068 s
+    on two devices and 0.103 s on one (``experiments/bench_scale_cpu_paths.yaml``, README).
+    Nothing is changed when JAX is already
     imported, when ``XLA_FLAGS`` names a device count, or with ``JSKEL_HOST_DEVICES`` set (its
     value is the count; 1 keeps one device, as the tests do)."""
     import os

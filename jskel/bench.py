@@ -220,8 +220,9 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base, runs: int = 1):
 
     Each frame is done ``runs`` times by every system in turn (jskel, Embree, Mitsuba, then
     again), and a frame's figure is the median of its runs; the row holds the median over frames.
-    This shared 2-core machine has slow spells of seconds (the same cast then takes 1.5-2x as
-    long); one run per frame put some systems' frames in a spell and not others'."""
+    This shared 2-core machine has slow spells (in one run of the cacti, jskel's per-frame cast
+    read 0.165 s against the same run's static 0.113 s); one run per frame put some systems'
+    frames in a spell and not others'."""
     import jax
 
     from .frusta import host_frusta, rebuilder

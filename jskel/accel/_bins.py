@@ -17,15 +17,14 @@ close on screen):
    primitive) pairs that pass are compacted, ``pairs`` at a time and in that near-to-far order,
    into dense tests of every ray of the packet against the pair's primitive, and a
    ``segment_min`` over the packet keeps each ray's nearest t, a second its primitive. Before
-   each step the pairs left are pruned: a box that every ray of its packet enters beyond its
+   each step, the pairs left are pruned: a box that every ray of its packet enters beyond its
    best hit so far cannot hold a nearer one (``packet_entry``), the front-to-back cut-off a BVH
-   walk makes. On the cacti at 1024 x 768 that halved the segment tests per ray (7.5 -> 4.0)
-   and took the cast from 0.086 s to 0.071 s; on the sparse oasis (9 % of the pixels hit, few
-   packets ever resolved) it pruned 1 % and the extra compaction per step cost about 5 %
-   (0.088 -> 0.092 s; same-process A/B, one device). Nothing else rides through the loop: the
-   caller recomputes what it needs of the hit (surface parameter, code) from the winning
-   primitive, one test per ray (the four scatters of (t, index, parameter, code) had cost as
-   much as the tests themselves).
+   walk makes. On the cacti at 1024 x 768 that halved the segment tests per ray (7.5 -> 4.0,
+   ``experiments/bench_scale.yaml``'s stats); the sparse oasis (9 % of the pixels hit, few
+   packets ever resolved) prunes 1 % and pays for the compaction per step. Nothing else
+   rides through the loop: the caller recomputes what it needs of the hit (surface parameter,
+   code) from the winning primitive, one test per ray (two scatters per step where (t, index,
+   parameter, code) took four).
 
 The loops run as many times as the lists are long (compaction; nothing is tested that no
 packet may meet or that pruning has ruled out, and no static capacity can overflow). The result
