@@ -137,15 +137,15 @@ def chunk_of(render) -> int:
     return AUTO_CHUNK_CPU if jax.default_backend() == "cpu" else AUTO_CHUNK_ACCELERATOR
 
 
-AUTO_CHUNKS_PER_CALL_CPU = 16
+AUTO_CHUNKS_PER_CALL_CPU = 64
 
 
 def chunks_per_call_of(render) -> int:
-    """``render.chunks_per_call`` resolved: ``auto`` is 16 on the CPU (one call per 16 chunks
-    saves the host's per-call slicing, transfer and dispatch: the cacti's cast at 1024x768 took
-    0.103 s against 0.125 s on one device, 0.068 s against 0.132 s on two;
-    ``experiments/bench_scale_cpu_paths.yaml``) and 1 on an accelerator, whose auto chunk is already a
-    whole frame."""
+    """``render.chunks_per_call`` resolved: ``auto`` is 64 on the CPU and 1 on an accelerator,
+    whose auto chunk is already a whole frame. Several chunks per call save the host's per-call
+    slicing, transfer and dispatch; on the 2-core CPU a 1024x768 frame runs as two calls of 48
+    chunks per device (``rays.calls_grouping``), measured against 1 and 16 in
+    ``experiments/bench_scale_cpu_paths.yaml`` (README)."""
     import jax
 
     if render.chunks_per_call != "auto":

@@ -194,12 +194,38 @@ def permute(rays: Rays, order: np.ndarray) -> Rays:
     return Rays(*(a[order] for a in rays))
 
 
-def _pad_to(x: jnp.ndarray, n: int) -> jnp.ndarray:
+def _pad_to(x, n: int):
     pad = n - x.shape[0]
     if pad == 0:
         return x
-    filler = jnp.broadcast_to(x[-1:], (pad,) + x.shape[1:])
-    return jnp.concatenate([x, filler], axis=0)
+    xp = np if isinstance(x, np.ndarray) else jnp
+    filler = xp.broadcast_to(x[-1:], (pad,) + x.shape[1:])
+    return xp.concatenate([x, filler], axis=0)
+
+
+def _on_host(rays) -> bool:
+    """Whether every array of ``rays`` is a NumPy array or a jax array on CPU devices."""
+    for a in rays:
+        if isinstance(a, jax.Array):
+            if any(d.platform != "cpu" for d in a.devices()):
+                return False
+        elif not isinstance(a, np.ndarray):
+            return False
+    return True
+
+
+def _interleave(tree, a: int, b: int):
+    """Leading axis (a * b * c,) viewed as (a, b, c) and transposed to (b, a, c), for NumPy
+    arrays. With a call's rays as (chunks, devices, chunk) this gives device d the chunks d,
+    d + D, d + 2 D, ... instead of one contiguous run of the image: in screen-tile order a run
+    may be mostly sky on one device and mostly scene on the other, and the call waits for the
+    slower (``(devices, chunks)`` back again undoes it)."""
+
+    def one(x):
+        c = x.shape[0] // (a * b)
+        return np.swapaxes(x.reshape((a, b, c) + x.shape[1:]), 0, 1).reshape(x.shape)
+
+    return jax.tree_util.tree_map(one, tree)
 
 
 def compact_map(fn: Callable, need: jnp.ndarray, rays: Rays, base, lanes: int):
@@ -339,11 +365,15 @@ def grouped(batch_fn: Callable, group: int) -> Callable:
     return _GROUPED[key]
 
 
+MIN_GROUPED = 8
+
+
 def calls_grouping(n_chunks: int, group: int) -> int:
     """Chunks per call for ``n_chunks`` chunks and at most ``group`` per call: 1 below
-    ``group`` chunks (small batches keep the one-chunk program every size shares), else the
-    fewest calls with their chunks spread evenly (padding under one chunk per call)."""
-    if group <= 1 or n_chunks < group:
+    ``min(group, MIN_GROUPED)`` chunks (small batches keep the one-chunk program every size
+    shares), else the fewest calls with their chunks spread evenly (padding under one chunk per
+    call)."""
+    if group <= 1 or n_chunks < min(group, MIN_GROUPED):
         return 1
     calls = -(-n_chunks // group)
     return -(-n_chunks // calls)
@@ -402,9 +432,16 @@ def map_chunks(
         chunk *= mesh.size  # ``chunk`` rays per device per call
     n_chunks = -(-n // chunk)
 
+    t_host = time.perf_counter()
+    if _on_host(rays):  # slicing NumPy costs nothing; slicing a CPU jax array dispatches ops
+        rays = Rays(*(np.asarray(a) for a in rays))
+    host_s = time.perf_counter() - t_host
+    spread = mesh is not None and mesh.size > 1 and per_call > 1
+
     def slice_rays(i):
         lo = i * chunk
-        return Rays(*(_pad_to(a[lo : lo + chunk], chunk) for a in rays))
+        r = Rays(*(_pad_to(a[lo : lo + chunk], chunk) for a in rays))
+        return _interleave(r, per_call, mesh.size) if spread else r
 
     first = slice_rays(0)
     compiled, compile_s = compile_batch_fn(batch_fn, (params, first), mesh)
@@ -417,9 +454,10 @@ def map_chunks(
         pending = compiled(params, first)
         for i in range(1, n_chunks + 1):
             nxt = compiled(params, slice_rays(i)) if i < n_chunks else None
-            outs.append(jax.tree_util.tree_map(np.asarray, pending))
+            got = jax.tree_util.tree_map(np.asarray, pending)
+            outs.append(_interleave(got, mesh.size, per_call) if spread else got)
             bar.update(1)
             pending = nxt
-    run_s = time.perf_counter() - t0
+    run_s = time.perf_counter() - t0 + host_s
     out = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=0)[:n], *outs)
     return ChunkedResult(out, compile_s, run_s, memory)

@@ -237,7 +237,8 @@ def test_chunks_per_call_equal_one_chunk_per_call(rng):
 
     from jskel.rays import calls_grouping, make_rays, map_chunks
 
-    assert [calls_grouping(n, 16) for n in (1, 15, 16, 17, 75, 192)] == [1, 1, 16, 9, 15, 16]
+    assert [calls_grouping(n, 16) for n in (1, 7, 8, 15, 16, 17, 75, 192)] == [1, 1, 8, 15, 16, 9, 15, 16]
+    assert calls_grouping(96, 64) == 48 and calls_grouping(37, 64) == 37
     assert calls_grouping(20, 8) == 7 and calls_grouping(100, 1) == 1
     j, r, p = random_tree(rng, 40)
     built = build_skeleton(j, r, p, accel="bvh", traversal="bins")
