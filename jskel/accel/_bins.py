@@ -228,6 +228,7 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
     big = jnp.int32(jnp.iinfo(jnp.int32).max)
     best = (jnp.full((p, g), jnp.inf, origins.dtype), jnp.full((p, g), -1, jnp.int32))
     lin = jnp.arange(k * p, dtype=jnp.int32).reshape(k, p)
+    sizes = [m for m in (q // 4, q // 2) if m >= 16] + [q]
 
     def block(j, carry):
         best, tested = carry
@@ -247,6 +248,14 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
             reach = jnp.max(bt, axis=1)  # inf while a ray of the packet has no hit
             return pack_bits((m2 & (lin >= cursor) & ~(e2 > reach[None, :])).reshape(-1))  # (a NaN bound keeps its pair)
 
+        def lanes(m: int, rows, prim):
+            def test():
+                r = rows[:m]
+                t = pair_fn(prim[:m], po[r], pd[r], pa[r], pb[r])
+                return t if m == q else jnp.concatenate([t, jnp.full((q - m, g), jnp.inf, t.dtype)])
+
+            return test
+
         def body(st):
             nt, words, best = st
             bt, bi = best
@@ -256,7 +265,13 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
             pk = jnp.where(ok, at % p, p)
             prim = ids[at // p]
             rows = jnp.minimum(pk, p - 1)
-            t = fenced(na >= 0, lambda: pair_fn(prim, po[rows], pd[rows], pa[rows], pb[rows]))
+            # the test runs on the smallest of q/4, q/2, q lanes that holds the step's pairs (a
+            # switch: one branch runs; a block's last step is often part-full, and the step's
+            # cost is its lanes). Each branch is its own program, so t is materialised once
+            if len(sizes) > 1:
+                t = jax.lax.switch(sum((na > m).astype(jnp.int32) for m in sizes[:-1]), [lanes(m, rows, prim) for m in sizes])
+            else:  # (a switch of one branch is inlined)
+                t = fenced(na >= 0, lanes(q, rows, prim))
             t = jnp.where(ok[:, None], t, jnp.inf)
             tm = jax.ops.segment_min(t, pk, num_segments=p)
             hit = (t == tm[rows]) & ok[:, None] & jnp.isfinite(t)
