@@ -2,6 +2,8 @@
 per frame (``_lbvh``), traversed stacklessly under vmap; and candidate lists for packets of
 coherent rays (``_bins``)."""
 
+from ._bins import always as always
+from ._bins import fenced as fenced
 from ._bins import nearest_binned as nearest_binned
 from ._bins import packet_meets as packet_meets
 from ._lbvh import BVH as BVH
@@ -14,4 +16,4 @@ from ._lbvh import nearest as nearest
 from ._lbvh import nearest_packet as nearest_packet
 from ._lbvh import ray_box as ray_box
 
-__all__ = ["BVH", "Best", "build", "escape", "leaves_for", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "packet_meets", "ray_box"]
+__all__ = ["BVH", "Best", "always", "build", "escape", "fenced", "leaves_for", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "packet_meets", "ray_box"]

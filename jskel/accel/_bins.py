@@ -171,6 +171,12 @@ def fenced(pred, fn: Callable):
     return jax.lax.cond(pred, fn, lambda: jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), shapes))
 
 
+def always(x):
+    """A boolean true at run time that the compiler cannot fold (no float exceeds +inf; a NaN
+    compares false), taken from the float array ``x``: a predicate for :func:`fenced`."""
+    return ~(x.reshape(-1)[0] > jnp.inf)
+
+
 def pack_bits(mask):
     """(W,) uint32 words of a flat bool mask: bit b of word w is ``mask[32 w + b]`` (padded with
     False). With :func:`first_set`, the compaction of the bins' pair loop."""

@@ -16,6 +16,7 @@ import jax
 import numpy as np
 
 from .. import registry
+from ..accel import always, fenced
 from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
 from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Camera, Hit, Rays, make_rays, map_chunks, permute, tile_order
 from ._aov import write_aovs as write_aovs
@@ -52,7 +53,9 @@ def pixel_fn(rep_name: str, static):
     def batch(params, rays: Rays):
         scene, lights, sh = params
         if hasattr(rep, "intersect_batch"):
-            hits = rep.intersect_batch(scene, static, rays)
+            # fenced: XLA fused the hit's attributes into each consumer (shading, every
+            # output) and computed them once per consumer
+            hits = fenced(always(rays.t_min), lambda: rep.intersect_batch(scene, static, rays))
         else:
             hits = jax.vmap(one_hit, in_axes=(None, 0, 0, 0, 0))(scene, *rays)
         if hasattr(rep, "shade_batch"):  # a representation with its own secondary rays (cells)
