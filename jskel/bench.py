@@ -345,11 +345,10 @@ def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
     """(build seconds, cast seconds, compile seconds) of one frame: the representation's build,
     then the cast alone (``_cast_fn``) of the camera's rays in screen-tile order, chunked as the
     render chunks them; the outputs come back to the host as ``t`` and ``prim`` only. The rays are
-    made (and ready) before the cast's clock starts, as the peers' rays are."""
-    import jax
-
+    made (host arrays, ``Camera.tiled_rays``) before the cast's clock starts, as the peers' rays
+    are."""
     from . import registry
-    from .rays import map_chunks, permute, tile_order
+    from .rays import map_chunks
     from .render import camera_of, devices_of, dtype_of
 
     dtype = dtype_of(exp)
@@ -358,8 +357,7 @@ def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
     built = rep.build(obj, dtype) if built is None else built
     build_s = time.perf_counter() - t0
     cam = camera_of(exp)
-    rays = permute(cam.rays(anchor=built.anchor, dtype=dtype), tile_order(cam.width, cam.height, exp.render.tile))
-    jax.block_until_ready(rays)  # the rays exist before the cast is timed, as the peers' do
+    rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype)
     res = map_chunks(_cast_fn(obj.type, built.static), built.params, rays, chunk=chunk_of(exp.render), progress=False,
                      devices=devices_of(exp), group=chunks_per_call_of(exp.render))
     return build_s, res.run_s, res.compile_s

@@ -112,13 +112,12 @@ def _read_model(model, path, overrides):
 
 def _bvh_stats(exp, obj) -> dict:
     from . import frusta
-    from .rays import permute, tile_order
     from .render import camera_of, dtype_of
 
     built = frusta.build(obj, dtype_of(exp))
     cam = camera_of(exp)
     # in the render's order (screen tiles): packets and bins depend on it
-    rays = permute(cam.rays(anchor=built.anchor, dtype=dtype_of(exp)), tile_order(cam.width, cam.height, exp.render.tile))
+    rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in frusta.traversal_stats(built, rays, chunk_of(exp.render)).items()}
 
 

@@ -14,6 +14,8 @@ at 1e4.
 
 from __future__ import annotations
 
+import functools
+
 import math
 import sys
 import time
@@ -138,6 +140,23 @@ class Camera(NamedTuple):
         o, d = self.ray_arrays(anchor)
         return make_rays(o, d, 0.0, np.inf, dtype)
 
+    def tiled_rays(self, tile: int, anchor=None, dtype=np.float32) -> Rays:
+        """:meth:`rays` in :func:`tile_order`, as host (NumPy) arrays, equal value for value to
+        ``permute(self.rays(anchor, dtype), tile_order(...))``. The directions, which depend
+        on the camera alone, are cached (an animated frame with a fixed camera makes none);
+        the origins are one point, broadcast (the anchor may move from frame to frame)."""
+        d = _tiled_directions(self._key(), tile, np.dtype(dtype).name)
+        eye = np.asarray(self.eye, np.float64)
+        if anchor is not None:
+            eye = eye - np.asarray(anchor, np.float64)
+        n = d.shape[0]
+        o = np.broadcast_to(eye.astype(dtype), (n, 3))
+        return Rays(o, d, np.broadcast_to(np.zeros((), dtype), (n,)), np.broadcast_to(np.asarray(np.inf, dtype), (n,)))
+
+    def _key(self) -> tuple:
+        return (tuple(map(float, self.eye)), tuple(map(float, self.target)), tuple(map(float, self.up)), float(self.fov_y_deg),
+                int(self.width), int(self.height))
+
     def ray_arrays(self, anchor=None, jitter=None) -> tuple[np.ndarray, np.ndarray]:
         """(origins, directions), both (H*W, 3) float64 NumPy, as :meth:`rays` casts them.
 
@@ -161,6 +180,16 @@ class Camera(NamedTuple):
         return np.broadcast_to(eye, d.shape).copy(), d
 
 
+@functools.lru_cache(maxsize=4)
+def _tiled_directions(key: tuple, tile: int, dtype: str) -> np.ndarray:
+    """Unit directions of a camera's rays in :func:`tile_order`, cast to ``dtype`` (read-only)."""
+    eye, target, up, fov, w, h = key
+    cam = Camera(np.asarray(eye), np.asarray(target), np.asarray(up), fov, w, h)
+    d = cam.ray_arrays()[1][tile_order(w, h, tile)].astype(dtype)
+    d.flags.writeable = False
+    return d
+
+
 def _morton2(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Interleave the bits of two non-negative int arrays (< 2^16): a 2D Z-order key."""
     def spread(v):
@@ -174,6 +203,7 @@ def _morton2(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return spread(x) | (spread(y) << np.uint64(1))
 
 
+@functools.lru_cache(maxsize=8)
 def tile_order(width: int, height: int, tile: int) -> np.ndarray:
     """Permutation of row-major pixel indices that lists pixels tile by tile (tile x tile), and
     within a tile in Z-order (Morton order of the pixel's position in its tile).
@@ -186,7 +216,20 @@ def tile_order(width: int, height: int, tile: int) -> np.ndarray:
     ys, xs = np.divmod(np.arange(width * height), width)
     tiles = (ys // tile) * (-(-width // tile)) + xs // tile
     key = tiles.astype(np.uint64) * np.uint64(1 << 32) + _morton2(xs % tile, ys % tile)
-    return np.argsort(key, kind="stable")
+    order = np.argsort(key, kind="stable")
+    order.flags.writeable = False  # cached (lru_cache): shared by every caller
+    return order
+
+
+@functools.lru_cache(maxsize=8)
+def tile_inverse(width: int, height: int, tile: int) -> np.ndarray:
+    """The inverse permutation of :func:`tile_order` (cached): ``a[tile_inverse(...)]`` puts
+    values computed in tile order back in row-major order."""
+    order = tile_order(width, height, tile)
+    inv = np.empty_like(order)
+    inv[order] = np.arange(order.size)
+    inv.flags.writeable = False
+    return inv
 
 
 def permute(rays: Rays, order: np.ndarray) -> Rays:

@@ -203,6 +203,24 @@ def test_tile_order_lists_tiles_and_squares_within_them():
     assert np.all(np.diff(tile_of) >= 0)  # tile by tile
 
 
+def test_tiled_rays_are_the_camera_rays_permuted_and_the_inverse_undoes_the_order():
+    """``Camera.tiled_rays`` (cached directions, broadcast origin) equals the camera's rays
+    permuted by ``tile_order``, value for value, for two anchors (the cache keys on the camera
+    only); ``tile_inverse`` puts tile-ordered values back in row-major order."""
+    from jskel.rays import Camera, permute, tile_inverse, tile_order
+
+    cam = Camera(np.array([1.0, 2.0, 9.0]), np.array([0.2, 0.5, 0.0]), np.array([0.0, 1.0, 0.0]), 35.0, 70, 40)
+    order = tile_order(70, 40, 16)
+    for anchor in (np.zeros(3), np.array([1e4, -3.0, 0.5])):
+        want = permute(cam.rays(anchor=anchor), order)
+        got = cam.tiled_rays(16, anchor=anchor)
+        for a, b in zip(want, got):
+            assert a.dtype == b.dtype and a.shape == b.shape
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    inv = tile_inverse(70, 40, 16)
+    np.testing.assert_array_equal(order[inv], np.arange(70 * 40))
+
+
 def test_packets_share_short_walks_on_coherent_rays_and_equal_per_ray_walks():
     """Packets of 256 camera rays in 16 x 16 squares: the same t and ids as per-ray walks, and
     the shared loop runs far fewer steps than 256 separate walks would (what makes it pay)."""

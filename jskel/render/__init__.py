@@ -18,7 +18,7 @@ import numpy as np
 from .. import registry
 from ..accel import always, fenced
 from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
-from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Camera, Hit, Rays, make_rays, map_chunks, permute, tile_order
+from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Camera, Hit, Rays, make_rays, map_chunks, tile_inverse, tile_order
 from ._aov import write_aovs as write_aovs
 from ._shade import Lights as Lights
 from ._shade import Shading as Shading
@@ -173,13 +173,11 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     built = rep.build(obj, dtype)
     build_s = time.perf_counter() - t0
     cam = camera_of(exp)
-    order = tile_order(cam.width, cam.height, exp.render.tile)
-    rays = permute(cam.rays(anchor=built.anchor, dtype=dtype), order)
+    rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype)
     params = (built.params, lights_from_config(exp.lights, dtype, origin=built.anchor), shading_from_config(exp.shading, dtype))
     fn = pixel_fn(rep.name, built.static)
     res = _trace(exp, fn, params, rays, prog)
-    inv = np.empty_like(order)
-    inv[order] = np.arange(order.size)
+    inv = tile_inverse(cam.width, cam.height, exp.render.tile)
     hits, rgb = jax.tree_util.tree_map(lambda a: a[inv], res.out)
     # hit positions back to world coordinates (host, float64)
     hits = hits._replace(position=np.asarray(hits.position, np.float64) + built.anchor)
@@ -230,8 +228,7 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
     rays = make_rays(np.concatenate(os_), np.concatenate(ds_), 0.0, np.inf, dtype)
     res = _trace(exp, scene_fn(static), params, rays, progress)
     out = res.out
-    inv = np.empty_like(order)
-    inv[order] = np.arange(order.size)
+    inv = tile_inverse(cam.width, cam.height, exp.render.tile)
     first = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n_pix][inv], {k: v for k, v in out.items() if k != "rgb"})
     rgb = np.asarray(out["rgb"], np.float64).reshape(exp.render.spp, n_pix, 3).mean(axis=0)[inv].astype(np.float32)
     h = first["hit"]
