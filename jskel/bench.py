@@ -347,6 +347,8 @@ def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
     render chunks them; the outputs come back to the host as ``t`` and ``prim`` only. The rays are
     made (host arrays, ``Camera.tiled_rays``) before the cast's clock starts, as the peers' rays
     are."""
+    import jax
+
     from . import registry
     from .rays import map_chunks
     from .render import camera_of, devices_of, dtype_of
@@ -355,6 +357,7 @@ def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
     rep = registry.get(obj.type)
     t0 = time.perf_counter()
     built = rep.build(obj, dtype) if built is None else built
+    jax.block_until_ready(built.params)  # (asynchronous dispatch: the build's device work ends here)
     build_s = time.perf_counter() - t0
     cam = camera_of(exp)
     rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype)

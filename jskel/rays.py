@@ -493,6 +493,10 @@ def map_chunks(
     disable = (not sys.stderr.isatty()) if progress is None else (not progress)
     outs = []
     t0 = time.perf_counter()
+    if mesh is not None:
+        # replicated once per call of map_chunks, not once per compiled call: parameters living
+        # on one device were copied to the others at every call (300,000 segments: 36 MB a call)
+        params = jax.device_put(params, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
     with tqdm(total=n_chunks, desc=desc, unit="chunk", disable=disable, leave=False) as bar:
         pending = compiled(params, first)
         for i in range(1, n_chunks + 1):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import reference as ref
-from conftest import assert_hits_agree, build_skeleton, cast, random_tree
+from conftest import CHUNK, assert_hits_agree, build_skeleton, cast, random_tree
 from jskel import accel, frusta
 from jskel.frusta._accel import segment_boxes
 from jskel.rays import make_rays
@@ -266,21 +266,23 @@ def test_packet_meets_keeps_every_box_a_ray_of_the_packet_meets():
     assert truth.any() and max(kept_narrow) < 0.5
 
 
-@pytest.mark.parametrize("sizes", [(64, 128, 256, 32), (8, 3, 5, 4)])
+@pytest.mark.parametrize("sizes", [(64, 128, 256, 32, 1.5), (8, 3, 5, 4, 1.5), (64, 128, 256, 32, 1e-6)])
 def test_bins_equal_brute_force_on_random_skeletons(skeletons, sizes):
     """Candidate lists per packet (``traversal: bins``) against brute force, on incoherent rays
     (long lists) and on a pinhole camera's rays in screen tiles; (8, 3, 5, 4) runs the group,
-    candidate and pair loops many times per batch. XLA fuses the two programs apart and contracts
+    candidate and pair loops many times per batch; a walk ratio of 1e-6 sends every batch with a
+    non-empty list to the per-ray walks (``bin_walk_ratio``; the stats count those rays). XLA fuses the two programs apart and contracts
     different products into FMAs, so t may differ by float rounding (the bench's largest depth
     difference on the cacti at 1024 x 768: 4e-5 at about 16 units, 2.5e-6 relative; the bound
     here is 2e-5 relative); hits, misses and segments agree."""
     from jskel.rays import Camera, tile_order
 
     rng = np.random.default_rng(8)
-    packet, cands, pairs, group = sizes
+    packet, cands, pairs, group, ratio = sizes
     for j, r, p in skeletons:
         brute = build_skeleton(j, r, p)
-        fast = build_skeleton(j, r, p, accel="bvh", traversal="bins", bin_packet=packet, bin_candidates=cands, bin_pairs=pairs, bin_group=group)
+        fast = build_skeleton(j, r, p, accel="bvh", traversal="bins", bin_packet=packet, bin_candidates=cands, bin_pairs=pairs, bin_group=group,
+                              bin_walk_ratio=ratio)
         assert fast.static.traversal == "bins"
         O1, D1 = ref.random_rays(rng, j.min(0) - 0.5, j.max(0) + 0.5, 4096, spread=1.0)
         c = 0.5 * (j.min(0) + j.max(0))
@@ -293,6 +295,11 @@ def test_bins_equal_brute_force_on_random_skeletons(skeletons, sizes):
         assert 0.05 < np.isfinite(a.t).mean() < 0.95
         assert_hits_agree(a, b, 2e-5)
         assert (a.prim == b.prim).mean() > 0.999
+    if ratio < 1e-3:  # the last skeleton's batches were walked
+        from jskel import frusta
+        from jskel.rays import make_rays
+
+        assert frusta.traversal_stats(fast, make_rays(O - fast.anchor, D), chunk=CHUNK)["bin_walked_fraction"] > 0.5
 
 
 @pytest.mark.parametrize("traversal", ["bins", "walks"])

@@ -210,13 +210,22 @@ def first_set(words, q: int):
     return wi * 32 + pos, incl[-1]
 
 
-def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pairs: int, origins, directions, t_min, t_max, groups=None):
+def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pairs: int, origins, directions, t_min, t_max, groups=None,
+                   fallback: Callable | None = None, fallback_above: int = 0):
     """Nearest hit of every ray of a batch (N,) through packet candidate lists (module docstring).
 
     lo, hi: (S, 3) primitive boxes (empty boxes for padding). ``pair_fn(ids (Q,), o, d, t_min,
     t_max)`` with rays (Q, G, ...) returns t (Q, G) (inf on a miss). Returns ``(t, idx)`` with
     leading axis N and idx the primitive index (-1 on a miss), plus (n_batch, n_pairs): the
-    batch's list length and the pairs tested, for statistics."""
+    batch's list length and the pairs tested, for statistics.
+
+    ``fallback(origins, directions, t_min, t_max) -> (t, idx)``: where the batch's list holds
+    more than ``fallback_above`` primitives, the batch is cast by it instead (a ``lax.cond`` on
+    that batch-wide count, so one of the two runs) and n_pairs is -1. Packets share their work
+    while primitives are no smaller than a packet's footprint; below that every packet's list
+    holds everything under it, and a packet's cost grows with the primitives' density, not with
+    log(primitives): a per-ray BVH walk is the fallback that keeps the cost per ray
+    logarithmic (README: cost per ray against log(segments))."""
     n = origins.shape[0]
     g = min(packet, n)
     n_pad = -(-n // g) * g
@@ -298,6 +307,12 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
         best, tested = block(st[0], (st[1], st[2]))
         return st[0] + 1, best, tested
 
-    _, best, tested = jax.lax.while_loop(cond1, body1, (jnp.int32(0), best, jnp.int32(0)))
-    t, idx = best
-    return t.reshape(n_pad)[:n], idx.reshape(n_pad)[:n], (n1, tested)
+    def binned():
+        _, (t, idx), tested = jax.lax.while_loop(cond1, body1, (jnp.int32(0), best, jnp.int32(0)))
+        return t.reshape(n_pad)[:n], idx.reshape(n_pad)[:n], tested
+
+    if fallback is None:
+        t, idx, tested = binned()
+    else:
+        t, idx, tested = jax.lax.cond(n1 > fallback_above, lambda: (*fallback(origins, directions, t_min, t_max), jnp.int32(-1)), binned)
+    return t, idx, (n1, tested)

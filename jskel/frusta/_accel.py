@@ -164,13 +164,18 @@ def bin_groups(tree: BVH, per: int):
     return tree.lo[ng : 2 * ng], tree.hi[ng : 2 * ng], tree.order.reshape(ng, -1)
 
 
-def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, pairs: int, group: int, origins, directions, t_min, t_max):
+def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, pairs: int, group: int, walk_ratio: float, origins, directions, t_min, t_max,
+                 leaf: int = 4, walk_group: int = 512):
     """(t, s, code, idx, (n_batch, n_pairs)) of a batch through packet candidate lists
     (``accel.nearest_binned``): each packet of ``packet`` consecutive rays tests only the
     segments whose box one of its rays may meet; equal to brute force, ties included.
     ``group`` > 0: the batch's list is found through the tree's nodes of ``group`` leaf slots
     (``accel.batch_list``); in ``experiments/bench_scale_bins_knobs.yaml`` 32 beat 0 (every box)
     in 11 of 12 settings on the 18,557-segment oasis, by up to 1.6x (1024 x 768, 2-core CPU).
+    ``walk_ratio`` > 0: a batch whose list holds more than ``walk_ratio`` segments per ray is
+    cast by per-ray walks (:func:`nearest_groups`, groups of ``walk_group``) instead: segments
+    smaller than a packet's footprint (``experiments/bench_scale_size.yaml``'s wall of small
+    copies: bins and walks cost the same at about 1.6 segments per ray in the list; README).
 
     The loop keeps t and the segment only; (s, code) come from one more test of each ray
     against its segment. That test is a program of its own, which XLA may round apart from the
@@ -182,7 +187,15 @@ def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, p
         return jax.vmap(jax.vmap(_segment_t, in_axes=(None, 0, 0, 0, 0)))(seg, o, d, a, b)[0]
 
     groups = bin_groups(fb.tree, group) if group else None
-    t, idx, counts = nearest_binned(fb.box_lo, fb.box_hi, pair_fn, packet, candidates, pairs, origins, directions, t_min, t_max, groups)
+    n = origins.shape[0]
+
+    def walks(o, d, a, b):
+        out = nearest_groups(f, fb, leaf, walk_group, o, d, a, b)
+        return out[0], out[3]
+
+    fallback = walks if walk_ratio > 0 else None
+    t, idx, counts = nearest_binned(fb.box_lo, fb.box_hi, pair_fn, packet, candidates, pairs, origins, directions, t_min, t_max, groups,
+                                    fallback, int(walk_ratio * n))
     def again():
         seg = jax.tree_util.tree_map(lambda x: x[jnp.maximum(idx, 0)], f)
         return jax.vmap(_segment_t)(seg, origins, directions, t_min, t_max) + (jax.vmap(recentre)(seg, origins, directions)[0],)

@@ -93,6 +93,7 @@ class FrustaConfig(StrictModel):
     bin_candidates: Annotated[int, Field(ge=1, le=65536)] = 128  # bins: segments tested against every packet at once
     bin_pairs: Annotated[int, Field(ge=1, le=65536)] = 256  # bins: (packet, segment) pairs cast at once
     bin_group: Annotated[int, Field(ge=0, le=65536)] = 32  # bins: leaf slots per BVH node tested before its segments (0: every segment's box)
+    bin_walk_ratio: Annotated[float, Field(ge=0.0, le=1e6)] = 1.5  # bins: a chunk whose list holds more segments per ray walks instead (0: never)
     kernel_block: Annotated[int, Field(ge=1, le=1024)] = 32  # rays per kernel program (a power of two)
     kernel_warps: Annotated[int, Field(ge=1, le=32)] = 1  # warps per kernel program
 

@@ -71,7 +71,7 @@ class Static(NamedTuple):
     traversal: str = "packets"  # bvh: bins | packets | walks | kernel (resolved from ``object.traversal``)
     kernel_block: int = 32
     kernel_warps: int = 1
-    bins: tuple[int, int, int, int] = (64, 128, 256, 32)  # bins: rays per packet, candidates and pairs per step, slots per group
+    bins: tuple = (64, 128, 256, 32, 1.5)  # bins: rays per packet, candidates and pairs per step, slots per group, walk ratio
 
 
 def _pad(a: np.ndarray, n: int, fill) -> np.ndarray:
@@ -346,7 +346,7 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
     static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block,
                     "none" if cfg.accel == "none" else ("bvh" if plain is not None and plain.bvh is not None else "blocks"),
                     cfg.leaf, cfg.group, cfg.packet, traversal_of(cfg), cfg.kernel_block, cfg.kernel_warps,
-                    (cfg.bin_packet, cfg.bin_candidates, cfg.bin_pairs, cfg.bin_group))
+                    (cfg.bin_packet, cfg.bin_candidates, cfg.bin_pairs, cfg.bin_group, float(cfg.bin_walk_ratio)))
     info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size))
     return Built(scene, static, anchor, (lo, hi), info)
 
@@ -413,7 +413,7 @@ def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
     if scene.plain is not None:
         g = scene.plain
         if static.accel == "bvh" and static.traversal == "bins":
-            t, s, c, i, _ = nearest_bins(g.frusta, g.bvh, *static.bins, o, d, a, b)
+            t, s, c, i, _ = nearest_bins(g.frusta, g.bvh, *static.bins, o, d, a, b, leaf=static.leaf, walk_group=static.group)
         elif static.accel == "bvh" and static.traversal == "kernel":
             t, s, c, i, _, _ = nearest_kernel(g.frusta, g.bvh, static.leaf, o, d, a, b, static.kernel_block, static.kernel_warps)
         elif static.accel == "bvh" and static.traversal == "packets" and static.packet > 0:
@@ -449,9 +449,11 @@ def _stats_batch(static: Static):
             out = out + nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, *rays)[4:]
         if static.traversal == "bins":  # segment tests per ray: the batch's pairs times rays per packet
             n = rays.size
-            n_list, pairs = nearest_bins(g.frusta, g.bvh, *static.bins, *rays)[4]
+            n_list, pairs = nearest_bins(g.frusta, g.bvh, *static.bins, *rays, leaf=static.leaf, walk_group=static.group)[4]
             g_rays = min(static.bins[0], n)
-            out = out + (jnp.full((n,), pairs * g_rays / n), jnp.full((n,), n_list))
+            walked = pairs < 0  # a batch cast by walks (its list too long for packets): its leaves' segments
+            tests = jnp.where(walked, out[1] * static.leaf, pairs * g_rays / n)
+            out = out + (tests, jnp.full((n,), n_list), jnp.full((n,), walked))
         return out
 
     return fn
@@ -466,7 +468,8 @@ def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
     noise; issue 6's "cost per ray grows no faster than log(segments)"); with packets the
     mean steps of a packet's shared loop (nodes and leaves of the union of its rays' walks);
     with bins the segment tests per ray (each chunk's (packet, segment) pairs times the rays per
-    packet, shared among the chunk's rays) and the mean length of a chunk's first list. Packets
+    packet, shared among the chunk's rays; a chunk cast by walks counts its rays' leaves), the
+    mean length of a chunk's first list and the share of rays in walked chunks. Packets
     and bins depend on the given ray order (the render's: ``rays.tile_order``). Empty when the
     scene has no BVH."""
     from ..rays import map_chunks
@@ -482,6 +485,7 @@ def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
     if built.static.traversal == "bins":  # per-ray shares of each batch's counts
         stats["bin_tests_per_ray_mean"] = float(np.mean(out[2]))
         stats["bin_batch_list_mean"] = float(np.mean(out[3]))
+        stats["bin_walked_fraction"] = float(np.mean(out[4]))  # rays in batches cast by walks (``bin_walk_ratio``)
     elif len(out) > 2:  # packets: steps of each packet's shared loop (every ray carries its packet's)
         stats["packet_steps_mean"] = float(np.mean(out[2]))
     return stats

@@ -171,6 +171,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     rep = registry.get(obj.type)
     t0 = time.perf_counter()
     built = rep.build(obj, dtype)
+    jax.block_until_ready(built.params)  # dispatch is asynchronous: the build ends here, not in the render
     build_s = time.perf_counter() - t0
     cam = camera_of(exp)
     rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype)
@@ -214,6 +215,7 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
     dtype = dtype_of(exp)
     t0 = time.perf_counter()
     params, static, eye, objects_info = build_scene(exp, shapes, dtype)
+    jax.block_until_ready(params)
     build_s = time.perf_counter() - t0
     cam = camera_of(exp)
     n_pix = cam.width * cam.height
