@@ -211,7 +211,7 @@ def first_set(words, q: int):
 
 
 def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pairs: int, origins, directions, t_min, t_max, groups=None,
-                   fallback: Callable | None = None, fallback_above: int = 0):
+                   fallback: Callable | None = None, fallback_above: int = 0, root=None):
     """Nearest hit of every ray of a batch (N,) through packet candidate lists (module docstring).
 
     lo, hi: (S, 3) primitive boxes (empty boxes for padding). ``pair_fn(ids (Q,), o, d, t_min,
@@ -225,94 +225,109 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
     while primitives are no smaller than a packet's footprint; below that every packet's list
     holds everything under it, and a packet's cost grows with the primitives' density, not with
     log(primitives): a per-ray BVH walk is the fallback that keeps the cost per ray
-    logarithmic (README: cost per ray against log(segments))."""
+    logarithmic (README: cost per ray against log(segments)).
+
+    ``root = (lo (3,), hi (3,))``, a box around every primitive: a batch that cannot meet it
+    (sky) skips everything but its own bounds (a ``lax.cond``)."""
     n = origins.shape[0]
     g = min(packet, n)
     n_pad = -(-n // g) * g
     p = n_pad // g
     po, pd, pa, pb = (_pad_rows(x, n_pad).reshape((p, g) + x.shape[1:]) for x in (origins, directions, t_min, t_max))
-    bounds = packet_bounds(po, pd, pa, pb)  # each (P, 3) or (P,)
-    whole = tuple(jnp.min(b, 0) if i % 2 == 0 else jnp.max(b, 0) for i, b in enumerate(bounds))
+    # the batch's bounds from its rays (min and max are exact: the same as over the packets')
+    whole = packet_bounds(origins[None], directions[None], t_min[None], t_max[None])
+    whole = tuple(b[0] for b in whole)
     s = lo.shape[0]
     k = min(candidates, s)
     q = min(pairs, p * k)
-    list1, n1 = batch_list(whole, lo, hi, groups)
-    list1 = jnp.concatenate([list1, jnp.zeros((k,), jnp.int32)])
-    meets = jax.vmap(packet_entry, in_axes=(0, 0, 0, 0, 0, 0, None, None))
 
-    big = jnp.int32(jnp.iinfo(jnp.int32).max)
-    best = (jnp.full((p, g), jnp.inf, origins.dtype), jnp.full((p, g), -1, jnp.int32))
-    lin = jnp.arange(k * p, dtype=jnp.int32).reshape(k, p)
-    sizes = [m for m in (q // 4, q // 2) if m >= 16] + [q]
+    def full():
+        list1, n1 = batch_list(whole, lo, hi, groups)
+        list1 = jnp.concatenate([list1, jnp.zeros((k,), jnp.int32)])
+        meets = jax.vmap(packet_entry, in_axes=(0, 0, 0, 0, 0, 0, None, None))
 
-    def block(j, carry):
-        best, tested = carry
-        ids = jax.lax.dynamic_slice_in_dim(list1, j * k, k)
-        live = j * k + jnp.arange(k) < n1
-        # the block's boxes nearest the batch first (where the batch enters each box)
-        e1 = jnp.where(live, packet_entry(*whole, lo[ids], hi[ids])[1], jnp.inf)
-        perm = jnp.argsort(e1)
-        ids, live = ids[perm], live[perm]
-        m2, e2 = fenced(n1 >= 0, lambda: meets(*bounds, lo[ids], hi[ids]))
-        m2 = (m2 & live[None, :]).T  # (K, P): candidate-major, nearest candidates first
-        e2 = e2.T
+        big = jnp.int32(jnp.iinfo(jnp.int32).max)
+        best = (jnp.full((p, g), jnp.inf, origins.dtype), jnp.full((p, g), -1, jnp.int32))
+        lin = jnp.arange(k * p, dtype=jnp.int32).reshape(k, p)
+        sizes = [m for m in (q // 4, q // 2) if m >= 16] + [q]
 
-        def alive(cursor, bt):
-            # pairs not yet taken (taken pairs all lie before the cursor: each step takes the
-            # first alive pairs in order, and a pruned pair stays pruned as best t only falls)
-            reach = jnp.max(bt, axis=1)  # inf while a ray of the packet has no hit
-            return pack_bits((m2 & (lin >= cursor) & ~(e2 > reach[None, :])).reshape(-1))  # (a NaN bound keeps its pair)
+        def block(j, carry):
+            bounds = carry[2]
+            best, tested = carry[:2]
+            ids = jax.lax.dynamic_slice_in_dim(list1, j * k, k)
+            live = j * k + jnp.arange(k) < n1
+            # the block's boxes nearest the batch first (where the batch enters each box)
+            e1 = jnp.where(live, packet_entry(*whole, lo[ids], hi[ids])[1], jnp.inf)
+            perm = jnp.argsort(e1)
+            ids, live = ids[perm], live[perm]
+            m2, e2 = fenced(n1 >= 0, lambda: meets(*bounds, lo[ids], hi[ids]))
+            m2 = (m2 & live[None, :]).T  # (K, P): candidate-major, nearest candidates first
+            e2 = e2.T
 
-        def lanes(m: int, rows, prim):
-            def test():
-                r = rows[:m]
-                t = pair_fn(prim[:m], po[r], pd[r], pa[r], pb[r])
-                return t if m == q else jnp.concatenate([t, jnp.full((q - m, g), jnp.inf, t.dtype)])
+            def alive(cursor, bt):
+                # pairs not yet taken (taken pairs all lie before the cursor: each step takes the
+                # first alive pairs in order, and a pruned pair stays pruned as best t only falls)
+                reach = jnp.max(bt, axis=1)  # inf while a ray of the packet has no hit
+                return pack_bits((m2 & (lin >= cursor) & ~(e2 > reach[None, :])).reshape(-1))  # (a NaN bound keeps its pair)
 
-            return test
+            def lanes(m: int, rows, prim):
+                def test():
+                    r = rows[:m]
+                    t = pair_fn(prim[:m], po[r], pd[r], pa[r], pb[r])
+                    return t if m == q else jnp.concatenate([t, jnp.full((q - m, g), jnp.inf, t.dtype)])
 
-        def body(st):
-            nt, words, best = st
-            bt, bi = best
-            at, na = first_set(words, q)
-            ok = jnp.arange(q) < na
-            at = jnp.minimum(at, k * p - 1)
-            pk = jnp.where(ok, at % p, p)
-            prim = ids[at // p]
-            rows = jnp.minimum(pk, p - 1)
-            # the test runs on the smallest of q/4, q/2, q lanes that holds the step's pairs (a
-            # switch: one branch runs; a block's last step is often part-full, and the step's
-            # cost is its lanes). Each branch is its own program, so t is materialised once
-            if len(sizes) > 1:
-                t = jax.lax.switch(sum((na > m).astype(jnp.int32) for m in sizes[:-1]), [lanes(m, rows, prim) for m in sizes])
-            else:  # (a switch of one branch is inlined)
-                t = fenced(na >= 0, lanes(q, rows, prim))
-            t = jnp.where(ok[:, None], t, jnp.inf)
-            tm = jax.ops.segment_min(t, pk, num_segments=p)
-            hit = (t == tm[rows]) & ok[:, None] & jnp.isfinite(t)
-            im = jax.ops.segment_min(jnp.where(hit, prim[:, None], big), pk, num_segments=p)
-            better = jnp.isfinite(tm) & ((tm < bt) | ((tm == bt) & (im < bi)))
-            best = (jnp.where(better, tm, bt), jnp.where(better, im, bi))
-            # every alive pair up to the last one taken is done; none is left when na <= q
-            cursor = jnp.where(na > q, at[q - 1] + 1, k * p)
-            return nt + jnp.minimum(na, q), alive(cursor, best[0]), best
+                return test
 
-        nt, _, best = jax.lax.while_loop(lambda st: jnp.any(st[1] != 0), body, (jnp.int32(0), alive(jnp.int32(0), best[0]), best))
-        return best, tested + nt
+            def body(st):
+                nt, words, best = st
+                bt, bi = best
+                at, na = first_set(words, q)
+                ok = jnp.arange(q) < na
+                at = jnp.minimum(at, k * p - 1)
+                pk = jnp.where(ok, at % p, p)
+                prim = ids[at // p]
+                rows = jnp.minimum(pk, p - 1)
+                # the test runs on the smallest of q/4, q/2, q lanes that holds the step's pairs (a
+                # switch: one branch runs; a block's last step is often part-full, and the step's
+                # cost is its lanes). Each branch is its own program, so t is materialised once
+                if len(sizes) > 1:
+                    t = jax.lax.switch(sum((na > m).astype(jnp.int32) for m in sizes[:-1]), [lanes(m, rows, prim) for m in sizes])
+                else:  # (a switch of one branch is inlined)
+                    t = fenced(na >= 0, lanes(q, rows, prim))
+                t = jnp.where(ok[:, None], t, jnp.inf)
+                tm = jax.ops.segment_min(t, pk, num_segments=p)
+                hit = (t == tm[rows]) & ok[:, None] & jnp.isfinite(t)
+                im = jax.ops.segment_min(jnp.where(hit, prim[:, None], big), pk, num_segments=p)
+                better = jnp.isfinite(tm) & ((tm < bt) | ((tm == bt) & (im < bi)))
+                best = (jnp.where(better, tm, bt), jnp.where(better, im, bi))
+                # every alive pair up to the last one taken is done; none is left when na <= q
+                cursor = jnp.where(na > q, at[q - 1] + 1, k * p)
+                return nt + jnp.minimum(na, q), alive(cursor, best[0]), best
 
-    def cond1(st):
-        return st[0] * k < n1
+            nt, _, best = jax.lax.while_loop(lambda st: jnp.any(st[1] != 0), body, (jnp.int32(0), alive(jnp.int32(0), best[0]), best))
+            return best, tested + nt
 
-    def body1(st):
-        best, tested = block(st[0], (st[1], st[2]))
-        return st[0] + 1, best, tested
+        def binned():
+            bounds = packet_bounds(po, pd, pa, pb)  # each (P, 3) or (P,)
 
-    def binned():
-        _, (t, idx), tested = jax.lax.while_loop(cond1, body1, (jnp.int32(0), best, jnp.int32(0)))
-        return t.reshape(n_pad)[:n], idx.reshape(n_pad)[:n], tested
+            def body1(st):
+                best, tested = block(st[0], (st[1], st[2], bounds))
+                return st[0] + 1, best, tested
 
-    if fallback is None:
-        t, idx, tested = binned()
+            _, (t, idx), tested = jax.lax.while_loop(lambda st: st[0] * k < n1, body1, (jnp.int32(0), best, jnp.int32(0)))
+            return t.reshape(n_pad)[:n], idx.reshape(n_pad)[:n], tested
+
+        if fallback is None:
+            t, idx, tested = binned()
+        else:
+            t, idx, tested = jax.lax.cond(n1 > fallback_above, lambda: (*fallback(origins, directions, t_min, t_max), jnp.int32(-1)), binned)
+        return t, idx, n1, tested
+
+    def sky():
+        return jnp.full((n,), jnp.inf, origins.dtype), jnp.full((n,), -1, jnp.int32), jnp.int32(0), jnp.int32(0)
+
+    if root is None:
+        t, idx, n1, tested = full()
     else:
-        t, idx, tested = jax.lax.cond(n1 > fallback_above, lambda: (*fallback(origins, directions, t_min, t_max), jnp.int32(-1)), binned)
+        t, idx, n1, tested = jax.lax.cond(packet_meets(*whole, root[0][None], root[1][None])[0], full, sky)
     return t, idx, (n1, tested)

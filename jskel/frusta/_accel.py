@@ -14,7 +14,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..accel import BVH, Best, build, fenced, nearest, nearest_binned, nearest_packet
+from ..accel import BVH, Best, build, nearest, nearest_binned, nearest_packet
 from ._intersect import SIDE, FrustaParams, _dot, _segment_t, recentre
 
 
@@ -195,13 +195,14 @@ def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, p
 
     fallback = walks if walk_ratio > 0 else None
     t, idx, counts = nearest_binned(fb.box_lo, fb.box_hi, pair_fn, packet, candidates, pairs, origins, directions, t_min, t_max, groups,
-                                    fallback, int(walk_ratio * n))
+                                    fallback, int(walk_ratio * n), root=(fb.tree.lo[1], fb.tree.hi[1]))
     def again():
         seg = jax.tree_util.tree_map(lambda x: x[jnp.maximum(idx, 0)], f)
         return jax.vmap(_segment_t)(seg, origins, directions, t_min, t_max) + (jax.vmap(recentre)(seg, origins, directions)[0],)
 
-    # fenced: XLA fused this test into each consumer of s and code (position, normal, uv,
-    # shading) and ran it once per consumer
-    t_again, s, c, t0 = fenced(counts[0] >= 0, again)
+    # in a conditional: XLA fused this test into each consumer of s and code (position,
+    # normal, uv, shading) and ran it once per consumer; and a batch without a hit skips it
+    zero = jnp.zeros(origins.shape[:1], origins.dtype)
+    t_again, s, c, t0 = jax.lax.cond(jnp.any(idx >= 0), again, lambda: (zero, zero, jnp.zeros(zero.shape, jnp.int32), zero))
     again = jnp.isfinite(t_again)
     return t, jnp.where(again, s, t - t0), jnp.where(again, c, SIDE), idx, counts
