@@ -331,6 +331,8 @@ def _cast_fn(rep_name: str, static):
         rep = registry.get(rep_name)
 
         def fn(params, rays):
+            if hasattr(rep, "cast_batch"):  # t and primitive alone, without the hit's attributes
+                return rep.cast_batch(params, static, rays)
             if hasattr(rep, "intersect_batch"):
                 h = rep.intersect_batch(params, static, rays)
             else:

@@ -273,23 +273,27 @@ def _interleave(tree, a: int, b: int):
 
 def compact_map(fn: Callable, need: jnp.ndarray, rays: Rays, base, lanes: int):
     """``base`` with the entries where ``need`` (N,) holds replaced by ``fn(rays_sub)``, where
-    ``fn`` maps a Rays batch of ``lanes`` rays to a pytree like ``base``'s rows.
+    ``fn`` maps a Rays batch of ``lanes`` rays to a pytree like ``base``'s rows. ``rays`` may
+    be any pytree of arrays with leading axis N (``fn`` then gets the same pytree of ``lanes``
+    rows).
 
     Compaction, not masking (wavefront style): the needed rays are gathered into dense
     sub-batches of ``lanes`` and a ``while_loop`` runs only as many sub-batches as there are
     needed rays (none when none is needed), then the results are scattered back. Under vmap a
-    per-ray ``cond`` would run ``fn`` on every ray."""
+    per-ray ``cond`` would run ``fn`` on every ray. The needed rows are found with popcounts
+    (``accel._bins.first_set``), not ``jnp.nonzero``'s prefix sum over N."""
+    from .accel._bins import first_set, pack_bits
+
     n = need.shape[0]
     lanes = min(lanes, n)
-    count = jnp.sum(need.astype(jnp.int32))
-    order = jnp.nonzero(need, size=n, fill_value=0)[0].astype(jnp.int32)
-    order = jnp.concatenate([order, jnp.zeros((lanes,), jnp.int32)])
+    order, count = first_set(pack_bits(need), n)
+    order = jnp.concatenate([jnp.minimum(order, n - 1), jnp.zeros((lanes,), jnp.int32)])
 
     def body(state):
         j, acc = state
         lane = j * lanes + jnp.arange(lanes, dtype=jnp.int32)
         idx = jax.lax.dynamic_slice(order, (j * lanes,), (lanes,))
-        out = fn(Rays(*(a[idx] for a in rays)))
+        out = fn(jax.tree_util.tree_map(lambda a: a[idx], rays))
         dst = jnp.where(lane < count, idx, n)  # n: dropped by the scatter
         acc = jax.tree_util.tree_map(lambda a, o: a.at[dst].set(o.astype(a.dtype), mode="drop"), acc, out)
         return j + 1, acc

@@ -403,11 +403,16 @@ def intersect(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
     return f(rays.origins, rays.directions, rays.t_min, rays.t_max)
 
 
-def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
+def intersect_batch(scene: FrustaScene, static: Static, rays: Rays, attributes: bool = True) -> Hit:
     """Like :func:`intersect`, but skips work at the batch level: plain segments through the
     linear BVH (``accel: bvh``; packets of ``packet`` consecutive rays share a traversal, or
     with ``packet: 0`` every ray walks alone, in vmapped groups) or by skipping blocks that no ray of the batch reaches
-    (``blocks``); relief marched only for the (ray, segment) pairs whose ray enters a shell."""
+    (``blocks``); relief marched only for the (ray, segment) pairs whose ray enters a shell.
+
+    A batch where no ray hits a plain segment skips their attributes (position, normal, uv: a
+    ``lax.cond`` on the batch; compacting the hit rays instead changed the normals by an ulp
+    against ``intersect``'s program, whose equality is tested); ``attributes=False``
+    leaves them at the miss sentinels and gives t and the segment id alone (:func:`cast_batch`)."""
     o, d, a, b = rays
     hits = []
     if scene.plain is not None:
@@ -425,7 +430,13 @@ def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
         else:
             t, s, c, i = nearest_batch(g.frusta, g.block_c, g.block_r, _segment_t, o, d, a, b, static.quality.block)
         fin = jax.vmap(_finish, in_axes=(None, 0, 0, 0, 0, 0, 0, None))
-        hits.append(fin(g.frusta, o, d, t, s, c, i, static.quality.normals))
+        # a chunk of sky finishes nothing (misses keep masked_hit's sentinels)
+        z = jnp.zeros_like(o)
+        miss = Hit(t, z + jnp.inf, z, z[:, :2], jnp.full(i.shape, -1, jnp.int32), None)  # masked_hit's sentinels
+        if attributes:
+            hits.append(jax.lax.cond(jnp.any(jnp.isfinite(t)), lambda: fin(g.frusta, o, d, t, s, c, i, static.quality.normals), lambda: miss))
+        else:
+            hits.append(miss._replace(prim=jnp.where(jnp.isfinite(t), g.frusta.sid[jnp.maximum(i, 0)], -1)))
     if scene.relief is not None:
         g = scene.relief
         seg_fn = make_relief_t(scene.maps, static.relief)
@@ -506,6 +517,13 @@ def inside(scene: FrustaScene, static: Static, point):
     return jnp.any(jnp.stack([_inside_one(f, point) for f in groups]))
 
 
+def cast_batch(scene: FrustaScene, static: Static, rays: Rays):
+    """(t, segment id) of every ray: :func:`intersect_batch` without the hit attributes (what
+    the benchmark's cast times, and what the peers' casts return)."""
+    h = intersect_batch(scene, static, rays, attributes=False)
+    return h.t, h.prim
+
+
 class _Frusta:
     """The frusta representation as the registry hands it to the renderer (``jskel.interface.Representation``)."""
 
@@ -514,6 +532,7 @@ class _Frusta:
     build = staticmethod(build)
     intersect_one = staticmethod(intersect_one)
     intersect_batch = staticmethod(intersect_batch)
+    cast_batch = staticmethod(cast_batch)
     albedo = staticmethod(albedo)
     inside = staticmethod(inside)
 

@@ -13,12 +13,13 @@ import time
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .. import registry
 from ..accel import always, fenced
 from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
-from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Camera, Hit, Rays, make_rays, map_chunks, tile_inverse, tile_order
+from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Camera, Hit, Rays, compact_map, make_rays, map_chunks, tile_inverse, tile_order
 from ._aov import write_aovs as write_aovs
 from ._shade import Lights as Lights
 from ._shade import Shading as Shading
@@ -37,6 +38,9 @@ class RenderResult(NamedTuple):
     image: np.ndarray  # (H, W, 3) uint8
     run: dict  # what run.json holds
     aovs: dict | None = None  # scenes: more per-pixel outputs (obj, visibility, ...), leading axis H*W
+
+
+SHADE_LANES = 1024  # rays per sub-batch of the shading (only rays that hit are shaded)
 
 
 @functools.lru_cache(maxsize=None)
@@ -60,8 +64,10 @@ def pixel_fn(rep_name: str, static):
             hits = jax.vmap(one_hit, in_axes=(None, 0, 0, 0, 0))(scene, *rays)
         if hasattr(rep, "shade_batch"):  # a representation with its own secondary rays (cells)
             rgb = rep.shade_batch(scene, static, rays, hits, lights, sh)
-        else:
-            rgb = jax.vmap(colour, in_axes=(None, None, None, 0, 0))(scene, lights, sh, hits, rays.directions)
+        else:  # shaded where a ray hit, in dense sub-batches; the background elsewhere
+            shade = jax.vmap(colour, in_axes=(None, None, None, 0, 0))
+            back = jnp.broadcast_to(sh.background, rays.directions.shape).astype(rays.directions.dtype)
+            rgb = compact_map(lambda r: shade(scene, lights, sh, *r), jnp.isfinite(hits.t), (hits, rays.directions), back, SHADE_LANES)
         return hits, rgb
 
     return batch
