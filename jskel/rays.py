@@ -14,6 +14,7 @@ at 1e4.
 
 from __future__ import annotations
 
+import collections
 import functools
 
 import math
@@ -310,7 +311,11 @@ class ChunkedResult(NamedTuple):
     memory: dict | None = None  # with a memory budget: the chunk chosen and the bytes of each try
 
 
-_COMPILED: dict = {}
+# compiled executables, most recently used last; bounded: a bins program holds several loops and
+# branches, and a bench sweeping 48 static settings in one process ran out of memory for LLVM's
+# code mappings at the 48th compile when every executable was kept
+_COMPILED: "collections.OrderedDict" = collections.OrderedDict()
+COMPILED_KEEP = 24
 
 
 def _signature(args):
@@ -340,6 +345,7 @@ def compile_batch_fn(batch_fn: Callable, example_args, mesh=None) -> tuple[Calla
     key = (batch_fn, _signature(example_args), jax.config.jax_enable_x64, dev_key)
     hit = _COMPILED.get(key)
     if hit is not None:
+        _COMPILED.move_to_end(key)
         return hit, 0.0
     t0 = time.perf_counter()
     if mesh is None:
@@ -352,6 +358,8 @@ def compile_batch_fn(batch_fn: Callable, example_args, mesh=None) -> tuple[Calla
         fn = jax.jit(jax.shard_map(batch_fn, mesh=mesh, in_specs=(P(), P("rays")), out_specs=P("rays"), check_vma=False))
     compiled = fn.lower(*example_args).compile()
     _COMPILED[key] = compiled
+    while len(_COMPILED) > COMPILED_KEEP:
+        _COMPILED.popitem(last=False)
     return compiled, time.perf_counter() - t0
 
 
