@@ -193,7 +193,8 @@ def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, p
         out = nearest_groups(f, fb, leaf, walk_group, o, d, a, b)
         return out[0], out[3]
 
-    fallback = walks if walk_ratio > 0 else None
+    # (not compiled where the list cannot pass the threshold: fewer segments than that)
+    fallback = walks if walk_ratio > 0 and int(walk_ratio * n) < f.h.shape[0] else None
     t, idx, counts = nearest_binned(fb.box_lo, fb.box_hi, pair_fn, packet, candidates, pairs, origins, directions, t_min, t_max, groups,
                                     fallback, int(walk_ratio * n), root=(fb.tree.lo[1], fb.tree.hi[1]))
     def again():
