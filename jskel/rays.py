@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import collections
 import functools
-
 import math
 import sys
 import time
