@@ -55,6 +55,42 @@ def test_tree_boxes_nest_and_order_is_a_permutation():
             assert np.all(lo[n_leaves + leaf] <= blo[k]) and np.all(hi[n_leaves + leaf] >= bhi[k])
 
 
+def test_collect_finds_every_leaf_the_ray_meets_and_flags_more_than_it_keeps():
+    """``accel.collect`` (the walk for implicit culling) against a float64 NumPy slab test of
+    every leaf box: the same leaves where the ray is clear of a box's boundary, and overflow
+    exactly when more leaves are met than kept."""
+    rng = np.random.default_rng(4)
+    p, leaf, cap = 300, 4, 6
+    c = rng.uniform(-1, 1, size=(p, 3))
+    half = rng.uniform(0.02, 0.15, size=(p, 3))
+    bvh = accel.build(jnp.float32(c - half), jnp.float32(c + half), jnp.ones(p, bool), leaf)
+    n_leaves = bvh.lo.shape[0] // 2
+    O = rng.uniform(-1, 1, size=(512, 3))
+    D = rng.normal(size=(512, 3))
+    D[:32, 1:] = 0.0  # axis-parallel rays: zero direction components
+    walk = jax.jit(jax.vmap(lambda o, d: accel.collect(bvh, o, d, 0.0, jnp.inf, cap)))
+    slots, k, over = (np.asarray(x) for x in walk(jnp.float32(O), jnp.float32(D)))
+    lo, hi = np.asarray(bvh.lo, np.float64)[n_leaves:], np.asarray(bvh.hi, np.float64)[n_leaves:]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta = (lo[None] - O[:, None]) / D[:, None]
+        tb = (hi[None] - O[:, None]) / D[:, None]
+    inside = (O[:, None] >= lo[None]) & (O[:, None] <= hi[None])
+    ta = np.where(D[:, None] == 0, np.where(inside, -np.inf, np.inf), ta)  # outside a slab: entry at +inf
+    tb = np.where(D[:, None] == 0, np.inf, tb)
+    t0 = np.max(np.minimum(ta, tb), -1)
+    t1 = np.min(np.maximum(ta, tb), -1)
+    meets = (t0 <= t1) & (t1 >= 0) & np.all(lo <= hi, -1)[None]
+    with np.errstate(invalid="ignore"):
+        edge = ~(np.abs(t1 - t0) > 1e-4 * (1 + np.abs(t0))) | (np.abs(t1) <= 1e-4)  # a corner, an edge or the origin on a face
+    count = meets.sum(1)
+    assert count.max() > cap and (count == 0).sum() > 10 and ((count > 0) & (count <= cap)).sum() > 100
+    decided = ~np.any(edge, 1)
+    np.testing.assert_array_equal(over[decided], count[decided] > cap)
+    for i in np.nonzero(decided & ~over)[0]:
+        assert sorted(slots[i][: k[i]].tolist()) == np.nonzero(meets[i])[0].tolist()
+        assert np.all(slots[i][k[i]:] == -1)
+
+
 def _random_skeleton(rng, n):
     j, r, p = random_tree(rng, n)
     return j, r, p.tolist()

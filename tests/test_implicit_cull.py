@@ -11,7 +11,7 @@ import pytest
 
 import reference as ref
 from jskel import implicit
-from jskel.implicit._trace import cull
+from jskel.implicit._trace import cull, influence_tree
 from jskel.rays import make_rays, map_chunks
 
 N_RAYS = 4096
@@ -27,7 +27,7 @@ _CULL = {}
 
 
 def cull_fn(q):
-    key = (q.capacity, q.block, q.block_capacity)
+    key = (q.capacity, q.block, q.block_capacity, q.cull)
     if key not in _CULL:
         def f(prims, o, d):
             c = cull(prims, o, d, 0.0, jnp.inf, *key)
@@ -65,9 +65,27 @@ def slab():
     return built, O, D
 
 
-def test_block_cull_finds_exactly_the_crossed_spheres(slab):
+def quality(built, how, **kw):
+    """The model's culling options with blocks found by ``how`` (tree: 16 kept, blocks: 32)."""
+    return built.static.quality._replace(cull=how, block_capacity=16 if how == "tree" else 32, **kw)
+
+
+def leaves_crossed(built, q, cross):
+    """(R,) number of distinct blocks (tree leaves or Morton runs) holding a primitive whose
+    influence sphere the ray crosses (``cross`` from NumPy)."""
+    if q.cull == "tree":
+        order = np.asarray(influence_tree(built.params.prims, q.block).order)
+        group = np.full(cross.shape[1], -1)
+        group[order[order >= 0]] = np.nonzero(order >= 0)[0] // q.block
+    else:
+        group = np.arange(cross.shape[1]) // q.block
+    return np.array([len(set(group[np.nonzero(c)[0]].tolist())) for c in cross])
+
+
+@pytest.mark.parametrize("how", ["tree", "blocks"])
+def test_block_cull_finds_exactly_the_crossed_spheres(slab, how):
     built, O, D = slab
-    q = built.static.quality
+    q = quality(built, how)
     assert q.block == 16 and built.params.prims.a.shape[0] // q.block > q.block_capacity  # the block level is in use
     ids, over = cull_fn(q)(built.params.prims, np.float32(O), np.float32(D))
     ids, over = np.asarray(ids), np.asarray(over)
@@ -76,6 +94,7 @@ def test_block_cull_finds_exactly_the_crossed_spheres(slab):
     assert count.max() >= 5 and (count == 0).mean() < 0.9  # the rays do cross the slab's blobs
     p = cross.shape[1]
     assert np.all(over[count > q.capacity])  # and grazing rays may cross more blocks than kept: flagged too
+    assert np.all(over[leaves_crossed(built, q, cross) > q.block_capacity])
     exact = 0
     for i in np.nonzero(~over)[0]:
         got = set(ids[i][ids[i] < p].tolist())
@@ -86,22 +105,23 @@ def test_block_cull_finds_exactly_the_crossed_spheres(slab):
     assert exact >= 0.99 * np.sum(~over) and np.mean(over) < 0.1
 
 
-def test_block_overflow_is_flagged_never_dropped(slab):
+@pytest.mark.parametrize("how", ["tree", "blocks"])
+def test_block_overflow_is_flagged_never_dropped(slab, how):
     built, O, D = slab
-    q = built.static.quality._replace(block_capacity=1)
+    q = quality(built, how)._replace(block_capacity=1)
     ids, over = cull_fn(q)(built.params.prims, np.float32(O), np.float32(D))
     cross = numpy_crossings(built.params.prims, O, D)
-    blocks_crossed = np.array([len(set((np.nonzero(c)[0] // q.block).tolist())) for c in cross])
+    blocks_crossed = leaves_crossed(built, q, cross)
     over = np.asarray(over)
     assert np.sum(blocks_crossed >= 2) > 100
-    assert np.all(over[blocks_crossed >= 2])  # a ray whose primitives lie in two blocks crosses two block spheres
+    assert np.all(over[blocks_crossed >= 2])  # a ray whose primitives lie in two blocks meets both blocks' bounds
 
 
 def test_blocks_render_the_same_image_as_flat_culling():
     rng = np.random.default_rng(11)
     hits = []
-    for bs in (0, 16):
-        built = blob_model(1500, block_size=bs)
+    for bs, how in ((0, "tree"), (16, "tree"), (16, "blocks")):
+        built = blob_model(1500, block_size=bs, cull=how)
         if not hits:
             lo, hi = built.bounds
             O, D = ref.random_rays(rng, np.asarray(lo), np.asarray(hi), N_RAYS, spread=0.3)
@@ -109,25 +129,28 @@ def test_blocks_render_the_same_image_as_flat_culling():
         fn = lambda p, r, key=key: implicit.intersect_batch(p, key, r)  # overflowing rays retraced flat
         out = map_chunks(fn, built.params, make_rays(O - built.anchor, D), chunk=N_RAYS, progress=False).out
         hits.append(out)
-    flat, blocked = hits
-    np.testing.assert_array_equal(flat.flags, blocked.flags)
+    flat = hits[0]
     ok = np.asarray(flat.flags) == 0
-    assert ok.mean() > 0.95  # only candidate-list overflows remain (the same rays both ways)
+    assert ok.mean() > 0.95  # only candidate-list overflows remain (the same rays every way)
     h = np.isfinite(flat.t) & ok
     assert h.mean() > 0.1
-    np.testing.assert_array_equal(h, np.isfinite(blocked.t) & ok)
-    np.testing.assert_allclose(blocked.t[h], flat.t[h], rtol=1e-6, atol=1e-6)
-    np.testing.assert_array_equal(blocked.prim[ok], flat.prim[ok])  # ids of the config, not of the sorted order
+    for blocked in hits[1:]:
+        np.testing.assert_array_equal(flat.flags, blocked.flags)
+        np.testing.assert_array_equal(h, np.isfinite(blocked.t) & ok)
+        np.testing.assert_allclose(blocked.t[h], flat.t[h], rtol=1e-6, atol=1e-6)
+        np.testing.assert_array_equal(blocked.prim[ok], flat.prim[ok])  # ids of the config, not of the sorted order
 
 
 def test_per_ray_culling_work_grows_much_slower_than_the_model():
-    """XLA's operation count for culling 1,024 rays: 16x the primitives costs 16x flat, < 4x in blocks."""
+    """XLA's operation count for culling 1,024 rays: 16x the primitives costs 16x flat, < 4x in
+    blocks. (The tree's walk is a while loop, whose count XLA cannot know: its cost is in the
+    bench, ``experiments/bench_implicit_cull.yaml``.)"""
     flops = {}
     O = np.zeros((1024, 3), np.float32)
     D = np.tile(np.float32([[0.3, -1.0, 0.2]]), (1024, 1))
     for bs in (0, 16):
         for n in (500, 5000):
-            built = blob_model(n, block_size=bs)
+            built = blob_model(n, block_size=bs, cull="blocks")
             fn = cull_fn(built.static.quality)
             ca = fn.lower(built.params.prims, O, D).compile().cost_analysis()
             ca = ca[0] if isinstance(ca, list) else ca
@@ -153,3 +176,28 @@ def test_line_distance_is_stable_for_a_far_origin():
     assert np.max(np.abs(got - dist)) < 1e-2
     naive = np.sqrt(np.maximum(np.sum(np.float32(oc) ** 2, 1) - np.float32(tc) ** 2, 0))
     assert np.max(np.abs(naive - dist)) > 0.1  # what the old form gave
+
+
+def test_max_field_estimate_equals_every_pair_summed():
+    """The build's host check of T against max F pairs points with primitives through a k-d
+    tree; summing every (point, primitive) pair in float64 gives the same maximum."""
+    from jskel.implicit._scene import _max_field_estimate
+
+    rng = np.random.default_rng(8)
+    n = 400
+    a = rng.uniform(-3, 3, size=(n, 3))
+    b = np.where(rng.uniform(size=(n, 1)) < 0.5, a, a + rng.normal(scale=0.5, size=(n, 3)))  # balls and tubes
+    ra, rb = rng.uniform(0.2, 0.9, n), rng.uniform(0.2, 0.9, n)
+    s = np.linspace(0, 1, 9)
+    ball = np.all(a == b, axis=1)
+    pts = np.concatenate([a[ball], (a[~ball][:, None, :] + s[None, :, None] * (b - a)[~ball][:, None, :]).reshape(-1, 3)])
+    ab = b - a
+    ax = pts[:, None, :] - a[None]
+    den = np.sum(ab * ab, -1)
+    t = np.clip(np.sum(ax * ab[None], -1) / np.where(den > 0, den, 1), 0, 1)
+    e = ax - t[..., None] * ab[None]
+    R = ra[None] + (rb - ra)[None] * t
+    q = np.sum(e * e, -1) / (R * R)
+    want = np.max(np.sum(np.where(q < 1, (1 - q) ** 2, 0), 1))
+    assert want > 1.0  # overlapping primitives: F sums several
+    np.testing.assert_allclose(_max_field_estimate(a, b, ra, rb), want, rtol=1e-12)

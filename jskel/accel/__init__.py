@@ -1,6 +1,7 @@
 """Acceleration structures shared by the representations (issue 6): a linear BVH built in JAX
-per frame (``_lbvh``), traversed stacklessly under vmap; and candidate lists for packets of
-coherent rays (``_bins``)."""
+per frame (``_lbvh``), traversed stacklessly under vmap (``nearest``: the frusta's nearest hit;
+``collect``: every leaf a ray meets, for the implicit representation's culling); and candidate
+lists for packets of coherent rays (``_bins``)."""
 
 from ._bins import always as always
 from ._bins import fenced as fenced
@@ -9,6 +10,7 @@ from ._bins import packet_meets as packet_meets
 from ._lbvh import BVH as BVH
 from ._lbvh import Best as Best
 from ._lbvh import build as build
+from ._lbvh import collect as collect
 from ._lbvh import escape as escape
 from ._lbvh import leaves_for as leaves_for
 from ._lbvh import morton_codes as morton_codes
@@ -16,4 +18,4 @@ from ._lbvh import nearest as nearest
 from ._lbvh import nearest_packet as nearest_packet
 from ._lbvh import ray_box as ray_box
 
-__all__ = ["BVH", "Best", "always", "build", "escape", "fenced", "leaves_for", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "packet_meets", "ray_box"]
+__all__ = ["BVH", "Best", "always", "build", "collect", "escape", "fenced", "leaves_for", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "packet_meets", "ray_box"]

@@ -149,7 +149,10 @@ class ImplicitConfig(StrictModel):
     bisection: Annotated[int, Field(ge=0, le=64)] = 12
     capacity: Annotated[int, Field(ge=1, le=4096)] = 32
     block_size: Annotated[int, Field(ge=0, le=1024)] = 16  # primitives per culling block; 0: flat culling
-    block_capacity: Annotated[int, Field(ge=1, le=4096)] = 32  # culling blocks kept per ray
+    # culling blocks kept per ray (more: the ray is retraced with flat culling); default 16 for
+    # the tree, 32 for blocks (block spheres are looser than the tree's leaf boxes: README)
+    block_capacity: Annotated[int, Field(ge=1, le=4096)] | None = None
+    cull: Literal["blocks", "tree"] = "tree"  # how a ray finds its blocks: walk the shared BVH, or test every block sphere
     early_exit: bool = True
     color: RGB = (0.75, 0.45, 0.3)
     bones: list[BoneConfig] = []

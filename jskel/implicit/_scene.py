@@ -77,23 +77,32 @@ def _pad(x, n, fill=0.0):
 
 def _max_field_estimate(a, b, ra, rb) -> float:
     """max F over the skeleton (host, float64): F at every ball's centre and 9 points along
-    every tube (a lower bound of the true maximum, used to reject T >= max F)."""
+    every tube (a lower bound of the true maximum, used to reject T >= max F). Only primitives
+    whose influence sphere holds a point add to F there, so the pairs come from a k-d tree over
+    the spheres' centres (scipy): O(P) pairs for a model of many small primitives, where
+    testing every pair is O(P^2) (the whole build took 1.0 s at 5,000 metaballs, 0.009 s now)."""
+    from scipy.spatial import cKDTree
+
     s = np.linspace(0, 1, 9)
     ball = np.all(a == b, axis=1)
     pts = np.concatenate([a[ball], (a[~ball][:, None, :] + s[None, :, None] * (b - a)[~ball][:, None, :]).reshape(-1, 3)])
-    best = 0.0
-    for i in range(0, pts.shape[0], 256):
-        x = pts[i : i + 256]
-        ab = b - a
-        ax = x[:, None, :] - a[None]
+    centre = 0.5 * (a + b)
+    reach = 0.5 * np.linalg.norm(b - a, axis=1) + np.maximum(ra, rb)
+    pairs = cKDTree(centre).sparse_distance_matrix(cKDTree(pts), float(np.max(reach)), output_type="ndarray")
+    i, j = pairs["i"], pairs["j"]
+    f = np.zeros(len(pts))
+    for k in range(0, len(i), 1 << 20):
+        pi, pj = i[k : k + (1 << 20)], j[k : k + (1 << 20)]
+        ab = (b - a)[pi]
+        ax = pts[pj] - a[pi]
         den = np.sum(ab * ab, -1)
-        t = np.clip(np.where(den > 0, np.sum(ax * ab[None], -1) / np.where(den > 0, den, 1), 0), 0, 1)
-        d = ax - t[..., None] * ab[None]
+        t = np.clip(np.where(den > 0, np.sum(ax * ab, -1) / np.where(den > 0, den, 1), 0), 0, 1)
+        d = ax - t[:, None] * ab
         r2 = np.sum(d * d, -1)
-        R = ra[None] + (rb - ra)[None] * t
+        R = ra[pi] + (rb - ra)[pi] * t
         q = np.where(R > 0, r2 / np.where(R > 0, R * R, 1), 1)
-        best = max(best, float(np.max(np.sum(np.where(q < 1, (1 - q) ** 2, 0), -1))))
-    return best
+        f += np.bincount(pj, np.where(q < 1, (1 - q) ** 2, 0), minlength=len(pts))
+    return float(np.max(f))
 
 
 def morton_order(points: np.ndarray) -> np.ndarray:
@@ -322,7 +331,7 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     prim_id[:p] = order
     scene = ImplicitScene(prims, tune, jnp.asarray(cfg.color, dtype), skin, projs, *tex, jnp.asarray(prim_id))
     q = Quality(cfg.method, cfg.steps, cfg.bisection, cfg.capacity, early_exit=cfg.early_exit, shape=shape,
-                block=cfg.block_size, block_capacity=cfg.block_capacity)
+                block=cfg.block_size, block_capacity=cfg.block_capacity or (16 if cfg.cull == "tree" else 32), cull=cfg.cull)
     static = Static(q, kinds, textured)
     info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_estimate": fmax,
             # width of the last bisection bracket: how far a returned hit may lie from F = T
@@ -333,7 +342,7 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
 def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min, t_max) -> Hit:
     """First hit of one ray; (u, v) from the projector applied at the rest-pose position."""
     q = static.quality
-    cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity, q.block, q.block_capacity)
+    cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity, q.block, q.block_capacity, q.cull)
     t, flags = trace_one(cand, scene.tune, origin, direction, t_min, t_max, q)
     pos, n, prim = surface_one(cand, scene.tune, origin, direction, t, q)
     prim = scene.prim_id[prim]

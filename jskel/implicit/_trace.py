@@ -7,12 +7,34 @@ dropped) and its result is not trusted. Field evaluations along the ray then cos
 O(P): cost grows with overlap, not with model size. The ray interval is the union of the
 candidates' sphere intervals.
 
-Culling itself is two-level when the model is large (``Quality.block``): the build sorts the
-primitives along a Morton curve so that each run of ``block`` consecutive primitives is compact
-in space, and ``block_spheres`` bounds each run. A ray tests the P / block block spheres, keeps
-the ``block_capacity`` nearest it crosses (more sets ``OVERFLOW`` too) and tests only their
-primitives: per-ray culling costs P / block + block_capacity * block sphere tests instead of P
-(5,000 blobs: 313 + 512 instead of 8,192 padded).
+Culling itself is two-level when the model is large (``Quality.block``): primitives are grouped
+in runs of ``block`` along a Morton curve, and a ray first finds the groups it meets, keeps at
+most ``block_capacity`` of them (a ray meeting more sets ``OVERFLOW`` and is retraced with flat
+culling by ``intersect_batch``) and tests only their primitives. ``Quality.cull`` picks how:
+
+* ``tree`` (default): the shared linear BVH of issue 6 (``jskel.accel.build``: Morton codes of
+  the influence spheres' centres, a complete tree of their boxes, built in JAX from the traced
+  primitives, so an animated or fitted model is re-bounded each call) with ``block`` primitives
+  per leaf, walked per ray for every leaf whose box the ray meets (``accel.collect``: the bit
+  trail walk of ``accel.nearest`` without a nearest-hit cut-off, since the field sums every
+  primitive the ray passes through). Per ray: the internal nodes above its leaves, log2 of the
+  model's size deep. Rouiller's Appendix A (after Gourmel et al. 2010) builds a kd-like BVH
+  whose leaves do not overlap and reference every primitive influencing them (split
+  primitives), walks it front to back with a stack and stops at the first leaf holding an
+  inside point; it did not pay off on his GPU for his model sizes (App. A, Sec. 4.3's
+  conclusion). Here the leaves overlap (each primitive is in one leaf) and every leaf met is
+  kept, so the candidate list and the march are those of flat culling exactly.
+* ``blocks``: every group's bounding sphere (``block_spheres``) is tested and the nearest
+  ``block_capacity`` met are kept: P / block sphere tests per ray.
+
+Chosen by measurement (``experiments/bench_implicit_cull.yaml``, README): on 160 x 120 primary
+rays of the blob slabs (development A/B, same process, 2-core CPU), culling alone took 0.35 s
+(blocks, 32 kept) against 0.13 s (tree, 16 kept) at 5,000 blobs and 0.92 s against 0.15 s at
+50,000, with identical candidate sets and hits; whole traces 0.61 against 0.39 s and 1.34
+against 0.60 s. A leaf box is tighter than a block's sphere: the camera rays met 2.5 leaves on
+average (at most 8) at 5,000 blobs, while 26 % of them met more than 8 block spheres. Keeping 8
+leaves was faster still on camera rays (0.08 s) but 14 % of the random rays through a slab
+(``tests/test_implicit_cull.py``) overflowed into flat culling; 16 is the default.
 
 Methods (``Quality.method``):
 
@@ -41,6 +63,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .. import accel
 from ..numerics import differentiable_root, line_dist2, safe_div, safe_normalize, safe_sqrt
 from ..rays import FLAG_OVERFLOW as OVERFLOW
 from ..rays import FLAG_STEP_CAP as STEP_CAP
@@ -55,7 +78,8 @@ class Quality(NamedTuple):
     bisection: int = 12
     capacity: int = 32  # candidate list per ray
     block: int = 16  # primitives per culling block (0: test every primitive)
-    block_capacity: int = 32  # blocks kept per ray
+    block_capacity: int = 16  # blocks kept per ray
+    cull: str = "tree"  # tree: walk the shared BVH (jskel.accel) | blocks: test every block sphere
     early_exit: bool = True
     shape: Shape = Shape()
 
@@ -133,13 +157,36 @@ def blocks_used(p: int, block: int, block_capacity: int) -> bool:
     return bool(block) and p % block == 0 and p // block > block_capacity
 
 
-def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_capacity: int = 0) -> Candidates:
+def influence_tree(prims: Prims, block: int) -> accel.BVH:
+    """The shared linear BVH (``jskel.accel.build``: Morton codes, complete tree, built in JAX
+    from the traced primitives) over the influence spheres' boxes, ``block`` primitives per
+    leaf. The boxes grow by a few ulps of the coordinates, as ``block_spheres`` do, so that no
+    sphere the exact test finds crossed pokes out of its box in float32."""
+    c, r = influence_spheres(prims)
+    scale = jnp.max(jnp.abs(c), axis=1) + r
+    r = r + 8 * jnp.finfo(c.dtype).eps * scale
+    return accel.build(c - r[:, None], c + r[:, None], prims.valid, block)
+
+
+def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_capacity: int = 0, how: str = "blocks") -> Candidates:
     """Candidates of one ray (Sec. 4.2: discard primitives whose influence the ray misses),
-    through the block level first when the model has more blocks than ``block_capacity``."""
+    through the block level first when the model has more blocks than ``block_capacity``:
+    ``how="blocks"`` tests every block sphere and keeps the ``block_capacity`` nearest met;
+    ``how="tree"`` walks the shared BVH (:func:`influence_tree`) for the leaves met
+    (``accel.collect``). Either way more blocks than kept sets ``OVERFLOW``."""
     p = prims.a.shape[0]
     ids = None
     block_overflow = jnp.asarray(False)
-    if blocks_used(p, block, block_capacity):
+    if how == "tree" and blocks_used(p, block, block_capacity):
+        bvh = influence_tree(prims, block)
+        leaves, _, block_overflow = accel.collect(bvh, o, d, t_min, t_max, block_capacity)
+        slots = (jnp.maximum(leaves, 0)[:, None] * block + jnp.arange(block, dtype=jnp.int32)[None, :]).reshape(-1)
+        ids = bvh.order[slots]
+        ok = (ids >= 0) & jnp.repeat(leaves >= 0, block)
+        ids = jnp.maximum(ids, 0)
+        prims = jax.tree_util.tree_map(lambda x: x[ids], prims)
+        prims = prims._replace(valid=prims.valid & ok)
+    elif blocks_used(p, block, block_capacity):
         cb, rb, vb = block_spheres(prims, block)
         b0, _, bhit = _sphere_interval(cb, rb, o, d, t_min, t_max)
         bhit = bhit & vb
