@@ -168,7 +168,7 @@ def influence_tree(prims: Prims, block: int) -> accel.BVH:
     return accel.build(c - r[:, None], c + r[:, None], prims.valid, block)
 
 
-def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_capacity: int = 0, how: str = "blocks") -> Candidates:
+def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_capacity: int = 0, how: str = "tree") -> Candidates:
     """Candidates of one ray (Sec. 4.2: discard primitives whose influence the ray misses),
     through the block level first when the model has more blocks than ``block_capacity``:
     ``how="blocks"`` tests every block sphere and keeps the ``block_capacity`` nearest met;
