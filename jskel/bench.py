@@ -153,6 +153,7 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
     jsk = [r for r in rows if r.get("setting", {}).get("object.accel") in ("bvh", "auto")]
     jskel_s = jsk[0]["render_s_median"] if jsk else None
     jskel_cast_s = jsk[0].get("cast_s_median") if jsk else None
+    jskel_res_s = jsk[0].get("cast_resident_s_median") if jsk else None  # accelerators only
     base = {"scene": exp.name, "rays": int(O.shape[0])}
 
     def agree(t):
@@ -201,6 +202,8 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
             row["jskel_over_peer"] = round(jskel_s / med, 2)
         if jskel_cast_s:
             row["jskel_cast_over_peer"] = round(jskel_cast_s / med, 2)
+        if jskel_res_s:  # both casts on rays already on the device, results left there
+            row["jskel_resident_cast_over_peer"] = round(jskel_res_s / med, 2)
         out.append(row)
         break
     from .frusta._scene import ANIMATED
@@ -212,9 +215,11 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
 
 def _frames_rows(bench, exp, obj, O, D, level, mc, base, runs: int = 1):
     """Seconds per animated frame, rebuild included: jskel (skeleton, cutting planes, BVH built in
-    JAX, render with shading; again with the cast alone, ``jskel_cast_frame_s_median``; and with
-    the frusta rebuilt on the device from the frame's joints, ``jskel_device_frame_s_median``; the
-    compiles are shared by all frames and not counted), Embree (skeleton, cutting
+    JAX, render with shading; again with the cast alone, ``jskel_cast_frame_s_median``; with
+    the frusta rebuilt on the device from the frame's joints, ``jskel_device_frame_s_median``;
+    on an accelerator that rebuild again with the cast on rays kept on the device and its result
+    left there, ``jskel_resident_frame_s_median``, as Mitsuba's cast is timed; the compiles are
+    shared by all frames and not counted), Embree (skeleton, cutting
     planes, tessellation, BVH build, cast) and Mitsuba (skeleton, control-point update with its
     rebuild, cast).
 
@@ -230,17 +235,22 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base, runs: int = 1):
     from .peers.skeleton import EmbreeMesh, frusta_mesh
     from .render import dtype_of, render
 
-    totals = {"jskel": [], "jskel_cast": [], "jskel_device": [], "embree": [], "mitsuba": []}
+    totals = {"jskel": [], "jskel_cast": [], "jskel_device": [], "jskel_resident": [], "embree": [], "mitsuba": []}
     parts = {"jskel_build": [], "jskel_cast": [], "jskel_cast_only": [], "jskel_device_build": [], "jskel_device_cast": [],
+             "jskel_resident_cast": [],
              "embree_skeleton": [], "embree_tess": [], "embree_build": [],
              "embree_cast": [], "mitsuba_skeleton": [], "mitsuba_update": [], "mitsuba_cast": []}
     compile_s = None
     try:  # the frusta rebuilt on the device from each frame's joints (frusta._device)
         rb = rebuilder(obj, dtype_of(exp))
         j0, r0, _, _ = _skeleton_arrays(obj.skeleton, obj.frame)
-        cast_once(exp, obj, rb(j0, r0))  # compiles the rebuild and its cast
+        b0 = rb(j0, r0)
+        cast_once(exp, obj, b0)  # compiles the rebuild and its cast
+        # on an accelerator, the fixed camera's rays placed on the device once for every frame
+        # (the rebuild keeps one anchor), as Mitsuba's are
+        resident = resident_rays(exp, b0) if _on_accelerator() else None
     except ValueError:
-        rb = None
+        rb = resident = None
     for f in bench.frames:  # host loop over frames
         o = obj.model_copy(update={"frame": f})
         if compile_s is None:
@@ -267,6 +277,10 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base, runs: int = 1):
                 part["jskel_device_build"].append(d_build)
                 part["jskel_device_cast"].append(c_s)
                 tot["jskel_device"].append(d_build + c_s)
+                if resident is not None:  # the same build, cast on resident rays, results left there
+                    r_s = cast_resident(exp, o, built, resident)[0]
+                    part["jskel_resident_cast"].append(r_s)
+                    tot["jskel_resident"].append(d_build + r_s)
             t0 = time.perf_counter()
             arrays = host_frusta(o)[0]
             t1 = time.perf_counter()
@@ -295,7 +309,7 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base, runs: int = 1):
         for k, v in tot.items():
             if v:
                 totals[k].append(statistics.median(v))
-    jt, jc, jd, et, mt = (totals[k] for k in ("jskel", "jskel_cast", "jskel_device", "embree", "mitsuba"))
+    jt, jc, jd, jr, et, mt = (totals[k] for k in ("jskel", "jskel_cast", "jskel_device", "jskel_resident", "embree", "mitsuba"))
     row = dict(base, peer="animated_frames", frames=len(bench.frames), runs_per_frame=max(runs, 1), gs_level=level, jskel_compile_s=round(compile_s, 3),
                jskel_frame_s_median=_median(jt), embree_frame_s_median=_median(et),
                **{f"{k}_s_median": _median(v) for k, v in parts.items() if v})
@@ -306,6 +320,9 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base, runs: int = 1):
     if jd:  # the same with the frusta rebuilt on the device
         row["jskel_device_frame_s_median"] = _median(jd)
         row["jskel_device_frame_over_embree"] = round(row["jskel_device_frame_s_median"] / row["embree_frame_s_median"], 2)
+    if jr:  # and cast on rays resident on the accelerator, results left there
+        row["jskel_resident_frame_s_median"] = _median(jr)
+        row["jskel_resident_frame_over_embree"] = round(row["jskel_resident_frame_s_median"] / row["embree_frame_s_median"], 2)
     if mt:
         row["mitsuba_variant"] = mc.variant
         row["mitsuba_frame_s_median"] = _median(mt)
@@ -313,6 +330,8 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base, runs: int = 1):
         row["jskel_cast_frame_over_mitsuba"] = round(row["jskel_cast_frame_s_median"] / row["mitsuba_frame_s_median"], 2)
         if jd:
             row["jskel_device_frame_over_mitsuba"] = round(row["jskel_device_frame_s_median"] / row["mitsuba_frame_s_median"], 2)
+        if jr:
+            row["jskel_resident_frame_over_mitsuba"] = round(row["jskel_resident_frame_s_median"] / row["mitsuba_frame_s_median"], 2)
     return [row]
 
 
@@ -368,8 +387,67 @@ def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
     return build_s, res.run_s, res.compile_s
 
 
+def _on_accelerator() -> bool:
+    """Whether JAX's default backend is an accelerator: resident casts are timed there only."""
+    import jax
+
+    return jax.default_backend() != "cpu"
+
+
+def resident_rays(exp, built) -> list:
+    """The camera's rays for ``built`` in screen-tile order, cut into the chunks a render uses
+    (``render.chunk``, times the devices of ``render.devices``; the last padded by repeating its
+    last ray, as ``rays.map_chunks`` pads), each placed on the device(s) ahead of a cast: a list
+    of device ``Rays`` for :func:`cast_resident`."""
+    import jax
+    import numpy as np
+
+    from .rays import Rays, _pad_to, ray_mesh
+    from .render import camera_of, devices_of, dtype_of
+
+    rays = camera_of(exp).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
+    devices = devices_of(exp)
+    mesh = ray_mesh(devices) if devices is not None else None
+    n = rays.size
+    per = min(chunk_of(exp.render), n) * (1 if mesh is None else mesh.size)
+    put = jax.devices()[0] if mesh is None else jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("rays"))
+    chunks = [Rays(*(jax.device_put(np.ascontiguousarray(_pad_to(a[lo : lo + per], per)), put) for a in rays))
+              for lo in range(0, n, per)]
+    return jax.block_until_ready(chunks)
+
+
+def cast_resident(exp, obj, built, chunks) -> tuple[float, list]:
+    """(seconds, [(t, prim) per chunk]) of one cast of rays already on the device
+    (:func:`resident_rays`), t and primitive left there: how the Mitsuba peer's cast is timed
+    (its rays are put on the GPU before its clock starts and its result is not copied back),
+    where :func:`cast_once` also times the rays' copy to the device and the results' copy back.
+    The same compiled ``_cast_fn`` as ``cast_once``'s (one chunk per call, no grouping), every
+    call dispatched before one wait. On a CPU the copies cost nothing; on a GPU they are most of
+    a 1024x768 cast (README, performance)."""
+    import jax
+
+    from .rays import compile_batch_fn, ray_mesh
+    from .render import devices_of
+
+    devices = devices_of(exp)
+    mesh = ray_mesh(devices) if devices is not None else None
+    params = built.params
+    if mesh is not None:
+        params = jax.device_put(params, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+    compiled, _ = compile_batch_fn(_cast_fn(obj.type, built.static), (params, chunks[0]), mesh)
+    jax.block_until_ready(params)
+    t0 = time.perf_counter()
+    outs = [compiled(params, c) for c in chunks]
+    jax.block_until_ready(outs)
+    return time.perf_counter() - t0, outs
+
+
 def timed_cast(exp, obj, runs: int, warmup: int) -> dict:
-    """``cast_s_median`` (and min, max) over ``runs`` warm casts of one build (``cast_once``)."""
+    """``cast_s_median`` (and min, max) over ``runs`` warm casts of one build (``cast_once``).
+    On an accelerator also ``cast_resident_s_median``: the same casts with the rays already on
+    the device and the results left there (:func:`cast_resident`, as the Mitsuba peer is timed)."""
+    import jax
+
     from . import registry
     from .render import dtype_of
 
@@ -378,8 +456,16 @@ def timed_cast(exp, obj, runs: int, warmup: int) -> dict:
         cast_once(exp, obj, built)
     times = [cast_once(exp, obj, built)[1] for _ in range(runs)]
     med = statistics.median(times)
-    return {"cast_s_median": round(med, 4), "cast_s_min": round(min(times), 4), "cast_s_max": round(max(times), 4),
-            "cast_mrays_per_s": round(exp.camera.width * exp.camera.height / med / 1e6, 4)}
+    row = {"cast_s_median": round(med, 4), "cast_s_min": round(min(times), 4), "cast_s_max": round(max(times), 4),
+           "cast_mrays_per_s": round(exp.camera.width * exp.camera.height / med / 1e6, 4)}
+    if _on_accelerator():
+        chunks = resident_rays(exp, built)
+        for _ in range(max(warmup, 1)):
+            cast_resident(exp, obj, built, chunks)
+        res = [cast_resident(exp, obj, built, chunks)[0] for _ in range(runs)]
+        row.update(cast_resident_s_median=round(statistics.median(res), 5), cast_resident_s_min=round(min(res), 5),
+                   cast_resident_s_max=round(max(res), 5))
+    return row
 
 
 def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:

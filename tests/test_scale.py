@@ -272,3 +272,34 @@ def test_chunks_per_call_equal_one_chunk_per_call(rng):
         a, b = np.asarray(getattr(one, name)), np.asarray(getattr(many, name))
         assert a.shape == b.shape and a.shape[0] == n
         np.testing.assert_array_equal(a, b)
+
+
+def test_resident_cast_gives_the_render_hits_in_tile_order():
+    """``bench.cast_resident`` (rays placed on the device before the clock, results left there:
+    how the Mitsuba peer is timed) casts the same rays as a render: 3,072 saguaro rays in chunks
+    of 2,048 (the second padded), put back in pixel order, give the render's hit or miss and
+    segment for every pixel and its t within float32 rounding (the cast alone and the render
+    with shading are compiled apart)."""
+    import jax
+
+    from jskel import registry
+    from jskel.bench import cast_resident, resident_rays
+    from jskel.config import load
+    from jskel.rays import tile_inverse
+    from jskel.render import render
+
+    exp, obj = load("experiments/saguaro.yaml", ["camera.width=64", "camera.height=48", "render.chunk=2048", "render.progress=false"])
+    want = render(exp, obj).hits
+    built = registry.get(obj.type).build(obj, np.float32)
+    chunks = resident_rays(exp, built)
+    assert [c.size for c in chunks] == [2048, 2048]
+    assert all(isinstance(a, jax.Array) for c in chunks for a in c)
+    secs, outs = cast_resident(exp, obj, built, chunks)
+    assert secs > 0.0 and all(isinstance(a, jax.Array) for o in outs for a in o)
+    t = np.concatenate([np.asarray(o[0]) for o in outs])[:3072][tile_inverse(64, 48, exp.render.tile)]
+    prim = np.concatenate([np.asarray(o[1]) for o in outs])[:3072][tile_inverse(64, 48, exp.render.tile)]
+    hit = np.isfinite(want.t)
+    assert 0.05 < hit.mean() < 0.9  # the saguaro covers about 9 % of this frame
+    np.testing.assert_array_equal(np.isfinite(t), hit)
+    np.testing.assert_array_equal(prim[hit], np.asarray(want.prim)[hit])
+    np.testing.assert_allclose(t[hit], np.asarray(want.t)[hit], rtol=2e-6)
