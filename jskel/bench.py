@@ -614,7 +614,8 @@ def plot_scaling(rows: list[dict], path: Path, title: str):
         st = r.get("setting", {})
         label = ", ".join(f"{k.split('.')[-1]}={v}" for k, v in list(st.items())[1:]) or "all"
         groups.setdefault(label, []).append(r)
-    fig, ax = plt.subplots(1, 3, figsize=(14, 4))
+    third = any("packet_steps_mean" in r or "bin_tests_per_ray_mean" in r for r in ok)  # packets or bins swept
+    fig, ax = plt.subplots(1, 3 if third else 2, figsize=(14, 4) if third else (9.5, 4))
     for i, (label, rs) in enumerate(groups.items()):
         rs = sorted(rs, key=lambda r: r["primitives"])
         n = np.array([r["primitives"] for r in rs], float)
@@ -627,7 +628,8 @@ def plot_scaling(rows: list[dict], path: Path, title: str):
             ax[2].plot(n, [r.get("bin_tests_per_ray_mean", np.nan) for r in rs], "s--", c=f"C{i}", label=f"bin tests per ray ({label})")
     ax[0].set_ylabel("warm median microseconds per ray")
     ax[1].set_ylabel("per ray, its own walk (mean)")
-    ax[2].set_ylabel("packets: loop steps; bins: segment tests per ray")
+    if third:
+        ax[2].set_ylabel("packets: loop steps; bins: segment tests per ray")
     for a in ax:
         a.set_xscale("log", base=2)
         a.set_xlabel("segments")
