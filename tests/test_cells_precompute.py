@@ -138,13 +138,15 @@ def test_mesh_implicit_and_frusta_base_shapes_match_their_closed_forms(tmp_path,
     """An icosphere mesh (trimesh) of radius 1, a lone metaball (surface: the sphere of radius
     R sqrt(1 - sqrt(T))) and a one-segment frusta cylinder (radius 0.6, flat caps) give the
     memberships of their closed forms except next to the surface (where the polygon or the
-    float32 inside test decides a boundary voxel), never inside for outside."""
+    float32 inside test decides a boundary voxel), never inside for outside. The mesh is
+    voxelized at 256 a side (``base.voxels``; 99.2 % agree, against 98.4 % at 128): the default
+    512 took most of this test's 48 s."""
     import trimesh
 
     if kind == "mesh":
         path = tmp_path / "sphere.stl"
         trimesh.creation.icosphere(subdivisions=5, radius=1.0).export(path)
-        base = {"type": "mesh", "path": str(path)}
+        base = {"type": "mesh", "path": str(path), "voxels": 256}
 
         def truth(p):
             return np.sum(p * p, 1) < 1.0

@@ -40,6 +40,9 @@ class BaseShapeConfig(StrictModel):
     minor: Pos = 0.4
     radius: Pos = 1.0
     path: str | None = None
+    # mesh: voxels along the mesh's longest side in its inside test (trimesh's voxelization,
+    # then filled); 512 took 30 s for a 20,480-face icosphere on the 2-core CPU, 256 about 4x less
+    voxels: Annotated[int, Field(ge=16, le=2048)] = 512
     object: dict[str, Any] | None = None
 
     @model_validator(mode="after")

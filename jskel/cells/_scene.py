@@ -102,9 +102,9 @@ def base_inside(cfg: CellsConfig) -> tuple[Callable, np.ndarray, np.ndarray, str
             raise ValueError(f"object.base.path: mesh {b.path!r} is not watertight (the inside/outside voxelization of Sec. 3.1.4 needs a closed mesh)")
         digest = hashlib.sha256(Path(b.path).read_bytes()).hexdigest()
         # voxelize once and fill the inside (trimesh's subdivision voxelizer + scipy fill): no ray
-        # tests, so no rtree or Embree; 512 voxels along the longest side
+        # tests, so no rtree or Embree; ``base.voxels`` voxels along the longest side
         ext = float(np.max(mesh.extents))
-        vox = mesh.voxelized(ext / 512.0).fill()
+        vox = mesh.voxelized(ext / float(b.voxels)).fill()
         grid = np.asarray(vox.matrix, bool)
 
         def inside(p):
