@@ -37,4 +37,25 @@ for name, (path, extra) in cases.items():
     same = all(np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True) for x, y in zip(jax.tree_util.tree_leaves(a[0]), jax.tree_util.tree_leaves(b[0])))
     same = same and np.array_equal(a[1], b[1])
     out[name] = {"equal": bool(same), "devices_used": [a[2], b[2]], "hit_fraction": float(np.isfinite(a[0].t).mean())}
+
+# the bench's resident cast (rays placed on the devices before the clock, results left there) on
+# four devices: each call takes a chunk per device, and the hits are the one-device render's
+from jskel import registry  # noqa: E402
+from jskel.bench import cast_resident, resident_rays  # noqa: E402
+from jskel.rays import tile_inverse  # noqa: E402
+
+exp, obj = config.load("experiments/aloe.yaml", ["camera.width=40", "camera.height=30", "render.chunk=150", "render.devices=all"])
+want = render(*config.load("experiments/aloe.yaml", ["camera.width=40", "camera.height=30", "render.chunk=150", "render.devices=one"]),
+              progress=False).hits
+built = registry.get(obj.type).build(obj, np.float32)
+chunks = resident_rays(exp, built)
+_, outs = cast_resident(exp, obj, built, chunks)
+inv = tile_inverse(40, 30, exp.render.tile)
+t = np.concatenate([np.asarray(o[0]) for o in outs])[:1200][inv]
+prim = np.concatenate([np.asarray(o[1]) for o in outs])[:1200][inv]
+hit = np.isfinite(np.asarray(want.t))
+same = (np.array_equal(np.isfinite(t), hit) and np.array_equal(prim[hit], np.asarray(want.prim)[hit])
+        and bool(np.allclose(t[hit], np.asarray(want.t)[hit], rtol=2e-6, atol=0)))
+out["frusta_resident_cast"] = {"equal": bool(same), "devices_used": [1, len(chunks[0].origins.sharding.device_set)],
+                               "hit_fraction": float(hit.mean()), "calls": len(chunks)}
 print(json.dumps(out))
