@@ -135,18 +135,19 @@ def test_recovers_a_known_chain_from_noisy_points_with_outliers(noisy_branch, so
     10 % (joints by 10 % of a segment, radii by 10 %): joints within 2 % of the length, radii
     within 5 %. LM with jaxopt's dense Jacobian, and the same algorithm on the sparse normal
     equations (``solver.jacobian: sparse``) takes the same steps to the same skeleton. L-BFGS
-    runs 4 starts in one call (the given one and 3 perturbed copies, in turn under lax.map) and keeps the best:
-    from single starts it stopped in a local minimum once in two tries."""
+    runs 2 starts in one call (the given one and a perturbed copy, in turn under lax.map) and
+    keeps the best: from single starts it once stopped in a local minimum (an earlier loss); with
+    4 starts all four reached the same loss to 1e-4, at twice the test's run time."""
     pts, length = noisy_branch
     j0, r0 = perturbed(BENT, BENT_R, CHAIN, 0.1, np.random.default_rng(3))
-    s = SolverConfig(name=solver, loss="cauchy", scale=0.01, maxiter=300, restarts=1 if solver == "lm" else 4, jacobian="dense")
+    s = SolverConfig(name=solver, loss="cauchy", scale=0.01, maxiter=300, restarts=1 if solver == "lm" else 2, jacobian="dense")
     res = fit_points(pts, j0, r0, CHAIN, s)
     assert np.max(np.linalg.norm(j0 - BENT, axis=1)) > 0.05 * length / 5  # the start is really off
     assert np.max(np.linalg.norm(res.joints - BENT, axis=1)) < 0.02 * length
     assert np.max(np.abs(res.radii / BENT_R - 1)) < 0.05
     assert res.history[-1] < res.history[0] and res.converged
     if solver == "lbfgs":
-        assert len(res.restart_losses) == 4
+        assert len(res.restart_losses) == 2 and min(res.restart_losses) == pytest.approx(res.history[-1], rel=1e-5)
     else:
         sp = fit_points(pts, j0, r0, CHAIN, s.model_copy(update={"jacobian": "sparse"}))
         np.testing.assert_allclose(sp.history[:6], res.history[:6], rtol=1e-4)  # the same first steps
