@@ -22,26 +22,6 @@ from jskel.rays import make_rays, map_chunks  # noqa: E402
 
 CHUNK = 8192
 
-# The longest tests (20-76 s each with a cold compile cache on 2 cores, most of them
-# subprocesses), scheduled first: pytest-xdist hands out tests in collection order, and one of
-# these collected last kept a worker busy after the other had run out of work.
-HEAVY_FIRST = (
-    "test_gradients.py::test_hit_distances_have_the_derivatives_finite_differences_give",
-    "test_sharding.py::", "test_multihost.py::", "test_fit.py::test_recovers_a_known_chain",
-    "test_fit_normal.py::test_sparse_normal_equations", "test_notebooks.py::", "test_sweep.py::",
-    "test_fit.py::test_batched_fits",
-)
-
-
-def pytest_collection_modifyitems(config, items):
-    """Heavy tests first (:data:`HEAVY_FIRST`), the rest in collection order (a stable sort, the
-    same on every xdist worker)."""
-    def rank(item):
-        nid = item.nodeid.split("/")[-1]
-        return next((i for i, h in enumerate(HEAVY_FIRST) if nid.startswith(h)), len(HEAVY_FIRST))
-
-    items.sort(key=rank)
-
 
 def _one(scene, static, rays):
     return frusta.intersect(scene, static, rays)
