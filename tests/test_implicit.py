@@ -51,7 +51,7 @@ def random_case():
     a, b, ra, rb = arrays()
     lo = np.minimum(a, b).min(0) - 1.0
     hi = np.maximum(a, b).max(0) + 1.0
-    O, D = ref.random_rays(rng, lo, hi, 100_000, spread=1.2)
+    O, D = ref.random_rays(rng, lo, hi, 50_000, spread=1.2)
     t_ref, margin, slope = iref.first_root(O, D, a, b, ra, rb, T, n=256, batch=2000)
     scale = float(np.linalg.norm(hi - lo))
     # well-posed rays: not grazing the level set (margin) and crossing it at a real angle (slope)
