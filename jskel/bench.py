@@ -394,6 +394,15 @@ def _on_accelerator() -> bool:
     return jax.default_backend() != "cpu"
 
 
+def _ray_mesh_of(exp):
+    """The ray mesh ``rays.map_chunks`` uses for ``render.devices`` (None: one device)."""
+    from .rays import ray_mesh
+    from .render import devices_of
+
+    devices = devices_of(exp)
+    return ray_mesh(devices) if devices is not None else None
+
+
 def resident_rays(exp, built) -> list:
     """The camera's rays for ``built`` in screen-tile order, cut into the chunks a render uses
     (``render.chunk``, times the devices of ``render.devices``; the last padded by repeating its
@@ -402,12 +411,11 @@ def resident_rays(exp, built) -> list:
     import jax
     import numpy as np
 
-    from .rays import Rays, _pad_to, ray_mesh
-    from .render import camera_of, devices_of, dtype_of
+    from .rays import Rays, _pad_to
+    from .render import camera_of, dtype_of
 
     rays = camera_of(exp).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
-    devices = devices_of(exp)
-    mesh = ray_mesh(devices) if devices is not None else None
+    mesh = _ray_mesh_of(exp)
     n = rays.size
     per = min(chunk_of(exp.render), n) * (1 if mesh is None else mesh.size)
     put = jax.devices()[0] if mesh is None else jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("rays"))
@@ -426,11 +434,9 @@ def cast_resident(exp, obj, built, chunks) -> tuple[float, list]:
     a 1024x768 cast (README, performance)."""
     import jax
 
-    from .rays import compile_batch_fn, ray_mesh
-    from .render import devices_of
+    from .rays import compile_batch_fn
 
-    devices = devices_of(exp)
-    mesh = ray_mesh(devices) if devices is not None else None
+    mesh = _ray_mesh_of(exp)
     params = built.params
     if mesh is not None:
         params = jax.device_put(params, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
@@ -446,8 +452,6 @@ def timed_cast(exp, obj, runs: int, warmup: int) -> dict:
     """``cast_s_median`` (and min, max) over ``runs`` warm casts of one build (``cast_once``).
     On an accelerator also ``cast_resident_s_median``: the same casts with the rays already on
     the device and the results left there (:func:`cast_resident`, as the Mitsuba peer is timed)."""
-    import jax
-
     from . import registry
     from .render import dtype_of
 
