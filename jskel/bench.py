@@ -144,7 +144,7 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
     import numpy as np
 
     from .frusta import host_frusta
-    from .frusta._scene import _skeleton_arrays
+    from .frusta import skeleton_arrays
     from .peers.skeleton import TABLE1_GS_LEVEL, EmbreeMesh, MitsubaCurves, frusta_mesh
     from .render import camera_of
 
@@ -167,7 +167,7 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
         return out
 
     arrays, _, _, joints, radii, _ = host_frusta(obj)
-    parents = _skeleton_arrays(obj.skeleton, obj.frame)[2]
+    parents = skeleton_arrays(obj.skeleton, obj.frame)[2]
     out = []
     level = TABLE1_GS_LEVEL.get(obj.skeleton.procedural, 1)
     for m in (level, level + 1):
@@ -206,7 +206,7 @@ def peer_skeleton(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[
             row["jskel_resident_cast_over_peer"] = round(jskel_res_s / med, 2)
         out.append(row)
         break
-    from .frusta._scene import ANIMATED
+    from .frusta import ANIMATED
 
     if bench.frames and obj.skeleton.procedural in ANIMATED:
         out += _frames_rows(bench, exp, obj, O, D, level, mc, base, runs)
@@ -231,7 +231,7 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base, runs: int = 1):
     import jax
 
     from .frusta import host_frusta, rebuilder
-    from .frusta._scene import _skeleton_arrays
+    from .frusta import skeleton_arrays
     from .peers.skeleton import EmbreeMesh, frusta_mesh
     from .render import dtype_of, render
 
@@ -243,7 +243,7 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base, runs: int = 1):
     compile_s = None
     try:  # the frusta rebuilt on the device from each frame's joints (frusta._device)
         rb = rebuilder(obj, dtype_of(exp))
-        j0, r0, _, _ = _skeleton_arrays(obj.skeleton, obj.frame)
+        j0, r0, _, _ = skeleton_arrays(obj.skeleton, obj.frame)
         b0 = rb(j0, r0)
         cast_once(exp, obj, b0)  # compiles the rebuild and its cast
         # on an accelerator, the fixed camera's rays placed on the device once for every frame
@@ -269,7 +269,7 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base, runs: int = 1):
             tot["jskel_cast"].append(b_s + c_s)
             if rb is not None:  # skeleton on the host, frusta and BVH on the device, cast alone
                 t0 = time.perf_counter()
-                j, r, _, _ = _skeleton_arrays(o.skeleton, o.frame)
+                j, r, _, _ = skeleton_arrays(o.skeleton, o.frame)
                 built = rb(j, r)
                 jax.block_until_ready(built.params)
                 d_build = time.perf_counter() - t0
@@ -295,7 +295,7 @@ def _frames_rows(bench, exp, obj, O, D, level, mc, base, runs: int = 1):
             tot["embree"].append(t2 - t0 + em.build_s + cast_s)
             if mc is not None:
                 t0 = time.perf_counter()
-                j, r, p, _ = _skeleton_arrays(o.skeleton, o.frame)
+                j, r, p, _ = skeleton_arrays(o.skeleton, o.frame)
                 sk = time.perf_counter() - t0
                 up = mc.update(j, r, p)
                 _, cast_s = mc.cast(O, D)
@@ -339,24 +339,17 @@ _CAST_FNS: dict = {}
 
 
 def _cast_fn(rep_name: str, static):
-    """``(params, rays) -> (t, prim)``: the representation's batch intersection with nothing
-    else kept (XLA drops the hit's position, normal and uv, which no output needs)."""
+    """``(params, rays) -> (t, prim)``: the representation's first stage (``cast``) with nothing
+    else kept (XLA drops whatever payload no output needs)."""
     key = (rep_name, static)
     if key not in _CAST_FNS:
-        import jax
-
         from . import registry
 
         rep = registry.get(rep_name)
 
         def fn(params, rays):
-            if hasattr(rep, "cast_batch"):  # t and primitive alone, without the hit's attributes
-                return rep.cast_batch(params, static, rays)
-            if hasattr(rep, "intersect_batch"):
-                h = rep.intersect_batch(params, static, rays)
-            else:
-                h = jax.vmap(lambda o, d, a, b: rep.intersect_one(params, static, o, d, a, b))(*rays)
-            return h.t, h.prim
+            pre = rep.cast(params, static, rays)
+            return pre.t, pre.prim
 
         _CAST_FNS[key] = fn
     return _CAST_FNS[key]
@@ -486,7 +479,7 @@ def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
     r = first.run
     row = {
         "scene": exp.name,
-        "primitives": r["info"].get("segments", r["info"].get("primitives")),
+        "primitives": r["primitives"],
         "width": exp.camera.width,
         "height": exp.camera.height,
         "rays": r["rays"],

@@ -110,20 +110,22 @@ def _read_model(model, path, overrides):
         raise ConfigError(_format(e)) from None
 
 
-def _bvh_stats(exp, obj) -> dict:
-    from . import frusta
+def _traversal_stats(exp, obj) -> dict:
+    """The representation's deterministic work counts per ray (empty where it declares none)."""
+    from . import registry
     from .render import camera_of, dtype_of
 
-    built = frusta.build(obj, dtype_of(exp))
+    rep = registry.get(obj.type)
+    built = rep.build(obj, dtype_of(exp))
     cam = camera_of(exp)
     # in the render's order (screen tiles): packets and bins depend on it
     rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
-    return {k: round(v, 3) if isinstance(v, float) else v for k, v in frusta.traversal_stats(built, rays, chunk_of(exp.render)).items()}
+    return {k: round(v, 3) if isinstance(v, float) else v for k, v in rep.traversal_stats(built, rays, chunk_of(exp.render)).items()}
 
 
 def cmd_fit_bench(args) -> int:
     """A bench file with a ``fit:`` section: the fitting benchmark (``jskel.fit._bench``)."""
-    from .fit._bench import FitBenchFile, run_fit_bench
+    from .fit import FitBenchFile, run_fit_bench
 
     b = _read_model(FitBenchFile, args.file, args.set).fit
     out = Path(args.out) if args.out else None
@@ -190,8 +192,8 @@ def cmd_bench(args) -> int:
             if bench.cast:
                 row.update(timed_cast(exp, obj, runs, bench.warmup))
             row["file"] = file
-            if bench.stats and obj.type == "frusta":
-                row.update(_bvh_stats(exp, obj))
+            if bench.stats:
+                row.update(_traversal_stats(exp, obj))
             if setting is not None:
                 row["setting"] = setting
                 if bench.labels is not None:
@@ -311,8 +313,10 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
+        from .devices import use_host_devices
         from .distributed import init_from_env
 
+        use_host_devices()  # before JAX starts: one XLA host device per core (JSKEL_HOST_DEVICES sets the count)
         init_from_env()
         return args.func(args)
     except ConfigError as e:

@@ -1,28 +1,56 @@
-"""The interface every representation offers (see ``shared/DESIGN.md``).
+"""The interface every representation offers, declared whole, with its defaults in one base.
 
-The renderer, the benchmarks and the sweeps talk only to this interface, so they never branch
-on a representation's type inside a kernel.
+The renderer, the scene integrator, the benchmarks and the sweeps talk only to this interface:
+they never ask a representation what it has (no ``hasattr``), never read facts out of strings
+(``Built.info`` is for ``run.json`` only) and never name a representation's type.
+
+Two stages, as Mitsuba 3 splits ``ray_intersect_preliminary`` from
+``compute_surface_interaction``:
+
+* :meth:`Representation.cast` ``(params, static, rays) -> Preliminary(t, prim, payload)``: the
+  nearest hit's distance and primitive for every ray, plus whatever the representation needs to
+  finish the hit later (``payload``, a pytree with a leading ray axis). This is all a benchmark's
+  cast, a depth pass or a shadow ray needs;
+* :meth:`Representation.surface` ``(params, static, rays, pre) -> Hit``: position, normal and
+  uv from the preliminary hit, computed only where a ray hit.
+
+:meth:`Representation.intersect_batch` is the two in one program (what the first-hit render
+uses), and :meth:`Representation.occluded` the any-hit query of shadow rays.
+
+A representation is one ``final`` subclass of :class:`Representation` in its folder and one line
+in ``jskel.registry``; it overrides what it has (an analytic tracer its exit from inside, a
+marching one its surface tolerance) and inherits the rest. The conformance suite
+(``tests/test_conformance.py``) runs the same checks over every registered representation.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable, Hashable, Protocol
+from typing import Any, ClassVar, Hashable, NamedTuple
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 from pydantic import BaseModel
+
+from .rays import Hit, Rays
 
 
 @dataclass(frozen=True)
 class Built:
-    """What ``build`` returns: device arrays plus host-side static data.
+    """What ``build`` returns: device arrays, host-side static data and declared facts.
 
     params: pytree of arrays (traced: changing values never recompiles).
     static: hashable options that change shapes or control flow (recompile when changed).
     anchor: (3,) float64 world point that positions in ``params`` are relative to; rays must be
       expressed relative to it (``Camera.rays(anchor=...)``).
-    bounds: ((3,), (3,)) float64 world-space axis-aligned bounds.
-    info: JSON-able facts for ``run.json`` (counts, build diagnostics).
+    bounds: ((3,), (3,)) float64 world-space axis-aligned bounds; every hit lies inside.
+    info: JSON-able diagnostics for ``run.json`` (counts, build timings); nothing reads facts
+      from it.
+    primitives: how many primitives (segments, blobs, cells) the object holds.
+    surface_tolerance: how far (object units) a returned hit may lie from the true surface
+      (0 for analytic intersections; a marching tracer's last bisection bracket). A secondary
+      ray starts beyond it.
     """
 
     params: Any
@@ -30,33 +58,102 @@ class Built:
     anchor: np.ndarray
     bounds: tuple[np.ndarray, np.ndarray]
     info: dict = field(default_factory=dict)
+    primitives: int = 0
+    surface_tolerance: float = 0.0
 
 
-class Representation(Protocol):
-    """name, Config (pydantic model of the ``object`` section) and four pure functions."""
+class Preliminary(NamedTuple):
+    """The first stage of an intersection, for a batch of N rays.
 
-    name: str
-    Config: type[BaseModel]
+    t: (N,) ray parameter of the nearest hit, ``+inf`` on a miss.
+    prim: (N,) int32 primitive id, -1 on a miss.
+    payload: what :meth:`Representation.surface` needs to finish the hit (a pytree with leading
+      axis N, representation-defined; the base keeps the whole ``Hit`` there)."""
 
-    def build(self, cfg: BaseModel, dtype) -> Built: ...
+    t: jnp.ndarray
+    prim: jnp.ndarray
+    payload: Any = None
 
-    #: intersect_one(params, static, origin (3,), direction (3,), t_min (), t_max ()) -> Hit
-    intersect_one: Callable
 
-    #: albedo(params, static, hit) -> (3,) linear RGB base colour at one hit
-    albedo: Callable
+class Representation:
+    """Base of every representation: the whole interface, with defaults for what is optional.
 
-    #: inside(params, static, point (3,)) -> bool
-    inside: Callable
+    Must be given by a subclass: ``name``, ``Config`` (the pydantic model of an ``object``
+    section, with a ``type`` literal equal to ``name``), :meth:`build`, :meth:`intersect_one`,
+    :meth:`albedo`, :meth:`inside`. Everything else has a default here that is correct for any
+    representation, and is overridden where a representation can do better.
+    """
 
-    # Optional: intersect_batch(params, static, rays) -> Hit (leading ray axis), equal to
-    # vmap(intersect_one) but free to skip work at the batch level (block culling, compaction
-    # of (ray, primitive) pairs). The renderer uses it when present.
-    #
-    # Optional, for scenes (jskel.render._scene):
-    # * exits_from_inside(cfg) -> bool: a ray starting inside the surface gets its exit as the
-    #   hit (analytic surfaces); only such objects may be transparent in a scene;
-    # * own_effects(cfg) -> bool: the object section asks for secondary rays the
-    #   representation traces itself (``shade_batch``), which a scene does not use;
-    # * Built.info["surface_tolerance"]: how far (object units) a returned hit may lie from the
-    #   true surface (a marching tracer's last bracket); secondary rays start beyond it.
+    name: ClassVar[str]
+    Config: ClassVar[type[BaseModel]]
+
+    #: the representation shades its own secondary rays (:meth:`shade_batch`) when
+    #: :meth:`own_effects` says the object section asks for them
+    own_shading: ClassVar[bool] = False
+
+    # ------------------------------------------------------------------ must be given
+
+    def build(self, cfg: BaseModel, dtype=np.float32) -> Built:
+        """Host: validate ``cfg`` and precompute; a :class:`Built`."""
+        raise NotImplementedError(f"{type(self).__name__}.build")
+
+    def intersect_one(self, params, static, origin, direction, t_min, t_max) -> Hit:
+        """Nearest hit of one ray ``origin + t direction`` with t in ``(t_min, t_max]``."""
+        raise NotImplementedError(f"{type(self).__name__}.intersect_one")
+
+    def albedo(self, params, static, hit: Hit):
+        """(3,) linear RGB base colour at one hit."""
+        raise NotImplementedError(f"{type(self).__name__}.albedo")
+
+    def inside(self, params, static, point):
+        """() bool: is ``point`` (3,), relative to the anchor, inside the surface?"""
+        raise NotImplementedError(f"{type(self).__name__}.inside")
+
+    # ------------------------------------------------------------------ batch queries
+
+    def intersect_batch(self, params, static, rays: Rays) -> Hit:
+        """Nearest hits of a batch (leading ray axis): ``vmap`` of :meth:`intersect_one` unless
+        the representation skips work at the batch level (culling, compaction)."""
+        one = lambda o, d, a, b: self.intersect_one(params, static, o, d, a, b)  # noqa: E731
+        return jax.vmap(one)(*rays)
+
+    def cast(self, params, static, rays: Rays) -> Preliminary:
+        """First stage: t and primitive of every ray; by default the whole hit rides along."""
+        h = self.intersect_batch(params, static, rays)
+        return Preliminary(h.t, h.prim, h)
+
+    def surface(self, params, static, rays: Rays, pre: Preliminary) -> Hit:
+        """Second stage: the hit's attributes from :meth:`cast`'s preliminary hit."""
+        return pre.payload
+
+    def occluded(self, params, static, rays: Rays):
+        """(N,) bool: does each ray meet the surface in ``(t_min, t_max]`` (shadow rays)?"""
+        return jnp.isfinite(self.cast(params, static, rays).t)
+
+    # ------------------------------------------------------------------ declared facts
+
+    def exits_from_inside(self, cfg: BaseModel) -> bool:
+        """Does a ray starting inside the surface get its exit as the hit? Only such objects
+        may be transparent in a scene (analytic tracers; marching ones search entries only)."""
+        return False
+
+    def own_effects(self, cfg: BaseModel) -> bool:
+        """Does the object section ask for secondary rays the representation traces itself
+        (:meth:`shade_batch`)? A scene shades objects by their material instead."""
+        return False
+
+    def shade_batch(self, params, static, rays: Rays, hits: Hit, lights, shading):
+        """(N, 3) linear RGB of a batch with the representation's own effects (only called
+        where :attr:`own_shading` is set)."""
+        raise NotImplementedError(f"{type(self).__name__} shades through the shared renderer")
+
+    def extra_aovs(self, built: Built, hits) -> dict:
+        """More per-pixel outputs of a render, by name (NumPy, leading axis H*W)."""
+        return {}
+
+    def traversal_stats(self, built: Built, rays: Rays, chunk: int = 4096) -> dict:
+        """Deterministic work counts per ray (nodes, leaves) for the benchmarks; {} if none."""
+        return {}
+
+    def __repr__(self) -> str:
+        return f"<representation {self.name!r}>"

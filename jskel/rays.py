@@ -282,7 +282,7 @@ def compact_map(fn: Callable, need: jnp.ndarray, rays: Rays, base, lanes: int):
     needed rays (none when none is needed), then the results are scattered back. Under vmap a
     per-ray ``cond`` would run ``fn`` on every ray. The needed rows are found with popcounts
     (``accel._bins.first_set``), not ``jnp.nonzero``'s prefix sum over N."""
-    from .accel._bins import first_set, pack_bits
+    from .accel import first_set, pack_bits
 
     n = need.shape[0]
     lanes = min(lanes, n)

@@ -18,13 +18,11 @@ Nothing is reported that was not measured in this run or read back from ``result
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import itertools
 import json
 import math
 import os
-import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -304,31 +302,13 @@ def _worker_row(spec, index: int) -> dict:
     return measure_setting(sweep, *jobs[index], ref_jobs[index], refs)
 
 
-@contextlib.contextmanager
-def one_host_device_each():
-    """The environment that parallel sweep workers are spawned in: one XLA host device each.
-    The workers share the cores; ``import jskel`` would otherwise give every worker one device
-    per core, and the parent's own count sits in the ``XLA_FLAGS`` they inherit (spawned
-    processes copy the environment when they start). Restored on exit."""
-    prev = {k: os.environ.get(k) for k in ("JSKEL_HOST_DEVICES", "XLA_FLAGS")}
-    os.environ["JSKEL_HOST_DEVICES"] = "1"
-    os.environ["XLA_FLAGS"] = re.sub(r"\s*--xla_force_host_platform_device_count=\d+", "", prev["XLA_FLAGS"] or "").strip()
-    try:
-        yield
-    finally:
-        for k, v in prev.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
 def _rows_parallel(spec, indices: list[int], workers: int):
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     spec = (spec[0], tuple(spec[1]), tuple(spec[2]))
-    with one_host_device_each(), ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_worker_init) as pool:
+    # spawned workers start with JAX's one host device: only the CLI asks for one per core
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"), initializer=_worker_init) as pool:
         futures = [pool.submit(_worker_row, spec, i) for i in indices]
         for fut in as_completed(futures):
             yield fut.result()

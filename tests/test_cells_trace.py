@@ -172,7 +172,7 @@ def test_reflection_and_snell_laws_hold_with_no_nan():
 def test_modes_render_finite_colours_and_escaping_rays_see_the_environment(obj, mode):
     from jskel.cells._scene import environment
     from jskel.render import pixel_fn
-    from jskel.render._shade import Lights, Shading
+    from jskel.shading import Lights, Shading
 
     tmp, built, O, D = obj
     b = cells.build(cell_cfg(tmp, mode=mode, bounces=2))

@@ -131,17 +131,22 @@ def test_cli_process_exit_code(tmp_path):
     assert r.stderr.strip().count("\n") == 0 and "camera.width" in r.stderr
 
 
-def test_a_bad_host_device_count_is_an_error_naming_the_variable():
-    """``JSKEL_HOST_DEVICES`` (XLA host devices ``import jskel`` makes on a CPU) must be a
-    positive integer: anything else stops the import with one line naming it and the value."""
+def test_host_devices_are_an_explicit_call_and_a_bad_count_names_the_variable(tmp_path):
+    """``import jskel`` leaves JAX's devices and ``XLA_FLAGS`` alone; ``use_host_devices`` asks
+    for the count explicitly (``JSKEL_HOST_DEVICES`` or one per core), as the CLI does first
+    thing; a count that is not a positive integer stops the CLI with one line naming the
+    variable and the value, exit code 2."""
     import os
 
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JSKEL_HOST_DEVICES")}
+    code = "import os, jskel, jax; print(repr(os.environ.get('XLA_FLAGS'))); print(len(jax.devices('cpu')))"
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and p.stdout.split() == ["None", "1"], p.stderr[-500:]
+    code = "import jskel, jax; n = jskel.use_host_devices(); print(n, len(jax.devices('cpu')))"
+    p = subprocess.run([sys.executable, "-c", code], env=dict(env, JSKEL_HOST_DEVICES="3"), capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and p.stdout.split() == ["3", "3"], p.stderr[-500:]
     for bad in ("abc", "0", "-2"):
-        env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-        env["JSKEL_HOST_DEVICES"] = bad
-        p = subprocess.run([sys.executable, "-c", "import jskel"], env=env, capture_output=True, text=True, timeout=120)
-        assert p.returncode != 0
-        assert f"ValueError: JSKEL_HOST_DEVICES: {bad!r} is not a positive integer" in p.stderr
-    env["JSKEL_HOST_DEVICES"] = "3"
-    p = subprocess.run([sys.executable, "-c", "import jskel, jax; print(len(jax.devices('cpu')))"], env=env, capture_output=True, text=True, timeout=120)
-    assert p.returncode == 0 and p.stdout.split()[-1] == "3", p.stderr[-500:]
+        p = subprocess.run([sys.executable, "-m", "jskel", "render", "--out", str(tmp_path / "o")], env=dict(env, JSKEL_HOST_DEVICES=bad),
+                           capture_output=True, text=True, timeout=120)
+        assert p.returncode == 2
+        assert p.stderr.strip() == f"jskel: error: JSKEL_HOST_DEVICES: {bad!r} is not a positive integer (XLA host devices to make)"

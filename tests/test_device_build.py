@@ -20,13 +20,13 @@ def test_a_device_rebuild_of_a_later_frame_casts_like_the_host_build_of_it():
     against the host's build of frame 7 at 64 x 48, the same hits, segments and t within
     float32 rounding; the frames (u, w) within 1e-3 and the world bases within 1e-5."""
     from jskel.config import load
-    from jskel.frusta._scene import _skeleton_arrays
+    from jskel.frusta import skeleton_arrays
     from jskel.render import camera_of
 
     exp, obj = load("experiments/dancing_cacti.yaml", ["camera.width=64", "camera.height=48"])
     rb = frusta.rebuilder(obj)
     later = obj.model_copy(update={"frame": 7.0})
-    j, r, _, _ = _skeleton_arrays(later.skeleton, 7.0)
+    j, r, _, _ = skeleton_arrays(later.skeleton, 7.0)
     dev, host = rb(j, r), frusta.build(later)
     fd, fh = dev.params.plain.frusta, host.params.plain.frusta
     v = np.asarray(fh.valid)

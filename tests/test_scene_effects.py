@@ -16,7 +16,7 @@ import pytest
 from jskel.config import ConfigError, validate
 from jskel.render import render
 from jskel.render._scene import build_scene, scene_fn
-from jskel.render._shade import encode_png, srgb_encode
+from jskel.shading import encode_png, srgb_encode
 from jskel.rays import make_rays
 
 T = 0.5  # implicit threshold
@@ -253,7 +253,7 @@ def test_glass_rod_shows_what_snell_predicts(mirror_glass):
 
 def _program(raw, n=256):
     exp, shapes = validate(copy.deepcopy(raw))
-    params, static, _, _ = build_scene(exp, shapes, np.float32)
+    params, static, _, _, _ = build_scene(exp, shapes, np.float32)
     rays = make_rays(np.zeros((n, 3)), np.tile([0.0, 0.0, -1.0], (n, 1)))
     fn = scene_fn(static)
     jaxpr = jax.make_jaxpr(fn)(params, rays)

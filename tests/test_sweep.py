@@ -246,17 +246,3 @@ def test_a_peer_needs_a_reference(tmp_path, capsys):
     assert "peer: relief_mesh is scored against the reference" in capsys.readouterr().err
 
 
-def test_parallel_workers_are_spawned_with_one_host_device_each(monkeypatch):
-    """``import jskel`` gives a process one XLA host device per core and writes the count into
-    XLA_FLAGS, which spawned workers inherit; a parallel sweep's workers share the cores, so they
-    are spawned with the count removed and JSKEL_HOST_DEVICES=1, and the parent's environment
-    comes back afterwards."""
-    from jskel.sweep import one_host_device_each
-
-    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=false --xla_force_host_platform_device_count=8")
-    monkeypatch.delenv("JSKEL_HOST_DEVICES", raising=False)
-    with one_host_device_each():
-        assert os.environ["XLA_FLAGS"] == "--xla_cpu_enable_fast_math=false"
-        assert os.environ["JSKEL_HOST_DEVICES"] == "1"
-    assert os.environ["XLA_FLAGS"] == "--xla_cpu_enable_fast_math=false --xla_force_host_platform_device_count=8"
-    assert "JSKEL_HOST_DEVICES" not in os.environ

@@ -5,12 +5,15 @@ lists for packets of coherent rays (``_bins``)."""
 
 from ._bins import always as always
 from ._bins import fenced as fenced
+from ._bins import first_set as first_set
 from ._bins import nearest_binned as nearest_binned
+from ._bins import pack_bits as pack_bits
 from ._bins import packet_meets as packet_meets
 from ._lbvh import BVH as BVH
 from ._lbvh import Best as Best
 from ._lbvh import build as build
 from ._lbvh import collect as collect
+from ._lbvh import descend as descend
 from ._lbvh import escape as escape
 from ._lbvh import leaves_for as leaves_for
 from ._lbvh import morton_codes as morton_codes
@@ -18,4 +21,4 @@ from ._lbvh import nearest as nearest
 from ._lbvh import nearest_packet as nearest_packet
 from ._lbvh import ray_box as ray_box
 
-__all__ = ["BVH", "Best", "always", "build", "collect", "escape", "fenced", "leaves_for", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "packet_meets", "ray_box"]
+__all__ = ["BVH", "Best", "always", "build", "collect", "descend", "escape", "fenced", "first_set", "leaves_for", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "pack_bits", "packet_meets", "ray_box"]

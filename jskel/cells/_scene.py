@@ -7,13 +7,13 @@ import hashlib
 import json
 import time
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, final
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..interface import Built
+from ..interface import Built, Representation
 from ..numerics import differentiable_root, safe_normalize
 from ..rays import FLAG_STEP_CAP, Hit, masked_hit
 from ._config import CellsConfig as CellsConfig
@@ -118,8 +118,9 @@ def base_inside(cfg: CellsConfig) -> tuple[Callable, np.ndarray, np.ndarray, str
     from .. import registry
 
     kind = (b.object or {}).get("type")
-    if kind not in ("frusta", "implicit"):
-        raise ValueError(f"object.base.object.type: must be frusta or implicit (got {kind!r})")
+    known = [n for n in registry.names() if n != "cells"]  # any representation's inside test but a cell object's own
+    if kind not in known:
+        raise ValueError(f"object.base.object.type: must be one of {', '.join(known)} (got {kind!r})")
     rep = registry.get(kind)
     try:
         ocfg = rep.Config.model_validate(b.object)
@@ -262,9 +263,8 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
     static = Static(TraceOptions(cfg.max_steps, cfg.bisection, cfg.skip), cfg.mode, cfg.bounces)
     info = dict(obj.info)
     info["words_per_tile"] = words_for(slots)
-    info["primitives"] = info["inside_split_cells"]
-    info["surface_tolerance"] = float(obj.size / cfg.steps_per_tile * 0.5**cfg.bisection)  # last bracket's width
-    return Built(params, static, anchor, (lo, lo + extent), info)
+    tol = float(obj.size / cfg.steps_per_tile * 0.5**cfg.bisection)  # the last bisection bracket's width
+    return Built(params, static, anchor, (lo, lo + extent), info, primitives=int(info["inside_split_cells"]), surface_tolerance=tol)
 
 
 # ---------------------------------------------------------------- tracing
@@ -360,7 +360,7 @@ def shade_batch(p: CellParams, static: Static, rays, hits: Hit, lights, sh):
     the rays that need them, gathered into dense sub-batches (``rays.compact_map``): compaction,
     not masking, so the cost follows the number of live rays."""
     from ..rays import Rays, compact_map
-    from ..render._shade import shade_one
+    from ..shading import shade_one
 
     d0 = safe_normalize(rays.directions)
     env0 = jax.vmap(lambda d: environment(p.env, d))(d0)
@@ -432,11 +432,13 @@ def shade_batch(p: CellParams, static: Static, rays, hits: Hit, lights, sh):
     return jnp.where(hit[:, None], 0.15 * local + 0.85 * tint * final, env0)
 
 
-class _Cells:
-    """The cells representation as the registry hands it to the renderer (``jskel.interface.Representation``)."""
+@final
+class _Cells(Representation):
+    """The cells representation as the registry hands it to the renderer."""
 
     name = "cells"
     Config = CellsConfig
+    own_shading = True
     build = staticmethod(build)
     intersect_one = staticmethod(intersect_one)
     albedo = staticmethod(albedo)
@@ -447,6 +449,11 @@ class _Cells:
     def own_effects(cfg) -> bool:
         """Reflection and refraction modes trace the cells' own secondary rays (shade_batch)."""
         return cfg.mode != "first_hit"
+
+    @staticmethod
+    def extra_aovs(built, hits) -> dict:
+        """``cell``: the hit cell's global id (the hit's primitive), -1 on a miss."""
+        return {"cell": hits.prim}
 
 
 REPRESENTATION = _Cells()

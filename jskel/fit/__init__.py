@@ -12,6 +12,8 @@ Public API:
 * :func:`pca_chain`, :func:`mst_skeleton`: starting skeletons estimated from points;
 * :func:`run_fit` and :class:`FitFile`: what ``python -m jskel fit FILE --out DIR`` runs."""
 
+from ._bench import FitBenchFile as FitBenchFile
+from ._bench import run_fit_bench as run_fit_bench
 from ._config import FitFile as FitFile
 from ._distance import Segments as Segments
 from ._distance import checked_distances as checked_distances
@@ -35,6 +37,6 @@ from ._fit import read_points as read_points
 from ._fit import run_fit as run_fit
 from ._solvers import robust_residuals as robust_residuals
 
-__all__ = ["FitFile", "FitResult", "Segments", "checked_distances", "culling_exact", "cutting_planes", "plane_margins", "distances", "fit_many", "fit_points", "geometry", "load_points",
+__all__ = ["FitBenchFile", "FitFile", "FitResult", "Segments", "checked_distances", "culling_exact", "cutting_planes", "plane_margins", "distances", "fit_many", "fit_points", "geometry", "load_points", "run_fit_bench",
            "mst_skeleton", "pca_chain", "perturbed", "point_distances", "read_points", "robust_residuals", "run_fit",
            "sample_surface", "segments_of", "signed_distance"]

@@ -49,6 +49,8 @@ class FitBench(StrictModel):
 
 
 class FitBenchFile(StrictModel):
+    """A bench file whose ``fit:`` section is the fitting benchmark (``python -m jskel bench``)."""
+
     fit: FitBench
 
 

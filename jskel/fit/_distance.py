@@ -30,7 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..frusta import topology, validate_skeleton
-from ..frusta._device import _dot, _norm3, cutting_planes
+from ..frusta import device_cutting_planes as cutting_planes
+from ..numerics import dot3, norm3
 from ..numerics import safe_div, safe_norm, safe_sqrt
 
 
@@ -87,9 +88,9 @@ def geometry(joints, radii, seg: Segments) -> Geometry:
         a, b = seg.cont_a, seg.cont_b
         n, p = cutting_planes(c1[b], m[a], c1[a], r1[a], r2[a], h[a], m[b], r1[b], r2[b], h[b])
         nt = nt.at[a].set(n)
-        dt = dt.at[a].set(_dot(n, p - c1[a]))
+        dt = dt.at[a].set(dot3(n, p - c1[a]))
         nb = nb.at[b].set(n)
-        db = db.at[b].set(_dot(n, p - c1[b]))
+        db = db.at[b].set(dot3(n, p - c1[b]))
     return Geometry(c1, m, h, r1, r2, nb, db, nt, dt)
 
 
@@ -116,7 +117,7 @@ def margins_of(g: Geometry, seg: Segments):
 
     def margin(i):
         k = safe_div(g.r2[i] - g.r1[i], g.h[i], 0.0)
-        return _dot(n, g.m[i]) - jnp.abs(k) / jnp.sqrt(1.0 + k * k)
+        return dot3(n, g.m[i]) - jnp.abs(k) / jnp.sqrt(1.0 + k * k)
 
     return jnp.stack([margin(a), margin(b)], -1)
 
@@ -125,7 +126,7 @@ def _combine(v):
     """Signed distance of the intersection of solids from their signed distances (..., K):
     inside, the maximum; outside, the length of the positive parts (the distance to a rim when a
     point is beyond the side and a cap at once; exact for a cylinder's perpendicular cap)."""
-    return _norm3(jnp.maximum(v, 0.0)) + jnp.minimum(jnp.max(v, axis=-1), 0.0)
+    return norm3(jnp.maximum(v, 0.0)) + jnp.minimum(jnp.max(v, axis=-1), 0.0)
 
 
 def _seg2(py, pr, ay, ar, by, br):
@@ -154,7 +155,7 @@ def _section_distance(g: Geometry, q, y, rho):
     floor = jnp.asarray(1e-3, y.dtype)
 
     def ends(n, dist):
-        nm, ne = _dot(n, g.m), _dot(n, e)
+        nm, ne = dot3(n, g.m), dot3(n, e)
         y_axis = dist / jnp.maximum(nm, floor)
         y_gen = (dist - g.r1 * ne) / jnp.maximum(nm + k * ne, floor)
         return y_axis, y_gen
@@ -175,12 +176,12 @@ def segment_distances(g: Geometry, x, cap_b=None, cap_t=None):
     only select the segment and the distance combines the cone with the real caps; without
     them every plane bounds the solid."""
     q = x[None, :] - g.c1
-    y = _dot(q, g.m)
-    rho = _norm3(q - y[:, None] * g.m)
+    y = dot3(q, g.m)
+    rho = norm3(q - y[:, None] * g.m)
     k = safe_div(g.r2 - g.r1, g.h, 0.0)
     cone = (rho - (g.r1 + k * y)) / jnp.sqrt(1.0 + k * k)
-    below = g.db - _dot(g.nb, q)
-    above = _dot(g.nt, q) - g.dt
+    below = g.db - dot3(g.nb, q)
+    above = dot3(g.nt, q) - g.dt
     if cap_b is None:  # pieces bounded by all their planes: outside, the distance in the section
         d = _combine(jnp.stack([cone, below, above], -1))
         return jnp.where(d > 0, _section_distance(g, q, y, rho), d), jnp.ones_like(cone, bool)
@@ -236,7 +237,7 @@ def _reach(g: Geometry):
     floor = jnp.asarray(1e-3, k.dtype)
 
     def ends(n, dist):
-        nm = _dot(n, g.m)
+        nm = dot3(n, g.m)
         ns = safe_sqrt(jnp.maximum(1.0 - nm * nm, 0.0))
         return (dist - g.r1 * ns) / jnp.maximum(nm + k * ns, floor), (dist + g.r1 * ns) / jnp.maximum(nm - k * ns, floor)
 
@@ -250,8 +251,8 @@ def _lower_bounds(g: Geometry, reach, x):
     """(S,) a lower bound on the distance from ``x`` to each piece: its distance to the axis
     segment less the piece's reach."""
     q = x[None, :] - g.c1
-    t = jnp.clip(_dot(q, g.m), 0.0, g.h)
-    return _norm3(q - t[:, None] * g.m) - reach
+    t = jnp.clip(dot3(q, g.m), 0.0, g.h)
+    return norm3(q - t[:, None] * g.m) - reach
 
 
 def _candidates(g: Geometry, points, k: int):

@@ -21,7 +21,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..frusta._build import ELLIPSE_MARGIN
+from .. import frusta
+from ..frusta import ELLIPSE_MARGIN
 from . import _normal, _solvers
 from ._config import EstimateConfig, FitFile, PointsConfig, SolverConfig
 from ._distance import (Segments, checked_distances, culling_exact, distances_of, geometry, margins_of,
@@ -68,9 +69,7 @@ def read_points(path: str | Path) -> np.ndarray:
 
 def skeleton_arrays(sk) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(joints, radii, parents) of a ``SkeletonConfig`` (explicit or procedural), float64."""
-    from ..frusta._scene import _skeleton_arrays
-
-    j, r, p, _ = _skeleton_arrays(sk)
+    j, r, p, _ = frusta.skeleton_arrays(sk)
     return np.asarray(j, np.float64), np.asarray(r, np.float64), np.asarray(p, np.int64)
 
 
@@ -667,7 +666,7 @@ def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     exp = {
         "name": f"{cfg.name}-fitted",
-        "object": {"type": "frusta", "skeleton": {"joints": res.joints.tolist(), "radii": res.radii.tolist(),
+        "object": {"type": frusta.REPRESENTATION.name, "skeleton": {"joints": res.joints.tolist(), "radii": res.radii.tolist(),
                                                    "parents": [int(p) for p in res.parents]}},
         "camera": cfg.camera.model_dump(mode="json") if cfg.camera is not None else framing_camera(res.joints, res.radii),
     }

@@ -10,6 +10,7 @@ Public API:
 from ._scene import FrustaArrays as FrustaArrays
 from ._scene import FrustaConfig as FrustaConfig
 from ._scene import FrustaParams as FrustaParams
+from ._scene import FrustaPayload as FrustaPayload
 from ._scene import FrustaScene as FrustaScene
 from ._scene import Group as Group
 from ._scene import Quality as Quality
@@ -17,6 +18,9 @@ from ._scene import RELIEF_TEXTURES as RELIEF_TEXTURES
 from ._scene import REPRESENTATION as REPRESENTATION
 from ._scene import ReliefMaps as ReliefMaps
 from ._scene import ReliefQuality as ReliefQuality
+from ._build import ELLIPSE_MARGIN as ELLIPSE_MARGIN
+from ._scene import ANIMATED as ANIMATED
+from ._device import cutting_planes as device_cutting_planes
 from ._device import rebuilder as rebuilder
 from ._scene import SkeletonConfig as SkeletonConfig
 from ._scene import Static as Static
@@ -24,6 +28,7 @@ from ._scene import albedo as albedo
 from ._scene import block_spheres as block_spheres
 from ._scene import build as build
 from ._scene import build_frusta as build_frusta
+from ._scene import cast as cast
 from ._scene import cutting_planes as cutting_planes
 from ._scene import frusta_from_skeleton as frusta_from_skeleton
 from ._scene import host_frusta as host_frusta
@@ -36,9 +41,11 @@ from ._scene import make_group as make_group
 from ._scene import minor_semi_axis as minor_semi_axis
 from ._scene import relief_memory as relief_memory
 from ._scene import rim_points as rim_points
+from ._scene import skeleton_arrays as skeleton_arrays
+from ._scene import surface as surface
 from ._scene import to_params as to_params
 from ._scene import topology as topology
 from ._scene import traversal_stats as traversal_stats
 from ._scene import validate_skeleton as validate_skeleton
 
-__all__ = ["FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cutting_planes", "frusta_from_skeleton", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "load_height_map", "make_group", "minor_semi_axis", "rebuilder", "relief_memory", "rim_points", "to_params", "topology", "traversal_stats", "validate_skeleton"]
+__all__ = ["ANIMATED", "ELLIPSE_MARGIN", "FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaPayload", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cast", "cutting_planes", "device_cutting_planes", "frusta_from_skeleton", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "load_height_map", "make_group", "minor_semi_axis", "rebuilder", "relief_memory", "rim_points", "skeleton_arrays", "surface", "to_params", "topology", "traversal_stats", "validate_skeleton"]

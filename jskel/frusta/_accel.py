@@ -15,7 +15,8 @@ import jax
 import jax.numpy as jnp
 
 from ..accel import BVH, Best, build, nearest, nearest_binned, nearest_packet
-from ._intersect import SIDE, FrustaParams, _dot, _segment_t, recentre
+from ..numerics import dot3
+from ._intersect import SIDE, FrustaParams, _segment_t, recentre
 
 
 def segment_boxes(f: FrustaParams, n_ang: int = 32):
@@ -29,8 +30,8 @@ def segment_boxes(f: FrustaParams, n_ang: int = 32):
     # dot products written out (``_intersect._dot``): as jnp.sum over the last axis of 3, XLA on
     # the CPU ran them as library reductions, a quarter of the cacti's device rebuild
     for n, dist in ((f.nb, f.db), (f.nt, f.dt)):
-        den = _dot(n[:, None, :], dirn)
-        y = (dist[:, None] - _dot(n[:, None, :], base - f.c1[:, None, :])) / jnp.where(den == 0, 1.0, den)
+        den = dot3(n[:, None, :], dirn)
+        y = (dist[:, None] - dot3(n[:, None, :], base - f.c1[:, None, :])) / jnp.where(den == 0, 1.0, den)
         pts.append(base + y[..., None] * dirn)
     pts = jnp.concatenate(pts, axis=1)
     lo, hi = pts.min(1), pts.max(1)

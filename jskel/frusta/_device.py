@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..numerics import safe_div, safe_norm, safe_sqrt
+from ..numerics import dot3, norm3, safe_div, safe_norm, safe_sqrt
 from ._accel import build_bvh
 from ._build import _COLLINEAR_SIN, ELLIPSE_MARGIN
 from ._intersect import FrustaParams
@@ -43,25 +43,13 @@ class DeviceTopology(NamedTuple):
     valid: jnp.ndarray  # (N,) bool
 
 
-def _dot(a, b):
-    """Written out per component (as ``frusta._intersect`` does): with ``jnp.sum(a * b, -1)``
-    the jitted distance of a 50-segment chain came out wrong for points past the 655th of a
-    batch on XLA CPU (jax 0.10.2) while the same ops run one by one were right."""
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-
-
-def _norm3(v):
-    """|v| over a last axis of 3, per component (see :func:`_dot`), zero gradient at 0."""
-    return safe_sqrt(_dot(v, v))
-
-
 def _unit(v):
     return safe_div(v, safe_norm(v, keepdims=True), 0.0)
 
 
 def _any_perp(m):
     ax = jnp.eye(3, dtype=m.dtype)[jnp.argmin(jnp.abs(m), axis=-1)]
-    return _unit(ax - _dot(ax, m)[..., None] * m)
+    return _unit(ax - dot3(ax, m)[..., None] * m)
 
 
 def _cross2(a, b):
@@ -70,7 +58,7 @@ def _cross2(a, b):
 
 def _cuts_ellipse(n, m, r0, r1, h):
     k = safe_div(r1 - r0, h, 0.0)
-    return jnp.abs(_dot(n, m)) > jnp.abs(k) / jnp.sqrt(1.0 + k * k) + ELLIPSE_MARGIN
+    return jnp.abs(dot3(n, m)) > jnp.abs(k) / jnp.sqrt(1.0 + k * k) + ELLIPSE_MARGIN
 
 
 def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
@@ -84,8 +72,8 @@ def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
     e1 = ma
     e2 = jnp.cross(nm, ma)
     da = jnp.stack([jnp.ones_like(sin), jnp.zeros_like(sin)], -1)
-    db = jnp.stack([_dot(mb, e1), _dot(mb, e2)], -1)
-    ca2 = jnp.stack([_dot(ca - j, e1), _dot(ca - j, e2)], -1)
+    db = jnp.stack([dot3(mb, e1), dot3(mb, e2)], -1)
+    ca2 = jnp.stack([dot3(ca - j, e1), dot3(ca - j, e2)], -1)
     cb2 = db * hb[:, None]
 
     def side(d):
@@ -119,7 +107,7 @@ def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
     p = jnp.where(fallback[:, None], j, p)
     n = jnp.where(collinear[:, None], ma, n)
     p = jnp.where(collinear[:, None], j, p)
-    n = n * jnp.where(_dot(n, ma + mb) < 0, -1.0, 1.0)[:, None]
+    n = n * jnp.where(dot3(n, ma + mb) < 0, -1.0, 1.0)[:, None]
     return n, p
 
 
@@ -142,7 +130,7 @@ def frusta_fields(joints, radii, topo: DeviceTopology, twist_turns, levels: int)
     c1 = joints[topo.start]
     c2 = joints[topo.end]
     seg = c2 - c1
-    h = safe_sqrt(_dot(seg, seg))
+    h = safe_sqrt(dot3(seg, seg))
     m = jnp.where(v[:, None], safe_div(seg, h[:, None], 0.0), jnp.array([0.0, 1.0, 0.0], joints.dtype))
     h = jnp.where(v, h, 1.0)
     r1 = jnp.where(v, radii[topo.start], 0.0)
@@ -152,13 +140,13 @@ def frusta_fields(joints, radii, topo: DeviceTopology, twist_turns, levels: int)
     a = jnp.maximum(topo.parent, 0)
     n, p = cutting_planes(c1, m[a], c1[a], r1[a], r2[a], h[a], m, r1, r2, h)
     nb = jnp.where(cont[:, None], n, m)
-    db = jnp.where(cont, _dot(n, p - c1), 0.0)
+    db = jnp.where(cont, dot3(n, p - c1), 0.0)
     cap_b = ~cont
     # the top of a segment is cut by its continuation's plane (scatter from the child row)
     tgt = jnp.where(cont, topo.parent, h.shape[0])  # out of range: dropped
     nt = m.at[tgt].set(n, mode="drop")
     has_child = jnp.zeros(h.shape, bool).at[tgt].set(True, mode="drop")
-    dt = jnp.where(has_child, _dot(nt, jnp.zeros_like(c1).at[tgt].set(p, mode="drop") - c1), h)
+    dt = jnp.where(has_child, dot3(nt, jnp.zeros_like(c1).at[tgt].set(p, mode="drop") - c1), h)
     cap_t = ~has_child
 
     # frames in depth order (Sec. 2.3): roots take +z projected, side branches parallel-transport
@@ -171,17 +159,17 @@ def frusta_fields(joints, radii, topo: DeviceTopology, twist_turns, levels: int)
         at = topo.depth == lvl
         bp = jnp.maximum(topo.branch, 0)
         ref = jnp.where((topo.branch >= 0)[:, None], w[bp], jnp.array([0.0, 0.0, 1.0], joints.dtype))
-        wr = ref - _dot(ref, m)[:, None] * m
-        nrm = safe_sqrt(_dot(wr, wr))
+        wr = ref - dot3(ref, m)[:, None] * m
+        nrm = safe_sqrt(dot3(wr, wr))
         wr = jnp.where((nrm > 1e-6)[:, None], safe_div(wr, jnp.where(nrm > 1e-6, nrm, 1.0)[:, None], 0.0), _any_perp(m))
         base = c1[a] + r1[a][:, None] * w[a]
         dirn = m[a] + k[a][:, None] * w[a]
-        den = _dot(nt[a], dirn)
-        y = safe_div(dt[a] - _dot(nt[a], base - c1[a]), den, 0.0)
+        den = dot3(nt[a], dirn)
+        y = safe_div(dt[a] - dot3(nt[a], base - c1[a]), den, 0.0)
         q = base + y[:, None] * dirn
         wq = q - c1
-        wq = wq - _dot(wq, m)[:, None] * m
-        nq = safe_sqrt(_dot(wq, wq))
+        wq = wq - dot3(wq, m)[:, None] * m
+        nq = safe_sqrt(dot3(wq, wq))
         good = cont & (nq > 1e-9 * (h + r1)) & (den != 0)
         wc = jnp.where(good[:, None], safe_div(wq, nq[:, None], 0.0), wr)
         w_new = jnp.where(cont[:, None], wc, wr)

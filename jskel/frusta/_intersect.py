@@ -31,7 +31,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..numerics import eps_of, line_dist2, safe_div, safe_normalize, safe_sqrt, stable_quadratic
+from ..numerics import dot3, eps_of, line_dist2, safe_div, safe_normalize, safe_sqrt, stable_quadratic
 from ..rays import Hit, masked_hit
 
 _TWO_PI = 2.0 * jnp.pi
@@ -76,26 +76,22 @@ class Quality(NamedTuple):
 SIDE, CAP_BOTTOM, CAP_TOP = 0, 1, 2
 
 
-def _dot(a, b):
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-
-
 def recentre(seg: FrustaParams, o, d):
     """(t0, e): the ray origin moved to the point nearest the segment's midpoint, relative to C1.
 
     Hits are then found as local parameters s with t = t0 + s, so the quadratic's constant term
     does not cancel for far origins.
     """
-    dd = _dot(d, d)
+    dd = dot3(d, d)
     cm = seg.c1 + 0.5 * seg.h * seg.m
-    t0 = safe_div(_dot(cm - o, d), dd, 0.0)
+    t0 = safe_div(dot3(cm - o, d), dd, 0.0)
     return t0, o + t0 * d - seg.c1
 
 
 def side_roots(seg: FrustaParams, e, d, dr=0.0):
     """Roots (s_lo, s_hi) of the ray e + s d with the cone of radii (r1 + dr, r2 + dr)."""
     k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
-    return _cone_roots(k, seg.r1 + dr, _dot(e, seg.u), _dot(e, seg.m), _dot(e, seg.w), _dot(d, seg.u), _dot(d, seg.m), _dot(d, seg.w))
+    return _cone_roots(k, seg.r1 + dr, dot3(e, seg.u), dot3(e, seg.m), dot3(e, seg.w), dot3(d, seg.u), dot3(d, seg.m), dot3(d, seg.w))
 
 
 def _cone_roots(k, r1, ex, ey, ez, dx, dy, dz):
@@ -117,10 +113,10 @@ def _segment_t(seg: FrustaParams, o, d, t_min, t_max):
     innermost work of every traversal."""
     inf = jnp.asarray(jnp.inf, o.dtype)
     t0, e = recentre(seg, o, d)
-    ex, ey, ez = _dot(e, seg.u), _dot(e, seg.m), _dot(e, seg.w)
-    dx, dy, dz = _dot(d, seg.u), _dot(d, seg.m), _dot(d, seg.w)
-    be, bd = _dot(seg.nb, e), _dot(seg.nb, d)
-    te, td = _dot(seg.nt, e), _dot(seg.nt, d)
+    ex, ey, ez = dot3(e, seg.u), dot3(e, seg.m), dot3(e, seg.w)
+    dx, dy, dz = dot3(d, seg.u), dot3(d, seg.m), dot3(d, seg.w)
+    be, bd = dot3(seg.nb, e), dot3(seg.nb, d)
+    te, td = dot3(seg.nt, e), dot3(seg.nt, d)
     k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
     # a, hb, c are all zero only for a ray along a cylinder's axis: no side hit then
     s_lo, s_hi = _cone_roots(k, seg.r1, ex, ey, ez, dx, dy, dz)
@@ -172,13 +168,13 @@ def _surface(seg: FrustaParams, o, d, s, code, normals: str):
     """
     t0, e = recentre(seg, o, d)
     p = e + s * d  # relative to C1
-    x, z = _dot(p, seg.u), _dot(p, seg.w)
+    x, z = dot3(p, seg.u), dot3(p, seg.w)
     rho = safe_sqrt(x * x + z * z)
     radial = safe_div(x * seg.u + z * seg.w, rho, 0.0)
     k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
     g = seg.m + k * radial  # generator direction through P
-    s_l = safe_div(seg.db - _dot(seg.nb, p), _dot(seg.nb, g), 0.0)
-    s_u = safe_div(seg.dt - _dot(seg.nt, p), _dot(seg.nt, g), 0.0)
+    s_l = safe_div(seg.db - dot3(seg.nb, p), dot3(seg.nb, g), 0.0)
+    s_u = safe_div(seg.dt - dot3(seg.nt, p), dot3(seg.nt, g), 0.0)
     v = jnp.clip(safe_div(-s_l, s_u - s_l, 0.0), 0.0, 1.0)
     v = jnp.where(code == CAP_BOTTOM, 0.0, jnp.where(code == CAP_TOP, 1.0, v))
     on_axis = rho <= 0
@@ -194,10 +190,10 @@ def _surface(seg: FrustaParams, o, d, s, code, normals: str):
         # direction (and, with denormals, not of unit length) that changed with the compiled
         # program. Where either is within rounding of zero the cone's own normal is used.
         tiny = (1024 * eps_of(p) * (seg.h + seg.r1 + seg.r2)) ** 2
-        closed = (_dot(nl_raw, nl_raw) <= tiny) | (_dot(nu_raw, nu_raw) <= tiny)
+        closed = (dot3(nl_raw, nl_raw) <= tiny) | (dot3(nu_raw, nu_raw) <= tiny)
         n_side = safe_normalize((1.0 - v) * safe_normalize(nl_raw) + v * safe_normalize(nu_raw))
         # where the blend itself vanishes (opposite N_l and N_u), the cone normal as well
-        n_side = jnp.where((_dot(n_side, n_side) > 0.5) & ~closed, n_side, true_n)
+        n_side = jnp.where((dot3(n_side, n_side) > 0.5) & ~closed, n_side, true_n)
     elif normals == "geometric":
         n_side = true_n
     else:  # pragma: no cover - validated in config
@@ -263,7 +259,7 @@ def nearest_one(params: FrustaParams, seg_fn, origin, direction, t_min, t_max, b
 def _rays_touch_sphere(origins, directions, dd, t_min, t_max, c, r):
     """(N,) whether each ray's (t_min, t_max] passes within r of c (a bounding-sphere test)."""
     oc = c[None, :] - origins
-    tc = safe_div(_dot(oc, directions), dd, 0.0)
+    tc = safe_div(dot3(oc, directions), dd, 0.0)
     dist2 = line_dist2(oc, directions, tc)
     rt = safe_div(r, safe_sqrt(dd), 0.0)  # d = 0: no NaN
     return (dist2 <= r * r) & (tc + rt > t_min) & (tc - rt <= t_max)
@@ -299,7 +295,7 @@ def nearest_batch(params: FrustaParams, block_c, block_r, seg_fn, origins, direc
     vfn = jax.vmap(jax.vmap(seg_fn, in_axes=(0, None, None, None, None)), in_axes=(None, 0, 0, 0, 0))
     dtype = origins.dtype
     n = origins.shape[0]
-    dd = _dot(directions, directions)
+    dd = dot3(directions, directions)
 
     def touches(c, r):
         return _rays_touch_sphere(origins, directions, dd, t_min, t_max, c, r)
@@ -328,7 +324,7 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
     """
     n = origins.shape[0]
     dtype = origins.dtype
-    dd = _dot(directions, directions)
+    dd = dot3(directions, directions)
     vpre = jax.vmap(jax.vmap(pre_fn, in_axes=(0, None, None, None, None)), in_axes=(None, 0, 0, 0, 0))
     vseg = jax.vmap(seg_fn, in_axes=(0, 0, 0, 0, 0))
 
@@ -375,15 +371,15 @@ def inside_one(params: FrustaParams, point) -> jnp.ndarray:
     """True when ``point`` (3,) lies inside (or on) any frustum between its cutting planes."""
     def one(seg):
         p = point - seg.c1
-        x, y, z = _dot(p, seg.u), _dot(p, seg.m), _dot(p, seg.w)
+        x, y, z = dot3(p, seg.u), dot3(p, seg.m), dot3(p, seg.w)
         k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
         ry = seg.r1 + k * y
         return (
             seg.valid
             & (ry >= 0)
             & (x * x + z * z <= ry * ry)
-            & (_dot(seg.nb, p) >= seg.db)
-            & (_dot(seg.nt, p) <= seg.dt)
+            & (dot3(seg.nb, p) >= seg.db)
+            & (dot3(seg.nt, p) <= seg.dt)
         )
 
     return jnp.any(jax.vmap(one)(params))

@@ -37,7 +37,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from ..accel._lbvh import descend
+from ..accel import descend
 from ._accel import _PACKED, FrustaBVH, packed_widths
 from ._intersect import SIDE, FrustaParams, _segment_t
 

@@ -33,9 +33,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..numerics import differentiable_root, eps_of, safe_div, safe_normalize, safe_sqrt
+from ..numerics import differentiable_root, dot3, eps_of, safe_div, safe_normalize, safe_sqrt
 from ..rays import masked_hit
-from ._intersect import CAP_BOTTOM, CAP_TOP, FrustaParams, _dot, recentre, side_roots
+from ._intersect import CAP_BOTTOM, CAP_TOP, FrustaParams, recentre, side_roots
 
 RELIEF = 3
 _TWO_PI = 2.0 * jnp.pi
@@ -82,7 +82,7 @@ def sample_height(maps: ReliefMaps, uu, vv, v_mode: str):
 
 
 def _in_slab(seg, p, tol):
-    return (_dot(seg.nb, p) >= seg.db - tol) & (_dot(seg.nt, p) <= seg.dt + tol)
+    return (dot3(seg.nb, p) >= seg.db - tol) & (dot3(seg.nt, p) <= seg.dt + tol)
 
 
 def shell_interval(seg: FrustaParams, e, d):
@@ -100,12 +100,12 @@ def shell_interval(seg: FrustaParams, e, d):
 
     def side_ok(s):
         p = e + s * d
-        return jnp.isfinite(s) & _in_slab(seg, p, tol) & (r1o + k * _dot(p, seg.m) >= 0)
+        return jnp.isfinite(s) & _in_slab(seg, p, tol) & (r1o + k * dot3(p, seg.m) >= 0)
 
     def plane(n, dist):
-        s = safe_div(dist - _dot(n, e), _dot(n, d), inf)
+        s = safe_div(dist - dot3(n, e), dot3(n, d), inf)
         p = e + s * d
-        x, y, z = _dot(p, seg.u), _dot(p, seg.m), _dot(p, seg.w)
+        x, y, z = dot3(p, seg.u), dot3(p, seg.m), dot3(p, seg.w)
         ry = r1o + k * y
         ok = jnp.isfinite(s) & (x * x + z * z <= ry * ry) & (ry >= 0) & _in_slab(seg, p, tol)
         return s, ok
@@ -124,18 +124,18 @@ def shell_interval(seg: FrustaParams, e, d):
 
 def exact_v(seg: FrustaParams, p):
     """v of Eq. 7 for a point p (relative to C1) on any cone concentric with the frustum."""
-    x, z = _dot(p, seg.u), _dot(p, seg.w)
+    x, z = dot3(p, seg.u), dot3(p, seg.w)
     rho = safe_sqrt(x * x + z * z)
     radial = safe_div(x * seg.u + z * seg.w, rho, 0.0)
     k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
     g = seg.m + k * radial
-    s_l = safe_div(seg.db - _dot(seg.nb, p), _dot(seg.nb, g), 0.0)
-    s_u = safe_div(seg.dt - _dot(seg.nt, p), _dot(seg.nt, g), 0.0)
+    s_l = safe_div(seg.db - dot3(seg.nb, p), dot3(seg.nb, g), 0.0)
+    s_u = safe_div(seg.dt - dot3(seg.nt, p), dot3(seg.nt, g), 0.0)
     return safe_div(-s_l, s_u - s_l, 0.0), s_u - s_l, g, radial, rho
 
 
 def _angle_u(seg, p, v):
-    x, z = _dot(p, seg.u), _dot(p, seg.w)
+    x, z = dot3(p, seg.u), dot3(p, seg.w)
     on_axis = (x == 0) & (z == 0)
     ang = jnp.arctan2(jnp.where(on_axis, 0.0, x), jnp.where(on_axis, 1.0, z))
     return jnp.mod(ang / _TWO_PI + seg.u_off + v * seg.twist, 1.0)
@@ -172,8 +172,8 @@ def make_relief_t(maps: ReliefMaps, q: ReliefQuality):
         def gap(s):
             """w - h: negative below the relief surface (Eq. 11-12 against the map)."""
             p = e + s * d
-            y = _dot(p, seg.m)
-            x, z = _dot(p, seg.u), _dot(p, seg.w)
+            y = dot3(p, seg.m)
+            x, z = dot3(p, seg.u), dot3(p, seg.w)
             rho = safe_sqrt(x * x + z * z)
             w = safe_div(rho - (seg.r1 + k * y), seg.shell, 0.0)  # Eq. 11-12
             if q.uv == "exact":
@@ -251,9 +251,9 @@ def make_relief_finish(maps: ReliefMaps, q: ReliefQuality):
         dpdu = _TWO_PI * rho * c_hat + seg.shell * h_u * radial
         dpdv = length * g + seg.shell * h_v * radial
         n = safe_normalize(jnp.cross(dpdu, dpdv))
-        n = jnp.where(_dot(n, radial) < 0, -n, n)
+        n = jnp.where(dot3(n, radial) < 0, -n, n)
         n = jnp.where(code == CAP_BOTTOM, -seg.nb, jnp.where(code == CAP_TOP, seg.nt, n))
-        n = jnp.where(_dot(n, n) > 0.5, n, radial)
+        n = jnp.where(dot3(n, n) > 0.5, n, radial)
         return masked_hit(t, seg.c1 + p, n, jnp.stack([u, v]), seg.sid)
 
     return finish

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, final
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..interface import Built
+from ..interface import Built, Preliminary, Representation
 from ..rays import Hit, Rays
 from ..textures import bilinear_wrap, load_texture
 from ._build import FrustaArrays as FrustaArrays
@@ -174,7 +174,10 @@ def frusta_from_skeleton(joints, radii, parents, *, twist_deg=0.0, match_minor_a
 ANIMATED = ("dancing_cacti",)
 
 
-def _skeleton_arrays(sk: SkeletonConfig, frame: float = 0.0):
+def skeleton_arrays(sk: SkeletonConfig, frame: float = 0.0):
+    """(joints (J, 3), radii (J,), parents (J,), colours (J, 3) or None) of a skeleton section at
+    animation ``frame``: the explicit arrays, or the procedural generator's, with ``scale``,
+    ``offset``, ``subdivide`` and ``replicate`` applied (float64, world units)."""
     if sk.procedural is not None:
         from ..scenes import generate
 
@@ -286,7 +289,7 @@ def relief_memory(arr: FrustaArrays, height: np.ndarray, scale, relief_ids, dtyp
 
 def host_frusta(cfg: FrustaConfig):
     """World-space float64 frusta of an object config: (arrays, topo, info, joints, radii, colors)."""
-    j, r, p, colors = _skeleton_arrays(cfg.skeleton, cfg.frame)
+    j, r, p, colors = skeleton_arrays(cfg.skeleton, cfg.frame)
     arrays, topo, info = frusta_from_skeleton(j, r, p, twist_deg=cfg.twist_deg, match_minor_axes=cfg.match_minor_axes)
     return arrays, topo, info, j, r, colors
 
@@ -348,7 +351,7 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
                     cfg.leaf, cfg.group, cfg.packet, traversal_of(cfg), cfg.kernel_block, cfg.kernel_warps,
                     (cfg.bin_packet, cfg.bin_candidates, cfg.bin_pairs, cfg.bin_group, float(cfg.bin_walk_ratio)))
     info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size))
-    return Built(scene, static, anchor, (lo, hi), info)
+    return Built(scene, static, anchor, (lo, hi), info, primitives=int(s))
 
 
 _build_bvh_jit = jax.jit(build_bvh, static_argnums=1)
@@ -403,51 +406,77 @@ def intersect(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
     return f(rays.origins, rays.directions, rays.t_min, rays.t_max)
 
 
-def intersect_batch(scene: FrustaScene, static: Static, rays: Rays, attributes: bool = True) -> Hit:
-    """Like :func:`intersect`, but skips work at the batch level: plain segments through the
-    linear BVH (``accel: bvh``; packets of ``packet`` consecutive rays share a traversal, or
-    with ``packet: 0`` every ray walks alone, in vmapped groups) or by skipping blocks that no ray of the batch reaches
-    (``blocks``); relief marched only for the (ray, segment) pairs whose ray enters a shell.
+class FrustaPayload(NamedTuple):
+    """What :func:`surface` needs of a preliminary hit, per ray and per group present (plain,
+    relief; None where absent): each group's nearest (t, s, code, index) (``_intersect``)."""
 
-    A batch where no ray hits a plain segment skips their attributes (position, normal, uv: a
-    ``lax.cond`` on the batch; compacting the hit rays instead changed the normals by an ulp
-    against ``intersect``'s program, whose equality is tested); ``attributes=False``
-    leaves them at the miss sentinels and gives t and the segment id alone (:func:`cast_batch`)."""
+    plain: tuple | None
+    relief: tuple | None
+
+
+def cast(scene: FrustaScene, static: Static, rays: Rays) -> Preliminary:
+    """First stage: the nearest (t, segment id) of every ray, plain segments through the linear
+    BVH (``accel: bvh``; packets of ``packet`` consecutive rays share a traversal, or with
+    ``packet: 0`` every ray walks alone, in vmapped groups) or by skipping blocks that no ray of
+    the batch reaches (``blocks``); relief marched only for the (ray, segment) pairs whose ray
+    enters a shell. The payload keeps each group's (t, s, code, index) for :func:`surface`."""
     o, d, a, b = rays
-    hits = []
+    plain = relief = None
+    t = jnp.full(o.shape[:1], jnp.inf, o.dtype)
+    prim = jnp.full(o.shape[:1], -1, jnp.int32)
     if scene.plain is not None:
         g = scene.plain
         if static.accel == "bvh" and static.traversal == "bins":
-            t, s, c, i, _ = nearest_bins(g.frusta, g.bvh, *static.bins, o, d, a, b, leaf=static.leaf, walk_group=static.group)
+            plain = nearest_bins(g.frusta, g.bvh, *static.bins, o, d, a, b, leaf=static.leaf, walk_group=static.group)[:4]
         elif static.accel == "bvh" and static.traversal == "kernel":
-            t, s, c, i, _, _ = nearest_kernel(g.frusta, g.bvh, static.leaf, o, d, a, b, static.kernel_block, static.kernel_warps)
+            plain = nearest_kernel(g.frusta, g.bvh, static.leaf, o, d, a, b, static.kernel_block, static.kernel_warps)[:4]
         elif static.accel == "bvh" and static.traversal == "packets" and static.packet > 0:
-            t, s, c, i, _ = nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, o, d, a, b)
+            plain = nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, o, d, a, b)[:4]
         elif static.accel == "bvh":
-            t, s, c, i, _, _ = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, o, d, a, b)
+            plain = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, o, d, a, b)[:4]
         elif static.accel == "none":  # brute force: every segment for every ray (the reference)
-            t, s, c, i = jax.vmap(lambda o_, d_, a_, b_: nearest_one(g.frusta, _segment_t, o_, d_, a_, b_, static.quality.block))(o, d, a, b)
+            plain = jax.vmap(lambda o_, d_, a_, b_: nearest_one(g.frusta, _segment_t, o_, d_, a_, b_, static.quality.block))(o, d, a, b)
         else:
-            t, s, c, i = nearest_batch(g.frusta, g.block_c, g.block_r, _segment_t, o, d, a, b, static.quality.block)
-        fin = jax.vmap(_finish, in_axes=(None, 0, 0, 0, 0, 0, 0, None))
-        # a chunk of sky finishes nothing (misses keep masked_hit's sentinels)
-        z = jnp.zeros_like(o)
-        miss = Hit(t, z + jnp.inf, z, z[:, :2], jnp.full(i.shape, -1, jnp.int32), None)  # masked_hit's sentinels
-        if attributes:
-            hits.append(jax.lax.cond(jnp.any(jnp.isfinite(t)), lambda: fin(g.frusta, o, d, t, s, c, i, static.quality.normals), lambda: miss))
-        else:
-            hits.append(miss._replace(prim=jnp.where(jnp.isfinite(t), g.frusta.sid[jnp.maximum(i, 0)], -1)))
+            plain = nearest_batch(g.frusta, g.block_c, g.block_r, _segment_t, o, d, a, b, static.quality.block)
+        t = plain[0]
+        prim = jnp.where(jnp.isfinite(t), g.frusta.sid[jnp.maximum(plain[3], 0)], -1)
     if scene.relief is not None:
         g = scene.relief
         seg_fn = make_relief_t(scene.maps, static.relief)
         cap = min(o.shape[0], 4096)
-        t, s, c, i = nearest_batch_compact(g.frusta, g.block_c, g.block_r, enters_shell, seg_fn, o, d, a, b, static.relief_block, cap)
+        relief = nearest_batch_compact(g.frusta, g.block_c, g.block_r, enters_shell, seg_fn, o, d, a, b, static.relief_block, cap)
+        closer = relief[0] < t  # a tie keeps the plain segment, as _nearest_hit does
+        t = jnp.where(closer, relief[0], t)
+        prim = jnp.where(closer, g.frusta.sid[jnp.maximum(relief[3], 0)], prim)
+    return Preliminary(t, prim.astype(jnp.int32), FrustaPayload(plain, relief))
+
+
+def surface(scene: FrustaScene, static: Static, rays: Rays, pre: Preliminary) -> Hit:
+    """Second stage: position, normal and uv of the winning segment of each ray (Eq. 6-8; the
+    relief's from its height map, Sec. 3). A batch where no ray hit a plain segment finishes
+    nothing (a ``lax.cond`` on the batch; compacting the hit rays instead changed the normals
+    by an ulp against ``intersect``'s program, whose equality is tested)."""
+    o, d = rays.origins, rays.directions
+    hits = []
+    if pre.payload.plain is not None:
+        g = scene.plain
+        t, s, c, i = pre.payload.plain
+        fin = jax.vmap(_finish, in_axes=(None, 0, 0, 0, 0, 0, 0, None))
+        z = jnp.zeros_like(o)
+        miss = Hit(t, z + jnp.inf, z, z[:, :2], jnp.full(i.shape, -1, jnp.int32), None)  # masked_hit's sentinels
+        hits.append(jax.lax.cond(jnp.any(jnp.isfinite(t)), lambda: fin(g.frusta, o, d, t, s, c, i, static.quality.normals), lambda: miss))
+    if pre.payload.relief is not None:
         fin = jax.vmap(make_relief_finish(scene.maps, static.relief), in_axes=(None, 0, 0, 0, 0, 0, 0))
-        hits.append(fin(g.frusta, o, d, t, s, c, i))
+        hits.append(fin(scene.relief.frusta, o, d, *pre.payload.relief))
     out = hits[0]
     for h in hits[1:]:
         out = _nearest_hit(out, h)
     return out
+
+
+def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
+    """Like :func:`intersect`, but skips work at the batch level: :func:`surface` of :func:`cast`."""
+    return surface(scene, static, rays, cast(scene, static, rays))
 
 
 def _stats_batch(static: Static):
@@ -517,24 +546,23 @@ def inside(scene: FrustaScene, static: Static, point):
     return jnp.any(jnp.stack([_inside_one(f, point) for f in groups]))
 
 
-def cast_batch(scene: FrustaScene, static: Static, rays: Rays):
-    """(t, segment id) of every ray: :func:`intersect_batch` without the hit attributes (what
-    the benchmark's cast times, and what the peers' casts return)."""
-    h = intersect_batch(scene, static, rays, attributes=False)
-    return h.t, h.prim
-
-
-class _Frusta:
-    """The frusta representation as the registry hands it to the renderer (``jskel.interface.Representation``)."""
+@final
+class _Frusta(Representation):
+    """The frusta representation as the registry hands it to the renderer."""
 
     name = "frusta"
     Config = FrustaConfig
     build = staticmethod(build)
     intersect_one = staticmethod(intersect_one)
     intersect_batch = staticmethod(intersect_batch)
-    cast_batch = staticmethod(cast_batch)
+    cast = staticmethod(cast)
+    surface = staticmethod(surface)
     albedo = staticmethod(albedo)
     inside = staticmethod(inside)
+
+    @staticmethod
+    def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
+        return traversal_stats(built, rays, chunk)
 
     @staticmethod
     def exits_from_inside(cfg) -> bool:

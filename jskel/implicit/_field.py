@@ -18,7 +18,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..numerics import safe_div, safe_sqrt
+from ..numerics import dot3, safe_div, safe_sqrt
 
 
 class Prims(NamedTuple):
@@ -63,18 +63,14 @@ class Displace(NamedTuple):
     grad: jnp.ndarray
 
 
-def _dot(u, v):
-    return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
-
-
 def closest(prims: Prims, x):
     """(squared distance, effective radius R) from x (3,) to every primitive (P,)."""
     ab = prims.b - prims.a
     ax = x - prims.a
-    s = jnp.clip(safe_div(_dot(ax, ab), _dot(ab, ab), 0.0), 0.0, 1.0)
+    s = jnp.clip(safe_div(dot3(ax, ab), dot3(ab, ab), 0.0), 0.0, 1.0)
     d = ax - s[..., None] * ab
     r = prims.ra + (prims.rb - prims.ra) * s
-    return _dot(d, d), r
+    return dot3(d, d), r
 
 
 def kernel(r2, R):
@@ -159,7 +155,7 @@ def displacement(x, shape: Shape, disp: Displace):
     if shape.displace == "noise":
         return value_noise(x, disp.freq)
     p = x - disp.origin
-    return 2.0 * _bilinear1(disp.height, _dot(p, disp.side) * disp.scale[0], _dot(p, disp.up) * disp.scale[1]) - 1.0
+    return 2.0 * _bilinear1(disp.height, dot3(p, disp.side) * disp.scale[0], dot3(p, disp.up) * disp.scale[1]) - 1.0
 
 
 def shaped_field(prims: Prims, x, shape: Shape, threshold, disp: Displace):
@@ -204,7 +200,7 @@ def lipschitz(prims: Prims):
     ok = rmin > 0
     rs = jnp.where(ok, rmin, 1.0)
     ab = prims.b - prims.a
-    length = safe_sqrt(_dot(ab, ab))  # a ball's a == b: finite derivative
+    length = safe_sqrt(dot3(ab, ab))  # a ball's a == b: finite derivative
     slope = safe_div(jnp.abs(prims.rb - prims.ra), length, 0.0)
     bound = 8.0 / (3.0 * jnp.sqrt(3.0) * rs) + slope / rs
     return jnp.where(prims.valid, jnp.where(ok, bound, jnp.inf), 0.0)

@@ -2,21 +2,21 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, final
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..interface import Built
+from ..interface import Built, Representation
 from ..rays import Hit, Rays, compact_map, masked_hit
 from ._config import ImplicitConfig as ImplicitConfig
-from ..numerics import safe_div, safe_sqrt
+from ..numerics import dot3, safe_div, safe_sqrt
 from ._field import Displace as Displace
 from ._field import Prims as Prims
 from ._field import Shape as Shape
 from ._field import shaped_field as shaped_field
-from ._field import _dot, kernel
+from ._field import kernel
 from ._field import field as field
 from ._field import gradient as gradient
 from ._field import lipschitz as lipschitz
@@ -333,10 +333,10 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     q = Quality(cfg.method, cfg.steps, cfg.bisection, cfg.capacity, early_exit=cfg.early_exit, shape=shape,
                 block=cfg.block_size, block_capacity=cfg.block_capacity or (16 if cfg.cull == "tree" else 32), cull=cfg.cull)
     static = Static(q, kinds, textured)
-    info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_estimate": fmax,
-            # width of the last bisection bracket: how far a returned hit may lie from F = T
-            "surface_tolerance": float((cfg.eps if cfg.method == "lipschitz" else cfg.step) * 0.5 ** cfg.bisection)}
-    return Built(scene, static, anchor, (lo, hi), info)
+    info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_estimate": fmax}
+    # width of the last bisection bracket: how far a returned hit may lie from F = T
+    tol = float((cfg.eps if cfg.method == "lipschitz" else cfg.step) * 0.5 ** cfg.bisection)
+    return Built(scene, static, anchor, (lo, hi), info, primitives=int(p), surface_tolerance=tol)
 
 
 def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min, t_max) -> Hit:
@@ -371,9 +371,9 @@ def rest_position(skin: Skin, x):
     """Alg. 3: the posed point x mapped to the rest pose, blending each bone's rigid inverse by
     weights (1 - d^2 / I^2)^2 of the distance d to the posed bone (nearest bone if none reaches)."""
     ab = skin.tail - skin.head
-    s = jnp.clip(safe_div(_dot(x - skin.head, ab), _dot(ab, ab), 0.0), 0.0, 1.0)
+    s = jnp.clip(safe_div(dot3(x - skin.head, ab), dot3(ab, ab), 0.0), 0.0, 1.0)
     e = x - skin.head - s[:, None] * ab
-    d2 = _dot(e, e)
+    d2 = dot3(e, e)
     w = kernel(d2, skin.influence)
     nearest = (jnp.arange(d2.shape[0]) == jnp.argmin(d2)).astype(x.dtype)
     total = jnp.sum(w)
@@ -390,7 +390,7 @@ def choose_uv(scene: ImplicitScene, static: Static, pos):
     x = rest_position(scene.skin, pos)
     pr = scene.projector
     e = x - pr.region_c
-    holds = _dot(e, e) <= pr.region_r * pr.region_r
+    holds = dot3(e, e) <= pr.region_r * pr.region_r
     k = jnp.where(jnp.any(holds), jnp.argmax(holds), -1).astype(jnp.int32)
     uvs = jnp.stack([project(jax.tree_util.tree_map(lambda a, i=i: a[i], pr), x, kind) for i, kind in enumerate(static.projector)])
     return k, jnp.where(k >= 0, uvs[jnp.maximum(k, 0)], 0.0)
@@ -401,8 +401,8 @@ def project(pr: Projector, x, kind: str):
     spherical projector (Sec. 6): ``pr`` holds one projector's fields (no leading K axis)."""
     p = x - pr.origin
     side = jnp.cross(pr.axis, pr.up)
-    h = _dot(p, pr.axis)
-    pu, ps = _dot(p, pr.up), _dot(p, side)
+    h = dot3(p, pr.axis)
+    pu, ps = dot3(p, pr.up), dot3(p, side)
     if kind == "planar":
         uv = jnp.stack([ps, pu])
     elif kind == "cylindrical":
@@ -433,8 +433,9 @@ def inside(scene: ImplicitScene, static: Static, point):
     return shaped_field(scene.prims, point, static.quality.shape, tn.threshold, tn.disp) > tn.threshold
 
 
-class _Implicit:
-    """The implicit representation as the registry hands it to the renderer (``jskel.interface.Representation``)."""
+@final
+class _Implicit(Representation):
+    """The implicit representation as the registry hands it to the renderer."""
 
     name = "implicit"
     Config = ImplicitConfig

@@ -64,10 +64,10 @@ import jax
 import jax.numpy as jnp
 
 from .. import accel
-from ..numerics import differentiable_root, line_dist2, safe_div, safe_normalize, safe_sqrt
+from ..numerics import differentiable_root, dot3, line_dist2, safe_div, safe_normalize, safe_sqrt
 from ..rays import FLAG_OVERFLOW as OVERFLOW
 from ..rays import FLAG_STEP_CAP as STEP_CAP
-from ._field import Displace, Prims, Shape, _dot, closest, kernel, lipschitz_total, shaped_field
+from ._field import Displace, Prims, Shape, closest, kernel, lipschitz_total, shaped_field
 
 
 class Quality(NamedTuple):
@@ -97,7 +97,7 @@ class Tuning(NamedTuple):
 def influence_spheres(prims: Prims):
     """Centre (P,3) and radius (P,) of a sphere containing each primitive's support."""
     c = 0.5 * (prims.a + prims.b)
-    half = 0.5 * safe_sqrt(_dot(prims.b - prims.a, prims.b - prims.a))
+    half = 0.5 * safe_sqrt(dot3(prims.b - prims.a, prims.b - prims.a))
     return c, half + jnp.maximum(prims.ra, prims.rb)
 
 
@@ -115,9 +115,9 @@ class Candidates(NamedTuple):
 def _sphere_interval(c, r, o, d, t_min, t_max):
     """(t0, t1, crossed) of the ray o + t d against spheres (c (N,3), r (N,)), clipped to the
     ray's (t_min, t_max]."""
-    dd = _dot(d, d)
+    dd = dot3(d, d)
     oc = c - o
-    tc = safe_div(_dot(oc, d), dd, 0.0)
+    tc = safe_div(dot3(oc, d), dd, 0.0)
     dist2 = line_dist2(oc, d, tc)
     half = safe_sqrt(safe_div(r * r - dist2, dd, 0.0))  # safe: a miss or d = 0 gives no NaN derivative
     t0 = jnp.maximum(tc - half, t_min)
@@ -138,7 +138,7 @@ def block_spheres(prims: Prims, block: int):
     anyv = jnp.any(v, axis=1)
     cb = jnp.where(anyv[:, None], 0.5 * (lo + hi), 0.0)
     e = c - cb[:, None, :]
-    rb = jnp.max(jnp.where(v, safe_sqrt(_dot(e, e)) + r, 0.0), axis=1)
+    rb = jnp.max(jnp.where(v, safe_sqrt(dot3(e, e)) + r, 0.0), axis=1)
     # rounding: grow by a few ulps of the coordinates so no member pokes out in float32
     scale = jnp.max(jnp.abs(cb), axis=1) + rb
     return cb, rb + 8 * jnp.finfo(c.dtype).eps * scale, anyv
@@ -224,18 +224,18 @@ def _bisect(g, lo, hi, n: int):
 
 def _inside_points(sub: Prims, o, d):
     """Sec. 4.2.1 candidate t per primitive (C,)."""
-    dd = _dot(d, d)
-    ta = safe_div(_dot(sub.a - o, d), dd, 0.0)
-    tb = safe_div(_dot(sub.b - o, d), dd, 0.0)
+    dd = dot3(d, d)
+    ta = safe_div(dot3(sub.a - o, d), dd, 0.0)
+    tb = safe_div(dot3(sub.b - o, d), dd, 0.0)
     ab = sub.b - sub.a
     n = jnp.cross(ab, jnp.cross(ab, jnp.broadcast_to(d, ab.shape)))
-    tp = safe_div(_dot(sub.a - o, n), _dot(d, n), jnp.inf)
+    tp = safe_div(dot3(sub.a - o, n), dot3(d, n), jnp.inf)
 
     def dist_to_seg(t):
         x = o + t[..., None] * d
-        s = jnp.clip(safe_div(_dot(x - sub.a, ab), _dot(ab, ab), 0.0), 0.0, 1.0)
+        s = jnp.clip(safe_div(dot3(x - sub.a, ab), dot3(ab, ab), 0.0), 0.0, 1.0)
         e = x - sub.a - s[..., None] * ab
-        return jnp.where(jnp.isfinite(t), _dot(e, e), jnp.inf)
+        return jnp.where(jnp.isfinite(t), dot3(e, e), jnp.inf)
 
     cands = jnp.stack([ta, tb, tp])  # (3, C); a ball has ta == tb and tp = inf
     dist = jnp.stack([dist_to_seg(t) for t in (ta, tb, tp)])
@@ -268,7 +268,7 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
         def advance(t, gv):
             return t + tune.step
     elif q.method == "lipschitz":
-        L = lipschitz_total(sub, q.shape, tune.disp) * safe_sqrt(_dot(d, d))
+        L = lipschitz_total(sub, q.shape, tune.disp) * safe_sqrt(dot3(d, d))
 
         def advance(t, gv):
             return t + jnp.maximum(safe_div(-gv, L, 0.0), tune.eps)

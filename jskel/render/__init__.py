@@ -21,13 +21,13 @@ from ..accel import always, fenced
 from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
 from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Camera, Hit, Rays, compact_map, make_rays, map_chunks, tile_inverse, tile_order
 from ._aov import write_aovs as write_aovs
-from ._shade import Lights as Lights
-from ._shade import Shading as Shading
-from ._shade import encode_png as encode_png
-from ._shade import output_transform as output_transform
-from ._shade import lights_from_config as lights_from_config
-from ._shade import shade_one as shade_one
-from ._shade import shading_from_config as shading_from_config
+from ..shading import Lights as Lights
+from ..shading import Shading as Shading
+from ..shading import encode_png as encode_png
+from ..shading import output_transform as output_transform
+from ..shading import lights_from_config as lights_from_config
+from ..shading import shade_one as shade_one
+from ..shading import shading_from_config as shading_from_config
 
 
 class RenderResult(NamedTuple):
@@ -48,21 +48,15 @@ def pixel_fn(rep_name: str, static):
     """Batch function ``(params, rays) -> (Hit, rgb)`` for a representation and static options."""
     rep = registry.get(rep_name)
 
-    def one_hit(scene, o, d, t_min, t_max):
-        return rep.intersect_one(scene, static, o, d, t_min, t_max)
-
     def colour(scene, lights, sh, hit, d):
         return shade_one(hit, d, rep.albedo(scene, static, hit), lights, sh)
 
     def batch(params, rays: Rays):
         scene, lights, sh = params
-        if hasattr(rep, "intersect_batch"):
-            # fenced: XLA fused the hit's attributes into each consumer (shading, every
-            # output) and computed them once per consumer
-            hits = fenced(always(rays.t_min), lambda: rep.intersect_batch(scene, static, rays))
-        else:
-            hits = jax.vmap(one_hit, in_axes=(None, 0, 0, 0, 0))(scene, *rays)
-        if hasattr(rep, "shade_batch"):  # a representation with its own secondary rays (cells)
+        # fenced: XLA fused the hit's attributes into each consumer (shading, every output)
+        # and computed them once per consumer
+        hits = fenced(always(rays.t_min), lambda: rep.intersect_batch(scene, static, rays))
+        if rep.own_shading:  # a representation with its own secondary rays
             rgb = rep.shade_batch(scene, static, rays, hits, lights, sh)
         else:  # shaded where a ray hit, in dense sub-batches; the background elsewhere
             shade = jax.vmap(colour, in_axes=(None, None, None, 0, 0))
@@ -148,7 +142,7 @@ def _trace(exp: Experiment, fn, params, rays: Rays, progress):
                          memory_budget=budget, group=chunks_per_call_of(exp.render))
 
 
-def _run_base(exp: Experiment, obj, build_s: float, res, n: int) -> dict:
+def _run_base(exp: Experiment, obj, build_s: float, res, n: int, primitives: int) -> dict:
     """What every run.json starts with: the resolved config, versions, seconds, rays."""
     return {
         "config": resolved(exp, obj),
@@ -158,6 +152,7 @@ def _run_base(exp: Experiment, obj, build_s: float, res, n: int) -> dict:
         "compile_cached": res.compile_s == 0.0,
         "render_s": res.run_s,
         "rays": n,
+        "primitives": primitives,
         "chunk": chunk_of(exp.render),
         "devices_used": len(devices_of(exp) or [None]),
         "processes": jax.process_count(),
@@ -191,7 +186,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     image = encode_png(rgb.reshape(cam.height, cam.width, 3), output_transform(exp.shading))
     n = rays.size
     run = {
-        **_run_base(exp, obj, build_s, res, n),
+        **_run_base(exp, obj, build_s, res, n, built.primitives),
         "hit_fraction": float(np.mean(np.isfinite(hits.t))),
         "anchor": [float(x) for x in built.anchor],
         "info": built.info,
@@ -203,7 +198,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     if hits.flags is not None:
         f = np.asarray(hits.flags)
         run["flags"] = {"overflow_rays": int(np.sum((f & FLAG_OVERFLOW) != 0)), "step_cap_rays": int(np.sum((f & FLAG_STEP_CAP) != 0))}
-    return RenderResult(hits, rgb, image, run)
+    return RenderResult(hits, rgb, image, run, rep.extra_aovs(built, hits) or None)
 
 
 def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> RenderResult:
@@ -220,7 +215,7 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
 
     dtype = dtype_of(exp)
     t0 = time.perf_counter()
-    params, static, eye, objects_info = build_scene(exp, shapes, dtype)
+    params, static, eye, objects_info, primitives = build_scene(exp, shapes, dtype)
     jax.block_until_ready(params)
     build_s = time.perf_counter() - t0
     cam = camera_of(exp)
@@ -250,14 +245,14 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
         aovs["refract_obj"] = first["first_obj"][:, 1]
     f_all = np.asarray(out["flags"])
     run = {
-        **_run_base(exp, shapes, build_s, res, int(rays.size)),
+        **_run_base(exp, shapes, build_s, res, int(rays.size), primitives),
         "spp": exp.render.spp,
         "effects": eff._asdict(),
         "secondary_rays": int(np.sum(out["secondary"])),
         "hit_fraction": float(np.mean(np.isfinite(h.t))),
         "eye": [float(x) for x in eye],
         "objects": objects_info,
-        "info": {"objects": len(shapes), "primitives": int(sum(int(i.get("primitives", i.get("segments", 0)) or 0) for i in objects_info))},
+        "info": {"objects": len(shapes), "primitives": primitives},
         "params_bytes": int(sum(getattr(x, "nbytes", 0) for x in jax.tree_util.tree_leaves(params))),
         "peak_host_mb": peak_rss_mb(),
         "flags": {"overflow_rays": int(np.sum((f_all & FLAG_OVERFLOW) != 0)), "step_cap_rays": int(np.sum((f_all & FLAG_STEP_CAP) != 0))},

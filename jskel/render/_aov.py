@@ -28,8 +28,6 @@ def write_aovs(out: str | Path, hits, image_u8: np.ndarray, width: int, height: 
         "uv": (np.asarray(hits.uv, np.float32).reshape(h, w, 2)),
         "prim": (np.asarray(hits.prim, np.int32).reshape(h, w)),
     }
-    if (run.get("config") or {}).get("object", {}).get("type") == "cells":
-        files["cell"] = files["prim"]  # the hit cell's global id (issue 5)
     if getattr(hits, "flags", None) is not None:
         files["flags"] = np.asarray(hits.flags, np.int32).reshape(h, w)
     for name, arr in (extra or {}).items():

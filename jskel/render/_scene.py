@@ -59,7 +59,7 @@ import numpy as np
 from .. import registry
 from ..numerics import eps_of, euler_xyz, safe_normalize, safe_sqrt
 from ..rays import FLAG_OVERFLOW, Rays, compact_map
-from ._shade import Lights, facing, light_at, lights_from_config, shade_local
+from ..shading import Lights, facing, light_at, lights_from_config, shade_local
 
 
 class SceneHit(NamedTuple):
@@ -163,20 +163,19 @@ def _shape_at(shape, frame: float):
 
 def _check_shape(i: int, o, shape, rep):
     """Host checks of what a representation can do in a scene (interface flags, not types)."""
-    exits = getattr(rep, "exits_from_inside", None)
-    if o.material.transparency > 0 and not (exits is not None and exits(shape)):
+    if o.material.transparency > 0 and not rep.exits_from_inside(shape):
         raise ValueError(
             f"objects[{i}].material.transparency: {o.material.transparency} on a {shape.type} object, whose tracer "
             "searches for the first entry only (a transparent object must report the exit of a ray from inside: plain frusta do)")
-    own = getattr(rep, "own_effects", None)
-    if own is not None and own(shape):
+    if rep.own_effects(shape):
         raise ValueError(
             f"objects[{i}].shape.mode: {getattr(shape, 'mode', '?')!r}; in a scene an object is shaded by its material "
             "(material.reflectivity / transparency), not by effects of its own: give mode: first_hit")
 
 
 def build_scene(exp, shapes, dtype):
-    """Build every object and the scene's arrays (host). Returns (params, static, eye, info)."""
+    """Build every object and the scene's arrays (host). Returns (params, static, eye, info per
+    object, primitives in all)."""
     eye = np.asarray(exp.camera.eye, np.float64)
     objs, xfs, statics, reps, info = [], [], [], [], []
     cols, spec, shin, refl, trans, ior, off = [], [], [], [], [], [], []
@@ -203,8 +202,8 @@ def build_scene(exp, shapes, dtype):
         refl.append(m.reflectivity)
         trans.append(m.transparency)
         ior.append(m.ior)
-        off.append(4.0 * s * float(built.info.get("surface_tolerance", 0.0)))
-        info.append({"name": o.name or f"objects[{i}]", "type": rep.name, **built.info})
+        off.append(4.0 * s * built.surface_tolerance)
+        info.append({"name": o.name or f"objects[{i}]", "type": rep.name, "primitives": built.primitives, **built.info})
     mat = Materials(*(jnp.asarray(np.asarray(v, np.float64), dtype) for v in (cols, spec, shin, refl, trans, ior, off)))
     bg = np.asarray(exp.shading.background, np.float64)
     ev = exp.environment
@@ -214,7 +213,7 @@ def build_scene(exp, shapes, dtype):
     params = SceneParams(tuple(objs), tuple(xfs), mat, lights, jnp.asarray(shadows), jnp.asarray(exp.shading.ambient, dtype),
                          jnp.asarray(env, dtype))
     static = SceneStatic(tuple(reps), tuple(statics), effects_of(exp), int(exp.render.lanes), bool(exp.render.compaction))
-    return params, static, eye, info
+    return params, static, eye, info, int(sum(i["primitives"] for i in info))
 
 
 # ----------------------------------------------------------------------------- tracing
@@ -243,10 +242,7 @@ def _to_object(x: XForm, rays: Rays) -> Rays:
 def _object_hits(rep_name: str, static, p, x: XForm, k: int, rays: Rays) -> SceneHit:
     rep = registry.get(rep_name)
     local = _to_object(x, rays)
-    if hasattr(rep, "intersect_batch"):
-        h = rep.intersect_batch(p, static, local)
-    else:
-        h = jax.vmap(lambda o, d, a, b: rep.intersect_one(p, static, o, d, a, b))(*local)
+    h = rep.intersect_batch(p, static, local)
     base = jax.vmap(lambda hh: rep.albedo(p, static, hh))(h)
     hit = jnp.isfinite(h.t)
     t = h.t * x.s
@@ -286,7 +282,7 @@ def occluded(params: SceneParams, static: SceneStatic, rays: Rays, need):
         todo = (need & ~blocked & _box_crossed(rays, x.lo, x.hi)) if static.compaction else jnp.ones_like(need)
 
         def fn(sub, rep=rep, st=st, k=k, x=x):
-            return jnp.isfinite(_object_hits(rep, st, params.objects[k], x, k, sub).t)
+            return registry.get(rep).occluded(params.objects[k], st, _to_object(x, sub))
 
         if static.compaction:
             blocked = compact_map(fn, todo, rays, blocked, static.lanes)

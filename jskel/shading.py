@@ -8,8 +8,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from ..numerics import safe_div, safe_sqrt
-from ..rays import Hit
+from .numerics import dot3, safe_div, safe_sqrt
+from .rays import Hit
 
 
 class Lights(NamedTuple):
@@ -55,7 +55,7 @@ def light_at(lights: Lights, p):
         n = lights.direction.shape[0]
         return lights.direction, lights.radiance, jnp.full((n,), jnp.inf, lights.radiance.dtype)
     to = lights.position - p[None, :]
-    dist2 = _dot3(to, to)
+    dist2 = dot3(to, to)
     dist = jnp.sqrt(jnp.maximum(dist2, jnp.finfo(to.dtype).tiny))
     pl = lights.point
     direction = jnp.where(pl[:, None], to / dist[:, None], lights.direction)
@@ -83,21 +83,14 @@ def shade_one(hit: Hit, direction, base_rgb, lights: Lights, sh: Shading):
     return jnp.where(jnp.isfinite(hit.t), col, sh.background)
 
 
-def _dot3(a, b):
-    """Dot product over a last axis of 3, written out: under vmap, ``jnp.sum(a * b, -1)`` and
-    sums over the lights became XLA library reductions on the CPU that cost more than the rest
-    of the shading (one of (4,096, 2, 3) took 0.28 ms a chunk; development profile)."""
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-
-
 def _unit3(v):
-    """``v / |v|`` (the zero vector stays zero), with :func:`_dot3`."""
-    return safe_div(v, safe_sqrt(_dot3(v, v))[..., None], 0.0)
+    """``v / |v|`` (the zero vector stays zero), with :func:`jskel.numerics.dot3`."""
+    return safe_div(v, safe_sqrt(dot3(v, v))[..., None], 0.0)
 
 
 def facing(normal, direction):
     """``normal`` turned to face against ``direction`` (the side the ray arrives from)."""
-    return jnp.where(_dot3(normal, direction)[..., None] > 0, -normal, normal)
+    return jnp.where(dot3(normal, direction)[..., None] > 0, -normal, normal)
 
 
 def shade_local(position, normal, direction, base_rgb, lights: Lights, ambient, specular, shininess, visible=None):
@@ -110,8 +103,8 @@ def shade_local(position, normal, direction, base_rgb, lights: Lights, ambient, 
     ldir, rad, _ = light_at(lights, position)
     col = ambient * base_rgb
     for i in range(ldir.shape[0]):
-        ndl = jnp.maximum(_dot3(ldir[i], n), 0.0)
-        ndh = jnp.maximum(_dot3(_unit3(ldir[i] + v), n), 0.0)
+        ndl = jnp.maximum(dot3(ldir[i], n), 0.0)
+        ndh = jnp.maximum(dot3(_unit3(ldir[i] + v), n), 0.0)
         spec = jnp.where(ndl > 0, ndh**shininess, 0.0)
         r = rad[i] if visible is None else rad[i] * visible[i]
         col = col + r * (base_rgb * ndl + specular * spec)

@@ -1,0 +1,86 @@
+"""The package's shape, checked from its source: one declared interface, one registry.
+
+* nothing asks a representation what it has (``hasattr``): the interface declares every member;
+* no representation's type name appears as a string outside its own folder and the registry
+  (the renderer, the benches and the CLI talk to the interface, so a new representation is a
+  folder and a registry line);
+* no module imports another folder's private module (``from ..frusta._scene import ...``);
+* every registered representation is a final subclass of the interface's base with its name.
+"""
+
+from __future__ import annotations
+
+import ast
+import io
+import tokenize
+from pathlib import Path
+
+from jskel import registry
+from jskel.interface import Representation
+
+PKG = Path(__file__).resolve().parent.parent / "jskel"
+
+
+def _sources():
+    return sorted(p for p in PKG.rglob("*.py"))
+
+
+def _folder(p: Path) -> str | None:
+    rel = p.relative_to(PKG).parts
+    return rel[0] if len(rel) > 1 else None
+
+
+def test_nothing_asks_a_representation_what_it_has():
+    found = []
+    for p in _sources():
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "hasattr":
+                found.append(f"{p.relative_to(PKG)}:{node.lineno}")
+    assert found == [], found
+
+
+def test_no_representation_is_named_outside_its_folder_and_the_registry():
+    names = set(registry.names())
+    found = []
+    for p in _sources():
+        if p.name == "registry.py" and _folder(p) is None:
+            continue
+        for tok in tokenize.tokenize(io.BytesIO(p.read_bytes()).readline):
+            if tok.type != tokenize.STRING:
+                continue
+            try:
+                v = ast.literal_eval(tok.string)
+            except (ValueError, SyntaxError):  # f-strings
+                continue
+            if isinstance(v, str) and v in names and _folder(p) != v:
+                found.append(f"{p.relative_to(PKG)}:{tok.start[0]}: {v!r}")
+    assert found == [], found
+
+
+def test_no_folder_imports_another_folders_private_module():
+    found = []
+    for p in _sources():
+        here = _folder(p)
+        for node in ast.walk(ast.parse(p.read_text())):
+            if not isinstance(node, ast.ImportFrom) or node.module is None:
+                continue
+            mod = node.module.split(".")
+            if node.level == 0 and mod[0] == "jskel":
+                mod = mod[1:]
+            elif node.level == 0:
+                continue
+            elif node.level == 1 and here is not None:  # a sibling module of the same folder
+                continue
+            target = mod[0] if mod else None
+            if any(part.startswith("_") and not part.startswith("__") for part in mod[1:]) and target != here:
+                found.append(f"{p.relative_to(PKG)}:{node.lineno}: from {'.' * node.level}{node.module}")
+    assert found == [], found
+
+
+def test_every_registered_representation_is_a_final_subclass_of_the_base():
+    for name in registry.names():
+        rep = registry.get(name)
+        assert isinstance(rep, Representation), name
+        assert rep.name == name
+        assert getattr(type(rep), "__final__", False), f"{name}: mark the class typing.final"
+        assert rep.Config.model_fields["type"].annotation.__args__ == (name,)
