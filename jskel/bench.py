@@ -32,7 +32,7 @@ class BenchFile(StrictModel):
     sweep: dict[str, list[Any]] | list[dict[str, Any]] | None = None  # a grid, or explicit settings
     reference: list[str] = []
     metric: str = "depth_rmse"
-    peer: Literal["embree_mesh", "marching_cubes", "skeleton"] | None = None
+    peer: Literal["embree_mesh", "embree_same_mesh", "marching_cubes", "skeleton"] | None = None
     peer_levels: list[Annotated[int, Field(ge=0, le=4096)]] = [0, 1, 2, 3, 4, 5]
     peer_match: dict[str, Any] | None = None
     # animated scenes (``peer: skeleton``): frames timed per frame with rebuild, for jskel and peers
@@ -130,6 +130,38 @@ def peer_embree_mesh(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: li
                "build_s": round(build_s, 4), "render_s_median": round(med, 4), "runs": runs, "rays": int(O.shape[0])}
         out.append(_score_peer(row, t, ref_hits, target))
     return out
+
+
+def peer_embree_same_mesh(bench: "BenchFile", exp, obj, ref_hits, runs: int, rows: list[dict]):
+    """Embree on the very triangles a mesh object casts (read, scaled and moved as its build
+    does) and the same world rays; ratios are jskel's warm cast (and render) median over
+    Embree's (above 1: jskel is slower)."""
+    import numpy as np
+
+    from .mesh import read_mesh
+    from .peers.skeleton import EmbreeMesh
+    from .render import camera_of
+
+    v, f, _ = read_mesh(obj.path)
+    v = v * obj.scale + np.asarray(obj.offset, np.float64)
+    O, D = camera_of(exp).ray_arrays()
+    em = EmbreeMesh(v, f)
+    casts = [em.cast(O, D) for _ in range(runs + 1)][1:]
+    med = _median([c[1] for c in casts])
+    t, ref_t = casts[0][0], np.asarray(ref_hits.t, np.float64)
+    a, b = np.isfinite(t), np.isfinite(ref_t)
+    row = {"peer": "embree", "scene": exp.name, "rays": int(O.shape[0]), "triangles": int(f.shape[0]), "build_s": round(em.build_s, 4),
+           "cast_s_median": med, "runs": runs, "mrays_per_s": round(O.shape[0] / med / 1e6, 3),
+           "hit_miss_vs_jskel_pct": round(float(100 * np.mean(a != b)), 4)}
+    if (a & b).any():
+        row["depth_max_rel_vs_jskel"] = float(np.max(np.abs(t[a & b] - ref_t[a & b]) / ref_t[a & b]))
+    jsk = rows[0] if rows else {}
+    if jsk.get("cast_s_median"):
+        row["jskel_cast_over_peer"] = round(jsk["cast_s_median"] / med, 2)
+        row["jskel_compile_s"] = jsk.get("compile_s")
+    if jsk.get("render_s_median"):
+        row["jskel_over_peer"] = round(jsk["render_s_median"] / med, 2)
+    return [row]
 
 
 def _median(xs):

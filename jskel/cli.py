@@ -203,9 +203,10 @@ def cmd_bench(args) -> int:
             print(json.dumps(row), flush=True)
             group_rows.append(row)
         if bench.peer is not None and ref_job is not None:
-            from .bench import peer_embree_mesh, peer_marching_cubes, peer_skeleton
+            from .bench import peer_embree_mesh, peer_embree_same_mesh, peer_marching_cubes, peer_skeleton
 
-            peer_fn = {"embree_mesh": peer_embree_mesh, "marching_cubes": peer_marching_cubes, "skeleton": peer_skeleton}[bench.peer]
+            peer_fn = {"embree_mesh": peer_embree_mesh, "embree_same_mesh": peer_embree_same_mesh, "marching_cubes": peer_marching_cubes,
+                       "skeleton": peer_skeleton}[bench.peer]
             for row in peer_fn(bench, *ref_job, ref_hits, runs, group_rows):
                 print(json.dumps(row), flush=True)
                 group_rows.append(row)

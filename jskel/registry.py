@@ -13,6 +13,7 @@ _ENTRIES = {
     "frusta": "jskel.frusta:REPRESENTATION",
     "implicit": "jskel.implicit:REPRESENTATION",
     "cells": "jskel.cells:REPRESENTATION",
+    "mesh": "jskel.mesh:REPRESENTATION",
 }
 
 

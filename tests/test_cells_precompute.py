@@ -146,7 +146,7 @@ def test_mesh_implicit_and_frusta_base_shapes_match_their_closed_forms(tmp_path,
     if kind == "mesh":
         path = tmp_path / "sphere.stl"
         trimesh.creation.icosphere(subdivisions=5, radius=1.0).export(path)
-        base = {"type": "mesh", "path": str(path), "voxels": 256}
+        base = {"type": "voxel_mesh", "path": str(path), "voxels": 256}
 
         def truth(p):
             return np.sum(p * p, 1) < 1.0

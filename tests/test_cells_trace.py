@@ -196,7 +196,7 @@ def test_modes_render_finite_colours_and_escaping_rays_see_the_environment(obj, 
         ("ior: -1.5", ["object.ior", "-1.5"]),
         ("tile_map: {type: file, path: TMP/flat.npy}", ["object.tile_map.path", "3D"]),
         ("tile_map: {type: file, path: TMP/float.npy}", ["object.tile_map.path", "integers"]),
-        ("base: {type: mesh, path: TMP/open.stl}", ["object.base.path", "not watertight"]),
+        ("base: {type: voxel_mesh, path: TMP/open.stl}", ["object.base.path", "not watertight"]),
     ],
     ids=["tiles", "step", "ior0", "ior_neg", "not_3d", "not_int", "open_mesh"],
 )

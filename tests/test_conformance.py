@@ -46,6 +46,11 @@ def _chain(n=20):
 
 
 def _examples(tmp):
+    sphere = tmp / "sphere.ply"
+    if not sphere.exists():
+        import trimesh
+
+        trimesh.creation.icosphere(subdivisions=2, radius=1.0).export(sphere)
     return {
         "frusta": {"type": "frusta", "skeleton": _chain()},
         "implicit": {"type": "implicit", "threshold": 0.5,
@@ -54,6 +59,7 @@ def _examples(tmp):
         "cells": {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45},
                   "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "tiles": 4,
                   "steps_per_tile": 64, "bisection": 8, "cache": str(tmp / "cache")},
+        "mesh": {"type": "mesh", "path": str(sphere), "normals": "smooth"},
     }
 
 

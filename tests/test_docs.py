@@ -9,7 +9,10 @@ import re
 
 import pytest
 
-PACKAGES = ["jskel", "jskel.frusta", "jskel.implicit", "jskel.cells", "jskel.accel", "jskel.render", "jskel.fit"]
+from jskel import registry
+
+# the core packages, and every registered representation's folder
+PACKAGES = list(dict.fromkeys(["jskel", "jskel.accel", "jskel.render", "jskel.fit"] + [f"jskel.{n}" for n in registry.names()]))
 
 
 def own_doc(obj) -> str:

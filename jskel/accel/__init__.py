@@ -9,6 +9,8 @@ from ._bins import first_set as first_set
 from ._bins import nearest_binned as nearest_binned
 from ._bins import pack_bits as pack_bits
 from ._bins import packet_meets as packet_meets
+from ._groups import map_groups as map_groups
+from ._groups import pad_groups as pad_groups
 from ._lbvh import BVH as BVH
 from ._lbvh import Best as Best
 from ._lbvh import build as build
@@ -21,4 +23,4 @@ from ._lbvh import nearest as nearest
 from ._lbvh import nearest_packet as nearest_packet
 from ._lbvh import ray_box as ray_box
 
-__all__ = ["BVH", "Best", "always", "build", "collect", "descend", "escape", "fenced", "first_set", "leaves_for", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "pack_bits", "packet_meets", "ray_box"]
+__all__ = ["BVH", "Best", "always", "build", "collect", "descend", "escape", "fenced", "first_set", "leaves_for", "map_groups", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "pack_bits", "packet_meets", "pad_groups", "ray_box"]

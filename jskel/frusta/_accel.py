@@ -14,7 +14,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..accel import BVH, Best, build, nearest, nearest_binned, nearest_packet
+from ..accel import BVH, Best, build, map_groups, nearest, nearest_binned, nearest_packet
 from ..numerics import dot3
 from ._intersect import SIDE, FrustaParams, _segment_t, recentre
 
@@ -119,17 +119,6 @@ def nearest_bvh(f: FrustaParams, fb: FrustaBVH, leaf: int, o, d, t_min, t_max):
     return best.t, best.s, best.code, best.idx, visits, leaves
 
 
-def _pad_groups(arrays, g: int):
-    """Arrays (N, ...) padded by repeating the last row to a multiple of g, as (N/g, g, ...)."""
-    n = arrays[0].shape[0]
-    pad = (-n) % g
-
-    def padded(x):
-        return jnp.concatenate([x, jnp.broadcast_to(x[-1:], (pad,) + x.shape[1:])]) if pad else x
-
-    return [padded(a).reshape((-1, g) + a.shape[1:]) for a in arrays]
-
-
 def nearest_packets(f: FrustaParams, fb: FrustaBVH, leaf: int, packet: int, origins, directions, t_min, t_max):
     """(t, s, code, idx, iterations) of a batch in packets of ``packet`` consecutive rays, each
     packet one traversal (``accel.nearest_packet``; ``lax.map`` over packets). Consecutive rays
@@ -143,18 +132,15 @@ def nearest_packets(f: FrustaParams, fb: FrustaBVH, leaf: int, packet: int, orig
         best, it = nearest_packet(fb.tree, leaf_fn, leaf, *xs, _init(origins.dtype))
         return best.t, best.s, best.code, best.idx, jnp.broadcast_to(it, best.t.shape)
 
-    out = jax.lax.map(one, tuple(_pad_groups([origins, directions, t_min, t_max], g)))
-    return tuple(x.reshape((-1,) + x.shape[2:])[:n] for x in out)
+    return map_groups(lambda *xs: one(xs), g, origins, directions, t_min, t_max)
 
 
 def nearest_groups(f: FrustaParams, bvh, leaf: int, group: int, origins, directions, t_min, t_max):
     """:func:`nearest_bvh` over a batch in groups of ``group`` rays (``lax.map`` over groups,
     vmap within one): a vmapped while loop runs until its slowest ray ends, so small groups of
     coherent rays waste the fewest lanes."""
-    n = origins.shape[0]
     one = jax.vmap(lambda o, d, a, b: nearest_bvh(f, bvh, leaf, o, d, a, b))
-    out = jax.lax.map(lambda xs: one(*xs), tuple(_pad_groups([origins, directions, t_min, t_max], min(group, n))))
-    return tuple(x.reshape((-1,) + x.shape[2:])[:n] for x in out)
+    return map_groups(one, group, origins, directions, t_min, t_max)
 
 
 def bin_groups(tree: BVH, per: int):

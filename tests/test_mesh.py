@@ -1,0 +1,256 @@
+"""Triangle meshes (``type: mesh``) against a float64 NumPy ray-triangle test written here, on
+meshes trimesh generates and writes (PLY, OBJ, STL); closed meshes lose no ray through shared
+edges and vertices; the winding-number ``inside``; bad files; a mesh as a cell object's base."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+import trimesh
+
+from jskel import cells, mesh
+from jskel.rays import make_rays, map_chunks
+
+N = 4096
+
+
+def _brute_f64(tri, O, D):
+    """Nearest (t, face) of every ray over every triangle, float64 Möller-Trumbore written
+    independently of ``jskel.mesh``; its edge tests are widened by 1e-9 (exact ones miss rays
+    through a shared vertex on every triangle around it, even in float64)."""
+    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    t_best = np.full(len(O), np.inf)
+    f_best = np.full(len(O), -1)
+    for lo in range(0, len(O), 256):
+        o, d = O[lo:lo + 256, None, :], D[lo:lo + 256, None, :]
+        p = np.cross(d, e2)
+        det = np.sum(e1 * p, -1)
+        inv = 1.0 / np.where(det == 0, 1.0, det)
+        s = o - v0
+        u = np.sum(s * p, -1) * inv
+        q = np.cross(s, e1)
+        v = np.sum(d * q, -1) * inv
+        t = np.sum(e2 * q, -1) * inv
+        ok = (det != 0) & (u >= -1e-9) & (v >= -1e-9) & (u + v <= 1 + 1e-9) & (t > 0)
+        t = np.where(ok, t, np.inf)
+        t_best[lo:lo + 256] = t.min(1)
+        f_best[lo:lo + 256] = np.where(np.isfinite(t.min(1)), t.argmin(1), -1)
+    return t_best, f_best
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("mesh")
+    m = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    out = {}
+    for ext in ("ply", "obj", "stl"):
+        p = tmp / f"sphere.{ext}"
+        m.export(p)
+        out[ext] = str(p)
+    return m, out
+
+
+def _cfg(path, **kw):
+    return mesh.MeshConfig.model_validate({"type": "mesh", "path": path, **kw})
+
+
+_FNS: dict = {}
+
+
+def _cast(built, O, D):
+    if built.static not in _FNS:
+        _FNS[built.static] = lambda p, r, st=built.static: mesh.intersect_batch(p, st, r)
+    return map_chunks(_FNS[built.static], built.params, make_rays(O - built.anchor, D), chunk=N, progress=False).out
+
+
+def test_every_format_reads_the_same_triangles(files):
+    m, paths = files
+    want = np.sort(m.vertices[m.faces].reshape(-1, 9), axis=0)
+    for ext, p in paths.items():
+        v, f, _ = mesh.read_mesh(p)
+        got = np.sort(v[f].reshape(-1, 9), axis=0)
+        np.testing.assert_allclose(got, want, atol=1e-6, err_msg=ext)
+
+
+def test_hits_match_a_float64_brute_force_and_the_closed_mesh_loses_no_ray(files):
+    m, paths = files
+    built = mesh.build(_cfg(paths["ply"], offset=(3.0, -2.0, 5.0), scale=1.5))
+    tri = (m.vertices * 1.5 + [3.0, -2.0, 5.0])[m.faces]
+    rng = np.random.default_rng(0)
+    c = np.array([3.0, -2.0, 5.0])
+    u = rng.normal(size=(N, 3))
+    O = c + 6.0 * u / np.linalg.norm(u, axis=1, keepdims=True)
+    # aims: random points in the box, every vertex and every edge's midpoint (shared edges)
+    v_world = m.vertices * 1.5 + [3.0, -2.0, 5.0]
+    verts = v_world
+    mids = 0.5 * (v_world[m.edges_unique[:, 0]] + v_world[m.edges_unique[:, 1]])
+    aims = np.concatenate([verts, mids])
+    aims = np.concatenate([aims, c + rng.uniform(-1.6, 1.6, (N - len(aims), 3))])[:N]
+    D = aims - O
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    h = _cast(built, O, D)
+    t_ref, f_ref = _brute_f64(tri, O, D)
+    # rays through a vertex or an edge midpoint whose line passes inside the faceted sphere's
+    # inscribed sphere must hit (the mesh is closed); grazing ones may round either way
+    n_f = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    inscribed = np.min(np.abs(np.sum(n_f / np.linalg.norm(n_f, axis=1, keepdims=True) * (tri[:, 0] - c), 1)))
+    oc = c - O
+    line = np.linalg.norm(oc - np.sum(oc * D, 1)[:, None] * D, axis=1)
+    aimed = np.arange(N) < len(verts) + len(mids)
+    through = aimed & (line < 0.999 * inscribed)
+    graze = aimed & ~through  # aimed at a silhouette vertex or edge: float32 rounds them either way
+    assert through.sum() > 1500
+    got = np.isfinite(h.t)
+    assert np.all(got[through]), f"{np.sum(~got[through])} rays through shared vertices or edges lost"
+    ref = np.isfinite(t_ref)
+    assert np.all(ref[through])
+    assert np.mean((got != ref)[~graze]) < 1e-3  # elsewhere only chance grazes may differ
+    both = got & ref
+    np.testing.assert_allclose(h.t[both], t_ref[both], rtol=2e-6 * 8, atol=0)
+    rand = both & ~aimed  # rays aimed at shared vertices and edges may take any face around them
+    assert np.mean(h.prim[rand] == f_ref[rand]) > 0.99
+    world = h.position[both] + built.anchor
+    np.testing.assert_allclose(np.linalg.norm(world - c, axis=1), 1.5, rtol=2e-2)  # on the (faceted) sphere
+    n_ref = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n_ref /= np.linalg.norm(n_ref, axis=1, keepdims=True)
+    same = h.prim[both] == f_ref[both]
+    np.testing.assert_allclose(h.normal[both][same], n_ref[f_ref[both][same]], atol=1e-5)
+    assert np.all(np.sum(h.normal[both] * (world - c), 1) > 0)  # outward, as trimesh winds the faces
+
+
+def test_smooth_normals_interpolate_the_vertex_normals(files):
+    m, paths = files
+    built = mesh.build(_cfg(paths["ply"], normals="smooth"))
+    rng = np.random.default_rng(1)
+    O = rng.normal(size=(N, 3))
+    O = 5.0 * O / np.linalg.norm(O, axis=1, keepdims=True)
+    D = rng.uniform(-0.5, 0.5, (N, 3)) - O
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    h = _cast(built, O, D)
+    hit = np.isfinite(h.t)
+    p = h.position[hit] + built.anchor
+    # an icosphere's vertex normals are its radial directions: the interpolated normal is the
+    # hit's radial direction to within the facet's curvature
+    radial = p / np.linalg.norm(p, axis=1, keepdims=True)
+    assert np.max(np.linalg.norm(h.normal[hit] - radial, axis=1)) < 0.05
+    np.testing.assert_allclose(np.linalg.norm(h.normal[hit], axis=1), 1.0, atol=1e-5)
+
+
+def test_inside_is_the_winding_number_exact_when_closed_fractional_when_open(files, tmp_path):
+    m, paths = files
+    built = mesh.build(_cfg(paths["obj"]))
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(2000, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    r = rng.uniform(0.0, 2.0, (2000, 1))
+    keep = np.abs(r[:, 0] - 1.0) > 0.06  # away from the faceted surface
+    pts = (x * r)[keep]
+    w = np.asarray(jax.jit(jax.vmap(lambda q: mesh.winding_number(built.params, q)))(pts - built.anchor))
+    inside = np.linalg.norm(pts, axis=1) < 1.0
+    np.testing.assert_allclose(w[inside], 1.0, atol=1e-3)
+    np.testing.assert_allclose(w[~inside], 0.0, atol=1e-3)
+    got = np.asarray(jax.jit(jax.vmap(lambda q: mesh.inside(built.params, built.static, q)))(pts - built.anchor))
+    np.testing.assert_array_equal(got, inside)
+    # the upper half alone: at the centre the open hemisphere subtends half the sphere's solid angle
+    half = m.copy()
+    half.update_faces(half.triangles_center[:, 1] > 0)
+    p = tmp_path / "half.ply"
+    half.export(p)
+    hb = mesh.build(_cfg(str(p)))
+    assert hb.info["watertight"] is False and built.info["watertight"] is True
+    w0 = float(mesh.winding_number(hb.params, np.zeros(3, np.float32) - hb.anchor.astype(np.float32)))
+    assert abs(w0 - 0.5) < 0.02
+
+
+def test_a_bad_mesh_file_is_one_value_error_listing_every_problem(tmp_path):
+    with pytest.raises(ValueError, match=r"object\.path: no file '.*nothing\.obj'"):
+        mesh.build(_cfg(str(tmp_path / "nothing.obj")))
+    bad = tmp_path / "bad.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv nan 0 1\nf 1 2 3\nf 1 2 4\n")
+    with pytest.raises(ValueError) as e:
+        mesh.build(_cfg(str(bad)))
+    lines = str(e.value).splitlines()
+    assert any("object.path" in s and "vertex 3" in s and "non-finite" in s for s in lines), lines
+    empty = tmp_path / "empty.obj"
+    empty.write_text("v 0 0 0\n")
+    with pytest.raises(ValueError, match="holds no triangles"):
+        mesh.build(_cfg(str(empty)))
+
+
+def test_a_mesh_is_a_cell_objects_base_shape(files, tmp_path):
+    """The icosphere through its winding number, and the analytic sphere, as the cells' base
+    shape: the same memberships but where the facets cut a cell differently."""
+    _, paths = files
+    common = {"type": "cells", "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "tiles": 4,
+              "cache": str(tmp_path / "cache")}
+    a = cells.precompute(cells.CellsConfig.model_validate({**common, "base": {"type": "object", "object": {"type": "mesh", "path": paths["ply"]}}}))
+    b = cells.precompute(cells.CellsConfig.model_validate({**common, "base": {"type": "sphere", "radius": 1.0}}))
+    assert a.split.shape == b.split.shape
+    ma, mb = a.info, b.info
+    assert abs(ma["inside_split_cells"] - mb["inside_split_cells"]) <= 0.05 * mb["inside_split_cells"]
+
+
+def test_a_mesh_mirror_in_a_scene_reflects_and_shadows_the_other_objects(tmp_path):
+    """A mirror box mesh (trimesh) beside a metaball, a directional light casting shadows.
+    Truth in closed form: the box's depth by the slab test, the reflected ray's sphere hit and
+    the shadow ray's sphere hit, each decided only where every test is clear of its boundary."""
+    import copy
+
+    from jskel.config import validate
+    from jskel.render import render
+
+    box = trimesh.creation.box(extents=(2.0, 2.0, 0.4))  # centred at the origin: the mirror's face is z = 0.2
+    p = tmp_path / "box.stl"
+    box.export(p)
+    T, R, C = 0.5, 0.8, np.array([-0.9, 0.0, 1.0])
+    rs = R * np.sqrt(1.0 - np.sqrt(T))  # the lone metaball's surface: a sphere
+    L = np.array([0.0, 0.0, 1.0])  # light from +z: the ball shadows the mirror's face
+    cam = {"eye": [3.0, 0.5, 5.0], "target": [0.0, 0.0, 0.0], "up": [0, 1, 0], "fov_deg": 40.0, "width": 64, "height": 48}
+    raw = {"objects": [{"shape": {"type": "mesh", "path": str(p)}, "material": {"reflectivity": 0.9}},
+                       {"shape": {"type": "implicit", "threshold": T, "balls": [{"center": C.tolist(), "radius": R}]}}],
+           "camera": cam, "lights": [{"direction": L.tolist(), "shadows": True}], "render": {"bounces": 1}}
+    exp, shapes = validate(copy.deepcopy(raw))
+    res = render(exp, shapes, progress=False)
+    # the camera's pixel-centre rays, written out
+    eye = np.array(cam["eye"])
+    f = -eye / np.linalg.norm(eye)
+    right = np.cross(f, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, f)
+    th = np.tan(np.radians(20.0))
+    xs = ((np.arange(64) + 0.5) / 64 * 2 - 1) * th * 64 / 48
+    ys = (1 - (np.arange(48) + 0.5) / 48 * 2) * th
+    px, py = np.meshgrid(xs, ys)
+    d = f + px.reshape(-1, 1) * right + py.reshape(-1, 1) * up
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+
+    def sphere(o, dd):
+        oc = o - C
+        b = np.sum(oc * dd, -1)
+        q = np.sum(oc * oc, -1) - b * b
+        s = np.sqrt(np.maximum(rs * rs - q, 0))
+        t = np.where(q < rs * rs, -b - s, np.inf)
+        return np.where(t > 0, t, np.inf), np.sqrt(np.maximum(q, 0))
+
+    t_ball, q_ball = sphere(eye, d)
+    t_face = (0.2 - eye[2]) / d[:, 2]
+    hit = eye + t_face[:, None] * d
+    on_face = (np.abs(hit[:, 0]) < 0.95) & (np.abs(hit[:, 1]) < 0.95) & ~(q_ball < rs + 0.05)  # the face, not behind the ball
+    assert on_face.sum() > 300
+    np.testing.assert_allclose(res.hits.t[on_face], t_face[on_face], rtol=1e-5)
+    assert np.all(res.aovs["obj"][on_face] == 0)
+    # mirrored rays: the ball where the reflected ray meets it clearly, nothing where it clearly misses
+    r = d * np.array([1.0, 1.0, -1.0])
+    tr, qr = sphere(hit, r)
+    sees = on_face & (qr < rs - 0.05)
+    misses = on_face & (qr > rs + 0.05)
+    assert sees.sum() > 20 and misses.sum() > 100
+    assert np.all(res.aovs["reflect_obj"][sees] == 1)
+    assert np.all(res.aovs["reflect_obj"][misses] == -1)
+    # shadows: the face point's ray to the light crosses the ball, or clearly does not
+    ts, qs = sphere(hit, np.broadcast_to(L, hit.shape))
+    dark = on_face & (qs < rs - 0.05)
+    lit = on_face & (qs > rs + 0.05)
+    assert dark.sum() > 20 and lit.sum() > 100
+    assert np.all(res.aovs["visibility"][dark, 0] == 0) and np.all(res.aovs["visibility"][lit, 0] == 1)
