@@ -155,10 +155,9 @@ def peer_embree_same_mesh(bench: "BenchFile", exp, obj, ref_hits, runs: int, row
            "hit_miss_vs_jskel_pct": round(float(100 * np.mean(a != b)), 4)}
     if (a & b).any():
         row["depth_max_rel_vs_jskel"] = float(np.max(np.abs(t[a & b] - ref_t[a & b]) / ref_t[a & b]))
-    jsk = rows[0] if rows else {}
+    jsk = rows[0] if rows else {}  # the first setting's row
     if jsk.get("cast_s_median"):
         row["jskel_cast_over_peer"] = round(jsk["cast_s_median"] / med, 2)
-        row["jskel_compile_s"] = jsk.get("compile_s")
     if jsk.get("render_s_median"):
         row["jskel_over_peer"] = round(jsk["render_s_median"] / med, 2)
     return [row]

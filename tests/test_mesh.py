@@ -254,3 +254,24 @@ def test_a_mesh_mirror_in_a_scene_reflects_and_shadows_the_other_objects(tmp_pat
     lit = on_face & (qs > rs + 0.05)
     assert dark.sum() > 20 and lit.sum() > 100
     assert np.all(res.aovs["visibility"][dark, 0] == 0) and np.all(res.aovs["visibility"][lit, 0] == 1)
+
+
+def test_packets_and_per_ray_walks_give_the_brute_force_hits(files):
+    """Both traversals against ``intersect_one`` (every triangle for every ray) on incoherent
+    rays: the same hits and misses, t within float rounding (the programs round the same test
+    apart by an ulp), the same triangle but for ties."""
+    _, paths = files
+    rng = np.random.default_rng(5)
+    O = rng.normal(size=(N, 3)) * 2.0
+    D = rng.uniform(-1.5, 1.5, (N, 3)) - O  # towards random points about the sphere, from anywhere (inside too)
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    hits = [_cast(mesh.build(_cfg(paths["ply"], traversal=kind)), O, D) for kind in ("packets", "walks")]
+    b = mesh.build(_cfg(paths["ply"]))
+    one = jax.jit(jax.vmap(lambda o, d, a, c: mesh.intersect_one(b.params, b.static, o, d, a, c)))
+    ref = one(*make_rays(O - b.anchor, D))
+    assert 0.2 < np.mean(np.isfinite(ref.t)) < 0.9
+    for h in hits:
+        np.testing.assert_array_equal(np.isfinite(h.t), np.isfinite(np.asarray(ref.t)))
+        hit = np.isfinite(h.t)
+        np.testing.assert_allclose(h.t[hit], np.asarray(ref.t)[hit], rtol=1e-6, atol=0)
+        assert np.mean(h.prim == np.asarray(ref.prim)) > 0.999

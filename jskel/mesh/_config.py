@@ -15,7 +15,10 @@ class MeshConfig(StrictModel):
 
     ``normals``: ``flat`` shades with each face's normal, ``smooth`` with the vertex normals
     trimesh gives (area-weighted), interpolated by the hit's barycentric coordinates.
-    ``leaf``: triangles per BVH leaf; ``group``: rays per vmapped group of the traversal."""
+    ``traversal``: ``packets`` (default) walks the BVH once for each packet of ``packet``
+    consecutive rays (coherent camera rays in screen tiles share a walk; ``accel.nearest_packet``),
+    ``walks`` walks it once per ray in vmapped groups of ``group`` rays (better for incoherent
+    rays). ``leaf``: triangles per BVH leaf."""
 
     type: Literal["mesh"]
     path: str
@@ -24,4 +27,6 @@ class MeshConfig(StrictModel):
     color: RGB = (0.7, 0.7, 0.72)
     normals: Literal["flat", "smooth"] = "flat"
     leaf: Annotated[int, Field(ge=1, le=64)] = 4
+    traversal: Literal["packets", "walks"] = "packets"
+    packet: Annotated[int, Field(ge=1, le=65536)] = 64
     group: Annotated[int, Field(ge=1, le=65536)] = 64

@@ -51,6 +51,7 @@ class Static(NamedTuple):
     group: int
     smooth: bool
     closed: bool = False
+    packet: int = 0  # rays per shared walk (0: per-ray walks in groups of ``group``)
 
 
 def read_mesh(path: str, where: str = "object.path") -> tuple[np.ndarray, np.ndarray, object]:
@@ -122,7 +123,7 @@ def build(cfg: MeshConfig, dtype=np.float32) -> Built:
                         jnp.asarray(np.asarray(cfg.color, np.float64), dtype), bvh)
     info = {"triangles": int(f.shape[0]), "vertices": int(v.shape[0]), "watertight": bool(m.is_watertight), "closed": closed,
             "degenerate_triangles": int(np.sum(area2 == 0))}
-    return Built(params, Static(cfg.leaf, cfg.group, cfg.normals == "smooth", closed), anchor, (lo, hi), info, primitives=int(f.shape[0]))
+    return Built(params, Static(cfg.leaf, cfg.group, cfg.normals == "smooth", closed, cfg.packet if cfg.traversal == "packets" else 0), anchor, (lo, hi), info, primitives=int(f.shape[0]))
 
 
 def _leaf_best(p: MeshParams, slots, o, d, t_min, t_hi):
@@ -141,10 +142,21 @@ def _nearest_one(p: MeshParams, static: Static, o, d, t_min, t_max):
     return jnp.where(best.idx >= 0, best.t, jnp.inf), best.idx  # the walk starts its best t at t_max
 
 
+def _nearest_packet(p: MeshParams, static: Static, o, d, t_min, t_max):
+    leaf_fn = jax.vmap(lambda slots, o_, d_, a_, b_: _leaf_best(p, slots, o_, d_, a_, b_), in_axes=(None, 0, 0, 0, 0))
+    init = accel.Best(jnp.asarray(jnp.inf, o.dtype), jnp.zeros((), o.dtype), jnp.int32(0), jnp.int32(-1))
+    best, _ = accel.nearest_packet(p.bvh, leaf_fn, static.leaf, o, d, t_min, t_max, init)
+    return jnp.where(best.idx >= 0, best.t, jnp.inf), best.idx
+
+
 def cast(p: MeshParams, static: Static, rays: Rays) -> Preliminary:
-    """First stage: (t, triangle) of every ray through the BVH, in vmapped groups of
-    ``static.group`` rays (``accel.map_groups``)."""
-    t, idx = accel.map_groups(jax.vmap(lambda o, d, a, b: _nearest_one(p, static, o, d, a, b)), static.group, *rays)
+    """First stage: (t, triangle) of every ray through the BVH: one walk per packet of
+    ``static.packet`` consecutive rays, or per ray in vmapped groups of ``static.group``
+    (``accel.map_groups``); both give the nearest hit of each ray."""
+    if static.packet > 0:
+        t, idx = accel.map_groups(lambda *r: _nearest_packet(p, static, *r), static.packet, *rays)
+    else:
+        t, idx = accel.map_groups(jax.vmap(lambda o, d, a, b: _nearest_one(p, static, o, d, a, b)), static.group, *rays)
     return Preliminary(t, jnp.where(jnp.isfinite(t), idx, -1).astype(jnp.int32), None)
 
 
