@@ -7,10 +7,10 @@ from .config import ConfigError as ConfigError
 from .config import load as load
 from .devices import use_host_devices as use_host_devices
 from .interface import Built as Built
-from .rays import Camera as Camera
+from .camera import Camera as Camera
 from .rays import Hit as Hit
 from .rays import Rays as Rays
 from .rays import make_rays as make_rays
-from .rays import map_chunks as map_chunks
+from .executor import map_chunks as map_chunks
 
 __all__ = ["Built", "Camera", "ConfigError", "Hit", "Rays", "load", "make_rays", "map_chunks", "use_host_devices"]

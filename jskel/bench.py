@@ -395,7 +395,7 @@ def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
     import jax
 
     from . import registry
-    from .rays import map_chunks
+    from .executor import map_chunks
     from .render import camera_of, devices_of, dtype_of
 
     dtype = dtype_of(exp)
@@ -419,8 +419,8 @@ def _on_accelerator() -> bool:
 
 
 def _ray_mesh_of(exp):
-    """The ray mesh ``rays.map_chunks`` uses for ``render.devices`` (None: one device)."""
-    from .rays import ray_mesh
+    """The ray mesh ``executor.map_chunks`` uses for ``render.devices`` (None: one device)."""
+    from .executor import ray_mesh
     from .render import devices_of
 
     devices = devices_of(exp)
@@ -430,12 +430,13 @@ def _ray_mesh_of(exp):
 def resident_rays(exp, built) -> list:
     """The camera's rays for ``built`` in screen-tile order, cut into the chunks a render uses
     (``render.chunk``, times the devices of ``render.devices``; the last padded by repeating its
-    last ray, as ``rays.map_chunks`` pads), each placed on the device(s) ahead of a cast: a list
+    last ray, as ``executor.map_chunks`` pads), each placed on the device(s) ahead of a cast: a list
     of device ``Rays`` for :func:`cast_resident`."""
     import jax
     import numpy as np
 
-    from .rays import Rays, _pad_to
+    from .rays import Rays
+    from .executor import _pad_to
     from .render import camera_of, dtype_of
 
     rays = camera_of(exp).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
@@ -458,7 +459,7 @@ def cast_resident(exp, obj, built, chunks) -> tuple[float, list]:
     a 1024x768 cast (README, performance)."""
     import jax
 
-    from .rays import compile_batch_fn
+    from .executor import compile_batch_fn
 
     mesh = _ray_mesh_of(exp)
     params = built.params

@@ -157,11 +157,11 @@ class RenderConfig(StrictModel):
     """How rays are evaluated: rays per compiled call, screen tile order, precision, progress bar.
 
     Rays are ordered in ``tile`` x ``tile`` screen tiles so a chunk of ``chunk = tile**2`` rays
-    covers one compact tile (see ``jskel.rays.tile_order``). ``devices``: ``all`` shards the
+    covers one compact tile (see ``jskel.camera.tile_order``). ``devices``: ``all`` shards the
     rays over every local device (``chunk`` rays per device per call; the image is the same bit
     for bit as on one device), ``one`` or a count. ``memory_mb``: a budget (MiB per device) for
     one compiled call; ``chunk`` is then an upper bound, halved until XLA's memory analysis of
-    the call (arguments, outputs, temporaries) fits (``jskel.rays.chunk_for_budget``).
+    the call (arguments, outputs, temporaries) fits (``jskel.executor.chunk_for_budget``).
     ``chunks_per_call``: batches of at least that many chunks run that many chunks per compiled
     call (a ``lax.map``; each chunk computed as alone, the host's per-call work saved); not with
     ``memory_mb``.

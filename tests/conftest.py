@@ -18,7 +18,8 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from jskel import frusta  # noqa: E402
-from jskel.rays import make_rays, map_chunks  # noqa: E402
+from jskel.rays import make_rays  # noqa: E402
+from jskel.executor import map_chunks  # noqa: E402
 
 CHUNK = 8192
 

@@ -146,7 +146,7 @@ def test_bvh_equals_brute_force_on_the_lsystem_tree(traversal):
     """The 4,374-segment tree at 64 x 48 in screen-tile order; bins within float rounding (see
     test_bins_equal_brute_force_on_random_skeletons), the BVH packets bit for bit."""
     from jskel.config import load
-    from jskel.rays import tile_order
+    from jskel.camera import tile_order
 
     exp, obj = load("experiments/lsystem_tree.yaml", ["camera.width=64", "camera.height=48"])
     brute = frusta.build(obj.model_copy(update={"accel": "none"}))
@@ -205,7 +205,7 @@ def test_bvh_equals_block_culling_on_the_large_scenes(scene, frame, traversal):
     frame's frusta), at low resolution in screen-tile order: the same t and ids as the block
     scan (bins: within float rounding, see test_bins_equal_brute_force_on_random_skeletons)."""
     from jskel.config import load
-    from jskel.rays import tile_order
+    from jskel.camera import tile_order
     from jskel.render import camera_of
 
     exp, obj = load(f"experiments/{scene}.yaml", ["camera.width=48", "camera.height=36", f"object.frame={frame}", f"object.traversal={traversal}"])
@@ -311,7 +311,7 @@ def test_bins_equal_brute_force_on_random_skeletons(skeletons, sizes):
     different products into FMAs, so t may differ by float rounding (the bench's largest depth
     difference on the cacti at 1024 x 768: 4e-5 at about 16 units, 2.5e-6 relative; the bound
     here is 2e-5 relative); hits, misses and segments agree."""
-    from jskel.rays import Camera, tile_order
+    from jskel.camera import Camera, tile_order
 
     rng = np.random.default_rng(8)
     packet, cands, pairs, group, ratio = sizes

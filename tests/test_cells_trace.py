@@ -12,7 +12,8 @@ import reference as ref
 from jskel import cells, cli, rays
 from jskel.cells._membership import INSIDE, unpack
 from jskel.cells._trace import first_hit, reflect, refract
-from jskel.rays import make_rays, map_chunks
+from jskel.rays import make_rays
+from jskel.executor import map_chunks
 
 N_RAYS = 1000
 

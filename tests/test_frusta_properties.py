@@ -8,7 +8,8 @@ import numpy as np
 import reference as ref
 from conftest import build_skeleton, cast
 from jskel import frusta
-from jskel.rays import make_rays, map_chunks
+from jskel.rays import make_rays
+from jskel.executor import map_chunks
 from test_frusta_random import CASES, _bounds
 
 

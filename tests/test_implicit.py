@@ -8,7 +8,8 @@ import pytest
 import implicit_reference as iref
 import reference as ref
 from jskel import implicit
-from jskel.rays import make_rays, map_chunks
+from jskel.rays import make_rays
+from jskel.executor import map_chunks
 
 # a small model: 4 balls, a constant and a tapering tube
 BALLS = [((0.0, 0.0, 0.0), 1.0), ((0.9, 0.3, 0.0), 0.8), ((-0.8, 0.2, 0.4), 0.7), ((0.2, 1.0, -0.3), 0.6)]

@@ -12,7 +12,8 @@ import pytest
 import reference as ref
 from jskel import implicit
 from jskel.implicit._trace import cull, influence_tree
-from jskel.rays import make_rays, map_chunks
+from jskel.rays import make_rays
+from jskel.executor import map_chunks
 
 N_RAYS = 4096
 

@@ -10,7 +10,8 @@ import pytest
 import trimesh
 
 from jskel import cells, mesh
-from jskel.rays import make_rays, map_chunks
+from jskel.rays import make_rays
+from jskel.executor import map_chunks
 
 N = 4096
 

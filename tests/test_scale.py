@@ -146,7 +146,8 @@ def test_memory_budget_shrinks_the_chunk_and_keeps_the_image():
 def test_a_budget_below_the_scene_is_an_error_naming_the_key():
     import jax.numpy as jnp
 
-    from jskel.rays import chunk_for_budget, make_rays
+    from jskel.rays import make_rays
+    from jskel.executor import chunk_for_budget
 
     params = jnp.zeros((1 << 19,), jnp.float32)  # 2 MiB that no chunk size can shed
     rays = make_rays(np.zeros((64, 3)), np.tile([0.0, 0.0, 1.0], (64, 1)))
@@ -186,7 +187,7 @@ def test_bench_cost_against_size_writes_rows_with_traversal_counts_and_a_plot(tm
 
 
 def test_tile_order_lists_tiles_and_squares_within_them():
-    from jskel.rays import tile_order
+    from jskel.camera import tile_order
 
     w, h, tile = 70, 40, 16  # partial tiles on the right and bottom edges
     order = tile_order(w, h, tile)
@@ -207,7 +208,7 @@ def test_tiled_rays_are_the_camera_rays_permuted_and_the_inverse_undoes_the_orde
     """``Camera.tiled_rays`` (cached directions, broadcast origin) equals the camera's rays
     permuted by ``tile_order``, value for value, for two anchors (the cache keys on the camera
     only); ``tile_inverse`` puts tile-ordered values back in row-major order."""
-    from jskel.rays import Camera, permute, tile_inverse, tile_order
+    from jskel.camera import Camera, permute, tile_inverse, tile_order
 
     cam = Camera(np.array([1.0, 2.0, 9.0]), np.array([0.2, 0.5, 0.0]), np.array([0.0, 1.0, 0.0]), 35.0, 70, 40)
     order = tile_order(70, 40, 16)
@@ -225,7 +226,7 @@ def test_packets_share_short_walks_on_coherent_rays_and_equal_per_ray_walks():
     """Packets of 256 camera rays in 16 x 16 squares: the same t and ids as per-ray walks, and
     the shared loop runs far fewer steps than 256 separate walks would (what makes it pay)."""
     from jskel.config import load
-    from jskel.rays import permute, tile_order
+    from jskel.camera import permute, tile_order
     from jskel.render import camera_of
 
     exp, obj = load("experiments/dancing_cacti.yaml", ["camera.width=64", "camera.height=48", "object.traversal=packets"])
@@ -253,7 +254,8 @@ def test_chunks_per_call_equal_one_chunk_per_call(rng):
     of a random tree, 20 chunks of 512 rays run as 3 calls of 7 (the last call padded)."""
     from conftest import batch_fn
 
-    from jskel.rays import calls_grouping, make_rays, map_chunks
+    from jskel.rays import make_rays
+    from jskel.executor import calls_grouping, map_chunks
 
     assert [calls_grouping(n, 16) for n in (1, 7, 8, 15, 16, 17, 75, 192)] == [1, 1, 8, 15, 16, 9, 15, 16]
     assert calls_grouping(96, 64) == 48 and calls_grouping(37, 64) == 37
@@ -285,7 +287,7 @@ def test_resident_cast_gives_the_render_hits_in_tile_order():
     from jskel import registry
     from jskel.bench import cast_resident, resident_rays
     from jskel.config import load
-    from jskel.rays import tile_inverse
+    from jskel.camera import tile_inverse
     from jskel.render import render
 
     exp, obj = load("experiments/saguaro.yaml", ["camera.width=64", "camera.height=48", "render.chunk=2048", "render.progress=false"])

@@ -3,7 +3,7 @@ of (packet, primitive) pairs (issue 6).
 
 Bhagvat et al. (2009, Sec. 2.6) never walk a hierarchy per ray: each frustum's bounding pyramid
 is rasterised and the fragment shader casts only the rays under it. ``nearest_binned`` is that
-idea for any batch of rays, in the order ``jskel.rays.tile_order`` gives them (consecutive rays
+idea for any batch of rays, in the order ``jskel.camera.tile_order`` gives them (consecutive rays
 close on screen):
 
 1. the batch is cut into packets of ``packet`` consecutive rays; each packet is bounded by the

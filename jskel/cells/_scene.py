@@ -375,9 +375,10 @@ def shade_batch(p: CellParams, static: Static, rays, hits: Hit, lights, sh):
     Snell's law at every boundary (eta = 1/ior entering, ior leaving; total internal reflection
     keeps the ray inside), tinted by 0.5 + 0.5 x each entered cell's colour, up to ``bounces`` boundary
     events; c = 0.15 local + 0.85 tint x environment(final direction). Secondary rays run only for
-    the rays that need them, gathered into dense sub-batches (``rays.compact_map``): compaction,
+    the rays that need them, gathered into dense sub-batches (``wavefront.compact_map``): compaction,
     not masking, so the cost follows the number of live rays."""
-    from ..rays import Rays, compact_map
+    from ..rays import Rays
+    from ..wavefront import compact_map
     from ..shading import shade_one
 
     d0 = safe_normalize(rays.directions)

@@ -122,7 +122,7 @@ def nearest_bvh(f: FrustaParams, fb: FrustaBVH, leaf: int, o, d, t_min, t_max):
 def nearest_packets(f: FrustaParams, fb: FrustaBVH, leaf: int, packet: int, origins, directions, t_min, t_max):
     """(t, s, code, idx, iterations) of a batch in packets of ``packet`` consecutive rays, each
     packet one traversal (``accel.nearest_packet``; ``lax.map`` over packets). Consecutive rays
-    should be close on screen (``rays.tile_order``: a packet of 256 is a 16 x 16 square); the
+    should be close on screen (``camera.tile_order``: a packet of 256 is a 16 x 16 square); the
     results equal :func:`nearest_groups`' whatever the order, only the time depends on it."""
     n = origins.shape[0]
     g = min(packet, n)

@@ -510,9 +510,9 @@ def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
     with bins the segment tests per ray (each chunk's (packet, segment) pairs times the rays per
     packet, shared among the chunk's rays; a chunk cast by walks counts its rays' leaves), the
     mean length of a chunk's first list and the share of rays in walked chunks. Packets
-    and bins depend on the given ray order (the render's: ``rays.tile_order``). Empty when the
+    and bins depend on the given ray order (the render's: ``camera.tile_order``). Empty when the
     scene has no BVH."""
-    from ..rays import map_chunks
+    from ..executor import map_chunks
 
     if built.static.accel != "bvh" or built.params.plain is None:
         return {}

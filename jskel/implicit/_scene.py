@@ -9,7 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..interface import Built, Representation
-from ..rays import Hit, Rays, compact_map, masked_hit
+from ..rays import Hit, Rays, masked_hit
+from ..wavefront import compact_map
 from ._config import ImplicitConfig as ImplicitConfig
 from ..numerics import dot3, safe_div, safe_sqrt
 from ._field import Displace as Displace
@@ -353,7 +354,7 @@ def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min
 def intersect_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int = 256) -> Hit:
     """vmap of :func:`intersect_one`, then the rays whose culling overflowed (too many blocks
     or candidates) are traced again with flat culling (every primitive tested, no block list),
-    gathered into dense sub-batches (``rays.compact_map``): a grazing ray through a large model
+    gathered into dense sub-batches (``wavefront.compact_map``): a grazing ray through a large model
     costs P sphere tests only where it needs them. With the block level off it is the vmap."""
     q = static.quality
     hits = jax.vmap(lambda o, d, a, b: intersect_one(scene, static, o, d, a, b))(*rays)

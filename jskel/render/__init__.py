@@ -19,7 +19,10 @@ import numpy as np
 from .. import registry
 from ..accel import always, fenced
 from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
-from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Camera, Hit, Rays, compact_map, make_rays, map_chunks, tile_inverse, tile_order
+from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Hit, Rays, make_rays
+from ..camera import Camera, tile_inverse, tile_order
+from ..executor import map_chunks
+from ..wavefront import compact_map
 from ._aov import write_aovs as write_aovs
 from ..shading import Lights as Lights
 from ..shading import Shading as Shading

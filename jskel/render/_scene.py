@@ -21,7 +21,7 @@ Effects only where the scene calls for them, in both senses:
   the jaxpr and XLA's cost analysis);
 * per ray (wavefront style): every level of the ray tree is a fixed-capacity queue of rays.
   Each object traces only the queued rays that are live *and* cross its world bounding box,
-  gathered into dense sub-batches of ``lanes`` rays (``jskel.rays.compact_map``); shadow rays
+  gathered into dense sub-batches of ``lanes`` rays (``jskel.wavefront.compact_map``); shadow rays
   are gathered the same way per light, and an object tests only the shadow rays that no earlier
   object has already blocked (early out across objects). Reflection and refraction rays are
   compacted into the next level's queue (``jnp.nonzero`` with a static size). Under ``vmap`` a
@@ -58,7 +58,8 @@ import numpy as np
 
 from .. import registry
 from ..numerics import eps_of, euler_xyz, safe_normalize, safe_sqrt
-from ..rays import FLAG_OVERFLOW, Rays, compact_map
+from ..rays import FLAG_OVERFLOW, Rays
+from ..wavefront import compact_map
 from ..shading import Lights, facing, light_at, lights_from_config, shade_local
 
 

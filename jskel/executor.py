@@ -1,0 +1,275 @@
+"""The executor: a batch function over a ray batch of any size, chunked and compiled once.
+
+:func:`map_chunks` evaluates ``batch_fn(params, rays_chunk)`` in fixed-size chunks so memory
+stays bounded and only one shape is ever compiled (ahead of time, its seconds reported apart
+from the run); it chooses the chunk for a memory budget, groups chunks per call, and shards the
+rays over devices. It knows nothing of representations: any batch function of (params, Rays)
+will do.
+"""
+
+from __future__ import annotations
+
+import collections
+import sys
+import time
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .rays import Rays
+
+
+def _pad_to(x, n: int):
+    pad = n - x.shape[0]
+    if pad == 0:
+        return x
+    xp = np if isinstance(x, np.ndarray) else jnp
+    filler = xp.broadcast_to(x[-1:], (pad,) + x.shape[1:])
+    return xp.concatenate([x, filler], axis=0)
+
+
+def _on_host(rays) -> bool:
+    """Whether every array of ``rays`` is a NumPy array or a jax array on CPU devices."""
+    for a in rays:
+        if isinstance(a, jax.Array):
+            if any(d.platform != "cpu" for d in a.devices()):
+                return False
+        elif not isinstance(a, np.ndarray):
+            return False
+    return True
+
+
+def _interleave(tree, a: int, b: int):
+    """Leading axis (a * b * c,) viewed as (a, b, c) and transposed to (b, a, c), for NumPy
+    arrays. With a call's rays as (chunks, devices, chunk) this gives device d the chunks d,
+    d + D, d + 2 D, ... instead of one contiguous run of the image: in screen-tile order a run
+    may be mostly sky on one device and mostly scene on the other, and the call waits for the
+    slower (``(devices, chunks)`` back again undoes it)."""
+
+    def one(x):
+        c = x.shape[0] // (a * b)
+        return np.swapaxes(x.reshape((a, b, c) + x.shape[1:]), 0, 1).reshape(x.shape)
+
+    return jax.tree_util.tree_map(one, tree)
+
+
+class ChunkedResult(NamedTuple):
+    """Outputs of :func:`map_chunks` (NumPy pytree) with its timings in seconds."""
+
+    out: object
+    compile_s: float
+    run_s: float
+    memory: dict | None = None  # with a memory budget: the chunk chosen and the bytes of each try
+
+
+# compiled executables, most recently used last; bounded: a bins program holds several loops and
+# branches, and a bench sweeping 48 static settings in one process ran out of memory for LLVM's
+# code mappings at the 48th compile when every executable was kept
+_COMPILED: "collections.OrderedDict" = collections.OrderedDict()
+COMPILED_KEEP = 24
+
+
+def _signature(args):
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    return tree, tuple((tuple(np.shape(x)), str(jnp.result_type(x))) for x in leaves)
+
+
+def ray_mesh(devices=None):
+    """A 1-D ``jax.sharding.Mesh`` named ``rays`` over ``devices`` (default: every local
+    device), or None for a single device."""
+    devs = list(jax.local_devices() if devices is None else devices)
+    if len(devs) <= 1:
+        return None
+    return jax.sharding.Mesh(np.array(devs), ("rays",))
+
+
+def compile_batch_fn(batch_fn: Callable, example_args, mesh=None) -> tuple[Callable, float]:
+    """AOT-compile ``jax.jit(batch_fn)`` for ``example_args``; returns (compiled, seconds).
+
+    With a ``mesh`` (see :func:`ray_mesh`) the rays and every output are split on their leading
+    axis over the mesh's devices (``shard_map`` with ``P("rays")``), the params replicated: each
+    device runs ``batch_fn`` on its share of the chunk. Executables are kept per (function,
+    argument shapes and dtypes, devices), so a second call with new values of the same shapes
+    compiles nothing and reports 0.0 seconds.
+    """
+    dev_key = None if mesh is None else tuple(d.id for d in mesh.devices.flat)
+    key = (batch_fn, _signature(example_args), jax.config.jax_enable_x64, dev_key)
+    hit = _COMPILED.get(key)
+    if hit is not None:
+        _COMPILED.move_to_end(key)
+        return hit, 0.0
+    t0 = time.perf_counter()
+    if mesh is None:
+        fn = jax.jit(batch_fn)
+    else:
+        from jax.sharding import PartitionSpec as P
+
+        # shard_map: every device runs batch_fn itself on its (chunk,) share, the very program
+        # an unsharded run compiles for one chunk, so the results are equal bit for bit
+        fn = jax.jit(jax.shard_map(batch_fn, mesh=mesh, in_specs=(P(), P("rays")), out_specs=P("rays"), check_vma=False))
+    compiled = fn.lower(*example_args).compile()
+    _COMPILED[key] = compiled
+    while len(_COMPILED) > COMPILED_KEEP:
+        _COMPILED.popitem(last=False)
+    return compiled, time.perf_counter() - t0
+
+
+def compiled_bytes(compiled) -> int | None:
+    """Bytes one call of an XLA executable needs on its device (arguments + outputs +
+    temporaries, from XLA's memory analysis), or None where the backend does not report it."""
+    try:
+        m = compiled.memory_analysis()
+    except Exception:  # noqa: BLE001 - not every backend implements it
+        return None
+    if m is None:
+        return None
+    return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes)
+
+
+def chunk_for_budget(batch_fn: Callable, params, rays: Rays, chunk: int, budget: int, mesh=None) -> tuple[int, list[dict]]:
+    """The largest chunk (``chunk`` or ``chunk`` halved until it fits) whose compiled call needs
+    at most ``budget`` bytes by XLA's memory analysis. Each try compiles (and is cached, so the
+    chosen size is not compiled twice); the bytes of the parameters do not shrink with the chunk,
+    so a budget below them raises ValueError. Returns (chunk, tries as {chunk, bytes})."""
+    tries = []
+    c = chunk
+    while True:
+        ex = Rays(*(_pad_to(a[:c], c) for a in rays))
+        compiled, _ = compile_batch_fn(batch_fn, (params, ex), mesh)
+        need = compiled_bytes(compiled)
+        tries.append({"chunk": c, "bytes": need})
+        if need is None or need <= budget:
+            return c, tries
+        if c == 1:
+            raise ValueError(f"render.memory_mb: {budget / 2**20:g} MiB is below what one ray needs ({need / 2**20:.1f} MiB, mostly the scene)")
+        # the per-ray part scales with the chunk: jump close to the fit, then halve from there
+        fixed = sum(int(np.asarray(x).nbytes) for x in jax.tree_util.tree_leaves(params))
+        per_ray = max((need - fixed) / c, 1.0)
+        fit = int(max(1, (budget - fixed) // per_ray))
+        c = max(1, min(c // 2, 1 << (fit.bit_length() - 1)))
+
+
+_GROUPED: dict = {}
+
+
+def grouped(batch_fn: Callable, group: int) -> Callable:
+    """``batch_fn`` over ``group`` chunks in one call: the rays (group * chunk,) are viewed as
+    (group, chunk) and ``lax.map`` runs ``batch_fn`` on each chunk in turn, inside one compiled
+    program. The same function object is returned for the same (batch_fn, group), so compiled
+    executables are reused."""
+    if group <= 1:
+        return batch_fn
+    key = (batch_fn, group)
+    if key not in _GROUPED:
+
+        def fn(params, rays):
+            r = type(rays)(*(a.reshape((group, -1) + a.shape[1:]) for a in rays))
+            out = jax.lax.map(lambda rr: batch_fn(params, rr), r)
+            return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
+
+        _GROUPED[key] = fn
+    return _GROUPED[key]
+
+
+MIN_GROUPED = 8
+
+
+def calls_grouping(n_chunks: int, group: int) -> int:
+    """Chunks per call for ``n_chunks`` chunks and at most ``group`` per call: 1 below
+    ``min(group, MIN_GROUPED)`` chunks (small batches keep the one-chunk program every size
+    shares), else the fewest calls with their chunks spread evenly (padding under one chunk per
+    call)."""
+    if group <= 1 or n_chunks < min(group, MIN_GROUPED):
+        return 1
+    calls = -(-n_chunks // group)
+    return -(-n_chunks // calls)
+
+
+def map_chunks(
+    batch_fn: Callable,
+    params,
+    rays: Rays,
+    chunk: int = 65536,
+    progress: bool | None = None,
+    desc: str = "rays",
+    devices=None,
+    memory_budget: int | None = None,
+    group: int = 1,
+) -> ChunkedResult:
+    """Evaluate ``batch_fn(params, rays_chunk) -> pytree`` over ``rays`` in chunks of ``chunk``.
+
+    The last chunk is padded by repeating the last ray, so exactly one shape is compiled
+    (ahead of time; its seconds are reported apart from the run). Chunks are dispatched one
+    ahead of the host copy so the device is not idle while the host gathers results. The
+    progress bar (tqdm) is shown only on a terminal unless ``progress`` forces it.
+
+    Returns NumPy arrays of leading size ``rays.size`` with the structure of ``batch_fn``'s
+    output. ``devices``: None or one device runs unsharded; a list of devices (or ``"all"``,
+    every local device) gives each device ``chunk`` rays per call; the result is the same bit for
+    bit as one device with the same ``chunk`` (tested). ``memory_budget`` (bytes per device):
+    ``chunk`` is lowered by :func:`chunk_for_budget` until one call fits; the chunk used and
+    the bytes it needs are returned in ``memory``.
+
+    ``group`` > 1: up to that many chunks per compiled call (:func:`grouped`, a ``lax.map``
+    over them), where the batch holds at least ``group`` chunks and no memory budget is set.
+    Each chunk is still computed by ``batch_fn`` alone; what is saved is the host's per-call
+    work (slicing, transfers, dispatch): on the 2-core CPU the cacti's bins cast at 1024x768
+    took 0.103 s with 16 chunks of 4,096 rays per call against 0.125 s with one, on one device
+    (``experiments/bench_scale_cpu_paths.yaml``).
+    """
+    from tqdm.auto import tqdm
+
+    n = rays.size
+    if n == 0:
+        raise ValueError("rays: the batch is empty")
+    chunk = int(min(chunk, n))
+    mesh = ray_mesh(None if devices == "all" else devices) if devices is not None else None
+    memory = None
+    if memory_budget is not None:
+        t_b = time.perf_counter()
+        per_dev = 1 if mesh is None else mesh.size
+        c, tries = chunk_for_budget(batch_fn, params, rays, chunk * per_dev, int(memory_budget), mesh)
+        chunk = max(1, c // per_dev)
+        memory = {"budget_bytes": int(memory_budget), "chunk": chunk, "tries": tries, "seconds": time.perf_counter() - t_b}
+    per_call = 1 if memory_budget is not None else calls_grouping(-(-n // (chunk * (1 if mesh is None else mesh.size))), group)
+    batch_fn = grouped(batch_fn, per_call)
+    chunk *= per_call
+    if mesh is not None:
+        chunk *= mesh.size  # ``chunk`` rays per device per call
+    n_chunks = -(-n // chunk)
+
+    t_host = time.perf_counter()
+    if _on_host(rays):  # slicing NumPy costs nothing; slicing a CPU jax array dispatches ops
+        rays = Rays(*(np.asarray(a) for a in rays))
+    host_s = time.perf_counter() - t_host
+    spread = mesh is not None and mesh.size > 1 and per_call > 1
+
+    def slice_rays(i):
+        lo = i * chunk
+        r = Rays(*(_pad_to(a[lo : lo + chunk], chunk) for a in rays))
+        return _interleave(r, per_call, mesh.size) if spread else r
+
+    first = slice_rays(0)
+    compiled, compile_s = compile_batch_fn(batch_fn, (params, first), mesh)
+    if memory is not None:
+        compile_s += memory["seconds"]  # the tries compiled (the chosen size among them)
+    disable = (not sys.stderr.isatty()) if progress is None else (not progress)
+    outs = []
+    t0 = time.perf_counter()
+    if mesh is not None:
+        # replicated once per call of map_chunks, not once per compiled call: parameters living
+        # on one device were copied to the others at every call (300,000 segments: 36 MB a call)
+        params = jax.device_put(params, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+    with tqdm(total=n_chunks, desc=desc, unit="chunk", disable=disable, leave=False) as bar:
+        pending = compiled(params, first)
+        for i in range(1, n_chunks + 1):
+            nxt = compiled(params, slice_rays(i)) if i < n_chunks else None
+            got = jax.tree_util.tree_map(np.asarray, pending)
+            outs.append(_interleave(got, mesh.size, per_call) if spread else got)
+            bar.update(1)
+            pending = nxt
+    run_s = time.perf_counter() - t0 + host_s
+    out = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=0)[:n], *outs)
+    return ChunkedResult(out, compile_s, run_s, memory)
