@@ -192,10 +192,36 @@ def test_a_mesh_is_a_cell_objects_base_shape(files, tmp_path):
     assert abs(ma["inside_split_cells"] - mb["inside_split_cells"]) <= 0.05 * mb["inside_split_cells"]
 
 
-def test_a_mesh_mirror_in_a_scene_reflects_and_shadows_the_other_objects(tmp_path):
-    """A mirror box mesh (trimesh) beside a metaball, a directional light casting shadows.
-    Truth in closed form: the box's depth by the slab test, the reflected ray's sphere hit and
-    the shadow ray's sphere hit, each decided only where every test is clear of its boundary."""
+def _ray_segment_distance(o, d, a, b, samples=481):
+    """Float64 lower bound on the distance from each ray ``o + t d`` (t >= 0, unit d; (N, 3))
+    to the segment [a, b]: the distance from a point to a ray is convex along the segment, so
+    its minimum over ``samples`` points is within half a spacing of the true one, subtracted."""
+    s = np.linspace(0.0, 1.0, samples)
+    q = a + s[:, None] * (b - a)  # (S, 3)
+    w = q[None] - o[:, None]  # (N, S, 3)
+    t = np.maximum(np.sum(w * d[:, None], -1), 0.0)
+    dist = np.linalg.norm(w - t[..., None] * d[:, None], axis=-1).min(1)
+    return dist - 0.5 * np.linalg.norm(b - a) / (samples - 1)
+
+
+def _line_distance(o, d, a, u):
+    """Float64 distance from each ray's line to the line a + s u (unit u), and s there."""
+    n = np.cross(d, u)
+    nn = np.linalg.norm(n, axis=-1)
+    w = a - o
+    dist = np.abs(np.sum(w * n, -1)) / np.maximum(nn, 1e-300)
+    s = np.sum(np.cross(w, d) * n, -1) / np.maximum(nn * nn, 1e-300)
+    return dist, s
+
+
+def test_a_mesh_mirror_in_a_scene_reflects_and_shadows_frusta_implicit_and_cell_objects(tmp_path):
+    """A mirror box mesh (trimesh) with a metaball, a frusta cylinder and a cell object above
+    it, a directional light casting shadows: four representations in one scene. Truth in closed
+    form (float64, written here): the box's depth by the slab test; for each object, a ray that
+    clearly meets it (the sphere's chord, the cylinder's axis well inside the radius at its middle,
+    the cell object's ball well inside the base sphere) or clearly misses it (a bounding sphere or
+    capsule with a margin). Each mirrored and each shadow ray is decided only where every object
+    is clearly met or clearly missed, and where exactly one is met."""
     import copy
 
     from jskel.config import validate
@@ -206,10 +232,17 @@ def test_a_mesh_mirror_in_a_scene_reflects_and_shadows_the_other_objects(tmp_pat
     box.export(p)
     T, R, C = 0.5, 0.8, np.array([-0.9, 0.0, 1.0])
     rs = R * np.sqrt(1.0 - np.sqrt(T))  # the lone metaball's surface: a sphere
-    L = np.array([0.0, 0.0, 1.0])  # light from +z: the ball shadows the mirror's face
-    cam = {"eye": [3.0, 0.5, 5.0], "target": [0.0, 0.0, 0.0], "up": [0, 1, 0], "fov_deg": 40.0, "width": 64, "height": 48}
+    F0, F1, RF = np.array([0.5, -0.6, 1.0]), np.array([0.5, 0.6, 1.0]), 0.2  # the frusta cylinder
+    CC, SC = np.array([-0.4, 0.65, 1.5]), 0.45  # the cell object: a unit base sphere scaled by 0.45
+    L = np.array([0.0, 0.0, 1.0])  # light from +z: the objects shadow the mirror's face
+    cam = {"eye": [3.0, 0.5, 5.0], "target": [0.0, 0.0, 0.0], "up": [0, 1, 0], "fov_deg": 40.0, "width": 96, "height": 72}
+    cell_shape = {"type": "cells", "base": {"type": "sphere", "radius": 1.0}, "tiles": 4,
+                  "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "cache": str(tmp_path / "cache")}
     raw = {"objects": [{"shape": {"type": "mesh", "path": str(p)}, "material": {"reflectivity": 0.9}},
-                       {"shape": {"type": "implicit", "threshold": T, "balls": [{"center": C.tolist(), "radius": R}]}}],
+                       {"shape": {"type": "implicit", "threshold": T, "balls": [{"center": C.tolist(), "radius": R}]}},
+                       {"shape": {"type": "frusta", "skeleton": {"joints": [[0, -0.6, 0], [0, 0.6, 0]], "radii": [RF, RF], "parents": [-1, 0]}},
+                        "transform": {"translate": [0.5, 0.0, 1.0]}},
+                       {"shape": cell_shape, "transform": {"scale": SC, "translate": CC.tolist()}}],
            "camera": cam, "lights": [{"direction": L.tolist(), "shadows": True}], "render": {"bounces": 1}}
     exp, shapes = validate(copy.deepcopy(raw))
     res = render(exp, shapes, progress=False)
@@ -220,41 +253,59 @@ def test_a_mesh_mirror_in_a_scene_reflects_and_shadows_the_other_objects(tmp_pat
     right /= np.linalg.norm(right)
     up = np.cross(right, f)
     th = np.tan(np.radians(20.0))
-    xs = ((np.arange(64) + 0.5) / 64 * 2 - 1) * th * 64 / 48
-    ys = (1 - (np.arange(48) + 0.5) / 48 * 2) * th
+    xs = ((np.arange(96) + 0.5) / 96 * 2 - 1) * th * 96 / 72
+    ys = (1 - (np.arange(72) + 0.5) / 72 * 2) * th
     px, py = np.meshgrid(xs, ys)
     d = f + px.reshape(-1, 1) * right + py.reshape(-1, 1) * up
     d /= np.linalg.norm(d, axis=1, keepdims=True)
 
-    def sphere(o, dd):
-        oc = o - C
+    def ball(o, dd, c, r):
+        """(clearly met, clearly missed) by rays o + t dd, t > 0, for the sphere (c, r)."""
+        oc = o - c
         b = np.sum(oc * dd, -1)
-        q = np.sum(oc * oc, -1) - b * b
-        s = np.sqrt(np.maximum(rs * rs - q, 0))
-        t = np.where(q < rs * rs, -b - s, np.inf)
-        return np.where(t > 0, t, np.inf), np.sqrt(np.maximum(q, 0))
+        q = np.sqrt(np.maximum(np.sum(oc * oc, -1) - b * b, 0.0))
+        ahead = b < 0  # the centre lies ahead of the ray's origin (every origin here is outside)
+        return ahead & (q < r - 0.05), (q > r + 0.05) | ~ahead
 
-    t_ball, q_ball = sphere(eye, d)
+    def objects(o, dd):
+        """(K, N) clearly met and clearly missed, for the ball, the cylinder and the cell object."""
+        met, missed = [], []
+        a, b = ball(o, dd, C, rs)
+        met.append(a), missed.append(b)
+        near = _ray_segment_distance(o, dd, F0, F1)
+        axis, s_line = _line_distance(o, dd, F0, (F1 - F0) / np.linalg.norm(F1 - F0))
+        ahead = np.sum((F0 + (F1 - F0) / 2 - o) * dd, -1) > 0
+        met.append(ahead & (axis < RF - 0.05) & (np.abs(s_line - 0.6) < 0.4))
+        missed.append(near > RF + 0.05)
+        a, _ = ball(o, dd, CC, 0.5 * SC)  # the inner half of the base sphere holds whole cells only
+        _, b = ball(o, dd, CC, SC + 0.1)  # an intersected cell may reach past the base sphere
+        met.append(a), missed.append(b)
+        return np.array(met), np.array(missed)
+
     t_face = (0.2 - eye[2]) / d[:, 2]
     hit = eye + t_face[:, None] * d
-    on_face = (np.abs(hit[:, 0]) < 0.95) & (np.abs(hit[:, 1]) < 0.95) & ~(q_ball < rs + 0.05)  # the face, not behind the ball
-    assert on_face.sum() > 300
+    _, clear = objects(np.broadcast_to(eye, d.shape), d)
+    on_face = (np.abs(hit[:, 0]) < 0.95) & (np.abs(hit[:, 1]) < 0.95) & clear.all(0)  # the face, no object in front
+    assert on_face.sum() > 500
     np.testing.assert_allclose(res.hits.t[on_face], t_face[on_face], rtol=1e-5)
     assert np.all(res.aovs["obj"][on_face] == 0)
-    # mirrored rays: the ball where the reflected ray meets it clearly, nothing where it clearly misses
-    r = d * np.array([1.0, 1.0, -1.0])
-    tr, qr = sphere(hit, r)
-    sees = on_face & (qr < rs - 0.05)
-    misses = on_face & (qr > rs + 0.05)
-    assert sees.sum() > 20 and misses.sum() > 100
-    assert np.all(res.aovs["reflect_obj"][sees] == 1)
-    assert np.all(res.aovs["reflect_obj"][misses] == -1)
-    # shadows: the face point's ray to the light crosses the ball, or clearly does not
-    ts, qs = sphere(hit, np.broadcast_to(L, hit.shape))
-    dark = on_face & (qs < rs - 0.05)
-    lit = on_face & (qs > rs + 0.05)
-    assert dark.sum() > 20 and lit.sum() > 100
-    assert np.all(res.aovs["visibility"][dark, 0] == 0) and np.all(res.aovs["visibility"][lit, 0] == 1)
+    # mirrored rays: the one object a reflected ray clearly meets, nothing where it misses them all
+    met, missed = objects(hit, d * np.array([1.0, 1.0, -1.0]))
+    decided = on_face & (met | missed).all(0)
+    for k in range(3):
+        sees = decided & met[k] & (met.sum(0) == 1)
+        assert sees.sum() > 8, (k, sees.sum())
+        assert np.all(res.aovs["reflect_obj"][sees] == k + 1), k
+    none = on_face & missed.all(0)
+    assert none.sum() > 100 and np.all(res.aovs["reflect_obj"][none] == -1)
+    # shadows: the face point's ray to the light meets an object, or clearly misses them all
+    met, missed = objects(hit, np.broadcast_to(L, hit.shape))
+    for k in range(3):
+        dark = on_face & met[k]
+        assert dark.sum() > 8, (k, dark.sum())
+        assert np.all(res.aovs["visibility"][dark, 0] == 0), k
+    lit = on_face & missed.all(0)
+    assert lit.sum() > 100 and np.all(res.aovs["visibility"][lit, 0] == 1)
 
 
 def test_packets_and_per_ray_walks_give_the_brute_force_hits(files):
