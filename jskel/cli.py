@@ -1,8 +1,9 @@
-"""Command line: ``python -m jskel render|bench|sweep|fit ...``.
+"""Command line: ``python -m jskel render|bench|sweep|fit ...``: parses arguments and calls.
 
-Every bad input (unknown key, wrong type, bad value, bad skeleton) ends the command before any
-compilation with one line per problem on stderr, naming the key path and the value, and exit
-code 2; no traceback.
+``bench`` and ``sweep`` are ``jskel.measure`` (one harness: timing, grid, plots, experiment
+loading), ``fit`` is ``jskel.fit``. Every bad input (unknown key, wrong type, bad value, bad
+skeleton) ends the command before any compilation with one line per problem on stderr, naming
+the key path and the value, and exit code 2; no traceback.
 """
 
 from __future__ import annotations
@@ -10,27 +11,20 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-
-import numpy as np
 from pathlib import Path
-from pydantic import ValidationError
 
-from .config import ConfigError, _format, apply_overrides, chunk_of, read_yaml, validate
+import imageio.v3 as iio
+import jax
+import numpy as np
 
-
-def _enable_x64_if_asked(raw: dict):
-    render = raw.get("render") if isinstance(raw, dict) else None
-    if isinstance(render, dict) and render.get("dtype") == "float64":
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
-
-
-def _load(path, overrides):
-    raw = apply_overrides(read_yaml(path), overrides)
-    exp, obj = validate(raw)
-    _enable_x64_if_asked(raw)
-    return exp, obj
+from .config import ConfigError
+from .devices import use_host_devices
+from .distributed import init_from_env
+from .fit import FitFile, run_fit
+from .measure.bench import run_bench
+from .measure.files import X64, load_experiment, read_model
+from .measure.sweep import load_sweep, run_sweep
+from .render import render, write_aovs
 
 
 def _frames(spec: str) -> list[float]:
@@ -50,10 +44,6 @@ def _frames(spec: str) -> list[float]:
 
 def cmd_render_frames(args, exp, obj) -> int:
     """Render an animation: numbered images and AOVs, animation.gif, one run.json."""
-    import imageio.v3 as iio
-
-    from .render import render, write_aovs
-
     if not exp.is_scene and "frame" not in type(obj).model_fields:
         raise ConfigError([f"--frames: object.type {obj.type!r} has no animation"])
     frames = _frames(args.frames)
@@ -77,18 +67,11 @@ def cmd_render_frames(args, exp, obj) -> int:
     return 0
 
 
-X64 = ["render.dtype=float64"]  # --x64: the precision switch, set at the entry point only
-
-
 def cmd_render(args) -> int:
-    exp, obj = _load(args.experiment, args.set + (X64 if args.x64 else []))
+    exp, obj = load_experiment(args.experiment, args.set + (X64 if args.x64 else []))
     if args.frames is not None:
         return cmd_render_frames(args, exp, obj)
-    from .render import render, write_aovs
-
     res = render(exp, obj, progress=args.progress)
-    import jax
-
     if jax.process_index() != 0:  # several hosts: process 0 writes the gathered image
         return 0
     paths = write_aovs(args.out, res.hits, res.image, exp.camera.width, exp.camera.height, res.run, res.aovs)
@@ -101,168 +84,26 @@ def cmd_render(args) -> int:
     return 0
 
 
-def _read_model(model, path, overrides):
-    """A bench or sweep file, overridden and validated (every bad key at once, exit 2)."""
-    raw = apply_overrides(read_yaml(path), overrides)
-    try:
-        return model.model_validate(raw)
-    except ValidationError as e:
-        raise ConfigError(_format(e)) from None
-
-
-def _traversal_stats(exp, obj) -> dict:
-    """The representation's deterministic work counts per ray (empty where it declares none)."""
-    from . import registry
-    from .render import camera_of, dtype_of
-
-    rep = registry.get(obj.type)
-    built = rep.build(obj, dtype_of(exp))
-    cam = camera_of(exp)
-    # in the render's order (screen tiles): packets and bins depend on it
-    rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
-    return {k: round(v, 3) if isinstance(v, float) else v for k, v in rep.traversal_stats(built, rays, chunk_of(exp.render)).items()}
-
-
-def cmd_fit_bench(args) -> int:
-    """A bench file with a ``fit:`` section: the fitting benchmark (``jskel.fit._bench``)."""
-    from .fit import FitBenchFile, run_fit_bench
-
-    b = _read_model(FitBenchFile, args.file, args.set).fit
-    out = Path(args.out) if args.out else None
-    if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text("")
-
-    def emit(row):
-        line = json.dumps(row)
-        print(line, flush=True)
-        if out is not None:
-            with out.open("a") as f:
-                f.write(line + "\n")
-
-    run_fit_bench(b, emit)
-    return 0
-
-
 def cmd_bench(args) -> int:
-    from .bench import BenchFile, plot_sweep, sweep_settings, timed_cast, timed_render
-
-    raw = read_yaml(args.file)
-    if isinstance(raw, dict) and "fit" in raw:
-        return cmd_fit_bench(args)
-    bench = _read_model(BenchFile, args.file, args.set)
-    base = Path(args.file).parent
-    runs = args.runs or bench.runs
-    common = [f"camera.width={bench.width}", f"camera.height={bench.height}", "render.progress=false", *bench.set,
-              *(X64 if args.x64 else [])]
-    paths = []
-    for i, scene in enumerate(bench.scenes):
-        p = Path(scene)
-        p = p if p.exists() else base / scene
-        if not p.exists():
-            raise ConfigError([f"scenes[{i}]: file not found (got {scene!r})"])
-        paths.append(p)
-    # validate every experiment (and every sweep setting) before any compilation
-    settings = sweep_settings(bench.sweep) if bench.sweep is not None else []
-    if bench.labels is not None and len(bench.labels) != len(settings):
-        raise ConfigError([f"labels: {len(bench.labels)} labels for {len(settings)} sweep settings"])
-    groups = []  # (reference job or None, [(file, (exp, obj), setting)])
-    if bench.sweep is None:
-        groups.append((None, [(str(p), _load(p, common), None) for p in paths]))
-    else:
-        for p in paths:
-            # a sweep with no reference only times its settings (e.g. cost against scene size)
-            ref_job = _load(p, common + bench.reference) if bench.reference else None
-            jobs = [(str(p), _load(p, common + [f"{k}={json.dumps(v)}" for k, v in st.items()]), st)
-                    for st in sweep_settings(bench.sweep)]
-            groups.append((ref_job, jobs))
-    from .metrics import compare
-    from .render import render
-
-    rows = []
-    for ref_job, jobs in groups:
-        ref_hits = ref_rgb = None
-        if ref_job is not None:
-            ref_res = render(*ref_job, progress=False)
-            ref_hits, ref_rgb = ref_res.hits, ref_res.rgb
-            print(json.dumps({"reference": bench.reference, "scene": ref_job[0].name, "render_s": round(ref_res.run["render_s"], 4)}), flush=True)
-        group_rows = []
-        for file, (exp, obj), setting in jobs:
-            row, first = timed_render(exp, obj, runs, bench.warmup)
-            if bench.cast:
-                row.update(timed_cast(exp, obj, runs, bench.warmup))
-            row["file"] = file
-            if bench.stats:
-                row.update(_traversal_stats(exp, obj))
-            if setting is not None:
-                row["setting"] = setting
-                if bench.labels is not None:
-                    row["label"] = bench.labels[settings.index(setting)]
-            if setting is not None and ref_hits is not None:
-                row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(first.hits, ref_hits, first.rgb, ref_rgb).items()})
-            print(json.dumps(row), flush=True)
-            group_rows.append(row)
-        if bench.peer is not None and ref_job is not None:
-            from .bench import peer_embree_mesh, peer_embree_same_mesh, peer_marching_cubes, peer_skeleton
-
-            peer_fn = {"embree_mesh": peer_embree_mesh, "embree_same_mesh": peer_embree_same_mesh, "marching_cubes": peer_marching_cubes,
-                       "skeleton": peer_skeleton}[bench.peer]
-            for row in peer_fn(bench, *ref_job, ref_hits, runs, group_rows):
-                print(json.dumps(row), flush=True)
-                group_rows.append(row)
-        rows += group_rows
-        if args.out and ref_job is not None:
-            out = Path(args.out)
-            out.parent.mkdir(parents=True, exist_ok=True)
-            png = out.with_name(f"{out.stem}_{ref_job[0].name}.png") if len(groups) > 1 else out.with_suffix(".png")
-            keys = list(dict.fromkeys(k for st in sweep_settings(bench.sweep) for k in st))
-            done = plot_sweep([r for r in group_rows if "setting" in r], keys, bench.metric, png,
-                              f"{ref_job[0].name}: {bench.metric} vs time ({group_rows[0]['device']})")
-            if done:
-                print(f"jskel: plot -> {done}")
-    if args.out:
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text("".join(json.dumps(r) + "\n" for r in rows))
-        if bench.sweep is not None and not bench.reference and not bench.stats:
-            from .bench import plot_bars
-
-            done = plot_bars(rows, out.with_suffix(".png"), f"{rows[0]['scene']} {rows[0]['width']}x{rows[0]['height']}: time per setting ({rows[0]['device']})")
-            if done:
-                print(f"jskel: plot -> {done}")
-        if bench.stats and bench.sweep is not None and not bench.reference:
-            from .bench import plot_scaling
-
-            done = plot_scaling(rows, out.with_suffix(".png"), f"{rows[0]['scene']}: cost per ray against segments ({rows[0]['device']})")
-            if done:
-                print(f"jskel: plot -> {done}")
+    """``jskel bench FILE``: see ``jskel.measure.bench``."""
+    run_bench(args.file, args.set, args.runs, args.out, args.x64)
     return 0
 
 
 def cmd_sweep(args) -> int:
-    """``jskel sweep FILE --out DIR``: see ``jskel.sweep``."""
-    from .sweep import load_sweep, run_sweep
-
-    sweep, jobs, ref_jobs = load_sweep(args.file, args.set, X64 if args.x64 else [])
+    """``jskel sweep FILE --out DIR``: see ``jskel.measure.sweep``."""
+    x64 = X64 if args.x64 else []
+    sweep, jobs, ref_jobs = load_sweep(args.file, args.set, x64)
     out = Path(args.out)
-    rows = run_sweep(sweep, jobs, ref_jobs, out, progress=args.progress,
-                     spec=(str(args.file), list(args.set), X64 if args.x64 else []))
+    rows = run_sweep(sweep, jobs, ref_jobs, out, progress=args.progress, spec=(str(args.file), list(args.set), x64))
     print(f"jskel: {len(rows)} settings -> {out / 'results.csv'}, {out / 'report.md'}")
     return 0
 
 
 def cmd_fit(args) -> int:
     """``jskel fit FILE --out DIR``: see ``jskel.fit``."""
-    raw = apply_overrides(read_yaml(args.file), args.set)
-    from .fit import FitFile, run_fit
-
-    try:
-        cfg = FitFile.model_validate(raw)
-    except ValidationError as e:
-        raise ConfigError(_format(e)) from None
+    cfg = read_model(FitFile, args.file, args.set)
     if args.x64 or cfg.dtype == "float64":
-        import jax
-
         jax.config.update("jax_enable_x64", True)
         cfg = cfg.model_copy(update={"dtype": "float64"})
     info = run_fit(cfg, Path(args.out), Path(args.file).parent)
@@ -314,9 +155,6 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
-        from .devices import use_host_devices
-        from .distributed import init_from_env
-
         use_host_devices()  # before JAX starts: one XLA host device per core (JSKEL_HOST_DEVICES sets the count)
         init_from_env()
         return args.func(args)

@@ -15,7 +15,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 import jskel
-from jskel.metrics import compare
+from jskel.measure import compare
 from jskel.render import render
 
 SMALL = os.environ.get("JSKEL_NOTEBOOK_SMALL") == "1"  # CI runs every notebook at a reduced size

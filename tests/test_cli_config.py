@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from jskel import cli, rays
+from jskel import cli, executor
 from jskel.config import load, validate
 
 from pathlib import Path
@@ -71,7 +71,7 @@ def no_compile(monkeypatch):
     def boom(*a, **k):
         raise AssertionError("compiled despite bad input")
 
-    monkeypatch.setattr(rays, "compile_batch_fn", boom)
+    monkeypatch.setattr(executor, "compile_batch_fn", boom)
 
 
 @pytest.mark.parametrize(

@@ -277,7 +277,7 @@ def test_chunks_per_call_equal_one_chunk_per_call(rng):
 
 
 def test_resident_cast_gives_the_render_hits_in_tile_order():
-    """``bench.cast_resident`` (rays placed on the device before the clock, results left there:
+    """``measure.cast_resident`` (rays placed on the device before the clock, results left there:
     how the Mitsuba peer is timed) casts the same rays as a render: 3,072 saguaro rays in chunks
     of 2,048 (the second padded), put back in pixel order, give the render's hit or miss and
     segment for every pixel and its t within float32 rounding (the cast alone and the render
@@ -285,7 +285,7 @@ def test_resident_cast_gives_the_render_hits_in_tile_order():
     import jax
 
     from jskel import registry
-    from jskel.bench import cast_resident, resident_rays
+    from jskel.measure.cast import cast_resident, resident_rays
     from jskel.config import load
     from jskel.camera import tile_inverse
     from jskel.render import render

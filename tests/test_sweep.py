@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from jskel import cli
-from jskel.metrics import compare, depth_in_pixels, pareto_front, ssim, uv_rmse
+from jskel.measure.metrics import compare, depth_in_pixels, pareto_front, ssim, uv_rmse
 from jskel.rays import Hit
-from jskel.sweep import Range
+from jskel.measure.grid import Range
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -105,7 +105,7 @@ warmup: 1
 
 
 def test_tiny_sweep_writes_every_output_and_resumes(tmp_path, monkeypatch):
-    from jskel import sweep as sweep_mod
+    from jskel.measure import sweep as sweep_mod
 
     spec = _write(tmp_path / "tiny.yaml", TINY.format(base=ROOT / "experiments" / "saguaro.yaml"))
     out = tmp_path / "out"
@@ -225,7 +225,7 @@ warmup: 0
 
 
 def test_equal_error_picks_the_smallest_mesh_at_most_as_wrong():
-    from jskel.sweep import equal_error
+    from jskel.measure.results import equal_error
 
     rows = [
         {"setting": "a", "depth_rmse": "0.02", "hit_miss_pct": "0.5", "time_median_s": "0.1"},

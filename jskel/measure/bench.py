@@ -1,0 +1,205 @@
+"""``python -m jskel bench FILE``: time scenes, or a grid of settings against a reference.
+
+Without ``sweep`` each scene is timed (``timing``: compile apart, warm-up, median of warm runs)
+and printed as one JSON line. With ``sweep`` (a grid, ``grid.expand``) every scene is rendered
+at every setting; with ``reference`` overrides each setting is also scored against that
+reference render (``metrics.compare``) and error is plotted against time, without one each
+setting's time is drawn as a bar (or, with ``stats``, cost against scene size). ``peer`` runs a
+peer's study (``peers.studies``) on the reference's rays. A file with a ``fit:`` section is the
+fitting benchmark (``jskel.fit``). Rows are JSON lines, also appended to ``--out``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal, NamedTuple
+
+from pydantic import Field
+
+from .. import registry
+from ..config import ConfigError, StrictModel, chunk_of, read_yaml
+from ..fit import FitBenchFile, run_fit_bench
+from ..peers.studies import STUDIES, StudyOptions
+from ..render import camera_of, dtype_of, render
+from .cast import timed_cast
+from .files import X64, JsonLines, beside, load_experiment, read_model
+from .grid import expand, keys_of, overrides_of
+from .metrics import compare
+from .plots import plot_bars, plot_scaling, plot_sweep
+from .timing import render_runs, spread
+
+
+class BenchFile(StrictModel):
+    """A benchmark file: experiments rendered at one size, timed over warm runs."""
+
+    scenes: list[str]
+    width: Annotated[int, Field(ge=1, le=16384)] = 1024
+    height: Annotated[int, Field(ge=1, le=16384)] = 768
+    runs: Annotated[int, Field(ge=1, le=1000)] = 5
+    warmup: Annotated[int, Field(ge=0, le=100)] = 1
+    set: list[str] = []
+    sweep: dict[str, list[Any]] | list[dict[str, Any]] | None = None  # a grid, or explicit settings
+    reference: list[str] = []
+    metric: str = "depth_rmse"
+    peer: Literal["embree_mesh", "embree_same_mesh", "marching_cubes", "skeleton"] | None = None
+    peer_levels: list[Annotated[int, Field(ge=0, le=4096)]] = [0, 1, 2, 3, 4, 5]
+    peer_match: dict[str, Any] | None = None
+    # animated scenes (``peer: skeleton``): frames timed per frame with rebuild, for jskel and peers
+    frames: list[float] = []
+    mitsuba_variant: str = "llvm_ad_rgb"
+    stats: bool = False  # frusta BVH: nodes and leaves visited per ray (one extra untimed pass)
+    # also time the cast alone (nearest t and primitive of every ray, on the device, no shading
+    # and no other output; what the peers' cast times hold): ``cast_s_median`` in each row
+    cast: bool = False
+    labels: list[str] | None = None  # a name per sweep setting (rows and the bar chart of a timing-only sweep)
+
+    def settings(self) -> list[dict]:
+        """The sweep's settings (``grid.expand``; none without a sweep)."""
+        return expand(self.sweep) if self.sweep is not None else []
+
+    def study_options(self) -> StudyOptions:
+        """The peer keys as the peers' studies take them."""
+        return StudyOptions(tuple(self.peer_levels), self.peer_match, tuple(self.frames), self.mitsuba_variant)
+
+
+class Job(NamedTuple):
+    """One timed render: its file, (experiment, object) and setting (None outside a sweep)."""
+
+    file: str
+    exp: Any
+    obj: Any
+    setting: dict | None
+
+
+class Group(NamedTuple):
+    """A scene's jobs and its reference job ((experiment, object) or None)."""
+
+    reference: tuple | None
+    jobs: list[Job]
+
+
+def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
+    """Render once (compiles; its compile seconds are kept), ``warmup - 1`` more, then ``runs``
+    timed renders (``timing.render_runs``). Returns (row, first result)."""
+    first, warm = render_runs(exp, obj, runs, warmup)
+    s = spread([w["render_s"] for w in warm])
+    r = first.run
+    row = {"scene": exp.name, "primitives": r["primitives"], "width": exp.camera.width, "height": exp.camera.height,
+           "rays": r["rays"], "dtype": exp.render.dtype, "chunk": chunk_of(exp.render), "compile_s": round(r["compile_s"], 4),
+           "render_s_median": round(s.median, 4), "render_s_min": round(s.min, 4), "render_s_max": round(s.max, 4),
+           "runs": runs, "mrays_per_s": round(r["rays"] / s.median / 1e6, 4), "hit_fraction": round(r["hit_fraction"], 4),
+           "device": r["device"], "jax": r["jax"], "jskel": r["jskel"]}
+    # the build of warm runs (the first also compiles the jitted BVH build for new shapes)
+    row["build_s"] = round(spread([w["build_s"] for w in warm]).median, 4)
+    row["build_first_s"] = round(r["build_s"], 4)
+    row["us_per_ray"] = round(s.median / r["rays"] * 1e6, 4)
+    for k in ("memory", "memory_bytes", "precompute_s", "cache"):
+        if k in r["info"]:
+            row[k] = r["info"][k]
+    for k in ("effects", "secondary_rays", "spp"):  # scenes
+        if k in r:
+            row[k] = r[k]
+    return row, first
+
+
+def traversal_stats(exp, obj) -> dict:
+    """The representation's deterministic work counts per ray (empty where it declares none),
+    over the camera's rays in the render's order (screen tiles: packets and bins depend on it)."""
+    rep = registry.get(obj.type)
+    built = rep.build(obj, dtype_of(exp))
+    rays = camera_of(exp).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
+    stats = rep.traversal_stats(built, rays, chunk_of(exp.render))
+    return {k: round(v, 3) if isinstance(v, float) else v for k, v in stats.items()}
+
+
+def groups_of(bench: BenchFile, file, extra: list[str]) -> list[Group]:
+    """Every scene's jobs, each experiment validated before anything compiles; ``extra``
+    overrides (e.g. ``--x64``'s) apply to every scene after the bench's own."""
+    common = [f"camera.width={bench.width}", f"camera.height={bench.height}", "render.progress=false", *bench.set, *extra]
+    paths = [beside(s, file, f"scenes[{i}]") for i, s in enumerate(bench.scenes)]
+    settings = bench.settings()
+    if bench.labels is not None and len(bench.labels) != len(settings):
+        raise ConfigError([f"labels: {len(bench.labels)} labels for {len(settings)} sweep settings"])
+    if bench.sweep is None:
+        return [Group(None, [Job(str(p), *load_experiment(p, common), None) for p in paths])]
+    # a sweep with no reference only times its settings (e.g. cost against scene size)
+    return [Group(load_experiment(p, common + bench.reference) if bench.reference else None,
+                  [Job(str(p), *load_experiment(p, common + overrides_of(st)), st) for st in settings]) for p in paths]
+
+
+def job_row(bench: BenchFile, job: Job, runs: int, ref) -> dict:
+    """One job's row: its timed render, the cast alone (``cast``), traversal counts (``stats``),
+    its setting and label, and its errors against the reference render ``ref`` (or None)."""
+    row, first = timed_render(job.exp, job.obj, runs, bench.warmup)
+    if bench.cast:
+        row.update(timed_cast(job.exp, job.obj, runs, bench.warmup))
+    row["file"] = job.file
+    if bench.stats:
+        row.update(traversal_stats(job.exp, job.obj))
+    if job.setting is not None:
+        row["setting"] = job.setting
+        if bench.labels is not None:
+            row["label"] = bench.labels[bench.settings().index(job.setting)]
+        if ref is not None:
+            errors = compare(first.hits, ref.hits, first.rgb, ref.rgb)
+            row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in errors.items()})
+    return row
+
+
+def run_group(bench: BenchFile, group: Group, runs: int, emit: JsonLines) -> list[dict]:
+    """Render the reference (one log line), time every job, then the peer's study: the rows."""
+    ref = None
+    if group.reference is not None:
+        ref = render(*group.reference, progress=False)
+        emit({"reference": bench.reference, "scene": group.reference[0].name, "render_s": round(ref.run["render_s"], 4)}, keep=False)
+    rows = []
+    for job in group.jobs:  # host loop over settings: each compiles its own static options
+        rows.append(job_row(bench, job, runs, ref))
+        emit(rows[-1])
+    if bench.peer is not None and ref is not None:
+        for row in STUDIES[bench.peer](*group.reference, ref.hits, runs, rows, bench.study_options()):
+            emit(row)
+            rows.append(row)
+    return rows
+
+
+def _plotted(path):
+    if path:
+        print(f"jskel: plot -> {path}")
+
+
+def plot_bench(bench: BenchFile, groups: list[Group], rows_by_group: list[list[dict]], out: Path):
+    """Beside ``out``: error against time per scene with a reference; time per setting (bars)
+    for a timing-only sweep, or cost against size with ``stats``."""
+    keys = keys_of(bench.settings())
+    for group, rows in zip(groups, rows_by_group):
+        if group.reference is None:
+            continue
+        name = group.reference[0].name
+        png = out.with_name(f"{out.stem}_{name}.png") if len(groups) > 1 else out.with_suffix(".png")
+        _plotted(plot_sweep([r for r in rows if "setting" in r], keys, bench.metric, png,
+                            f"{name}: {bench.metric} vs time ({rows[0]['device']})"))
+    rows = [r for g in rows_by_group for r in g]
+    if bench.sweep is None or bench.reference or not rows:
+        return
+    head = rows[0]
+    if bench.stats:
+        _plotted(plot_scaling(rows, out.with_suffix(".png"), f"{head['scene']}: cost per ray against segments ({head['device']})"))
+    else:
+        _plotted(plot_bars(rows, out.with_suffix(".png"),
+                           f"{head['scene']} {head['width']}x{head['height']}: time per setting ({head['device']})"))
+
+
+def run_bench(file, overrides: list[str], runs: int | None = None, out=None, x64: bool = False) -> list[dict]:
+    """Run a bench file (``--set`` ``overrides`` of its keys, ``runs`` instead of its own, rows
+    also to ``out``, every scene in float64 with ``x64``). Returns the rows."""
+    raw = read_yaml(file)
+    if isinstance(raw, dict) and "fit" in raw:
+        return run_fit_bench(read_model(FitBenchFile, file, overrides).fit, JsonLines(out))
+    bench = read_model(BenchFile, file, overrides)
+    groups = groups_of(bench, file, X64 if x64 else [])
+    emit = JsonLines(out)
+    rows_by_group = [run_group(bench, g, runs or bench.runs, emit) for g in groups]
+    if out is not None:
+        plot_bench(bench, groups, rows_by_group, Path(out))
+    return [r for g in rows_by_group for r in g]

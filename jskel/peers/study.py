@@ -1,0 +1,52 @@
+"""What every peer study is given and how its depths are scored against jskel's reference.
+
+A study is ``fn(exp, obj, ref_hits, runs, rows, options) -> [row]``: the experiment and object
+of the bench's reference job, the reference render's hits, the number of warm runs, jskel's rows
+of the same group (for ratios and "similar quality" targets) and :class:`StudyOptions`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+from ..measure.metrics import compare
+
+
+class StudyOptions(NamedTuple):
+    """The bench file's peer keys: subdivision or grid ``levels``, the jskel setting whose error a
+    peer must match (``match``: key -> value, or None), animated ``frames`` and the Mitsuba
+    variant to try first."""
+
+    levels: tuple = (0, 1, 2, 3, 4, 5)
+    match: dict | None = None
+    frames: tuple = ()
+    mitsuba_variant: str = "llvm_ad_rgb"
+
+
+class Depths(NamedTuple):
+    """A peer's depths as ``metrics.compare`` reads hits (no normals: depth metrics only)."""
+
+    t: Any
+    normal: Any = None
+
+
+def match_target(match: dict | None, rows: list[dict]) -> dict | None:
+    """The last of jskel's ``rows`` whose setting has every key of ``match`` (None without one)."""
+    if match is None:
+        return None
+    target = None
+    for r in rows:
+        if all(r.get("setting", {}).get(k) == v for k, v in match.items()):
+            target = r
+    return target
+
+
+def scored(row: dict, t, ref_hits, target: dict | None) -> dict:
+    """``row`` with the error metrics of a peer's depths ``t`` against the reference and, given
+    jskel's ``target`` row, whether the peer is at most as wrong in depth and hit/miss."""
+    row.update({k: (round(v, 8) if isinstance(v, float) else v) for k, v in compare(Depths(t), ref_hits).items()})
+    if target is not None:
+        row["matches_jskel_setting"] = bool(row["depth_rmse"] is not None and row["depth_rmse"] <= target["depth_rmse"]
+                                            and row["hit_miss_pct"] <= target["hit_miss_pct"])
+        row["jskel_setting"] = target["setting"]
+    return row
