@@ -83,8 +83,8 @@ class CameraConfig(StrictModel):
 class LightConfig(StrictModel):
     """A light. ``directional``: ``direction`` points from the scene *towards* the light;
     ``point``: at ``position``, radiance falling off as 1 / distance^2 (``intensity`` is the
-    radiance at distance 1). ``shadows``: whether it casts shadows in a scene (``objects:``;
-    single-object renders have no shadow rays)."""
+    radiance at distance 1). ``shadows``: whether it casts shadows in a scene (``objects:``);
+    a single object has shadow rays only from a light whose section sets ``shadows: true``."""
 
     type: Literal["directional", "point"] = "directional"
     direction: Vec3 = (0.4, 0.8, 0.6)
@@ -166,9 +166,9 @@ class RenderConfig(StrictModel):
     call (a ``lax.map``; each chunk computed as alone, the host's per-call work saved); not with
     ``memory_mb``.
 
-    Scenes (``objects:``) only: ``spp`` jittered samples per pixel (the first at the pixel
-    centre; AOVs come from it) from ``seed``; ``bounces`` bounds reflection and refraction
-    depth; ``lanes`` is the size of the dense sub-batches that compacted rays are traced in.
+    ``spp`` jittered samples per pixel (the first at the pixel centre; AOVs come from it) from
+    ``seed``. Scenes (``objects:``) only: ``bounces`` bounds reflection and refraction depth;
+    ``lanes`` is the size of the dense sub-batches that compacted rays are traced in.
     """
 
     chunk: Annotated[int, Field(ge=1, le=1 << 24)] | Literal["auto"] = "auto"  # rays per chunk; auto: see chunk_of
@@ -178,7 +178,7 @@ class RenderConfig(StrictModel):
     progress: bool | None = None
     devices: Literal["all", "one"] | Annotated[int, Field(ge=1, le=4096)] = "all"  # shard rays over local devices
     memory_mb: Annotated[float, Field(gt=0.0, le=1 << 24)] | None = None  # device memory budget of one call: chunk shrinks to fit
-    spp: Annotated[int, Field(ge=1, le=1024)] = 1  # samples per pixel (jittered; scenes)
+    spp: Annotated[int, Field(ge=1, le=1024)] = 1  # samples per pixel (jittered)
     seed: int = 0  # of the jitter
     bounces: Annotated[int, Field(ge=0, le=16)] = 2  # reflection / refraction depth (scenes)
     lanes: Annotated[int, Field(ge=1, le=1 << 20)] = 256  # rays per compacted sub-batch (scenes)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import reference as ref
-from jskel import cells, cli, rays
+from jskel import cells, cli, executor
 from jskel.cells._membership import INSIDE, unpack
 from jskel.cells._trace import first_hit, reflect, refract
 from jskel.rays import make_rays
@@ -212,7 +212,7 @@ def test_bad_input_one_line_exit_2(tmp_path, capsys, monkeypatch, obj_yaml, need
     def boom(*a, **k):
         raise AssertionError("compiled despite bad input")
 
-    monkeypatch.setattr(rays, "compile_batch_fn", boom)
+    monkeypatch.setattr(executor, "compile_batch_fn", boom)
     body = f"object: {{type: cells, cache: null, {obj_yaml.replace('TMP', str(tmp_path))}}}\ncamera: {{width: 8, height: 8}}\n"
     p = tmp_path / "exp.yaml"
     p.write_text(body)

@@ -124,6 +124,65 @@ def test_two_objects_render_as_each_alone():
     assert np.all(obj[none] == -1) and np.all(~np.isfinite(both.hits.t[none]))
 
 
+def test_a_single_object_shadows_itself_where_a_light_asks():
+    """A single object is a scene of one: a light that sets ``shadows: true`` gives it shadow
+    rays (two exact spheres in one implicit object, one in the other's shadow); the default
+    light section gives none (no visibility output, no shadow code in the program)."""
+    from jskel.render._scene import build_single
+
+    c0, c1 = np.array([0.0, 1.0, 1.0]), np.array([1.6, 1.0, -2.6])
+    r0, r1 = sphere_radius(1.0), sphere_radius(1.4)
+    L = (c1 - c0) / np.linalg.norm(c1 - c0) + np.array([0.0, 0.15, 0.0])
+    L /= np.linalg.norm(L)
+    cam = camera((3.0, 1.8, 0.6), (0.0, 1.0, 1.0), 96, 64, fov=30)
+    shape = balls((c0, 1.0), (c1, 1.4))
+    raw = {"object": shape, "camera": cam, "lights": [{"direction": L.tolist(), "shadows": True}]}
+    _, res = run(raw)
+    assert res.run["effects"]["shadows"] and res.aovs["visibility"].shape == (96 * 64, 1)
+
+    # float64 reference: the first sphere's hits, shadowed where the ray to the light meets the second
+    eye, d, _, _ = camera_rays(cam)
+    t0, _ = hit_sphere(eye, d, c0, r0)
+    t1, _ = hit_sphere(eye, d, c1, r1)
+    on0 = np.isfinite(t0) & (t0 < t1)
+    p = eye + np.where(on0, t0, 0.0)[:, None] * d
+    lit_side = ((p - c0) / r0) @ L > 0
+    t_sh, _ = hit_sphere(p, np.broadcast_to(L, p.shape), c1, r1)
+    ref = on0 & lit_side & np.isfinite(t_sh)
+    got = on0 & (res.aovs["visibility"][:, 0] == 0)
+    assert ref.sum() > 400 and (on0 & ~ref).sum() > 400
+    assert np.sum(got != ref) <= 0.03 * ref.sum()  # the shadow's rim, one pixel wide at most
+
+    exp, obj = validate(copy.deepcopy({**raw, "lights": [{"direction": L.tolist()}]}))  # the default: no shadow rays
+    plain = render(exp, obj, progress=False)
+    assert plain.aovs is None and "effects" not in plain.run
+    np.testing.assert_array_equal(plain.hits.t, res.hits.t)
+    lit = on0 & ~ref & (res.aovs["visibility"][:, 0] == 1)
+    np.testing.assert_allclose(plain.rgb[lit], res.rgb[lit], rtol=1e-6, atol=1e-7)
+    assert np.all(plain.rgb[ref & got].sum(1) > res.rgb[ref & got].sum(1))  # shadowed pixels lose the light
+    rays = make_rays(np.zeros((256, 3)), np.tile([0.0, 0.0, -1.0], (256, 1)))
+    for r, scoped in ((raw, True), ({**raw, "lights": [{"direction": L.tolist()}]}, False)):
+        exp, obj = validate(copy.deepcopy(r))
+        params, static, _ = build_single(exp, obj, np.float32)
+        eqns = _eqns(jax.make_jaxpr(scene_fn(static))(params, rays).jaxpr)
+        assert any("shadow_rays" in str(e.source_info.name_stack) for e in eqns) == scoped
+        assert not any(k in str(e.source_info.name_stack) for e in eqns for k in ("reflection_rays", "refraction_rays"))
+
+
+def test_a_single_object_takes_jittered_samples_per_pixel():
+    _, one = run({"object": BLOB, "camera": CAM2, "lights": NO_SHADOW})
+    _, four = run({"object": BLOB, "camera": CAM2, "lights": NO_SHADOW, "render": {"spp": 4, "seed": 3}})
+    np.testing.assert_array_equal(four.hits.t, one.hits.t)  # AOVs from the pixel-centre sample
+    assert four.run["rays"] == 4 * one.run["rays"] and four.run["spp"] == 4
+    hit = np.isfinite(one.hits.t).reshape(64, 96)
+    pad = np.pad(hit, 1, mode="edge")
+    flat = np.all([pad[1 + dy:65 + dy, 1 + dx:97 + dx] == hit for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0).reshape(-1)
+    diff = np.abs(four.rgb - one.rgb).max(axis=1)
+    # the background (constant) is exact wherever no sample meets the object; silhouettes blend
+    np.testing.assert_array_equal(four.rgb[flat & ~hit.reshape(-1)], one.rgb[flat & ~hit.reshape(-1)])
+    assert diff[~flat].mean() > 5 * diff[flat].mean()
+
+
 # --------------------------------------------------------------------------- shadows
 
 

@@ -163,31 +163,75 @@ def _run_base(exp: Experiment, obj, build_s: float, res, n: int, primitives: int
     }
 
 
-def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
-    """Render one frame of an experiment (host function; the heavy work is jitted in chunks).
+def camera_rays(exp: Experiment, cam: Camera, origin, dtype) -> Rays:
+    """``render.spp`` samples per pixel in screen-tile order, relative to ``origin`` (host):
+    the first through the pixel centres (``Camera.tiled_rays``), the others jittered uniformly
+    in the pixel from ``render.seed``; sample s occupies rays ``[s * H * W, (s + 1) * H * W)``."""
+    rays = cam.tiled_rays(exp.render.tile, anchor=origin, dtype=dtype)
+    if exp.render.spp == 1:
+        return rays
+    n_pix = cam.width * cam.height
+    order = tile_order(cam.width, cam.height, exp.render.tile)
+    rng = np.random.default_rng(exp.render.seed)
+    os_, ds_ = [np.asarray(rays.origins, np.float64)], [np.asarray(rays.directions, np.float64)]
+    for _ in range(1, exp.render.spp):
+        o, d = cam.ray_arrays(anchor=origin, jitter=rng.uniform(-0.5, 0.5, (n_pix, 2)))
+        os_.append(o[order])
+        ds_.append(d[order])
+    return make_rays(np.concatenate(os_), np.concatenate(ds_), 0.0, np.inf, dtype)
 
-    ``obj`` is the validated ``object`` section, or for a scene (``objects:``) the tuple of the
-    objects' validated shapes (what ``config.load`` returns); scenes go to :func:`render_scene`."""
-    prog = exp.render.progress if progress is None else progress
-    if exp.is_scene:
-        return render_scene(exp, obj, prog)
-    dtype = dtype_of(exp)
-    rep = registry.get(obj.type)
-    t0 = time.perf_counter()
-    built = rep.build(obj, dtype)
-    jax.block_until_ready(built.params)  # dispatch is asynchronous: the build ends here, not in the render
-    build_s = time.perf_counter() - t0
+
+class _Frame(NamedTuple):
+    """What the integrator gives a render: the executor's result, the rays traced, the first
+    sample's outputs in image order (NumPy) and the pixels' mean colour and 8-bit image."""
+
+    res: object
+    rays: int
+    first: dict
+    rgb: np.ndarray
+    image: np.ndarray
+
+
+def _integrate(exp: Experiment, params, static, origin, dtype, progress) -> _Frame:
+    """Camera rays (``render.spp`` per pixel) through the integrator, back in image order."""
+    from ._scene import scene_fn
+
     cam = camera_of(exp)
-    rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype)
-    params = (built.params, lights_from_config(exp.lights, dtype, origin=built.anchor), shading_from_config(exp.shading, dtype))
-    fn = pixel_fn(rep.name, built.static)
-    res = _trace(exp, fn, params, rays, prog)
+    n_pix = cam.width * cam.height
+    rays = camera_rays(exp, cam, origin, dtype)
+    res = _trace(exp, scene_fn(static), params, rays, progress)
     inv = tile_inverse(cam.width, cam.height, exp.render.tile)
-    hits, rgb = jax.tree_util.tree_map(lambda a: a[inv], res.out)
-    # hit positions back to world coordinates (host, float64)
-    hits = hits._replace(position=np.asarray(hits.position, np.float64) + built.anchor)
+    first = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n_pix][inv], {k: v for k, v in res.out.items() if k != "rgb"})
+    rgb = np.asarray(res.out["rgb"])
+    if exp.render.spp > 1:
+        rgb = np.asarray(rgb, np.float64).reshape(exp.render.spp, n_pix, 3).mean(axis=0).astype(rgb.dtype)
+    rgb = rgb[:n_pix][inv]
     image = encode_png(rgb.reshape(cam.height, cam.width, 3), output_transform(exp.shading))
-    n = rays.size
+    return _Frame(res, int(rays.size), first, rgb, image)
+
+
+_FLAGS: dict = {}
+
+
+def _reports_flags(rep, built, dtype) -> bool:
+    """Does the representation's hit carry diagnostic flags? (from the shapes of one traced
+    ray, no compile; cached per representation, static options and dtype)"""
+    key = (rep.name, built.static, np.dtype(dtype).name)
+    if key not in _FLAGS:
+        z = jax.ShapeDtypeStruct((3,), dtype)
+        s = jax.ShapeDtypeStruct((), dtype)
+        h = jax.eval_shape(lambda p, o, d, a, b: rep.intersect_one(p, built.static, o, d, a, b), built.params, z, z, s, s)
+        _FLAGS[key] = h.flags is not None
+    return _FLAGS[key]
+
+
+def _flag_counts(flags) -> dict:
+    f = np.asarray(flags)
+    return {"overflow_rays": int(np.sum((f & FLAG_OVERFLOW) != 0)), "step_cap_rays": int(np.sum((f & FLAG_STEP_CAP) != 0))}
+
+
+def _single_run(exp: Experiment, obj, built, build_s: float, res, n: int, hits) -> dict:
+    """run.json of a single-object render."""
     run = {
         **_run_base(exp, obj, build_s, res, n, built.primitives),
         "hit_fraction": float(np.mean(np.isfinite(hits.t))),
@@ -198,9 +242,71 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     }
     if res.memory is not None:
         run["memory_budget"] = res.memory
+    return run
+
+
+def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
+    """Render one frame of an experiment (host function; the heavy work is jitted in chunks).
+
+    ``obj`` is the validated ``object`` section, or for a scene (``objects:``) the tuple of the
+    objects' validated shapes (what ``config.load`` returns); scenes go to :func:`render_scene`.
+    A single object is a scene of one (``_build.build_single``): the same integrator, so
+    ``render.spp`` samples per pixel and shadows from lights whose section sets ``shadows:
+    true`` (then ``visibility.npy`` too) work for every object; without them it compiles no
+    secondary-ray code."""
+    from ._build import build_single
+
+    prog = exp.render.progress if progress is None else progress
+    if exp.is_scene:
+        return render_scene(exp, obj, prog)
+    rep = registry.get(obj.type)
+    if rep.own_effects(obj):
+        if exp.render.spp > 1:
+            raise ValueError(f"render.spp: {exp.render.spp}; an object with secondary rays of its own (object.mode) renders one sample per pixel")
+        return _render_own(exp, obj, prog)
+    dtype = dtype_of(exp)
+    t0 = time.perf_counter()
+    params, static, built = build_single(exp, obj, dtype)
+    jax.block_until_ready(built.params)  # dispatch is asynchronous: the build ends here, not in the render
+    build_s = time.perf_counter() - t0
+    fr = _integrate(exp, params, static, built.anchor, dtype, prog)
+    h = fr.first["hit"]
+    flags = _reports_flags(rep, built, dtype)
+    # hit positions back to world coordinates (host, float64)
+    hits = Hit(h.t, np.asarray(h.position, np.float64) + built.anchor, h.normal, h.uv, h.prim, h.flags if flags else None)
+    run = _single_run(exp, obj, built, build_s, fr.res, fr.rays, hits)
+    if exp.render.spp > 1:
+        run["spp"] = exp.render.spp
+    if static.effects.shadows:
+        run["effects"] = static.effects._asdict()
+    if flags:
+        run["flags"] = _flag_counts(fr.res.out["hit"].flags)
+    aovs = dict(rep.extra_aovs(built, hits))
+    if static.effects.shadows:
+        aovs["visibility"] = fr.first["visibility"]
+    return RenderResult(hits, fr.rgb, image=fr.image, run=run, aovs=aovs or None)
+
+
+def _render_own(exp: Experiment, obj, progress) -> RenderResult:
+    """A single object whose section asks for secondary rays of its representation's own
+    (``own_effects``): first hit and ``shade_batch`` per chunk, one sample per pixel."""
+    dtype = dtype_of(exp)
+    rep = registry.get(obj.type)
+    t0 = time.perf_counter()
+    built = rep.build(obj, dtype)
+    jax.block_until_ready(built.params)
+    build_s = time.perf_counter() - t0
+    cam = camera_of(exp)
+    rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype)
+    params = (built.params, lights_from_config(exp.lights, dtype, origin=built.anchor), shading_from_config(exp.shading, dtype))
+    res = _trace(exp, pixel_fn(rep.name, built.static), params, rays, progress)
+    inv = tile_inverse(cam.width, cam.height, exp.render.tile)
+    hits, rgb = jax.tree_util.tree_map(lambda a: a[inv], res.out)
+    hits = hits._replace(position=np.asarray(hits.position, np.float64) + built.anchor)
+    image = encode_png(rgb.reshape(cam.height, cam.width, 3), output_transform(exp.shading))
+    run = _single_run(exp, obj, built, build_s, res, rays.size, hits)
     if hits.flags is not None:
-        f = np.asarray(hits.flags)
-        run["flags"] = {"overflow_rays": int(np.sum((f & FLAG_OVERFLOW) != 0)), "step_cap_rays": int(np.sum((f & FLAG_STEP_CAP) != 0))}
+        run["flags"] = _flag_counts(hits.flags)
     return RenderResult(hits, rgb, image, run, rep.extra_aovs(built, hits) or None)
 
 
@@ -214,41 +320,26 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
     pixel's first reflection / refraction ray ends: the object its last ray hit, -1 if it
     escaped or there is none; through a glass rod that is the object seen behind it; where a
     path branches, one of the branches) and ``secondary`` (secondary rays per pixel)."""
-    from ._scene import build_scene, scene_fn
+    from ._build import build_scene
 
     dtype = dtype_of(exp)
     t0 = time.perf_counter()
     params, static, eye, objects_info, primitives = build_scene(exp, shapes, dtype)
     jax.block_until_ready(params)
     build_s = time.perf_counter() - t0
-    cam = camera_of(exp)
-    n_pix = cam.width * cam.height
-    order = tile_order(cam.width, cam.height, exp.render.tile)
-    rng = np.random.default_rng(exp.render.seed)
-    os_, ds_ = [], []
-    for s in range(exp.render.spp):
-        jitter = None if s == 0 else rng.uniform(-0.5, 0.5, (n_pix, 2))
-        o, d = cam.ray_arrays(anchor=eye, jitter=jitter)
-        os_.append(o[order])
-        ds_.append(d[order])
-    rays = make_rays(np.concatenate(os_), np.concatenate(ds_), 0.0, np.inf, dtype)
-    res = _trace(exp, scene_fn(static), params, rays, progress)
-    out = res.out
-    inv = tile_inverse(cam.width, cam.height, exp.render.tile)
-    first = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n_pix][inv], {k: v for k, v in out.items() if k != "rgb"})
-    rgb = np.asarray(out["rgb"], np.float64).reshape(exp.render.spp, n_pix, 3).mean(axis=0)[inv].astype(np.float32)
+    fr = _integrate(exp, params, static, eye, dtype, progress)
+    first = fr.first
     h = first["hit"]
     hits = Hit(h.t, np.asarray(h.position, np.float64) + eye, h.normal, h.uv, h.prim, first["flags"])
-    image = encode_png(rgb.reshape(cam.height, cam.width, 3), output_transform(exp.shading))
     eff = static.effects
     aovs = {"obj": h.obj, "visibility": first["visibility"], "secondary": first["secondary"]}
     if eff.reflection:
         aovs["reflect_obj"] = first["first_obj"][:, 0]
     if eff.refraction:
         aovs["refract_obj"] = first["first_obj"][:, 1]
-    f_all = np.asarray(out["flags"])
+    out = fr.res.out
     run = {
-        **_run_base(exp, shapes, build_s, res, int(rays.size), primitives),
+        **_run_base(exp, shapes, build_s, fr.res, fr.rays, primitives),
         "spp": exp.render.spp,
         "effects": eff._asdict(),
         "secondary_rays": int(np.sum(out["secondary"])),
@@ -258,10 +349,10 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
         "info": {"objects": len(shapes), "primitives": primitives},
         "params_bytes": int(sum(getattr(x, "nbytes", 0) for x in jax.tree_util.tree_leaves(params))),
         "peak_host_mb": peak_rss_mb(),
-        "flags": {"overflow_rays": int(np.sum((f_all & FLAG_OVERFLOW) != 0)), "step_cap_rays": int(np.sum((f_all & FLAG_STEP_CAP) != 0))},
+        "flags": _flag_counts(out["flags"]),
     }
-    if res.memory is not None:
-        run["memory_budget"] = res.memory
-    return RenderResult(hits, rgb, image, run, aovs)
+    if fr.res.memory is not None:
+        run["memory_budget"] = fr.res.memory
+    return RenderResult(hits, fr.rgb.astype(np.float32), fr.image, run, aovs)
 
-__all__ = ["Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "lights_from_config", "output_transform", "peak_rss_mb", "pixel_fn", "render", "render_scene", "shade_one", "shading_from_config", "write_aovs"]
+__all__ = ["Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "lights_from_config", "output_transform", "peak_rss_mb", "pixel_fn", "camera_rays", "render", "render_scene", "shade_one", "shading_from_config", "write_aovs"]

@@ -1,10 +1,14 @@
-"""Scenes of several objects with materials, lights and effects (issue 7).
+"""The integrator of every render: scenes of several objects with materials, lights and
+effects (issue 7), and a single object as a scene of one (``_build.build_single``).
 
 A scene (``objects:`` in an experiment) holds objects of any representation, each with a
 transform (uniform scale, XYZ Euler rotation, translation; plus a rigid ``motion`` per frame),
 a material, and lights (directional or point, each casting shadows or not). The renderer talks
 to every object through the representation interface only (``intersect_batch`` or
 ``intersect_one``, ``albedo``), so it never branches on a representation's type inside a kernel.
+A single object is the same program with one object, the identity transform and the default
+material; its camera rays are traced as one batch (``SceneStatic.single``: no box test, the
+representation culls) and it returns a single-object render's outputs.
 
 Frame. Rays are expressed relative to the camera's eye ("camera-relative rendering"): the
 host computes, in float64, each object's offsets between that frame and the frame its params
@@ -49,18 +53,22 @@ first entry only (a ValueError says so).
 from __future__ import annotations
 
 import functools
-import math
-from typing import Hashable, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .. import registry
-from ..numerics import eps_of, euler_xyz, safe_normalize, safe_sqrt
-from ..rays import FLAG_OVERFLOW, Rays
+from ..accel import always, fenced
+from ..numerics import eps_of, safe_normalize, safe_sqrt
+from ..rays import FLAG_OVERFLOW, Hit, Rays
 from ..wavefront import compact_map
-from ..shading import Lights, facing, light_at, lights_from_config, shade_local
+from ..shading import facing, light_at, shade_local
+from ._build import Effects as Effects
+from ._build import Materials, SceneParams, SceneStatic, XForm
+from ._build import build_scene as build_scene
+from ._build import build_single as build_single
+from ._build import effects_of as effects_of
 
 
 class SceneHit(NamedTuple):
@@ -78,143 +86,6 @@ class SceneHit(NamedTuple):
     obj: jnp.ndarray
     base: jnp.ndarray
     flags: jnp.ndarray
-
-
-class XForm(NamedTuple):
-    """World (eye-relative) <-> one object's params frame: ``o' = rt o / s + c`` for points,
-    ``d' = rt d`` for directions (t' = t / s), ``p = s r p' + g`` back; ``lo``/``hi`` the
-    object's world bounding box."""
-
-    rt: jnp.ndarray
-    r: jnp.ndarray
-    s: jnp.ndarray
-    c: jnp.ndarray
-    g: jnp.ndarray
-    lo: jnp.ndarray
-    hi: jnp.ndarray
-
-
-class Materials(NamedTuple):
-    """Per object (leading axis K): colour (3), specular, shininess, reflectivity,
-    transparency, ior, and ``offset``, the world-space surface tolerance of its tracer."""
-
-    color: jnp.ndarray
-    specular: jnp.ndarray
-    shininess: jnp.ndarray
-    reflect: jnp.ndarray
-    transmit: jnp.ndarray
-    ior: jnp.ndarray
-    offset: jnp.ndarray
-
-
-class SceneParams(NamedTuple):
-    """Everything traced: changing any value (a radius, a transform, a light, a material's
-    reflectivity between non-zero values) reuses the compiled program."""
-
-    objects: tuple
-    xforms: tuple
-    mat: Materials
-    lights: Lights
-    shadows: jnp.ndarray  # (L,) bool: light l casts shadows
-    ambient: jnp.ndarray
-    env: jnp.ndarray  # (3, 3): zenith, horizon, ground
-
-
-class Effects(NamedTuple):
-    """Static: which effects the scene calls for (derived by :func:`effects_of`)."""
-
-    shadows: bool
-    reflection: bool
-    refraction: bool
-    bounces: int  # levels after the primary one (0 without reflection and refraction)
-
-
-class SceneStatic(NamedTuple):
-    reps: tuple  # representation name per object
-    statics: tuple  # each object's static options
-    effects: Effects
-    lanes: int
-    compaction: bool = True  # False: every queue slot traced against every object (masking; for the benchmark)
-
-
-def effects_of(exp) -> Effects:
-    """The effects an experiment's scene calls for (host, static)."""
-    mats = [o.material for o in exp.objects]
-    refl = any(m.reflectivity > 0 for m in mats)
-    refr = any(m.transparency > 0 for m in mats)
-    shadows = any(l.shadows and l.intensity > 0 for l in exp.lights)
-    return Effects(shadows, refl, refr, exp.render.bounces if (refl or refr) else 0)
-
-
-def object_transform(o, frame: float):
-    """(scale, rotation (3,3), translation (3,)) of scene object ``o`` at ``frame`` (float64)."""
-    t = np.asarray(o.transform.translate, np.float64)
-    e = np.asarray(o.transform.rotate_deg, np.float64)
-    if o.motion is not None:
-        t = t + frame * np.asarray(o.motion.translate, np.float64)
-        e = e + frame * np.asarray(o.motion.rotate_deg, np.float64)
-    return float(o.transform.scale), euler_xyz(e), t
-
-
-def _shape_at(shape, frame: float):
-    if frame != 0.0 and "frame" in type(shape).model_fields:
-        return shape.model_copy(update={"frame": shape.frame + frame})
-    return shape
-
-
-def _check_shape(i: int, o, shape, rep):
-    """Host checks of what a representation can do in a scene (interface flags, not types)."""
-    if o.material.transparency > 0 and not rep.exits_from_inside(shape):
-        raise ValueError(
-            f"objects[{i}].material.transparency: {o.material.transparency} on a {shape.type} object, whose tracer "
-            "searches for the first entry only (a transparent object must report the exit of a ray from inside: plain frusta do)")
-    if rep.own_effects(shape):
-        raise ValueError(
-            f"objects[{i}].shape.mode: {getattr(shape, 'mode', '?')!r}; in a scene an object is shaded by its material "
-            "(material.reflectivity / transparency), not by effects of its own: give mode: first_hit")
-
-
-def build_scene(exp, shapes, dtype):
-    """Build every object and the scene's arrays (host). Returns (params, static, eye, info per
-    object, primitives in all)."""
-    eye = np.asarray(exp.camera.eye, np.float64)
-    objs, xfs, statics, reps, info = [], [], [], [], []
-    cols, spec, shin, refl, trans, ior, off = [], [], [], [], [], [], []
-    for i, (o, shape) in enumerate(zip(exp.objects, shapes)):
-        rep = registry.get(shape.type)
-        _check_shape(i, o, shape, rep)
-        built = rep.build(_shape_at(shape, exp.frame), dtype)
-        s, r, t = object_transform(o, exp.frame)
-        a = np.asarray(built.anchor, np.float64)
-        c = r.T @ (eye - t) / s - a
-        g = s * (r @ a) + t - eye
-        lo, hi = (np.asarray(b, np.float64) for b in built.bounds)
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        w = (s * corners @ r.T) + t - eye
-        pad = 1e-5 * (np.max(np.abs(w)) + np.max(w.max(0) - w.min(0)))  # float32 rounding of the box test
-        xfs.append(XForm(*(jnp.asarray(v, dtype) for v in (r.T, r, s, c, g, w.min(0) - pad, w.max(0) + pad))))
-        objs.append(built.params)
-        statics.append(built.static)
-        reps.append(rep.name)
-        m = o.material
-        cols.append(m.color)
-        spec.append(exp.shading.specular if m.specular is None else m.specular)
-        shin.append(exp.shading.shininess if m.shininess is None else m.shininess)
-        refl.append(m.reflectivity)
-        trans.append(m.transparency)
-        ior.append(m.ior)
-        off.append(4.0 * s * built.surface_tolerance)
-        info.append({"name": o.name or f"objects[{i}]", "type": rep.name, "primitives": built.primitives, **built.info})
-    mat = Materials(*(jnp.asarray(np.asarray(v, np.float64), dtype) for v in (cols, spec, shin, refl, trans, ior, off)))
-    bg = np.asarray(exp.shading.background, np.float64)
-    ev = exp.environment
-    env = np.array([bg if v is None else v for v in (ev.zenith, ev.horizon, ev.ground)], np.float64)
-    lights = lights_from_config(exp.lights, dtype, origin=eye)
-    shadows = np.array([l.shadows for l in exp.lights] or [False])
-    params = SceneParams(tuple(objs), tuple(xfs), mat, lights, jnp.asarray(shadows), jnp.asarray(exp.shading.ambient, dtype),
-                         jnp.asarray(env, dtype))
-    static = SceneStatic(tuple(reps), tuple(statics), effects_of(exp), int(exp.render.lanes), bool(exp.render.compaction))
-    return params, static, eye, info, int(sum(i["primitives"] for i in info))
 
 
 # ----------------------------------------------------------------------------- tracing
@@ -263,6 +134,9 @@ def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live) -> Scene
     """Nearest hit over all objects of the ``live`` rays (others: misses). Each object traces
     only the live rays that cross its bounding box, compacted into sub-batches of ``lanes``."""
     n, dtype = rays.size, rays.origins.dtype
+    if static.single:  # a scene of one: every camera ray in one batch (the representation culls), as computed once
+        fn = functools.partial(_object_hits, static.reps[0], static.statics[0], params.objects[0], params.xforms[0], 0)
+        return fenced(always(rays.t_min), lambda: fn(rays))
     best = _miss(n, dtype)
     for k, (rep, st) in enumerate(zip(static.reps, static.statics)):
         x = params.xforms[k]
@@ -472,6 +346,9 @@ def scene_batch(static: SceneStatic):
             carry = jax.lax.while_loop(lambda c: (c[0] < levels) & jnp.any(c[1][0].live),
                                        lambda c: (c[0] + 1, level_fn(c[0], c[1])), (jnp.int32(0), carry))[1]
         _, rgb, flags, first_obj, secondary, aov, vis0 = carry
+        if static.single:  # a single object's outputs: its hit, the colour, the shadows it asked for
+            out = {"hit": Hit(aov.t, aov.position, aov.normal, aov.uv, aov.prim, flags), "rgb": rgb}
+            return {**out, "visibility": vis0} if eff.shadows else out
         return {"hit": aov, "rgb": rgb, "visibility": vis0, "flags": flags, "first_obj": first_obj, "secondary": secondary}
 
     return batch

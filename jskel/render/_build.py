@@ -1,0 +1,211 @@
+"""What the integrator (``render/_scene.py``) traces, assembled on the host: a scene's objects
+with their transforms and materials, or a single object as a scene of one.
+
+Both go through :func:`assemble`: every object is built by its representation, placed by a
+transform (float64 offsets between the rays' frame and the frame its params are stored in) and
+given a material; which effects exist is decided here, statically, from what the experiment
+asks for (:class:`Effects`).
+
+The rays' frame. A scene's rays are relative to the camera's eye (camera-relative rendering).
+A single object's are relative to its build anchor, as a single-object render always was: with
+the identity transform the offsets are exactly zero, so a primary ray reaches the object, and
+its hit comes back, as the very floats the representation gives.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from .. import registry
+from ..numerics import euler_xyz
+from ..shading import Lights, lights_from_config
+
+
+class XForm(NamedTuple):
+    """World (frame-relative) <-> one object's params frame: ``o' = rt o / s + c`` for points,
+    ``d' = rt d`` for directions (t' = t / s), ``p = s r p' + g`` back; ``lo``/``hi`` the
+    object's world bounding box."""
+
+    rt: jnp.ndarray
+    r: jnp.ndarray
+    s: jnp.ndarray
+    c: jnp.ndarray
+    g: jnp.ndarray
+    lo: jnp.ndarray
+    hi: jnp.ndarray
+
+
+class Materials(NamedTuple):
+    """Per object (leading axis K): colour (3), specular, shininess, reflectivity,
+    transparency, ior, and ``offset``, the world-space surface tolerance of its tracer."""
+
+    color: jnp.ndarray
+    specular: jnp.ndarray
+    shininess: jnp.ndarray
+    reflect: jnp.ndarray
+    transmit: jnp.ndarray
+    ior: jnp.ndarray
+    offset: jnp.ndarray
+
+
+class SceneParams(NamedTuple):
+    """Everything traced: changing any value (a radius, a transform, a light, a material's
+    reflectivity between non-zero values) reuses the compiled program."""
+
+    objects: tuple
+    xforms: tuple
+    mat: Materials
+    lights: Lights
+    shadows: jnp.ndarray  # (L,) bool: light l casts shadows
+    ambient: jnp.ndarray
+    env: jnp.ndarray  # (3, 3): zenith, horizon, ground
+
+
+class Effects(NamedTuple):
+    """Static: which effects the experiment calls for (derived by :func:`effects_of`)."""
+
+    shadows: bool
+    reflection: bool
+    refraction: bool
+    bounces: int  # levels after the primary one (0 without reflection and refraction)
+
+
+class SceneStatic(NamedTuple):
+    reps: tuple  # representation name per object
+    statics: tuple  # each object's static options
+    effects: Effects
+    lanes: int
+    compaction: bool = True  # False: every queue slot traced against every object (masking; for the benchmark)
+    single: bool = False  # a scene of one: camera rays traced as one batch, outputs as a single-object render's
+
+
+class Placed(NamedTuple):
+    """One object ready to assemble: its name, representation, build, transform and material."""
+
+    name: str
+    rep: object
+    built: object
+    scale: float
+    rotation: np.ndarray  # (3, 3) float64
+    translate: np.ndarray  # (3,) float64
+    material: object  # config.MaterialConfig
+
+
+def shadow_lights(exp, single: bool) -> np.ndarray:
+    """(L,) bool: which lights cast shadows. In a scene a light's ``shadows`` (default true);
+    for a single object only a light whose section sets ``shadows: true`` itself, so a
+    single-object experiment written before shadows existed renders as it did, without
+    shadow rays."""
+    out = [l.shadows and (not single or "shadows" in l.model_fields_set) for l in exp.lights]
+    return np.array(out or [False])
+
+
+def effects_of(exp, single: bool = False) -> Effects:
+    """The effects an experiment calls for (host, static). A single object has the default
+    material: neither reflection nor refraction."""
+    mats = [] if single else [o.material for o in exp.objects]
+    refl = any(m.reflectivity > 0 for m in mats)
+    refr = any(m.transparency > 0 for m in mats)
+    casts = shadow_lights(exp, single)
+    shadows = any(bool(c) and l.intensity > 0 for c, l in zip(casts, exp.lights))
+    return Effects(shadows, refl, refr, exp.render.bounces if (refl or refr) else 0)
+
+
+def object_transform(o, frame: float):
+    """(scale, rotation (3,3), translation (3,)) of scene object ``o`` at ``frame`` (float64)."""
+    t = np.asarray(o.transform.translate, np.float64)
+    e = np.asarray(o.transform.rotate_deg, np.float64)
+    if o.motion is not None:
+        t = t + frame * np.asarray(o.motion.translate, np.float64)
+        e = e + frame * np.asarray(o.motion.rotate_deg, np.float64)
+    return float(o.transform.scale), euler_xyz(e), t
+
+
+def _shape_at(shape, frame: float):
+    if frame != 0.0 and "frame" in type(shape).model_fields:
+        return shape.model_copy(update={"frame": shape.frame + frame})
+    return shape
+
+
+def _check_shape(i: int, o, shape, rep):
+    """Host checks of what a representation can do in a scene (interface flags, not types)."""
+    if o.material.transparency > 0 and not rep.exits_from_inside(shape):
+        raise ValueError(
+            f"objects[{i}].material.transparency: {o.material.transparency} on a {shape.type} object, whose tracer "
+            "searches for the first entry only (a transparent object must report the exit of a ray from inside: plain frusta do)")
+    if rep.own_effects(shape):
+        raise ValueError(
+            f"objects[{i}].shape.mode: {getattr(shape, 'mode', '?')!r}; in a scene an object is shaded by its material "
+            "(material.reflectivity / transparency), not by effects of its own: give mode: first_hit")
+
+
+def _xform(p: Placed, origin: np.ndarray, dtype) -> XForm:
+    """The object's offsets from the rays' frame (``origin``) in float64, then cast."""
+    s, r, t = p.scale, p.rotation, p.translate
+    a = np.asarray(p.built.anchor, np.float64)
+    c = r.T @ (origin - t) / s - a
+    g = s * (r @ a) + t - origin
+    lo, hi = (np.asarray(b, np.float64) for b in p.built.bounds)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    w = (s * corners @ r.T) + t - origin
+    pad = 1e-5 * (np.max(np.abs(w)) + np.max(w.max(0) - w.min(0)))  # float32 rounding of the box test
+    return XForm(*(jnp.asarray(v, dtype) for v in (r.T, r, s, c, g, w.min(0) - pad, w.max(0) + pad)))
+
+
+def assemble(exp, placed: list[Placed], origin, dtype, single: bool = False):
+    """Scene arrays of placed objects, rays relative to ``origin`` (host). Returns (params,
+    static, info per object)."""
+    origin = np.asarray(origin, np.float64)
+    mats = [p.material for p in placed]
+    sh = exp.shading
+    cols = [m.color for m in mats]
+    spec = [sh.specular if m.specular is None else m.specular for m in mats]
+    shin = [sh.shininess if m.shininess is None else m.shininess for m in mats]
+    off = [4.0 * p.scale * p.built.surface_tolerance for p in placed]
+    mat = Materials(*(jnp.asarray(np.asarray(v, np.float64), dtype) for v in (
+        cols, spec, shin, [m.reflectivity for m in mats], [m.transparency for m in mats], [m.ior for m in mats], off)))
+    bg = np.asarray(sh.background, np.float64)
+    ev = exp.environment
+    env = np.array([bg if v is None else v for v in (ev.zenith, ev.horizon, ev.ground)], np.float64)
+    lights = lights_from_config(exp.lights, dtype, origin=origin)
+    params = SceneParams(tuple(p.built.params for p in placed), tuple(_xform(p, origin, dtype) for p in placed), mat, lights,
+                         jnp.asarray(shadow_lights(exp, single)), jnp.asarray(sh.ambient, dtype), jnp.asarray(env, dtype))
+    static = SceneStatic(tuple(p.rep.name for p in placed), tuple(p.built.static for p in placed), effects_of(exp, single),
+                         int(exp.render.lanes), bool(exp.render.compaction), single)
+    info = [{"name": p.name, "type": p.rep.name, "primitives": p.built.primitives, **p.built.info} for p in placed]
+    return params, static, info
+
+
+def build_scene(exp, shapes, dtype):
+    """Build every object of a scene (``objects:``) and the scene's arrays (host). Returns
+    (params, static, eye, info per object, primitives in all)."""
+    eye = np.asarray(exp.camera.eye, np.float64)
+    placed = []
+    for i, (o, shape) in enumerate(zip(exp.objects, shapes)):
+        rep = registry.get(shape.type)
+        _check_shape(i, o, shape, rep)
+        built = rep.build(_shape_at(shape, exp.frame), dtype)
+        s, r, t = object_transform(o, exp.frame)
+        placed.append(Placed(o.name or f"objects[{i}]", rep, built, s, r, t, o.material))
+    params, static, info = assemble(exp, placed, eye, dtype)
+    return params, static, eye, info, int(sum(i["primitives"] for i in info))
+
+
+def build_single(exp, obj, dtype):
+    """A single object (``object:``) as a scene of one: identity transform, the default
+    material (colour 1, the shading section's specular and shininess, no reflection or
+    refraction), rays relative to its anchor. Returns (params, static, built)."""
+    from ..config import MaterialConfig
+
+    rep = registry.get(obj.type)
+    built = rep.build(obj, dtype)
+    p = Placed("object", rep, built, 1.0, np.eye(3), np.zeros(3), MaterialConfig())
+    params, static, _ = assemble(exp, [p], built.anchor, dtype, single=True)
+    return params, static, built
+
+
+__all__ = ["Effects", "Materials", "Placed", "SceneParams", "SceneStatic", "XForm", "assemble", "build_scene", "build_single",
+           "effects_of", "object_transform", "shadow_lights"]
