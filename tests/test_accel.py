@@ -176,7 +176,7 @@ def test_a_strong_change_of_taper_keeps_every_cut_an_ellipse():
     """A thin leaflet leaving a thick joint with a small bend (the palm's case): Eq. 3-5 would put
     a plane nearly through the axis and the frustum would run off along a generator; with the
     bisector fallback every hit lies next to the skeleton, and the BVH agrees with brute force."""
-    from jskel.frusta._build import _cuts_ellipse
+    from jskel.frusta._geometry import cuts_ellipse as _cuts_ellipse
 
     joints = [[0, 0, 0], [0, 0.16, 0.0], [0.02, 0.34, 0.0], [0.05, 0.5, 0.0]]
     radii = [0.035, 0.0113, 0.0067, 0.002]

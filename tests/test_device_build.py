@@ -11,7 +11,8 @@ import pytest
 
 from conftest import assert_hits_agree, build_skeleton, cast, random_tree
 from jskel import frusta
-from jskel.frusta._device import device_topology, frusta_fields, params_from
+from jskel.frusta._device import params_from
+from jskel.frusta._geometry import frusta_fields, padded_topology
 from jskel.frusta._intersect import _segment_t, nearest_one
 
 
@@ -84,7 +85,7 @@ def test_t_is_differentiable_in_the_joints_through_planes_and_frames():
     built = build_skeleton(joints, radii, parents, accel="bvh")
     g = built.params.plain.frusta
     topo = frusta.topology(*frusta.validate_skeleton(joints, radii, parents)[::2])
-    dtopo = device_topology(topo, g.h.shape[0])
+    dtopo = padded_topology(topo, g.h.shape[0])
     o = jnp.asarray(np.array([0.1, 1.05, 3.0]) - built.anchor, jnp.float32)
     d = jnp.asarray([0.0, -0.02, -1.0], jnp.float32)
 
@@ -106,3 +107,34 @@ def test_t_is_differentiable_in_the_joints_through_planes_and_frames():
             e[i, k] = h
             fd[i, k] = (float(t_jit(x + e)) - float(t_jit(x - e))) / (2 * h)
     np.testing.assert_allclose(grad, fd, atol=2e-2)
+
+
+def test_the_host_build_runs_the_shared_geometry_in_float64_against_the_paper_reference():
+    """The host build is the device rebuild's geometry (``_geometry.frusta_fields``) jitted in
+    float64 under a scoped x64 switch: on a random tree, a straight chain (collinear joints) and a
+    joint with seven children, every plane, offset and cap equals the independent float64
+    reference of Eq. 3-5 (tests/reference.py: A and B as 3D line meets) within 1e-9, which a
+    float32 computation could not reach; frames are unit and orthogonal to the axis; and
+    ``jax_enable_x64`` is left off."""
+    import reference as ref
+
+    star = np.array([[0, 0, 0], [0, 1, 0]] + [[np.cos(a), 1.5, np.sin(a)] for a in np.linspace(0, 6, 7)], float)
+    cases = [random_tree(np.random.default_rng(8), 40),
+             (np.array([[0, 0, 0], [0, 1, 0], [0, 2, 0], [0, 3.0, 0]]), np.array([0.3, 0.2, 0.2, 0.1]), np.array([-1, 0, 1, 2])),
+             (star, np.full(9, 0.1), np.array([-1, 0] + [1] * 7))]
+    assert not jax.config.jax_enable_x64
+    for j, r, p in cases:
+        arr, _, _ = frusta.frusta_from_skeleton(j, r, p, twist_deg=30.0)
+        assert arr.nb.dtype == np.float64 and arr.u.dtype == np.float64
+        for i, s in enumerate(ref.segments(j, r, p)):
+            for (n, pt, cap), nn, dd, cc in ((s["bottom"], arr.nb[i], arr.db[i], arr.cap_b[i]),
+                                             (s["top"], arr.nt[i], arr.dt[i], arr.cap_t[i])):
+                assert cap == cc
+                np.testing.assert_allclose(nn, n, atol=1e-9)
+                np.testing.assert_allclose(dd, n @ (pt - s["c1"]), atol=1e-9)
+            np.testing.assert_allclose(arr.c1[i], s["c1"], atol=1e-12)
+            np.testing.assert_allclose(arr.m[i], s["m"], atol=1e-12)
+        for f in (arr.u, arr.w):
+            np.testing.assert_allclose(np.linalg.norm(f, axis=1), 1.0, atol=1e-12)
+            np.testing.assert_allclose(np.sum(f * arr.m, 1), 0.0, atol=1e-12)
+    assert not jax.config.jax_enable_x64

@@ -3,8 +3,8 @@
 The surface is the one the renderer casts rays at (Bhagvat et al. 2009, Sec. 2.1-2.2): each
 segment a cone ``x^2 + z^2 = (r1 + k y)^2`` (slope form, ``k = (r2 - r1) / h``, no apex term, so
 cylinders and closed tips are one formula) between two planes; a segment and its continuation
-share the cutting plane of Eq. 3-5 (``jskel.frusta._device.cutting_planes``, the JAX port of the
-host build's ``jskel.frusta._build.cutting_planes`` that the device rebuild uses too, same fallbacks); free ends and side-branch bases are cut
+share the cutting plane of Eq. 3-5 (``jskel.frusta.joint_planes``: the very functions the host
+build and the device rebuild run, same fallbacks); free ends and side-branch bases are cut
 perpendicular to the axis and capped.
 
 Per segment the signed distance combines ``cone``, the distance to the generator line in the
@@ -29,8 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..frusta import topology, validate_skeleton
-from ..frusta import device_cutting_planes as cutting_planes
+from ..frusta import cone_sin, cutting_planes, joint_planes, segment_axes, topology, validate_skeleton
 from ..numerics import dot3, norm3
 from ..numerics import safe_div, safe_norm, safe_sqrt
 
@@ -76,21 +75,10 @@ class Geometry(NamedTuple):
 
 
 def geometry(joints, radii, seg: Segments) -> Geometry:
-    """Frusta of a skeleton from traced ``joints`` (J,3) and ``radii`` (J,)."""
-    c1 = joints[seg.start]
-    v = joints[seg.end] - c1
-    h = safe_norm(v)
-    m = safe_div(v, h[:, None], 0.0)
-    r1, r2 = radii[seg.start], radii[seg.end]
-    nb, nt = m, m
-    db, dt = jnp.zeros_like(h), h
-    if len(seg.cont_b):
-        a, b = seg.cont_a, seg.cont_b
-        n, p = cutting_planes(c1[b], m[a], c1[a], r1[a], r2[a], h[a], m[b], r1[b], r2[b], h[b])
-        nt = nt.at[a].set(n)
-        dt = dt.at[a].set(dot3(n, p - c1[a]))
-        nb = nb.at[b].set(n)
-        db = db.at[b].set(dot3(n, p - c1[b]))
+    """Frusta of a skeleton from traced ``joints`` (J,3) and ``radii`` (J,): the axes and cutting
+    planes of ``jskel.frusta`` (``segment_axes``, ``joint_planes``), the build's own functions."""
+    c1, m, h, r1, r2 = segment_axes(joints, radii, seg.start, seg.end)
+    nb, db, nt, dt, _, _ = joint_planes(c1, m, h, r1, r2, seg.cont_a, seg.cont_b)
     return Geometry(c1, m, h, r1, r2, nb, db, nt, dt)
 
 
@@ -116,8 +104,7 @@ def margins_of(g: Geometry, seg: Segments):
     n = g.nt[a]
 
     def margin(i):
-        k = safe_div(g.r2[i] - g.r1[i], g.h[i], 0.0)
-        return dot3(n, g.m[i]) - jnp.abs(k) / jnp.sqrt(1.0 + k * k)
+        return dot3(n, g.m[i]) - cone_sin(g.r1[i], g.r2[i], g.h[i])
 
     return jnp.stack([margin(a), margin(b)], -1)
 

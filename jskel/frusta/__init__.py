@@ -5,6 +5,8 @@ Public API:
 * :func:`build` (host) validates a skeleton and returns a :class:`jskel.interface.Built`;
 * :func:`intersect_one` / :func:`intersect` ray cast it (pure, jit/vmap friendly);
 * :func:`frusta_from_skeleton` is the array-level entry point for scripts and notebooks;
+* :func:`segment_axes`, :func:`joint_planes`, :func:`cutting_planes` are the geometry (JAX,
+  differentiable) that the host build, the device rebuild and the fit share;
 * ``REPRESENTATION`` is what the registry hands to the renderer."""
 
 from ._scene import FrustaArrays as FrustaArrays
@@ -18,9 +20,11 @@ from ._scene import RELIEF_TEXTURES as RELIEF_TEXTURES
 from ._scene import REPRESENTATION as REPRESENTATION
 from ._scene import ReliefMaps as ReliefMaps
 from ._scene import ReliefQuality as ReliefQuality
-from ._build import ELLIPSE_MARGIN as ELLIPSE_MARGIN
+from ._geometry import ELLIPSE_MARGIN as ELLIPSE_MARGIN
 from ._scene import ANIMATED as ANIMATED
-from ._device import cutting_planes as device_cutting_planes
+from ._geometry import cone_sin as cone_sin
+from ._geometry import joint_planes as joint_planes
+from ._geometry import segment_axes as segment_axes
 from ._device import rebuilder as rebuilder
 from ._scene import SkeletonConfig as SkeletonConfig
 from ._scene import Static as Static
@@ -48,4 +52,4 @@ from ._scene import topology as topology
 from ._scene import traversal_stats as traversal_stats
 from ._scene import validate_skeleton as validate_skeleton
 
-__all__ = ["ANIMATED", "ELLIPSE_MARGIN", "FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaPayload", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cast", "cutting_planes", "device_cutting_planes", "frusta_from_skeleton", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "load_height_map", "make_group", "minor_semi_axis", "rebuilder", "relief_memory", "rim_points", "skeleton_arrays", "surface", "to_params", "topology", "traversal_stats", "validate_skeleton"]
+__all__ = ["ANIMATED", "ELLIPSE_MARGIN", "FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaPayload", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cast", "cone_sin", "cutting_planes", "frusta_from_skeleton", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "joint_planes", "load_height_map", "make_group", "minor_semi_axis", "rebuilder", "relief_memory", "rim_points", "segment_axes", "skeleton_arrays", "surface", "to_params", "topology", "traversal_stats", "validate_skeleton"]
