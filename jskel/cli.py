@@ -114,40 +114,41 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def _command(sub, name: str, help: str, file_help: tuple, set_help: str, x64_help: str, progress: bool = False):
+    """A subcommand with its input file, ``--set`` overrides, ``--x64`` and (optionally) progress."""
+    c = sub.add_parser(name, help=help)
+    c.add_argument(file_help[0], **file_help[1])
+    c.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help=set_help)
+    if progress:
+        g = c.add_mutually_exclusive_group()
+        g.add_argument("--progress", dest="progress", action="store_true", default=None)
+        g.add_argument("--no-progress", dest="progress", action="store_false")
+    c.add_argument("--x64", action="store_true", help=x64_help)
+    return c
+
+
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="jskel", description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
-    r = sub.add_parser("render", help="render an experiment to image.png and AOVs")
-    r.add_argument("experiment", nargs="?", default=None, help="experiment YAML (default: the embedded default)")
+    r = _command(sub, "render", "render an experiment to image.png and AOVs",
+                 ("experiment", dict(nargs="?", default=None, help="experiment YAML (default: the embedded default)")),
+                 "override a config key (repeatable)", "float64 throughout (render.dtype=float64; x64 switched on here)", progress=True)
     r.add_argument("--out", required=True, help="output folder")
-    r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key (repeatable)")
     r.add_argument("--frames", default=None, metavar="A:B[:STEP]", help="render an animation (frames A..B inclusive): frame_NNNN/ folders and animation.gif")
-    g = r.add_mutually_exclusive_group()
-    g.add_argument("--progress", dest="progress", action="store_true", default=None)
-    g.add_argument("--no-progress", dest="progress", action="store_false")
-    r.add_argument("--x64", action="store_true", help="float64 throughout (render.dtype=float64; x64 switched on here)")
     r.set_defaults(func=cmd_render)
-    b = sub.add_parser("bench", help="time renders (compile apart, median of warm runs), JSON lines out")
-    b.add_argument("file", help="benchmark YAML")
+    b = _command(sub, "bench", "time renders (compile apart, median of warm runs), JSON lines out", ("file", dict(help="benchmark YAML")),
+                 "override a bench key", "every scene in float64 (render.dtype=float64)")
     b.add_argument("--runs", type=int, default=None, help="override the number of timed runs")
-    b.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a bench key")
     b.add_argument("--out", default=None, help="also write the JSON lines to this file")
-    b.add_argument("--x64", action="store_true", help="every scene in float64 (render.dtype=float64)")
     b.set_defaults(func=cmd_bench)
-    w = sub.add_parser("sweep", help="vary config keys, measure error against a reference and time: results.csv, pareto.png, report.md")
-    w.add_argument("file", help="sweep YAML")
+    w = _command(sub, "sweep", "vary config keys, measure error against a reference and time: results.csv, pareto.png, report.md",
+                 ("file", dict(help="sweep YAML")), "override a sweep key", "every setting in float64 unless it sets render.dtype itself",
+                 progress=True)
     w.add_argument("--out", required=True, help="output folder (an existing results.csv there is resumed)")
-    w.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a sweep key")
-    g = w.add_mutually_exclusive_group()
-    g.add_argument("--progress", dest="progress", action="store_true", default=None)
-    g.add_argument("--no-progress", dest="progress", action="store_false")
-    w.add_argument("--x64", action="store_true", help="every setting in float64 unless it sets render.dtype itself")
     w.set_defaults(func=cmd_sweep)
-    f = sub.add_parser("fit", help="fit a skeleton's joints and radii to a point cloud: fitted.yaml, fit.json, fit.png")
-    f.add_argument("file", help="fit YAML")
+    f = _command(sub, "fit", "fit a skeleton's joints and radii to a point cloud: fitted.yaml, fit.json, fit.png", ("file", dict(help="fit YAML")),
+                 "override a fit key", "fit in float64")
     f.add_argument("--out", required=True, help="output folder")
-    f.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a fit key")
-    f.add_argument("--x64", action="store_true", help="fit in float64")
     f.set_defaults(func=cmd_fit)
     return ap
 

@@ -14,6 +14,8 @@ from __future__ import annotations
 import time
 from typing import Annotated, Literal
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 from pydantic import Field
 
@@ -87,8 +89,6 @@ def _loss_at(points, joints, radii, parents, s: SolverConfig) -> float:
     """The fit's loss (normalised units, penalties included) at a given skeleton: at the truth
     it says whether a fit that ended off the truth found a lower loss (the objective's fault)
     or a higher one (the solver's)."""
-    import jax.numpy as jnp
-
     seg = segments_of(joints, radii, parents)
     pr = problem_of(seg, s)
     nz = normaliser_of(points)
@@ -97,8 +97,6 @@ def _loss_at(points, joints, radii, parents, s: SolverConfig) -> float:
 
 def run_fit_bench(b: FitBench, emit) -> list[dict]:
     """Run the benchmark, calling ``emit(row)`` for each JSON row as it is measured."""
-    import jax
-
     rows = []
     dev = jax.devices()[0]
     common = {"device": f"{dev.platform}:{getattr(dev, 'device_kind', '')}", "jax": jax.__version__}
