@@ -1,7 +1,8 @@
 """Acceleration structures shared by the representations (issue 6): a linear BVH built in JAX
 per frame (``_lbvh``), traversed stacklessly under vmap (``nearest``: the frusta's nearest hit;
 ``collect``: every leaf a ray meets, for the implicit representation's culling); and candidate
-lists for packets of coherent rays (``_bins``)."""
+lists for packets of coherent rays (``_bins``); reverse-mode derivatives of a walk's nearest hit
+from its winning primitive (``_tangent``)."""
 
 from ._bins import always as always
 from ._bins import fenced as fenced
@@ -22,5 +23,7 @@ from ._lbvh import morton_codes as morton_codes
 from ._lbvh import nearest as nearest
 from ._lbvh import nearest_packet as nearest_packet
 from ._lbvh import ray_box as ray_box
+from ._tangent import hold as hold
+from ._tangent import nearest_tangent as nearest_tangent
 
-__all__ = ["BVH", "Best", "always", "build", "collect", "descend", "escape", "fenced", "first_set", "leaves_for", "map_groups", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "pack_bits", "packet_meets", "pad_groups", "ray_box"]
+__all__ = ["BVH", "Best", "always", "build", "collect", "descend", "escape", "fenced", "first_set", "hold", "leaves_for", "map_groups", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "nearest_tangent", "pack_bits", "packet_meets", "pad_groups", "ray_box"]

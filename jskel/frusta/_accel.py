@@ -14,9 +14,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..accel import BVH, Best, build, map_groups, nearest, nearest_binned, nearest_packet
-from ..numerics import dot3
-from ._intersect import SIDE, FrustaParams, _segment_t, recentre
+from ..accel import BVH, Best, build, hold, map_groups, nearest, nearest_binned, nearest_packet
+from ..numerics import dot3, safe_div
+from ._intersect import CAP_BOTTOM, SIDE, FrustaParams, _cone_roots, _segment_t, recentre
 
 
 def segment_boxes(f: FrustaParams, n_ang: int = 32):
@@ -194,3 +194,34 @@ def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, p
     t_again, s, c, t0 = jax.lax.cond(jnp.any(idx >= 0), again, lambda: (zero, zero, jnp.zeros(zero.shape, jnp.int32), zero))
     again = jnp.isfinite(t_again)
     return t, jnp.where(again, s, t - t0), jnp.where(again, c, SIDE), idx, counts
+
+
+def segment_at(seg: FrustaParams, o, d, s, code):
+    """(t, s) of one ray on the surface ``code`` of one frustum, nearest the local parameter
+    ``s`` that a traversal found: the closed forms of ``_segment_t`` without its window and its
+    choice among candidates (the side root nearest ``s``, or a cap's plane), for the derivative
+    of a hit whose value came from a loop (``accel.nearest_tangent``). Sec. 2.4-2.5: the side
+    roots of the cone quadratic (Eq. 9-10 in ``_intersect``'s form), the caps on the cutting
+    planes (Eq. 3-5)."""
+    t0, e = recentre(seg, o, d)
+    ex, ey, ez = dot3(e, seg.u), dot3(e, seg.m), dot3(e, seg.w)
+    dx, dy, dz = dot3(d, seg.u), dot3(d, seg.m), dot3(d, seg.w)
+    k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
+    s_lo, s_hi = _cone_roots(k, seg.r1, ex, ey, ez, dx, dy, dz)
+    side = jnp.where(jnp.abs(s_lo - s) <= jnp.abs(s_hi - s), s_lo, s_hi)
+    s_b = safe_div(seg.db - dot3(seg.nb, e), dot3(seg.nb, d), 0.0)
+    s_t = safe_div(seg.dt - dot3(seg.nt, e), dot3(seg.nt, d), 0.0)
+    s_new = jnp.where(code == SIDE, side, jnp.where(code == CAP_BOTTOM, s_b, s_t))
+    return t0 + s_new, s_new
+
+
+def winner_ts(f: FrustaParams, rays, out):
+    """(t, s, None, None) of a batch's winning segments in closed form (:func:`segment_at`)
+    from a traversal's (t, s, code, idx): the ``winner`` of ``accel.nearest_tangent``. A miss
+    evaluates segment 0 with its tangents held at 0, so no NaN reaches either mode."""
+    t, s, code, idx = out
+    hit = jnp.isfinite(t)
+    seg = jax.tree_util.tree_map(lambda a: a[jnp.maximum(idx, 0)], f)
+    seg, o, d = hold(hit, (seg, rays[0], rays[1]))
+    tt, ss = jax.vmap(segment_at)(seg, o, d, jnp.where(hit, s, 0.0), jnp.where(hit, code, CAP_BOTTOM))
+    return tt, ss, None, None

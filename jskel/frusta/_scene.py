@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..accel import hold, nearest_tangent
 from ..interface import Built, Preliminary, Representation
 from ..rays import Hit, Rays
 from ..textures import bilinear_wrap, load_texture
@@ -21,7 +22,7 @@ from ._intersect import FrustaParams as FrustaParams
 from ._intersect import Quality as Quality
 from ._intersect import inside_one as _inside_one
 from ._intersect import _finish, _segment_t, nearest_batch, nearest_batch_compact, nearest_one
-from ._accel import build_bvh, nearest_bins, nearest_groups, nearest_packets
+from ._accel import build_bvh, nearest_bins, nearest_groups, nearest_packets, winner_ts
 from ._kernel import nearest_kernel
 from ._relief import ReliefMaps as ReliefMaps
 from ._relief import ReliefQuality as ReliefQuality
@@ -414,37 +415,74 @@ class FrustaPayload(NamedTuple):
     relief: tuple | None
 
 
+def _plain_search(static: Static):
+    """(t, s, code, idx) of a batch against the plain segments of a group, by the traversal
+    ``static`` names (see :func:`cast`)."""
+
+    def search(g: Group, rays: Rays):
+        o, d, a, b = rays
+        if static.accel == "bvh" and static.traversal == "bins":
+            out = nearest_bins(g.frusta, g.bvh, *static.bins, o, d, a, b, leaf=static.leaf, walk_group=static.group)
+        elif static.accel == "bvh" and static.traversal == "kernel":
+            out = nearest_kernel(g.frusta, g.bvh, static.leaf, o, d, a, b, static.kernel_block, static.kernel_warps)
+        elif static.accel == "bvh" and static.traversal == "packets" and static.packet > 0:
+            out = nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, o, d, a, b)
+        elif static.accel == "bvh":
+            out = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, o, d, a, b)
+        elif static.accel == "none":  # brute force: every segment for every ray (the reference)
+            out = jax.vmap(lambda o_, d_, a_, b_: nearest_one(g.frusta, _segment_t, o_, d_, a_, b_, static.quality.block))(o, d, a, b)
+        else:
+            out = nearest_batch(g.frusta, g.block_c, g.block_r, _segment_t, o, d, a, b, static.quality.block)
+        return tuple(out[:4])
+
+    return search
+
+
+def _relief_search(static: Static):
+    """(t, s, code, idx) of a batch against the relief segments (marched only for the (ray,
+    segment) pairs whose ray enters a shell), and its closed-form ``winner``: the march and
+    bisection of the winning segment alone, differentiated by the implicit-function theorem
+    (``_relief``)."""
+
+    def search(sc: FrustaScene, rays: Rays):
+        seg_fn = make_relief_t(sc.maps, static.relief)
+        g, cap = sc.relief, min(rays.origins.shape[0], 4096)
+        return tuple(nearest_batch_compact(g.frusta, g.block_c, g.block_r, enters_shell, seg_fn, *rays, static.relief_block, cap))
+
+    def winner(sc: FrustaScene, rays: Rays, out):
+        t, s, code, idx = out
+        hit = jnp.isfinite(t)
+        seg = jax.tree_util.tree_map(lambda x: x[jnp.maximum(idx, 0)], sc.relief.frusta)
+        seg, o, d = hold(hit, (seg, rays.origins, rays.directions))  # (the maps are shared by every ray)
+        tt, ss, _ = jax.vmap(make_relief_t(sc.maps, static.relief))(seg, o, d, rays.t_min, rays.t_max)
+        return tt, ss, None, None
+
+    return search, winner
+
+
 def cast(scene: FrustaScene, static: Static, rays: Rays) -> Preliminary:
     """First stage: the nearest (t, segment id) of every ray, plain segments through the linear
     BVH (``accel: bvh``; packets of ``packet`` consecutive rays share a traversal, or with
     ``packet: 0`` every ray walks alone, in vmapped groups) or by skipping blocks that no ray of
     the batch reaches (``blocks``); relief marched only for the (ray, segment) pairs whose ray
-    enters a shell. The payload keeps each group's (t, s, code, index) for :func:`surface`."""
-    o, d, a, b = rays
+    enters a shell. The payload keeps each group's (t, s, code, index) for :func:`surface`.
+
+    t and s differentiate in both modes (``jax.grad`` too) though the traversals are loops of
+    data-dependent length: ``accel.nearest_tangent`` takes their derivative from the winning
+    segment's closed form (``_accel.winner_ts``; the relief's implicit-function derivative),
+    and leaves the traversal alone when nothing is differentiated."""
+    o = rays.origins
     plain = relief = None
     t = jnp.full(o.shape[:1], jnp.inf, o.dtype)
     prim = jnp.full(o.shape[:1], -1, jnp.int32)
     if scene.plain is not None:
         g = scene.plain
-        if static.accel == "bvh" and static.traversal == "bins":
-            plain = nearest_bins(g.frusta, g.bvh, *static.bins, o, d, a, b, leaf=static.leaf, walk_group=static.group)[:4]
-        elif static.accel == "bvh" and static.traversal == "kernel":
-            plain = nearest_kernel(g.frusta, g.bvh, static.leaf, o, d, a, b, static.kernel_block, static.kernel_warps)[:4]
-        elif static.accel == "bvh" and static.traversal == "packets" and static.packet > 0:
-            plain = nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, o, d, a, b)[:4]
-        elif static.accel == "bvh":
-            plain = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, o, d, a, b)[:4]
-        elif static.accel == "none":  # brute force: every segment for every ray (the reference)
-            plain = jax.vmap(lambda o_, d_, a_, b_: nearest_one(g.frusta, _segment_t, o_, d_, a_, b_, static.quality.block))(o, d, a, b)
-        else:
-            plain = nearest_batch(g.frusta, g.block_c, g.block_r, _segment_t, o, d, a, b, static.quality.block)
+        plain = nearest_tangent(_plain_search(static), lambda g_, r, out: winner_ts(g_.frusta, r, out))(g, rays)
         t = plain[0]
         prim = jnp.where(jnp.isfinite(t), g.frusta.sid[jnp.maximum(plain[3], 0)], -1)
     if scene.relief is not None:
         g = scene.relief
-        seg_fn = make_relief_t(scene.maps, static.relief)
-        cap = min(o.shape[0], 4096)
-        relief = nearest_batch_compact(g.frusta, g.block_c, g.block_r, enters_shell, seg_fn, o, d, a, b, static.relief_block, cap)
+        relief = nearest_tangent(*_relief_search(static))(scene, rays)
         closer = relief[0] < t  # a tie keeps the plain segment, as _nearest_hit does
         t = jnp.where(closer, relief[0], t)
         prim = jnp.where(closer, g.frusta.sid[jnp.maximum(relief[3], 0)], prim)

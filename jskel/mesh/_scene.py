@@ -21,7 +21,7 @@ import numpy as np
 
 from .. import accel
 from ..interface import Built, Preliminary, Representation
-from ..numerics import dot3, safe_normalize
+from ..numerics import dot3, safe_div, safe_normalize
 from ..rays import Hit, Rays, masked_hit
 from ._config import MeshConfig
 from ._triangle import cross3, triangle_t
@@ -149,14 +149,35 @@ def _nearest_packet(p: MeshParams, static: Static, o, d, t_min, t_max):
     return jnp.where(best.idx >= 0, best.t, jnp.inf), best.idx
 
 
+def _search(static: Static):
+    def search(p: MeshParams, rays: Rays):
+        if static.packet > 0:
+            return accel.map_groups(lambda *r: _nearest_packet(p, static, *r), static.packet, *rays)
+        return accel.map_groups(jax.vmap(lambda o, d, a, b: _nearest_one(p, static, o, d, a, b)), static.group, *rays)
+
+    return search
+
+
+def winner_t(p: MeshParams, rays: Rays, out):
+    """(t, None) of a batch on the planes of its winning triangles, t = n . (v0 - o) / (n . d)
+    with n = (v1 - v0) x (v2 - v0): the value the watertight test finds, in a form whose
+    derivative in the vertices and the ray is defined wherever the ray is not parallel to the
+    face (``accel.nearest_tangent``'s ``winner``; a miss holds its tangents at 0)."""
+    t, idx = out
+    hit = jnp.isfinite(t)
+    i = jnp.maximum(idx, 0)
+    v0, v1, v2, o, d = accel.hold(hit, (p.v0[i], p.v1[i], p.v2[i], rays.origins, rays.directions))
+    n = cross3(v1 - v0, v2 - v0)
+    return safe_div(dot3(n, v0 - o), dot3(n, d), 0.0), None
+
+
 def cast(p: MeshParams, static: Static, rays: Rays) -> Preliminary:
     """First stage: (t, triangle) of every ray through the BVH: one walk per packet of
     ``static.packet`` consecutive rays, or per ray in vmapped groups of ``static.group``
-    (``accel.map_groups``); both give the nearest hit of each ray."""
-    if static.packet > 0:
-        t, idx = accel.map_groups(lambda *r: _nearest_packet(p, static, *r), static.packet, *rays)
-    else:
-        t, idx = accel.map_groups(jax.vmap(lambda o, d, a, b: _nearest_one(p, static, o, d, a, b)), static.group, *rays)
+    (``accel.map_groups``); both give the nearest hit of each ray. t differentiates in both
+    modes through the winning triangle's plane (:func:`winner_t`; the walk is a loop of
+    data-dependent length, which ``jax.grad`` cannot reverse)."""
+    t, idx = accel.nearest_tangent(_search(static), winner_t)(p, rays)
     return Preliminary(t, jnp.where(jnp.isfinite(t), idx, -1).astype(jnp.int32), None)
 
 
