@@ -150,3 +150,21 @@ def test_host_devices_are_an_explicit_call_and_a_bad_count_names_the_variable(tm
                            capture_output=True, text=True, timeout=120)
         assert p.returncode == 2
         assert p.stderr.strip() == f"jskel: error: JSKEL_HOST_DEVICES: {bad!r} is not a positive integer (XLA host devices to make)"
+
+
+def test_nothing_in_the_package_imports_the_cli():
+    """The CLI only parses and calls: no module of jskel (bench and sweep included) imports it."""
+    import ast
+
+    found = []
+    for p in (ROOT / "jskel").rglob("*.py"):
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module is not None:
+                mods = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+                if node.level == 0 and any(m == "jskel.cli" for m in mods) or node.level > 0 and "cli" in (
+                        node.module.split(".")[-1], *(a.name for a in node.names)):
+                    found.append(f"{p.relative_to(ROOT)}:{node.lineno}")
+            elif isinstance(node, ast.Import) and any(a.name == "jskel.cli" for a in node.names):
+                found.append(f"{p.relative_to(ROOT)}:{node.lineno}")
+    found = [f for f in found if not f.startswith("jskel/__main__.py")]  # ``python -m jskel`` runs it
+    assert found == [], found

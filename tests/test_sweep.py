@@ -82,6 +82,40 @@ def test_pareto_front_and_ranges():
         Range(start=0, stop=1, num=3, log=True)
 
 
+def test_one_grid_expansion_for_bench_and_sweep():
+    """``grid.expand``: an explicit list as written; a mapping's cartesian product with the first
+    key slowest and ranges expanded; the bench's ``sweep`` and the sweep's ``vary`` both use it."""
+    from jskel.measure.bench import BenchFile
+    from jskel.measure.grid import expand, overrides_of
+    from jskel.measure.sweep import SweepFile
+
+    explicit = [{}, {"a": 1}, {"a": 1}]
+    assert expand(explicit) == explicit
+    got = expand({"a": [1, 2], "b": Range(start=0, stop=1, num=3), "c": ["x"]})
+    want = [{"a": a, "b": b, "c": "x"} for a in (1, 2) for b in (0.0, 0.5, 1.0)]
+    assert got == want
+    assert overrides_of({"object.steps": 8, "m": "geometric", "v": [1, 2]}) == ['object.steps=8', 'm="geometric"', "v=[1, 2]"]
+    bench = BenchFile(scenes=["x.yaml"], sweep={"a": [1, 2], "b": [3, 4]})
+    sweep = SweepFile(base="x.yaml", vary={"a": [1, 2], "b": [3, 4]})
+    assert bench.settings() == sweep.grid() == [{"a": 1, "b": 3}, {"a": 1, "b": 4}, {"a": 2, "b": 3}, {"a": 2, "b": 4}]
+    assert BenchFile(scenes=["x.yaml"]).settings() == []
+
+
+def test_warm_runs_compile_apart_then_warm_up_then_time():
+    """``timing.warm_runs``: the first call (the compile) is kept apart, ``warmup - 1`` more are
+    untimed, then ``runs`` are timed; ``spread`` is their median, minimum and maximum."""
+    from jskel.measure.timing import spread, warm_runs
+
+    calls = []
+    out = warm_runs(lambda: calls.append(len(calls)) or len(calls) - 1, runs=3, warmup=2)
+    assert calls == [0, 1, 2, 3, 4] and out.first == 0 and out.warm == [2, 3, 4]
+    calls.clear()
+    out = warm_runs(lambda: calls.append(len(calls)) or len(calls) - 1, runs=2, warmup=0)  # the compile still comes first
+    assert out.first == 0 and out.warm == [1, 2]
+    s = spread([0.3, 0.1, 0.2, 0.9])
+    assert (s.median, s.min, s.max) == (pytest.approx(0.25), 0.1, 0.9)
+
+
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
