@@ -91,6 +91,10 @@ class Representation:
     #: :meth:`own_effects` says the object section asks for them
     own_shading: ClassVar[bool] = False
 
+    #: the object carries what its escaping rays see (:meth:`environment`); a single object's
+    #: render shows it where a ray misses, instead of the experiment's environment
+    own_environment: ClassVar[bool] = False
+
     # ------------------------------------------------------------------ must be given
 
     def build(self, cfg: BaseModel, dtype=np.float32) -> Built:
@@ -146,6 +150,11 @@ class Representation:
         """(N, 3) linear RGB of a batch with the representation's own effects (only called
         where :attr:`own_shading` is set)."""
         raise NotImplementedError(f"{type(self).__name__} shades through the shared renderer")
+
+    def environment(self, params, static, direction):
+        """(3,) linear RGB seen along ``direction`` (3,) by a ray that escapes the object (only
+        called where :attr:`own_environment` is set)."""
+        raise NotImplementedError(f"{type(self).__name__} has no environment of its own")
 
     def extra_aovs(self, built: Built, hits) -> dict:
         """More per-pixel outputs of a render, by name (NumPy, leading axis H*W)."""

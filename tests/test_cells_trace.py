@@ -242,3 +242,31 @@ render: {{progress: false}}
     assert cell.shape == (24, 32) and np.all((cell >= 0) == np.isfinite(depth)) and np.isfinite(depth).mean() > 0.2
     run = json.loads((tmp_path / "o" / "run.json").read_text())
     assert run["info"]["cache"] == "hit" and run["info"]["precompute_s"] > 0
+
+
+def sky(d):
+    """The procedural ``sky`` environment of a cell object, float64: horizon (0.85, 0.9, 1) to
+    zenith (0.25, 0.45, 0.85) upwards, (0.3, 0.27, 0.24) to (0.12, 0.1, 0.08) towards the nadir."""
+    up = np.clip(d[:, 1] / np.linalg.norm(d, axis=1), -1, 1)[:, None]
+    return np.where(up >= 0, (1 - up) * [0.85, 0.9, 1.0] + up * [0.25, 0.45, 0.85], (1 + up) * [0.3, 0.27, 0.24] - up * [0.12, 0.1, 0.08])
+
+
+def test_a_single_cell_object_renders_through_the_integrator_with_its_own_sky(obj):
+    """A first-hit cell object is a scene of one: escaping rays see the object's environment
+    (not the experiment's background), and jittered samples blend its silhouette."""
+    from jskel.config import validate
+    from jskel.render import camera_of, render
+
+    tmp, built, O, D = obj
+    raw = {"object": cell_cfg(tmp).model_dump(mode="json"), "camera": {"eye": [0, 2, 2.5], "target": [0, 0, 0], "width": 32, "height": 24},
+           "render": {"progress": False}}
+    exp, o = validate(raw)
+    res = render(exp, o)
+    miss = ~np.isfinite(res.hits.t)
+    assert 0.2 < miss.mean() < 0.8
+    _, d = camera_of(exp).ray_arrays()
+    np.testing.assert_allclose(res.rgb[miss], sky(d[miss]), atol=2e-6)
+    raw["render"]["spp"] = 4
+    four = render(*validate(raw))
+    np.testing.assert_array_equal(four.hits.prim, res.hits.prim)  # AOVs from the pixel centres
+    assert four.run["rays"] == 4 * res.run["rays"] and np.any(four.rgb != res.rgb)

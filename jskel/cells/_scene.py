@@ -458,6 +458,7 @@ class _Cells(Representation):
     name = "cells"
     Config = CellsConfig
     own_shading = True
+    own_environment = True
     build = staticmethod(build)
     intersect_one = staticmethod(intersect_one)
     albedo = staticmethod(albedo)
@@ -468,6 +469,11 @@ class _Cells(Representation):
     def own_effects(cfg) -> bool:
         """Reflection and refraction modes trace the cells' own secondary rays (shade_batch)."""
         return cfg.mode != "first_hit"
+
+    @staticmethod
+    def environment(p, static, direction):
+        """The object's environment (``object.environment``: the procedural sky or a map)."""
+        return environment(p.env, direction)
 
     @staticmethod
     def extra_aovs(built, hits) -> dict:

@@ -80,6 +80,7 @@ class SceneStatic(NamedTuple):
     lanes: int
     compaction: bool = True  # False: every queue slot traced against every object (masking; for the benchmark)
     single: bool = False  # a scene of one: camera rays traced as one batch, outputs as a single-object render's
+    sky: bool = False  # a scene of one whose object carries its own environment: misses see it
 
 
 class Placed(NamedTuple):
@@ -174,7 +175,7 @@ def assemble(exp, placed: list[Placed], origin, dtype, single: bool = False):
     params = SceneParams(tuple(p.built.params for p in placed), tuple(_xform(p, origin, dtype) for p in placed), mat, lights,
                          jnp.asarray(shadow_lights(exp, single)), jnp.asarray(sh.ambient, dtype), jnp.asarray(env, dtype))
     static = SceneStatic(tuple(p.rep.name for p in placed), tuple(p.built.static for p in placed), effects_of(exp, single),
-                         int(exp.render.lanes), bool(exp.render.compaction), single)
+                         int(exp.render.lanes), bool(exp.render.compaction), single, single and placed[0].rep.own_environment)
     info = [{"name": p.name, "type": p.rep.name, "primitives": p.built.primitives, **p.built.info} for p in placed]
     return params, static, info
 

@@ -184,6 +184,15 @@ def environment(env, d):
     return jnp.where(y >= 0, up, down)
 
 
+def _escaped(params: SceneParams, static: SceneStatic, d):
+    """(N, 3) what rays that escape see: the experiment's environment, or a scene of one's own
+    (``Representation.environment``, e.g. a cell object's sky; its frame is the world's)."""
+    if static.sky:
+        rep = registry.get(static.reps[0])
+        return jax.vmap(lambda dd: rep.environment(params.objects[0], static.statics[0], dd))(d).astype(d.dtype)
+    return environment(params.env, d)
+
+
 def _visibility(params: SceneParams, static: SceneStatic, hit: SceneHit, d, live):
     """(N, L) visibility of each light from each live hit: 1, or 0 where a shadow ray is
     blocked. Shadow rays exist only for hits facing the light, of lights casting shadows."""
@@ -260,7 +269,7 @@ def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: S
         pos0, hits.normal, d, kd, m.specular[k], m.shininess[k], vis)
     kr = jnp.where(got, m.reflect[k], 0.0)
     kt = jnp.where(got, m.transmit[k], 0.0)
-    col = jnp.where(got[:, None], (1.0 - kr - kt)[:, None] * local, environment(params.env, d))
+    col = jnp.where(got[:, None], (1.0 - kr - kt)[:, None] * local, _escaped(params, static, d))
     dst = jnp.where(q.live, q.pixel, n_pix)
     rgb = rgb.at[dst].add(q.weight * col, mode="drop")
     return rgb, vis, kr, kt
