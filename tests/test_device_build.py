@@ -115,16 +115,17 @@ def test_the_host_build_runs_the_shared_geometry_in_float64_against_the_paper_re
     joint with seven children, every plane, offset and cap equals the independent float64
     reference of Eq. 3-5 (tests/reference.py: A and B as 3D line meets) within 1e-9, which a
     float32 computation could not reach; frames are unit and orthogonal to the axis; and
-    ``jax_enable_x64`` is left off."""
+    ``jax_enable_x64`` is left as it was (off)."""
     import reference as ref
 
     star = np.array([[0, 0, 0], [0, 1, 0]] + [[np.cos(a), 1.5, np.sin(a)] for a in np.linspace(0, 6, 7)], float)
     cases = [random_tree(np.random.default_rng(8), 40),
              (np.array([[0, 0, 0], [0, 1, 0], [0, 2, 0], [0, 3.0, 0]]), np.array([0.3, 0.2, 0.2, 0.1]), np.array([-1, 0, 1, 2])),
              (star, np.full(9, 0.1), np.array([-1, 0] + [1] * 7))]
-    assert not jax.config.jax_enable_x64
     for j, r, p in cases:
-        arr, _, _ = frusta.frusta_from_skeleton(j, r, p, twist_deg=30.0)
+        with jax.enable_x64(False):  # whatever an earlier test left: the build's switch is its own
+            arr, _, _ = frusta.frusta_from_skeleton(j, r, p, twist_deg=30.0)
+            assert not jax.config.jax_enable_x64
         assert arr.nb.dtype == np.float64 and arr.u.dtype == np.float64
         for i, s in enumerate(ref.segments(j, r, p)):
             for (n, pt, cap), nn, dd, cc in ((s["bottom"], arr.nb[i], arr.db[i], arr.cap_b[i]),
@@ -137,4 +138,3 @@ def test_the_host_build_runs_the_shared_geometry_in_float64_against_the_paper_re
         for f in (arr.u, arr.w):
             np.testing.assert_allclose(np.linalg.norm(f, axis=1), 1.0, atol=1e-12)
             np.testing.assert_allclose(np.sum(f * arr.m, 1), 0.0, atol=1e-12)
-    assert not jax.config.jax_enable_x64
