@@ -270,3 +270,15 @@ def test_a_single_cell_object_renders_through_the_integrator_with_its_own_sky(ob
     four = render(*validate(raw))
     np.testing.assert_array_equal(four.hits.prim, res.hits.prim)  # AOVs from the pixel centres
     assert four.run["rays"] == 4 * res.run["rays"] and np.any(four.rgb != res.rgb)
+
+
+def test_samples_per_pixel_with_effects_of_the_objects_own_are_refused_by_name(tmp_path):
+    """Reflection and refraction modes still trace their own secondary rays, one sample per
+    pixel: asking for more is a ValueError naming render.spp and its value, before any build."""
+    from jskel.config import validate
+    from jskel.render import render
+
+    raw = {"object": {"type": "cells", "mode": "reflection", "cache": str(tmp_path / "nothing")}, "render": {"spp": 3}}
+    with pytest.raises(ValueError, match=r"render\.spp: 3"):
+        render(*validate(raw))
+    assert not (tmp_path / "nothing").exists()  # refused before the precompute
