@@ -12,7 +12,7 @@ import pytest
 from jskel import registry
 
 # the core packages, and every registered representation's folder
-PACKAGES = list(dict.fromkeys(["jskel", "jskel.accel", "jskel.render", "jskel.fit"] + [f"jskel.{n}" for n in registry.names()]))
+PACKAGES = list(dict.fromkeys(["jskel", "jskel.accel", "jskel.render", "jskel.fit", "jskel.measure"] + [f"jskel.{n}" for n in registry.names()]))
 
 
 def own_doc(obj) -> str:

@@ -1,6 +1,6 @@
 """Rays sharded over several devices give the unsharded image bit for bit (issue 6), on one CPU
 machine with four forced host devices (a subprocess: the device count is fixed at JAX start).
-The bench's resident cast (``bench.cast_resident``) on the four devices gives the one-device
+The bench's resident cast (``jskel.measure.cast_resident``) on the four devices gives the one-device
 render's hit or miss and segment for every pixel, and its t within float32 rounding."""
 
 from __future__ import annotations

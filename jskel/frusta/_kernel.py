@@ -22,7 +22,7 @@ the palm 13.8-16.1 ms, the oasis 13.3-15.6 ms and the cacti 13.7 ms per frame (r
 and the copy of every output to the host included) against 97, 162 and 48 ms for XLA's walk over
 the whole frame, with identical hits, ids and depths on all three; 32, 64 and 128 rays per
 program differed by less than the runs' spread. Triton compiles the kernel in 12-15 s.
-At stop 23 (``experiments/bench_scale.yaml`` on the H100, ``bench.cast_resident``: rays already
+On 2026-11-24 at 2a412eb (``experiments/bench_scale.yaml`` on the H100, ``jskel.measure.cast_resident``: rays already
 on the GPU, t and segment left there, as Mitsuba's ``ray_intersect`` is timed) the cast alone
 took 0.60-0.79 ms for Table 1's scenes against 0.78-0.94 ms for Mitsuba's CUDA variant in the
 same run, and 6.6-8.0 ms with the rays' copy in and the results' copy out: on a GPU the
