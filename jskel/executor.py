@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import sys
 import time
+from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
 import jax
@@ -91,8 +92,10 @@ def compile_batch_fn(batch_fn: Callable, example_args, mesh=None) -> tuple[Calla
     With a ``mesh`` (see :func:`ray_mesh`) the rays and every output are split on their leading
     axis over the mesh's devices (``shard_map`` with ``P("rays")``), the params replicated: each
     device runs ``batch_fn`` on its share of the chunk. Executables are kept per (function,
-    argument shapes and dtypes, devices), so a second call with new values of the same shapes
-    compiles nothing and reports 0.0 seconds.
+    the arguments' tree structure, their shapes and dtypes, devices), so a second call with new
+    values of the same shapes compiles nothing and reports 0.0 seconds. Static options travel in
+    the tree structure (``interface.Object``'s aux data), so ``batch_fn`` is one module-level
+    function per query, not a closure per static setting.
     """
     dev_key = None if mesh is None else tuple(d.id for d in mesh.devices.flat)
     key = (batch_fn, _signature(example_args), jax.config.jax_enable_x64, dev_key)
@@ -151,26 +154,25 @@ def chunk_for_budget(batch_fn: Callable, params, rays: Rays, chunk: int, budget:
         c = max(1, min(c // 2, 1 << (fit.bit_length() - 1)))
 
 
-_GROUPED: dict = {}
+@dataclass(frozen=True)
+class Grouped:
+    """``batch_fn`` over ``group`` chunks in one call: the rays (group * chunk,) are viewed as
+    (group, chunk) and ``lax.map`` runs ``batch_fn`` on each chunk in turn, inside one compiled
+    program. Equal (and hashing equal) for the same (batch_fn, group), so the executor's compile
+    cache finds the executable again without a cache of closures."""
+
+    batch_fn: Callable
+    group: int
+
+    def __call__(self, params, rays):
+        r = type(rays)(*(a.reshape((self.group, -1) + a.shape[1:]) for a in rays))
+        out = jax.lax.map(lambda rr: self.batch_fn(params, rr), r)
+        return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
 
 def grouped(batch_fn: Callable, group: int) -> Callable:
-    """``batch_fn`` over ``group`` chunks in one call: the rays (group * chunk,) are viewed as
-    (group, chunk) and ``lax.map`` runs ``batch_fn`` on each chunk in turn, inside one compiled
-    program. The same function object is returned for the same (batch_fn, group), so compiled
-    executables are reused."""
-    if group <= 1:
-        return batch_fn
-    key = (batch_fn, group)
-    if key not in _GROUPED:
-
-        def fn(params, rays):
-            r = type(rays)(*(a.reshape((group, -1) + a.shape[1:]) for a in rays))
-            out = jax.lax.map(lambda rr: batch_fn(params, rr), r)
-            return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
-
-        _GROUPED[key] = fn
-    return _GROUPED[key]
+    """``batch_fn`` itself for ``group`` <= 1, else :class:`Grouped` of it."""
+    return batch_fn if group <= 1 else Grouped(batch_fn, group)
 
 
 MIN_GROUPED = 8

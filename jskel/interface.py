@@ -51,6 +51,8 @@ class Built:
     surface_tolerance: how far (object units) a returned hit may lie from the true surface
       (0 for analytic intersections; a marching tracer's last bisection bracket). A secondary
       ray starts beyond it.
+    secondary_offset: how far (object units) a secondary ray's origin moves off the surface
+      along the normal; None: four times ``surface_tolerance``.
     """
 
     params: Any
@@ -60,6 +62,20 @@ class Built:
     info: dict = field(default_factory=dict)
     primitives: int = 0
     surface_tolerance: float = 0.0
+    secondary_offset: float | None = None
+
+
+class OwnMaterial(NamedTuple):
+    """The material a single object's section asks for itself (``Representation.own_material``),
+    in the integrator's terms: ``reflectivity``/``transparency``/``ior`` as a scene material's,
+    ``bounces`` levels of secondary rays, and ``last_local``: a hit on the last level takes its
+    local light whole (no (1 - kr - kt) for rays that will not be traced)."""
+
+    reflectivity: float = 0.0
+    transparency: float = 0.0
+    ior: float = 1.5
+    bounces: int = 0
+    last_local: bool = False
 
 
 class Preliminary(NamedTuple):
@@ -141,6 +157,12 @@ class Representation:
         may be transparent in a scene (analytic tracers; marching ones search entries only)."""
         return False
 
+    def own_material(self, cfg: BaseModel) -> OwnMaterial | None:
+        """The material a single object's section asks for (its own reflection, bounces), shaded
+        by the shared integrator; None: the default material. A scene refuses such a section
+        (there the object's ``material`` says it)."""
+        return None
+
     def own_effects(self, cfg: BaseModel) -> bool:
         """Does the object section ask for secondary rays the representation traces itself
         (:meth:`shade_batch`)? A scene shades objects by their material instead."""
@@ -166,3 +188,79 @@ class Representation:
 
     def __repr__(self) -> str:
         return f"<representation {self.name!r}>"
+
+
+# ---------------------------------------------------------------------- static data in the pytree
+
+
+@jax.tree_util.register_pytree_node_class
+@dataclass(frozen=True)
+class Object:
+    """A built object as one pytree: ``params`` are its children (traced) and the
+    representation's name with its static options its aux data (STYLE.md item 4, equinox's
+    ``field(static=True)``, MJX's ``Model``). The tree structure therefore carries the static
+    part, so one module-level function (:func:`intersect`, :func:`cast`, :func:`occluded`)
+    jitted once is cached by JAX, and by the executor (``compile_batch_fn`` keys on the tree
+    structure), per (representation, static options): new values reuse the executable, a
+    changed static compiles once more.
+
+    params: pytree of arrays (``Built.params``).
+    static: hashable options (``Built.static``).
+    rep: the registered name of the representation (``object.type``).
+    """
+
+    params: Any
+    static: Hashable
+    rep: str
+
+    @classmethod
+    def of(cls, rep: "Representation", built: Built) -> "Object":
+        """The object ``rep.build`` returned as ``built``."""
+        return cls(built.params, built.static, rep.name)
+
+    def tree_flatten(self):
+        return (self.params,), (self.rep, self.static)
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        return cls(children[0], aux[1], aux[0])
+
+    @property
+    def representation(self) -> "Representation":
+        from . import registry  # (the registry imports representations lazily, which import this module)
+
+        return registry.get(self.rep)
+
+
+def intersect(obj: Object, rays: Rays) -> Hit:
+    """Nearest hits of a batch: :meth:`Representation.intersect_batch` of ``obj``."""
+    return obj.representation.intersect_batch(obj.params, obj.static, rays)
+
+
+def intersect_each(obj: Object, rays: Rays) -> Hit:
+    """Nearest hits of a batch as ``vmap`` of :meth:`Representation.intersect_one` (no batch-level
+    culling): the reference the batch queries are tested against."""
+    rep = obj.representation
+    return jax.vmap(lambda o, d, a, b: rep.intersect_one(obj.params, obj.static, o, d, a, b))(*rays)
+
+
+def cast(obj: Object, rays: Rays) -> Preliminary:
+    """First stage of a batch: :meth:`Representation.cast` of ``obj``."""
+    return obj.representation.cast(obj.params, obj.static, rays)
+
+
+def cast_t_prim(obj: Object, rays: Rays):
+    """``(t, prim)`` of :func:`cast` with nothing else kept (XLA drops whatever payload no
+    output needs): what a benchmark's cast computes."""
+    pre = cast(obj, rays)
+    return pre.t, pre.prim
+
+
+def surface(obj: Object, rays: Rays, pre: Preliminary) -> Hit:
+    """Second stage of a batch: :meth:`Representation.surface` of ``obj``."""
+    return obj.representation.surface(obj.params, obj.static, rays, pre)
+
+
+def occluded(obj: Object, rays: Rays):
+    """(N,) bool any-hit of a batch (shadow rays): :meth:`Representation.occluded` of ``obj``."""
+    return obj.representation.occluded(obj.params, obj.static, rays)

@@ -1,7 +1,7 @@
 """Shared test helpers. Tests stay in float32 (the default); x64 is never switched on here.
 
 Compile time dominates on 2 cores, so every frusta test casts rays through the same two
-compiled functions: skeletons are padded to one block of 64 segments and rays are evaluated
+module-level functions (``interface.intersect``, ``interface.intersect_each``): skeletons are padded to one block of 64 segments and rays are evaluated
 in chunks of 8192, so the shapes never change between tests.
 """
 
@@ -18,29 +18,23 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from jskel import frusta  # noqa: E402
+from jskel.interface import Object, intersect, intersect_each  # noqa: E402
 from jskel.rays import make_rays  # noqa: E402
 from jskel.executor import map_chunks  # noqa: E402
 
 CHUNK = 8192
 
 
-def _one(scene, static, rays):
-    return frusta.intersect(scene, static, rays)
+def batch_fn(culled):
+    """The module-level batch query ``(Object, rays) -> Hit``: the representation's batch
+    (``culled``) or ``vmap`` of one ray; the static options ride in the ``Object`` pytree, so
+    each static setting compiles once without a cache of closures here."""
+    return intersect if culled else intersect_each
 
 
-def _batch(scene, static, rays):
-    return frusta.intersect_batch(scene, static, rays)
-
-
-_FNS = {}
-
-
-def batch_fn(static, culled):
-    key = (static, culled)
-    if key not in _FNS:
-        f = _batch if culled else _one
-        _FNS[key] = lambda params, rays: f(params, static, rays)
-    return _FNS[key]
+def frusta_object(built):
+    """A frusta build as the ``Object`` pytree the batch queries take."""
+    return Object(built.params, built.static, "frusta")
 
 
 def build_skeleton(joints, radii, parents, offset=(0.0, 0.0, 0.0), **kw):
@@ -55,7 +49,7 @@ def cast(built, O, D, t_min=0.0, t_max=np.inf, culled=False):
     """Cast float64 world rays (O, D) against ``built``; returns a NumPy Hit in world units."""
     O = np.asarray(O, np.float64) - built.anchor
     rays = make_rays(O, D, t_min, t_max)
-    res = map_chunks(batch_fn(built.static, culled), built.params, rays, chunk=CHUNK, progress=False)
+    res = map_chunks(batch_fn(culled), frusta_object(built), rays, chunk=CHUNK, progress=False)
     return res.out._replace(position=np.asarray(res.out.position, np.float64) + built.anchor)
 
 

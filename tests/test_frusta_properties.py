@@ -45,11 +45,11 @@ def test_no_recompile_when_values_change():
     b1 = build_skeleton(joints, radii, parents)
     b2 = build_skeleton(joints * 1.1, np.asarray(radii) * 0.9, parents)
     O, D = _rays("bent_chain", 100)
-    from conftest import batch_fn
+    from conftest import batch_fn, frusta_object
 
-    fn = batch_fn(b1.static, False)
-    map_chunks(fn, b1.params, make_rays(O, D), chunk=8192)
-    r2 = map_chunks(fn, b2.params, make_rays(O + 1.0, D), chunk=8192)
+    fn = batch_fn(False)
+    map_chunks(fn, frusta_object(b1), make_rays(O, D), chunk=8192)
+    r2 = map_chunks(fn, frusta_object(b2), make_rays(O + 1.0, D), chunk=8192)
     assert r2.compile_s == 0.0
 
 

@@ -252,7 +252,7 @@ def test_chunks_per_call_equal_one_chunk_per_call(rng):
     """``map_chunks`` with several chunks per compiled call (a ``lax.map`` over them, the CPU's
     default on big batches) returns what one chunk per call returns, bit for bit: the bins cast
     of a random tree, 20 chunks of 512 rays run as 3 calls of 7 (the last call padded)."""
-    from conftest import batch_fn
+    from conftest import batch_fn, frusta_object
 
     from jskel.rays import make_rays
     from jskel.executor import calls_grouping, map_chunks
@@ -266,9 +266,9 @@ def test_chunks_per_call_equal_one_chunk_per_call(rng):
     O = rng.uniform(j.min(0) - 1.0, j.max(0) + 1.0, (n, 3))
     D = rng.normal(size=(n, 3)) + (j.mean(0) - O)
     rays = make_rays(O - built.anchor, D / np.linalg.norm(D, axis=1, keepdims=True))
-    fn = batch_fn(built.static, True)
-    one = map_chunks(fn, built.params, rays, chunk=512, progress=False).out
-    many = map_chunks(fn, built.params, rays, chunk=512, progress=False, group=8).out
+    fn = batch_fn(True)
+    one = map_chunks(fn, frusta_object(built), rays, chunk=512, progress=False).out
+    many = map_chunks(fn, frusta_object(built), rays, chunk=512, progress=False, group=8).out
     assert 0.05 < np.isfinite(one.t).mean() < 0.95
     for name in ("t", "position", "normal", "uv", "prim"):
         a, b = np.asarray(getattr(one, name)), np.asarray(getattr(many, name))

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..accel import hold, nearest_tangent
-from ..interface import Built, Preliminary, Representation
+from ..interface import Built, Object, Preliminary, Representation
 from ..rays import Hit, Rays
 from ..textures import bilinear_wrap, load_texture
 from ._build import FrustaArrays as FrustaArrays
@@ -517,27 +517,24 @@ def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
     return surface(scene, static, rays, cast(scene, static, rays))
 
 
-def _stats_batch(static: Static):
-    def fn(params, rays: Rays):
-        g = params.plain
-        if static.traversal == "kernel":  # the same walk, counted by the kernel (tests/test_accel.py)
-            return nearest_kernel(g.frusta, g.bvh, static.leaf, *rays, block=static.kernel_block, num_warps=static.kernel_warps)[4:]
-        out = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, *rays)[4:]
-        if static.packet > 0 and static.traversal == "packets":
-            out = out + nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, *rays)[4:]
-        if static.traversal == "bins":  # segment tests per ray: the batch's pairs times rays per packet
-            n = rays.size
-            n_list, pairs = nearest_bins(g.frusta, g.bvh, *static.bins, *rays, leaf=static.leaf, walk_group=static.group)[4]
-            g_rays = min(static.bins[0], n)
-            walked = pairs < 0  # a batch cast by walks (its list too long for packets): its leaves' segments
-            tests = jnp.where(walked, out[1] * static.leaf, pairs * g_rays / n)
-            out = out + (tests, jnp.full((n,), n_list), jnp.full((n,), walked))
-        return out
-
-    return fn
-
-
-_STATS_FNS: dict = {}
+def _stats_batch(obj: Object, rays: Rays):
+    """Work counts per ray of the traversal ``obj.static`` selects (one module-level function:
+    the static options ride in the ``Object`` pytree, so the executor compiles once per static)."""
+    static = obj.static
+    g = obj.params.plain
+    if static.traversal == "kernel":  # the same walk, counted by the kernel (tests/test_accel.py)
+        return nearest_kernel(g.frusta, g.bvh, static.leaf, *rays, block=static.kernel_block, num_warps=static.kernel_warps)[4:]
+    out = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, *rays)[4:]
+    if static.packet > 0 and static.traversal == "packets":
+        out = out + nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, *rays)[4:]
+    if static.traversal == "bins":  # segment tests per ray: the batch's pairs times rays per packet
+        n = rays.size
+        n_list, pairs = nearest_bins(g.frusta, g.bvh, *static.bins, *rays, leaf=static.leaf, walk_group=static.group)[4]
+        g_rays = min(static.bins[0], n)
+        walked = pairs < 0  # a batch cast by walks (its list too long for packets): its leaves' segments
+        tests = jnp.where(walked, out[1] * static.leaf, pairs * g_rays / n)
+        out = out + (tests, jnp.full((n,), n_list), jnp.full((n,), walked))
+    return out
 
 
 def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
@@ -554,8 +551,7 @@ def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
 
     if built.static.accel != "bvh" or built.params.plain is None:
         return {}
-    fn = _STATS_FNS.setdefault(built.static, _stats_batch(built.static))
-    out = map_chunks(fn, built.params, rays, chunk=chunk, progress=False).out
+    out = map_chunks(_stats_batch, Object(built.params, built.static, "frusta"), rays, chunk=chunk, progress=False).out
     visits, leaves = out[:2]
     stats = {"nodes_per_ray_mean": float(np.mean(visits)), "nodes_per_ray_max": int(np.max(visits)),
              "leaves_per_ray_mean": float(np.mean(leaves)), "leaves_per_ray_max": int(np.max(leaves)),

@@ -4,7 +4,8 @@
 order before its clock starts, and casts them chunked as the render chunks them, copying ``t``
 and the primitive back. :func:`cast_resident` casts rays already on the device and leaves the
 results there, how the Mitsuba peer's cast is timed. The compiled cast is the representation's
-first stage (``cast``, the interface's ``Preliminary``) with nothing else kept.
+first stage with nothing else kept (``interface.cast_t_prim``, one module-level function: the
+static options ride in the ``interface.Object`` pytree).
 """
 
 from __future__ import annotations
@@ -17,28 +18,10 @@ import numpy as np
 from .. import registry
 from ..config import chunk_of, chunks_per_call_of
 from ..executor import _pad_to, compile_batch_fn, map_chunks, ray_mesh
+from ..interface import Object, cast_t_prim
 from ..rays import Rays
 from ..render import camera_of, devices_of, dtype_of
 from .timing import Spread, spread, warm_runs
-
-_CAST_FNS: dict = {}
-
-
-def _cast_fn(rep_name: str, static):
-    """``(params, rays) -> (t, prim)``: the representation's first stage (``cast``) with nothing
-    else kept (XLA drops whatever payload no output needs); one function per (representation,
-    static), so the executor's compile cache finds it again."""
-    key = (rep_name, static)
-    if key not in _CAST_FNS:
-        rep = registry.get(rep_name)
-
-        def fn(params, rays):
-            pre = rep.cast(params, static, rays)
-            return pre.t, pre.prim
-
-        _CAST_FNS[key] = fn
-    return _CAST_FNS[key]
-
 
 def on_accelerator() -> bool:
     """Whether JAX's default backend is an accelerator: resident casts are timed there only."""
@@ -57,7 +40,7 @@ def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
     jax.block_until_ready(built.params)  # (asynchronous dispatch: the build's device work ends here)
     build_s = time.perf_counter() - t0
     rays = camera_of(exp).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype)
-    res = map_chunks(_cast_fn(obj.type, built.static), built.params, rays, chunk=chunk_of(exp.render), progress=False,
+    res = map_chunks(cast_t_prim, Object(built.params, built.static, obj.type), rays, chunk=chunk_of(exp.render), progress=False,
                      devices=devices_of(exp), group=chunks_per_call_of(exp.render))
     return build_s, res.run_s, res.compile_s
 
@@ -92,10 +75,10 @@ def cast_resident(exp, obj, built, chunks) -> tuple[float, list]:
     dispatched before one wait. On a CPU the copies cost nothing; on a GPU they are most of a
     1024x768 cast (README, performance)."""
     mesh = _ray_mesh_of(exp)
-    params = built.params
+    params = Object(built.params, built.static, obj.type)
     if mesh is not None:
         params = jax.device_put(params, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
-    compiled, _ = compile_batch_fn(_cast_fn(obj.type, built.static), (params, chunks[0]), mesh)
+    compiled, _ = compile_batch_fn(cast_t_prim, (params, chunks[0]), mesh)
     jax.block_until_ready(params)
     t0 = time.perf_counter()
     outs = [compiled(params, c) for c in chunks]
