@@ -172,15 +172,15 @@ def test_reflection_and_snell_laws_hold_with_no_nan():
 @pytest.mark.parametrize("mode", ["reflection", "refraction"])
 def test_modes_render_finite_colours_and_escaping_rays_see_the_environment(obj, mode):
     from jskel.cells._scene import environment
-    from jskel.render import pixel_fn
+    from jskel.interface import Object
+    from jskel.render import pixel_batch
     from jskel.shading import Lights, Shading
 
     tmp, built, O, D = obj
     b = cells.build(cell_cfg(tmp, mode=mode, bounces=2))
     lights = Lights(jnp.float32([[0.4, 0.9, 0.5]]) / np.linalg.norm([0.4, 0.9, 0.5]), jnp.ones((1, 3), jnp.float32))
     sh = Shading(*(jnp.float32(x) for x in (0.1, 0.3, 32.0)), jnp.float32([0.8, 0.8, 0.8]))
-    fn = pixel_fn("cells", b.static)
-    hits, rgb = map_chunks(fn, (b.params, lights, sh), make_rays(O - b.anchor, D), chunk=N_RAYS, progress=False).out
+    hits, rgb = map_chunks(pixel_batch, (Object(b.params, b.static, "cells"), lights, sh), make_rays(O - b.anchor, D), chunk=N_RAYS, progress=False).out
     assert np.all(np.isfinite(rgb))
     miss = ~np.isfinite(hits.t)
     want = np.asarray(jax.vmap(lambda d: environment(b.params.env, d))(jnp.float32(D[miss])))

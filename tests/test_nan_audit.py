@@ -149,11 +149,12 @@ def test_cells_hard_rays_raise_no_nan(debug_nans, tmp_path, mode):
         ([5, 5, 5], [1, 0, 0]),           # a miss
         ([1.0, 0, 5], [0, 0, 0]),         # zero direction
     ])
-    from jskel.render import pixel_fn, lights_from_config, shading_from_config
+    from jskel.interface import Object
+    from jskel.render import pixel_batch, lights_from_config, shading_from_config
     from jskel.config import Experiment
 
     exp = Experiment.model_validate({"object": {"type": "cells"}})
-    params = (b.params, lights_from_config(exp.lights, np.float32), shading_from_config(exp.shading, np.float32))
-    hit, rgb = jax.jit(pixel_fn("cells", b.static))(params, rays)
+    params = (Object(b.params, b.static, "cells"), lights_from_config(exp.lights, np.float32), shading_from_config(exp.shading, np.float32))
+    hit, rgb = jax.jit(pixel_batch)(params, rays)
     _check_hit(hit)
     assert np.all(np.isfinite(np.asarray(rgb)))

@@ -15,7 +15,7 @@ import pytest
 
 from jskel.config import ConfigError, validate
 from jskel.render import render
-from jskel.render._scene import build_scene, scene_fn
+from jskel.render._scene import Scene, build_scene, scene_call
 from jskel.shading import encode_png, srgb_encode
 from jskel.rays import make_rays
 
@@ -164,7 +164,7 @@ def test_a_single_object_shadows_itself_where_a_light_asks():
     for r, scoped in ((raw, True), ({**raw, "lights": [{"direction": L.tolist()}]}, False)):
         exp, obj = validate(copy.deepcopy(r))
         params, static, _ = build_single(exp, obj, np.float32)
-        eqns = _eqns(jax.make_jaxpr(scene_fn(static))(params, rays).jaxpr)
+        eqns = _eqns(jax.make_jaxpr(scene_call)(Scene(params, static), rays).jaxpr)
         assert any("shadow_rays" in str(e.source_info.name_stack) for e in eqns) == scoped
         assert not any(k in str(e.source_info.name_stack) for e in eqns for k in ("reflection_rays", "refraction_rays"))
 
@@ -314,9 +314,8 @@ def _program(raw, n=256):
     exp, shapes = validate(copy.deepcopy(raw))
     params, static, _, _, _ = build_scene(exp, shapes, np.float32)
     rays = make_rays(np.zeros((n, 3)), np.tile([0.0, 0.0, -1.0], (n, 1)))
-    fn = scene_fn(static)
-    jaxpr = jax.make_jaxpr(fn)(params, rays)
-    return static, jaxpr, jax.jit(fn).lower(params, rays)
+    jaxpr = jax.make_jaxpr(scene_call)(Scene(params, static), rays)
+    return static, jaxpr, jax.jit(scene_call).lower(Scene(params, static), rays)
 
 
 def _eqns(jaxpr):

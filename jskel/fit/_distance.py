@@ -23,6 +23,7 @@ segment continues which) is static and comes from ``jskel.frusta.topology`` on t
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -308,7 +309,18 @@ def _checks(joints, radii, seg: Segments, points):
     checkify.check(jnp.all(jnp.isfinite(points)), "points[{i}]: not finite", i=jnp.argmax(~jnp.all(jnp.isfinite(points), axis=1)))
 
 
-_CHECKED: dict = {}
+@functools.partial(jax.jit, static_argnums=2)
+def _checked(joints, radii, seg: Segments, points):
+    """``checkify`` of :func:`distances` with :func:`_checks`, one module-level jit: the
+    topology ``seg`` (hashable) is a static argument, so JAX's cache holds one executable per
+    topology without a cache of closures here."""
+    from jax.experimental import checkify
+
+    def f(j, r, x):
+        _checks(j, r, seg, x)
+        return distances(j, r, seg, x)
+
+    return checkify.checkify(f)(joints, radii, points)
 
 
 def checked_distances(joints, radii, seg: Segments, points):
@@ -316,16 +328,7 @@ def checked_distances(joints, radii, seg: Segments, points):
     values that only become bad under jit, a radius an optimiser drove negative, two joints
     that met, a NaN point, raise a ValueError naming the index and the value instead of
     returning silent garbage. One executable per topology; the checks cost a few reductions."""
-    from jax.experimental import checkify
-
-    key = seg
-    if key not in _CHECKED:
-        def f(j, r, x):
-            _checks(j, r, seg, x)
-            return distances(j, r, seg, x)
-
-        _CHECKED[key] = jax.jit(checkify.checkify(f))
-    err, out = _CHECKED[key](joints, radii, points)
+    err, out = _checked(joints, radii, seg, points)
     msg = err.get()
     if msg:
         raise ValueError(msg.splitlines()[0].split(" (check failed at")[0])

@@ -1,13 +1,13 @@
 """Render an experiment: build -> camera rays -> chunked (intersect + shade) -> AOVs.
 
-The per-ray function is assembled from the representation's interface only
-(``intersect_one``, ``albedo``) and cached per (representation, static options), so a second
-render of the same shapes reuses the compiled executable.
+The batch functions are module-level and talk to the representation's interface only
+(``intersect_batch``, ``albedo``); the static options travel in the pytree
+(``interface.Object``, ``_scene.Scene``), so a second render of the same shapes reuses the
+compiled executable.
 """
 
 from __future__ import annotations
 
-import functools
 import platform
 import time
 from typing import NamedTuple
@@ -22,6 +22,7 @@ from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
 from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Hit, Rays, make_rays
 from ..camera import Camera, tile_inverse, tile_order
 from ..executor import map_chunks
+from ..interface import Object, intersect
 from ..wavefront import compact_map
 from ._aov import write_aovs as write_aovs
 from ..shading import Lights as Lights
@@ -46,28 +47,25 @@ class RenderResult(NamedTuple):
 SHADE_LANES = 1024  # rays per sub-batch of the shading (only rays that hit are shaded)
 
 
-@functools.lru_cache(maxsize=None)
-def pixel_fn(rep_name: str, static):
-    """Batch function ``(params, rays) -> (Hit, rgb)`` for a representation and static options."""
-    rep = registry.get(rep_name)
+def pixel_batch(params, rays: Rays):
+    """``((obj, lights, shading), rays) -> (Hit, rgb)``: first hit and colour of a batch for an
+    :class:`~jskel.interface.Object` (one module-level function: the representation and its
+    static options ride in the object's tree structure, so each compiles once)."""
+    obj, lights, sh = params
+    rep, scene, static = obj.representation, obj.params, obj.static
 
-    def colour(scene, lights, sh, hit, d):
+    def colour(hit, d):
         return shade_one(hit, d, rep.albedo(scene, static, hit), lights, sh)
 
-    def batch(params, rays: Rays):
-        scene, lights, sh = params
-        # fenced: XLA fused the hit's attributes into each consumer (shading, every output)
-        # and computed them once per consumer
-        hits = fenced(always(rays.t_min), lambda: rep.intersect_batch(scene, static, rays))
-        if rep.own_shading:  # a representation with its own secondary rays
-            rgb = rep.shade_batch(scene, static, rays, hits, lights, sh)
-        else:  # shaded where a ray hit, in dense sub-batches; the background elsewhere
-            shade = jax.vmap(colour, in_axes=(None, None, None, 0, 0))
-            back = jnp.broadcast_to(sh.background, rays.directions.shape).astype(rays.directions.dtype)
-            rgb = compact_map(lambda r: shade(scene, lights, sh, *r), jnp.isfinite(hits.t), (hits, rays.directions), back, SHADE_LANES)
-        return hits, rgb
-
-    return batch
+    # fenced: XLA fused the hit's attributes into each consumer (shading, every output)
+    # and computed them once per consumer
+    hits = fenced(always(rays.t_min), lambda: intersect(obj, rays))
+    if rep.own_shading:  # a representation with its own secondary rays
+        rgb = rep.shade_batch(scene, static, rays, hits, lights, sh)
+    else:  # shaded where a ray hit, in dense sub-batches; the background elsewhere
+        back = jnp.broadcast_to(sh.background, rays.directions.shape).astype(rays.directions.dtype)
+        rgb = compact_map(lambda r: jax.vmap(colour)(*r), jnp.isfinite(hits.t), (hits, rays.directions), back, SHADE_LANES)
+    return hits, rgb
 
 
 def camera_of(exp: Experiment) -> Camera:
@@ -194,12 +192,12 @@ class _Frame(NamedTuple):
 
 def _integrate(exp: Experiment, params, static, origin, dtype, progress) -> _Frame:
     """Camera rays (``render.spp`` per pixel) through the integrator, back in image order."""
-    from ._scene import scene_fn
+    from ._scene import Scene, scene_call
 
     cam = camera_of(exp)
     n_pix = cam.width * cam.height
     rays = camera_rays(exp, cam, origin, dtype)
-    res = _trace(exp, scene_fn(static), params, rays, progress)
+    res = _trace(exp, scene_call, Scene(params, static), rays, progress)
     inv = tile_inverse(cam.width, cam.height, exp.render.tile)
     first = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n_pix][inv], {k: v for k, v in res.out.items() if k != "rgb"})
     rgb = np.asarray(res.out["rgb"])
@@ -210,19 +208,17 @@ def _integrate(exp: Experiment, params, static, origin, dtype, progress) -> _Fra
     return _Frame(res, int(rays.size), first, rgb, image)
 
 
-_FLAGS: dict = {}
+@jax.jit
+def _one_hit(obj: Object, o, d, a, b) -> Hit:
+    return obj.representation.intersect_one(obj.params, obj.static, o, d, a, b)
 
 
-def _reports_flags(rep, built, dtype) -> bool:
+def _reports_flags(obj: Object, dtype) -> bool:
     """Does the representation's hit carry diagnostic flags? (from the shapes of one traced
-    ray, no compile; cached per representation, static options and dtype)"""
-    key = (rep.name, built.static, np.dtype(dtype).name)
-    if key not in _FLAGS:
-        z = jax.ShapeDtypeStruct((3,), dtype)
-        s = jax.ShapeDtypeStruct((), dtype)
-        h = jax.eval_shape(lambda p, o, d, a, b: rep.intersect_one(p, built.static, o, d, a, b), built.params, z, z, s, s)
-        _FLAGS[key] = h.flags is not None
-    return _FLAGS[key]
+    ray, no compile; jit's own cache keys the trace on the object's static part and dtype)"""
+    z = jax.ShapeDtypeStruct((3,), dtype)
+    s = jax.ShapeDtypeStruct((), dtype)
+    return jax.eval_shape(_one_hit, obj, z, z, s, s).flags is not None
 
 
 def _flag_counts(flags) -> dict:
@@ -271,7 +267,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     build_s = time.perf_counter() - t0
     fr = _integrate(exp, params, static, built.anchor, dtype, prog)
     h = fr.first["hit"]
-    flags = _reports_flags(rep, built, dtype)
+    flags = _reports_flags(Object.of(rep, built), dtype)
     # hit positions back to world coordinates (host, float64)
     hits = Hit(h.t, np.asarray(h.position, np.float64) + built.anchor, h.normal, h.uv, h.prim, h.flags if flags else None)
     run = _single_run(exp, obj, built, build_s, fr.res, fr.rays, hits)
@@ -298,8 +294,8 @@ def _render_own(exp: Experiment, obj, progress) -> RenderResult:
     build_s = time.perf_counter() - t0
     cam = camera_of(exp)
     rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype)
-    params = (built.params, lights_from_config(exp.lights, dtype, origin=built.anchor), shading_from_config(exp.shading, dtype))
-    res = _trace(exp, pixel_fn(rep.name, built.static), params, rays, progress)
+    params = (Object.of(rep, built), lights_from_config(exp.lights, dtype, origin=built.anchor), shading_from_config(exp.shading, dtype))
+    res = _trace(exp, pixel_batch, params, rays, progress)
     inv = tile_inverse(cam.width, cam.height, exp.render.tile)
     hits, rgb = jax.tree_util.tree_map(lambda a: a[inv], res.out)
     hits = hits._replace(position=np.asarray(hits.position, np.float64) + built.anchor)
@@ -355,4 +351,4 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
         run["memory_budget"] = fr.res.memory
     return RenderResult(hits, fr.rgb.astype(np.float32), fr.image, run, aovs)
 
-__all__ = ["Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "lights_from_config", "output_transform", "peak_rss_mb", "pixel_fn", "camera_rays", "render", "render_scene", "shade_one", "shading_from_config", "write_aovs"]
+__all__ = ["Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "lights_from_config", "output_transform", "peak_rss_mb", "pixel_batch", "camera_rays", "render", "render_scene", "shade_one", "shading_from_config", "write_aovs"]

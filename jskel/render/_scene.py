@@ -53,6 +53,7 @@ first entry only (a ValueError says so).
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
@@ -363,7 +364,26 @@ def scene_batch(static: SceneStatic):
     return batch
 
 
-@functools.lru_cache(maxsize=None)
-def scene_fn(static: SceneStatic):
-    """Cached per static key, so a second render of the same shapes compiles nothing."""
-    return scene_batch(static)
+@jax.tree_util.register_pytree_node_class
+@dataclass(frozen=True)
+class Scene:
+    """A built scene as one pytree: ``params`` (:class:`SceneParams`) its children, ``static``
+    (:class:`SceneStatic`, hashable) its aux data, so the tree structure carries the static key
+    (STYLE.md item 4) and :func:`scene_call`, one module-level function, compiles once per
+    static key in JAX's and the executor's caches."""
+
+    params: SceneParams
+    static: SceneStatic
+
+    def tree_flatten(self):
+        return (self.params,), self.static
+
+    @classmethod
+    def tree_unflatten(cls, static, children):
+        return cls(children[0], static)
+
+
+def scene_call(scene: Scene, rays: Rays) -> dict:
+    """``scene_batch(scene.static)(scene.params, rays)``: the executor's batch function of
+    every render (a second render of the same shapes compiles nothing)."""
+    return scene_batch(scene.static)(scene.params, rays)
