@@ -169,7 +169,7 @@ def test_reflection_and_snell_laws_hold_with_no_nan():
     assert (1.5 * np.sqrt(np.maximum(0, 1 - np.sum(d * n, 1) ** 2)) > 1).any()  # TIR was exercised
 
 
-@pytest.mark.parametrize("mode", ["reflection", "refraction"])
+@pytest.mark.parametrize("mode", ["refraction"])  # reflection: the integrator's material, tested below
 def test_modes_render_finite_colours_and_escaping_rays_see_the_environment(obj, mode):
     from jskel.cells._scene import environment
     from jskel.interface import Object
@@ -266,6 +266,7 @@ def test_a_single_cell_object_renders_through_the_integrator_with_its_own_sky(ob
     assert 0.2 < miss.mean() < 0.8
     _, d = camera_of(exp).ray_arrays()
     np.testing.assert_allclose(res.rgb[miss], sky(d[miss]), atol=2e-6)
+    assert "effects" not in res.run  # first hit: no secondary-ray level was compiled
     raw["render"]["spp"] = 4
     four = render(*validate(raw))
     np.testing.assert_array_equal(four.hits.prim, res.hits.prim)  # AOVs from the pixel centres
@@ -273,12 +274,88 @@ def test_a_single_cell_object_renders_through_the_integrator_with_its_own_sky(ob
 
 
 def test_samples_per_pixel_with_effects_of_the_objects_own_are_refused_by_name(tmp_path):
-    """Reflection and refraction modes still trace their own secondary rays, one sample per
-    pixel: asking for more is a ValueError naming render.spp and its value, before any build."""
+    """The refraction mode still traces its own secondary rays, one sample per pixel: asking
+    for more is a ValueError naming render.spp and its value, before any build."""
     from jskel.config import validate
     from jskel.render import render
 
-    raw = {"object": {"type": "cells", "mode": "reflection", "cache": str(tmp_path / "nothing")}, "render": {"spp": 3}}
+    raw = {"object": {"type": "cells", "mode": "refraction", "cache": str(tmp_path / "nothing")}, "render": {"spp": 3}}
     with pytest.raises(ValueError, match=r"render\.spp: 3"):
         render(*validate(raw))
     assert not (tmp_path / "nothing").exists()  # refused before the precompute
+
+
+def _cell_lookup(built, x):
+    """Float64 NumPy of Alg. 4.8's normal and the colour map at world points x (M,3), by the
+    voxel / texel holding each point (the tile map wraps): (normal or 0, colour)."""
+    p = built.params
+    n = p.words.shape[0]
+    lo = np.asarray(built.bounds[0], np.float64)
+    size = float((built.bounds[1][0] - built.bounds[0][0]) / n)
+    u = (x - lo) / size
+    local = u - np.floor(u)
+    normals, colors = np.asarray(p.normals, np.float64), np.asarray(p.colors, np.float64)
+    r, c = normals.shape[0], colors.shape[0]
+    v = np.clip(np.floor(local * r), 0, r - 1).astype(np.int64)
+    i = np.clip(np.floor(local * c), 0, c - 1).astype(np.int64)
+    return normals[v[:, 0], v[:, 1], v[:, 2]], colors[i[:, 0], i[:, 1], i[:, 2]]
+
+
+def _local_f64(exp, base, n, d):
+    """Ambient + Lambert + Blinn-Phong of directional lights (float64), the normal turned to face
+    the viewer; the experiment's shading section."""
+    sh = exp.shading
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    n = np.where(np.sum(n * d, 1, keepdims=True) > 0, -n, n)
+    col = sh.ambient * base
+    for light in exp.lights:
+        l = np.asarray(light.direction, np.float64) / np.linalg.norm(light.direction)
+        rad = light.intensity * np.asarray(light.color, np.float64)
+        h = l - d
+        h = h / np.linalg.norm(h, axis=1, keepdims=True)
+        ndl = np.maximum(n @ l, 0.0)
+        spec = np.where(ndl > 0, np.maximum(np.sum(h * n, 1), 0.0) ** sh.shininess, 0.0)
+        col = col + rad * (base * ndl[:, None] + sh.specular * spec[:, None])
+    return col
+
+
+def test_reflection_mode_is_the_integrators_mirror_material_against_a_float64_bounce(obj):
+    """Reflection mode (Sec. 3.2.3, Alg. 3.2) with one bounce, rendered by the shared
+    integrator, against float64 NumPy written here: the fine march finds the first hit, Alg.
+    4.8's normal and the colour map shade it, the mirror ray starts one voxel out along the
+    normal and is marched again; c = (1 - k) local + k (local of the bounce's hit, whole, or the
+    sky where it escapes). Pixels may differ where the two marches straddle a voxel boundary."""
+    from jskel.config import validate
+    from jskel.render import camera_of, render
+
+    tmp, built, _, _ = obj
+    k = 0.6
+    raw = {"object": cell_cfg(tmp, mode="reflection", bounces=1, reflectivity=k).model_dump(mode="json"),
+           "camera": {"eye": [0, 2, 2.5], "target": [0, 0, 0], "width": 32, "height": 24},
+           "lights": [{"direction": [0.4, 0.9, 0.5], "color": [1.0, 0.95, 0.9], "intensity": 1.0}], "render": {"progress": False}}
+    exp, o = validate(raw)
+    res = render(exp, o)
+    assert res.run["effects"]["reflection"] and res.run["effects"]["bounces"] == 1
+    O, D = camera_of(exp).ray_arrays()
+    t0, _ = reference_first_cell(built, O, D)
+    hit = np.isfinite(t0)
+    x = O[hit] + t0[hit, None] * D[hit]
+    nrm, base = _cell_lookup(built, x)
+    d = D[hit] / np.linalg.norm(D[hit], axis=1, keepdims=True)
+    nrm = np.where(np.sum(nrm * nrm, 1, keepdims=True) > 0, nrm, -d)
+    nf = np.where(np.sum(nrm * d, 1, keepdims=True) > 0, -nrm, nrm)
+    r = d - 2 * np.sum(d * nf, 1, keepdims=True) * nf
+    voxel = float(built.bounds[1][0] - built.bounds[0][0]) / built.params.words.shape[0] / built.params.split.shape[0]
+    t1, _ = reference_first_cell(built, x + voxel * nf, r)
+    hit1 = np.isfinite(t1)
+    n1, b1 = _cell_lookup(built, x + voxel * nf + np.where(hit1, t1, 0)[:, None] * r)
+    n1 = np.where(np.sum(n1 * n1, 1, keepdims=True) > 0, n1, -r)
+    second = np.where(hit1[:, None], _local_f64(exp, b1, n1, r), sky(r))
+    want = sky(D)
+    want[hit] = (1 - k) * _local_f64(exp, base, nrm, d) + k * second
+    assert 0.2 < hit.mean() < 0.8 and 0.05 < hit1.mean() < 0.95  # both kinds of bounce are checked
+    same = np.isfinite(res.hits.t) == hit  # the fine march may catch a sliver the 1/256 step skips
+    assert same.mean() > 0.99
+    err = np.abs(res.rgb - want).max(axis=1)[same]
+    assert np.all(np.isfinite(res.rgb)) and np.mean(err) < 5e-3 and np.mean(err > 2e-2) < 0.03, (np.mean(err), np.mean(err > 2e-2))
+    np.testing.assert_allclose(res.rgb[~hit & same], want[~hit & same], atol=2e-6)  # escaping camera rays see the object's sky

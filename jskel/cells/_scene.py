@@ -14,14 +14,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import accel
-from ..interface import Built, Representation
+from ..interface import Built, OwnMaterial, Representation
 from ..numerics import differentiable_root, safe_normalize
 from ..rays import FLAG_STEP_CAP, Hit, masked_hit
 from ._config import CellsConfig as CellsConfig
 from ._membership import INSIDE, memory_table, membership, unpack, words_for
 from ._tiles import OFFSETS, SplitCells, part_links, part_offsets, sphere_tile, split_cells, validate_tile_map, voronoi_tile
 from ._trace import (TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, TraceOptions, cell_id, color_at, first_hit, march,
-                     membership_at, normal_at, object_interval, reflect, refract)
+                     membership_at, normal_at, object_interval, refract)
 
 CACHE_VERSION = 1
 
@@ -282,7 +282,9 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
     info = dict(obj.info)
     info["words_per_tile"] = words_for(slots)
     tol = float(obj.size / cfg.steps_per_tile * 0.5**cfg.bisection)  # the last bisection bracket's width
-    return Built(params, static, anchor, (lo, lo + extent), info, primitives=int(info["inside_split_cells"]), surface_tolerance=tol)
+    voxel = float(obj.size / obj.split.shape[0])  # secondary rays start one voxel out of the hit cell (Alg. 3.2)
+    return Built(params, static, anchor, (lo, lo + extent), info, primitives=int(info["inside_split_cells"]), surface_tolerance=tol,
+                 secondary_offset=voxel)
 
 
 # ---------------------------------------------------------------- tracing
@@ -370,8 +372,8 @@ def trace_segment(p: CellParams, opt: TraceOptions, o, d, from_inside: bool) -> 
 
 def shade_batch(p: CellParams, static: Static, rays, hits: Hit, lights, sh):
     """Colours of a ray batch by mode. First hit: local shading (Lambert + Blinn-Phong with the
-    cell colour map). Reflection (Sec. 3.2.3, Alg. 3.2): c = (1 - k) local + k c_reflected for
-    ``bounces`` bounces, the environment where a ray escapes. Refraction (Sec. 3.2.4, Alg. 3.3):
+    cell colour map); the reflection mode (Sec. 3.2.3, Alg. 3.2) is the shared integrator's
+    mirror material (``own_material``), not traced here. Refraction (Sec. 3.2.4, Alg. 3.3):
     Snell's law at every boundary (eta = 1/ior entering, ior leaving; total internal reflection
     keeps the ray inside), tinted by 0.5 + 0.5 x each entered cell's colour, up to ``bounces`` boundary
     events; c = 0.15 local + 0.85 tint x environment(final direction). Secondary rays run only for
@@ -386,7 +388,7 @@ def shade_batch(p: CellParams, static: Static, rays, hits: Hit, lights, sh):
     base = jax.vmap(lambda h: albedo(p, static, h))(hits)
     local = jax.vmap(lambda h, d, b: shade_one(h, d, b, lights, sh))(hits, d0, base)
     hit = jnp.isfinite(hits.t)
-    if static.mode == "first_hit" or static.bounces == 0:
+    if static.mode != "refraction" or static.bounces == 0:  # reflection: the shared integrator's material
         return jnp.where(hit[:, None], local, env0)
     n = d0.shape[0]
     opt = static.options
@@ -400,28 +402,6 @@ def shade_batch(p: CellParams, static: Static, rays, hits: Hit, lights, sh):
 
     empty_seg = Segment(jnp.zeros((n,), bool), jnp.zeros((n, 3), d0.dtype), jnp.zeros((n, 3), d0.dtype), jnp.zeros((n, 3), d0.dtype))
     lanes = 256
-    if static.mode == "reflection":
-        k = p.reflectivity
-        acc = jnp.where(hit[:, None], (1 - k) * local, env0)
-        w = jnp.where(hit, k, 0.0)
-        alive = hit
-        # first bounce starts from the outside end of the first hit's bracket
-        voxel = p.size / p.split.shape[0]
-        o, d, nrm = jnp.where(hit[:, None], hits.position, 0.0), jax.vmap(reflect)(d0, hits.normal), hits.normal
-        for b in range(static.bounces):
-            o = o + voxel * nrm  # out of the hit cell along its Alg. 4.8 normal
-            seg = compact_map(seg_fn(False), alive, Rays(o, d, zeros, zeros + jnp.inf), empty_seg, lanes)
-            got = alive & seg.found
-            esc = alive & ~seg.found
-            acc = acc + jnp.where(esc[:, None], w[:, None] * jax.vmap(lambda dd: environment(p.env, dd))(d), 0.0)
-            hh = Hit(jnp.where(got, 1.0, jnp.inf), seg.x_after, seg.normal, jnp.zeros((n, 2), d0.dtype), zeros.astype(jnp.int32))
-            loc = jax.vmap(lambda h, dd: shade_one(h, dd, albedo(p, static, h), lights, sh))(hh, d)
-            last = b == static.bounces - 1
-            acc = acc + jnp.where(got[:, None], w[:, None] * (loc if last else (1 - k) * loc), 0.0)
-            w = jnp.where(got, w * k, 0.0)
-            alive = got
-            o, d, nrm = seg.x_before, jax.vmap(reflect)(d, seg.normal), seg.normal
-        return acc
     # refraction
     eta_in = 1.0 / p.ior
     d1, _ = jax.vmap(lambda d, nn: refract(d, nn, eta_in))(d0, hits.normal)
@@ -467,8 +447,17 @@ class _Cells(Representation):
 
     @staticmethod
     def own_effects(cfg) -> bool:
-        """Reflection and refraction modes trace the cells' own secondary rays (shade_batch)."""
-        return cfg.mode != "first_hit"
+        """The refraction mode traces the cells' own secondary rays (shade_batch)."""
+        return cfg.mode == "refraction"
+
+    @staticmethod
+    def own_material(cfg):
+        """The reflection mode (Sec. 3.2.3, Alg. 3.2) as the shared integrator's material: a
+        mirror of weight ``reflectivity`` for ``bounces`` bounces, the last bounce's hit shaded
+        whole; escaping rays see the object's environment."""
+        if cfg.mode != "reflection":
+            return None
+        return OwnMaterial(reflectivity=cfg.reflectivity, bounces=cfg.bounces, last_local=True)
 
     @staticmethod
     def environment(p, static, direction):

@@ -273,7 +273,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     run = _single_run(exp, obj, built, build_s, fr.res, fr.rays, hits)
     if exp.render.spp > 1:
         run["spp"] = exp.render.spp
-    if static.effects.shadows:
+    if static.effects.shadows or static.effects.bounces:
         run["effects"] = static.effects._asdict()
     if flags:
         run["flags"] = _flag_counts(fr.res.out["hit"].flags)

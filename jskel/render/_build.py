@@ -40,7 +40,9 @@ class XForm(NamedTuple):
 
 class Materials(NamedTuple):
     """Per object (leading axis K): colour (3), specular, shininess, reflectivity,
-    transparency, ior, and ``offset``, the world-space surface tolerance of its tracer."""
+    transparency, ior, ``offset`` (how far a secondary ray starts off its surface, world
+    units) and ``last_local`` (1: a hit on the last level takes its local light whole, as a
+    cell object's last bounce does, Nürnberg 2011 Alg. 3.2; 0: (1 - kr - kt) of it)."""
 
     color: jnp.ndarray
     specular: jnp.ndarray
@@ -49,6 +51,7 @@ class Materials(NamedTuple):
     transmit: jnp.ndarray
     ior: jnp.ndarray
     offset: jnp.ndarray
+    last_local: jnp.ndarray
 
 
 class SceneParams(NamedTuple):
@@ -104,15 +107,17 @@ def shadow_lights(exp, single: bool) -> np.ndarray:
     return np.array(out or [False])
 
 
-def effects_of(exp, single: bool = False) -> Effects:
+def effects_of(exp, single: bool = False, own=None) -> Effects:
     """The effects an experiment calls for (host, static). A single object has the default
-    material: neither reflection nor refraction."""
-    mats = [] if single else [o.material for o in exp.objects]
+    material (neither reflection nor refraction) unless its section asks for its own (``own``,
+    an ``interface.OwnMaterial``: its reflectivity, transparency and bounces)."""
+    mats = ([] if own is None else [own]) if single else [o.material for o in exp.objects]
     refl = any(m.reflectivity > 0 for m in mats)
     refr = any(m.transparency > 0 for m in mats)
     casts = shadow_lights(exp, single)
     shadows = any(bool(c) and l.intensity > 0 for c, l in zip(casts, exp.lights))
-    return Effects(shadows, refl, refr, exp.render.bounces if (refl or refr) else 0)
+    bounces = exp.render.bounces if own is None else own.bounces
+    return Effects(shadows, refl, refr, bounces if (refl or refr) else 0)
 
 
 def object_transform(o, frame: float):
@@ -137,7 +142,7 @@ def _check_shape(i: int, o, shape, rep):
         raise ValueError(
             f"objects[{i}].material.transparency: {o.material.transparency} on a {shape.type} object, whose tracer "
             "searches for the first entry only (a transparent object must report the exit of a ray from inside: plain frusta do)")
-    if rep.own_effects(shape):
+    if rep.own_effects(shape) or rep.own_material(shape) is not None:
         raise ValueError(
             f"objects[{i}].shape.mode: {getattr(shape, 'mode', '?')!r}; in a scene an object is shaded by its material "
             "(material.reflectivity / transparency), not by effects of its own: give mode: first_hit")
@@ -156,25 +161,33 @@ def _xform(p: Placed, origin: np.ndarray, dtype) -> XForm:
     return XForm(*(jnp.asarray(v, dtype) for v in (r.T, r, s, c, g, w.min(0) - pad, w.max(0) + pad)))
 
 
-def assemble(exp, placed: list[Placed], origin, dtype, single: bool = False):
-    """Scene arrays of placed objects, rays relative to ``origin`` (host). Returns (params,
-    static, info per object)."""
+def _offset(p: Placed) -> float:
+    """World distance a secondary ray starts off the object's surface (``Built.secondary_offset``,
+    by default four times its surface tolerance)."""
+    off = p.built.secondary_offset
+    return p.scale * (4.0 * p.built.surface_tolerance if off is None else off)
+
+
+def assemble(exp, placed: list[Placed], origin, dtype, single: bool = False, own=None):
+    """Scene arrays of placed objects, rays relative to ``origin`` (host); ``own``: a single
+    object's own material (``interface.OwnMaterial``). Returns (params, static, info per object)."""
     origin = np.asarray(origin, np.float64)
     mats = [p.material for p in placed]
     sh = exp.shading
     cols = [m.color for m in mats]
     spec = [sh.specular if m.specular is None else m.specular for m in mats]
     shin = [sh.shininess if m.shininess is None else m.shininess for m in mats]
-    off = [4.0 * p.scale * p.built.surface_tolerance for p in placed]
+    off = [_offset(p) for p in placed]
+    last = [float(own is not None and own.last_local)] * len(placed)
     mat = Materials(*(jnp.asarray(np.asarray(v, np.float64), dtype) for v in (
-        cols, spec, shin, [m.reflectivity for m in mats], [m.transparency for m in mats], [m.ior for m in mats], off)))
+        cols, spec, shin, [m.reflectivity for m in mats], [m.transparency for m in mats], [m.ior for m in mats], off, last)))
     bg = np.asarray(sh.background, np.float64)
     ev = exp.environment
     env = np.array([bg if v is None else v for v in (ev.zenith, ev.horizon, ev.ground)], np.float64)
     lights = lights_from_config(exp.lights, dtype, origin=origin)
     params = SceneParams(tuple(p.built.params for p in placed), tuple(_xform(p, origin, dtype) for p in placed), mat, lights,
                          jnp.asarray(shadow_lights(exp, single)), jnp.asarray(sh.ambient, dtype), jnp.asarray(env, dtype))
-    static = SceneStatic(tuple(p.rep.name for p in placed), tuple(p.built.static for p in placed), effects_of(exp, single),
+    static = SceneStatic(tuple(p.rep.name for p in placed), tuple(p.built.static for p in placed), effects_of(exp, single, own),
                          int(exp.render.lanes), bool(exp.render.compaction), single, single and placed[0].rep.own_environment)
     info = [{"name": p.name, "type": p.rep.name, "primitives": p.built.primitives, **p.built.info} for p in placed]
     return params, static, info
@@ -198,13 +211,16 @@ def build_scene(exp, shapes, dtype):
 def build_single(exp, obj, dtype):
     """A single object (``object:``) as a scene of one: identity transform, the default
     material (colour 1, the shading section's specular and shininess, no reflection or
-    refraction), rays relative to its anchor. Returns (params, static, built)."""
+    refraction) or the one its section asks for (``Representation.own_material``: a cell
+    object's reflection mode), rays relative to its anchor. Returns (params, static, built)."""
     from ..config import MaterialConfig
 
     rep = registry.get(obj.type)
+    own = rep.own_material(obj)
     built = rep.build(obj, dtype)
-    p = Placed("object", rep, built, 1.0, np.eye(3), np.zeros(3), MaterialConfig())
-    params, static, _ = assemble(exp, [p], built.anchor, dtype, single=True)
+    mat = MaterialConfig() if own is None else MaterialConfig(reflectivity=own.reflectivity, transparency=own.transparency, ior=own.ior)
+    p = Placed("object", rep, built, 1.0, np.eye(3), np.zeros(3), mat)
+    params, static, _ = assemble(exp, [p], built.anchor, dtype, single=True, own=own)
     return params, static, built
 
 

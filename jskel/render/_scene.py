@@ -135,7 +135,8 @@ def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live) -> Scene
     """Nearest hit over all objects of the ``live`` rays (others: misses). Each object traces
     only the live rays that cross its bounding box, compacted into sub-batches of ``lanes``."""
     n, dtype = rays.size, rays.origins.dtype
-    if static.single:  # a scene of one: every camera ray in one batch (the representation culls), as computed once
+    eff = static.effects
+    if static.single and not (eff.reflection or eff.refraction):  # a scene of one, camera rays only: one batch (the representation culls), as computed once
         fn = functools.partial(_object_hits, static.reps[0], static.statics[0], params.objects[0], params.xforms[0], 0)
         return fenced(always(rays.t_min), lambda: fn(rays))
     best = _miss(n, dtype)
@@ -253,8 +254,10 @@ def _compact_queue(cands: Queue, cap: int):
     return q, live & (rank >= cap)
 
 
-def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: SceneHit):
-    """Add one level's light to ``rgb`` (N,3) and return (rgb, visibility, kr, kt)."""
+def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: SceneHit, level=0):
+    """Add one level's light to ``rgb`` (N,3) and return (rgb, visibility, kr, kt). On the last
+    level (``level == bounces``) a material with ``last_local`` keeps its local light whole
+    (Nürnberg 2011, Alg. 3.2: the last bounce's hit is shaded, not weighted by 1 - k)."""
     n_pix = rgb.shape[0]
     d = q.rays.directions
     got = q.live & jnp.isfinite(hits.t)
@@ -270,7 +273,9 @@ def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: S
         pos0, hits.normal, d, kd, m.specular[k], m.shininess[k], vis)
     kr = jnp.where(got, m.reflect[k], 0.0)
     kt = jnp.where(got, m.transmit[k], 0.0)
-    col = jnp.where(got[:, None], (1.0 - kr - kt)[:, None] * local, _escaped(params, static, d))
+    last = (level == static.effects.bounces) & (m.last_local[k] > 0)
+    w_local = jnp.where(last, 1.0, 1.0 - kr - kt)
+    col = jnp.where(got[:, None], w_local[:, None] * local, _escaped(params, static, d))
     dst = jnp.where(q.live, q.pixel, n_pix)
     rgb = rgb.at[dst].add(q.weight * col, mode="drop")
     return rgb, vis, kr, kt
@@ -332,7 +337,7 @@ def scene_batch(static: SceneStatic):
             loop ends at the first level with no live ray."""
             q, rgb, flags, first_obj, secondary, aov, vis0 = carry
             hits = nearest(params, static, q.rays, q.live)
-            rgb, vis, kr, kt = shade_level(params, static, q, rgb, hits)
+            rgb, vis, kr, kt = shade_level(params, static, q, rgb, hits, level)
             live_hit = q.live & jnp.isfinite(hits.t)
             flags = flags.at[jnp.where(live_hit, q.pixel, n)].max(hits.flags, mode="drop")
             first = level == 0
