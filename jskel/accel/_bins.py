@@ -133,12 +133,12 @@ def batch_list(whole, lo, hi, groups=None):
     s = lo.shape[0]
     if groups is None:
         m1 = packet_meets(*whole, lo, hi)
-        return jnp.nonzero(m1, size=s, fill_value=0)[0].astype(jnp.int32), jnp.sum(m1.astype(jnp.int32))
+        return jnp.nonzero(m1, size=s, fill_value=0)[0].astype(jnp.int32), jnp.sum(m1, dtype=jnp.int32)
     g_lo, g_hi, slots = groups
     ng_all, per = slots.shape
     b = min(8, ng_all)
     mg = packet_meets(*whole, g_lo, g_hi)
-    ng = jnp.sum(mg.astype(jnp.int32))
+    ng = jnp.sum(mg, dtype=jnp.int32)
     glist = jnp.concatenate([jnp.nonzero(mg, size=ng_all, fill_value=0)[0].astype(jnp.int32), jnp.zeros((b,), jnp.int32)])
     out = jnp.zeros((s + b * per,), jnp.int32)
 
@@ -152,7 +152,7 @@ def batch_list(whole, lo, hi, groups=None):
         m = packet_meets(*whole, lo[safe], hi[safe]) & ok
         found = jnp.nonzero(m, size=b * per, fill_value=0)[0]
         out = jax.lax.dynamic_update_slice_in_dim(out, safe[found], n1, 0)
-        return j + 1, out, n1 + jnp.sum(m.astype(jnp.int32))
+        return j + 1, out, n1 + jnp.sum(m, dtype=jnp.int32)
 
     _, out, n1 = jax.lax.while_loop(lambda st: st[0] * b < ng, body, (jnp.int32(0), out, jnp.int32(0)))
     return out, n1
