@@ -10,6 +10,7 @@ import reference as ref
 from jskel import implicit
 from jskel.rays import make_rays
 from jskel.executor import map_chunks
+from jskel.interface import Object, intersect_each
 
 # a small model: 4 balls, a constant and a tapering tube
 BALLS = [((0.0, 0.0, 0.0), 1.0), ((0.9, 0.3, 0.0), 0.8), ((-0.8, 0.2, 0.4), 0.7), ((0.2, 1.0, -0.3), 0.6)]
@@ -32,17 +33,9 @@ def arrays():
     return a, b, ra, rb
 
 
-_FNS = {}
-
-
 def cast(built, O, D):
-    key = built.static
-    if key not in _FNS:
-        import jax
-
-        _FNS[key] = lambda p, r: jax.vmap(lambda o, d, a, b: implicit.intersect_one(p, key, o, d, a, b))(*r)
     rays = make_rays(np.asarray(O) - built.anchor, D)
-    out = map_chunks(_FNS[key], built.params, rays, chunk=8192, progress=False).out
+    out = map_chunks(intersect_each, Object(built.params, built.static, "implicit"), rays, chunk=8192, progress=False).out
     return out._replace(position=np.asarray(out.position, np.float64) + built.anchor)
 
 

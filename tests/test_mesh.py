@@ -12,6 +12,7 @@ import trimesh
 from jskel import cells, mesh
 from jskel.rays import make_rays
 from jskel.executor import map_chunks
+from jskel.interface import Object, intersect
 
 N = 4096
 
@@ -56,13 +57,8 @@ def _cfg(path, **kw):
     return mesh.MeshConfig.model_validate({"type": "mesh", "path": path, **kw})
 
 
-_FNS: dict = {}
-
-
 def _cast(built, O, D):
-    if built.static not in _FNS:
-        _FNS[built.static] = lambda p, r, st=built.static: mesh.intersect_batch(p, st, r)
-    return map_chunks(_FNS[built.static], built.params, make_rays(O - built.anchor, D), chunk=N, progress=False).out
+    return map_chunks(intersect, Object(built.params, built.static, "mesh"), make_rays(O - built.anchor, D), chunk=N, progress=False).out
 
 
 def test_every_format_reads_the_same_triangles(files):

@@ -91,3 +91,32 @@ def test_occluded_and_the_two_stages_dispatch_through_the_object():
     np.testing.assert_array_equal(np.asarray(occ), hit)
     np.testing.assert_allclose(np.asarray(t, np.float64)[hit], want[hit], atol=2e-5)
     assert np.all(np.asarray(prim)[hit] == 0) and np.all(np.asarray(prim)[~hit] == -1)
+
+
+def test_a_scene_of_one_reuses_its_program_for_new_values_and_keys_on_its_static():
+    """``render._scene.Scene``: the scene's static part is aux data too, so the integrator's one
+    module-level batch function (``scene_call``) compiles nothing for a second build of the same
+    shapes, and gives that build's closed-form hits."""
+    from jskel.config import validate
+    from jskel.render._scene import Scene, build_single, scene_call
+
+    def built(radius):
+        raw = {"object": {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 2, 0]], "radii": [radius, radius], "parents": [-1, 0]}},
+               "camera": {"eye": [0, 1, 5], "target": [0, 1, 0], "up": [0, 1, 0], "fov_deg": 40, "width": 8, "height": 8}}
+        exp, obj = validate(raw)
+        params, static, b = build_single(exp, obj, np.float32)
+        return Scene(params, static), b
+
+    s1, b1 = built(0.5)
+    s2, b2 = built(0.4)
+    assert jax.tree_util.tree_structure(s1) == jax.tree_util.tree_structure(s2)
+    lanes = s1.static._replace(lanes=s1.static.lanes // 2)
+    assert jax.tree_util.tree_structure(Scene(s1.params, lanes)) != jax.tree_util.tree_structure(s1)
+    x, rays = _rays(b1, 1024)
+    map_chunks(scene_call, s1, rays, chunk=1024, progress=False)
+    again = map_chunks(scene_call, s2, rays, chunk=1024, progress=False)
+    assert again.compile_s == 0.0
+    hit, t = _truth(x, 0.4)
+    got = np.asarray(again.out["hit"].t, np.float64)
+    np.testing.assert_array_equal(np.isfinite(got), hit)
+    np.testing.assert_allclose(got[hit], t[hit], atol=2e-5)
