@@ -25,6 +25,7 @@ marching one its surface tolerance) and inherits the rest. The conformance suite
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Hashable, NamedTuple
 
@@ -91,6 +92,12 @@ class Preliminary(NamedTuple):
     payload: Any = None
 
 
+#: the members a representation may give as module-level functions of its folder, picked up by
+#: ``Representation.__init_subclass__(module=...)``
+FUNCTION_MEMBERS = ("build", "intersect_one", "intersect_batch", "cast", "surface", "occluded", "albedo", "inside",
+                    "shade_batch", "traversal_stats")
+
+
 class Representation:
     """Base of every representation: the whole interface, with defaults for what is optional.
 
@@ -110,6 +117,20 @@ class Representation:
     #: the object carries what its escaping rays see (:meth:`environment`); a single object's
     #: render shows it where a ray misses, instead of the experiment's environment
     own_environment: ClassVar[bool] = False
+
+    def __init_subclass__(cls, module: str | None = None, **kw):
+        """``class _X(Representation, module=__name__)``: the module's own functions named as
+        :data:`FUNCTION_MEMBERS` names them (with the interface's signatures) become the
+        representation's static members, so each folder states what it has once, where it
+        defines it, instead of rebinding every function by hand."""
+        super().__init_subclass__(**kw)
+        if module is None:
+            return
+        namespace = sys.modules[module].__dict__
+        for member in FUNCTION_MEMBERS:
+            fn = namespace.get(member)
+            if callable(fn) and getattr(fn, "__module__", None) == module and member not in cls.__dict__:
+                setattr(cls, member, staticmethod(fn))
 
     # ------------------------------------------------------------------ must be given
 

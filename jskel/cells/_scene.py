@@ -432,18 +432,13 @@ def shade_batch(p: CellParams, static: Static, rays, hits: Hit, lights, sh):
 
 
 @final
-class _Cells(Representation):
+class _Cells(Representation, module=__name__):
     """The cells representation as the registry hands it to the renderer."""
 
     name = "cells"
     Config = CellsConfig
     own_shading = True
     own_environment = True
-    build = staticmethod(build)
-    intersect_one = staticmethod(intersect_one)
-    albedo = staticmethod(albedo)
-    inside = staticmethod(inside)
-    shade_batch = staticmethod(shade_batch)
 
     @staticmethod
     def own_effects(cfg) -> bool:

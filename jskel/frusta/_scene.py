@@ -581,22 +581,11 @@ def inside(scene: FrustaScene, static: Static, point):
 
 
 @final
-class _Frusta(Representation):
+class _Frusta(Representation, module=__name__):
     """The frusta representation as the registry hands it to the renderer."""
 
     name = "frusta"
     Config = FrustaConfig
-    build = staticmethod(build)
-    intersect_one = staticmethod(intersect_one)
-    intersect_batch = staticmethod(intersect_batch)
-    cast = staticmethod(cast)
-    surface = staticmethod(surface)
-    albedo = staticmethod(albedo)
-    inside = staticmethod(inside)
-
-    @staticmethod
-    def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
-        return traversal_stats(built, rays, chunk)
 
     @staticmethod
     def exits_from_inside(cfg) -> bool:

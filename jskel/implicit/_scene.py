@@ -435,16 +435,11 @@ def inside(scene: ImplicitScene, static: Static, point):
 
 
 @final
-class _Implicit(Representation):
+class _Implicit(Representation, module=__name__):
     """The implicit representation as the registry hands it to the renderer."""
 
     name = "implicit"
     Config = ImplicitConfig
-    build = staticmethod(build)
-    intersect_one = staticmethod(intersect_one)
-    intersect_batch = staticmethod(intersect_batch)
-    albedo = staticmethod(albedo)
-    inside = staticmethod(inside)
 
 
 REPRESENTATION = _Implicit()

@@ -251,18 +251,11 @@ def inside(p: MeshParams, static: Static, point):
 
 
 @final
-class _Mesh(Representation):
+class _Mesh(Representation, module=__name__):
     """The mesh representation as the registry hands it to the renderer."""
 
     name = "mesh"
     Config = MeshConfig
-    build = staticmethod(build)
-    intersect_one = staticmethod(intersect_one)
-    intersect_batch = staticmethod(intersect_batch)
-    cast = staticmethod(cast)
-    surface = staticmethod(surface)
-    albedo = staticmethod(albedo)
-    inside = staticmethod(inside)
 
     @staticmethod
     def exits_from_inside(cfg) -> bool:
