@@ -69,14 +69,25 @@ class Built:
 class OwnMaterial(NamedTuple):
     """The material a single object's section asks for itself (``Representation.own_material``),
     in the integrator's terms: ``reflectivity``/``transparency``/``ior`` as a scene material's,
-    ``bounces`` levels of secondary rays, and ``last_local``: a hit on the last level takes its
-    local light whole (no (1 - kr - kt) for rays that will not be traced)."""
+    ``bounces`` levels of secondary rays, and how a path through the object ends:
+
+    last_local: a hit on the last level takes its local light whole (no (1 - kr - kt) for rays
+      that will not be traced);
+    last_env: on the last level, the rays a hit would spawn see the environment in their
+      direction instead of being traced;
+    local_once: local light only where a camera ray hits; on later levels the object passes
+      the light on whole (kt = 1);
+    tint: a refracted ray entering the object is tinted by 0.5 + 0.5 x the colour where it
+      enters (Nürnberg 2011, Sec. 3.2.4)."""
 
     reflectivity: float = 0.0
     transparency: float = 0.0
     ior: float = 1.5
     bounces: int = 0
     last_local: bool = False
+    last_env: bool = False
+    local_once: bool = False
+    tint: bool = False
 
 
 class Preliminary(NamedTuple):
@@ -95,7 +106,7 @@ class Preliminary(NamedTuple):
 #: the members a representation may give as module-level functions of its folder, picked up by
 #: ``Representation.__init_subclass__(module=...)``
 FUNCTION_MEMBERS = ("build", "intersect_one", "intersect_batch", "cast", "surface", "occluded", "albedo", "inside",
-                    "shade_batch", "traversal_stats")
+                    "traversal_stats")
 
 
 class Representation:
@@ -109,10 +120,6 @@ class Representation:
 
     name: ClassVar[str]
     Config: ClassVar[type[BaseModel]]
-
-    #: the representation shades its own secondary rays (:meth:`shade_batch`) when
-    #: :meth:`own_effects` says the object section asks for them
-    own_shading: ClassVar[bool] = False
 
     #: the object carries what its escaping rays see (:meth:`environment`); a single object's
     #: render shows it where a ray misses, instead of the experiment's environment
@@ -183,16 +190,6 @@ class Representation:
         by the shared integrator; None: the default material. A scene refuses such a section
         (there the object's ``material`` says it)."""
         return None
-
-    def own_effects(self, cfg: BaseModel) -> bool:
-        """Does the object section ask for secondary rays the representation traces itself
-        (:meth:`shade_batch`)? A scene shades objects by their material instead."""
-        return False
-
-    def shade_batch(self, params, static, rays: Rays, hits: Hit, lights, shading):
-        """(N, 3) linear RGB of a batch with the representation's own effects (only called
-        where :attr:`own_shading` is set)."""
-        raise NotImplementedError(f"{type(self).__name__} shades through the shared renderer")
 
     def environment(self, params, static, direction):
         """(3,) linear RGB seen along ``direction`` (3,) by a ray that escapes the object (only

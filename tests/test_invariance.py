@@ -71,11 +71,12 @@ def test_implicit_depth_follows_the_transform(method):
     _compare(render(*validate(base)), render(*validate(moved)), 3.0, 1e-4)
 
 
-@pytest.mark.parametrize("mode", ["first_hit", "reflection"])
+@pytest.mark.parametrize("mode", ["first_hit", "reflection", "refraction"])
 def test_cells_depth_follows_translation_and_scale(tmp_path, mode):
-    """With reflection the secondary rays start from the bisection bracket's sample on the side
-    they leave (no epsilon offset that a translation or scale could break): the colours, which
-    depend on where the reflected rays go, stay the same too."""
+    """Secondary rays start off the surface by the object's own start distance (a voxel; a
+    linear step when refracting) scaled with the object, plus a rounding bound that grows with
+    the hit's magnitude (no fixed epsilon that a translation or scale could break): the
+    colours, which depend on where the reflected and refracted rays go, stay the same too."""
     obj = {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45},
            "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "tiles": 6, "mode": mode,
            "steps_per_tile": 64, "bisection": 12, "cache": str(tmp_path / "c")}

@@ -131,10 +131,10 @@ def test_implicit_hard_rays_raise_no_nan(debug_nans, method):
     _check_derivatives(t_of, rays, hitm)
 
 
-@pytest.mark.parametrize("mode", ["refraction"])  # reflection: the integrator's material, the next test
+@pytest.mark.parametrize("mode", ["refraction"])  # the two-sided cast: rays from inside get their exit
 def test_cells_hard_rays_raise_no_nan(debug_nans, tmp_path, mode):
     """Values only: a cell's boundary is a discrete choice, so t has no derivative to check;
-    refraction at ior 2.4 makes total internal reflection common."""
+    the shading of both modes is the next test's."""
     cfg = cells.CellsConfig.model_validate({
         "type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45},
         "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "tiles": 6,
@@ -149,26 +149,24 @@ def test_cells_hard_rays_raise_no_nan(debug_nans, tmp_path, mode):
         ([5, 5, 5], [1, 0, 0]),           # a miss
         ([1.0, 0, 5], [0, 0, 0]),         # zero direction
     ])
-    from jskel.interface import Object
-    from jskel.render import pixel_batch, lights_from_config, shading_from_config
-    from jskel.config import Experiment
+    from jskel.interface import Object, intersect
 
-    exp = Experiment.model_validate({"object": {"type": "cells"}})
-    params = (Object(b.params, b.static, "cells"), lights_from_config(exp.lights, np.float32), shading_from_config(exp.shading, np.float32))
-    hit, rgb = jax.jit(pixel_batch)(params, rays)
-    _check_hit(hit)
-    assert np.all(np.isfinite(np.asarray(rgb)))
+    hit = jax.jit(intersect)(Object(b.params, b.static, "cells"), rays)
+    hitm = _check_hit(hit)
+    assert hitm[1] and hitm[4] and not hitm[5]  # through the core; from inside it finds its exit; the miss
 
 
-def test_cells_reflection_through_the_integrator_raises_no_nan(debug_nans, tmp_path):
-    """The reflection mode is the shared integrator's mirror material (two bounces): rays from
-    outside, from inside the tube and along an axis through both sides raise no NaN."""
+@pytest.mark.parametrize("mode", ["reflection", "refraction"])
+def test_cells_modes_through_the_integrator_raise_no_nan(debug_nans, tmp_path, mode):
+    """Both modes are the shared integrator's materials (two bounces; refraction at ior 2.4,
+    where total internal reflection is common): rays from outside, from inside the tube and
+    along an axis through both sides raise no NaN."""
     from jskel.config import validate
     from jskel.render import render
 
     obj = {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45},
            "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "tiles": 6,
-           "steps_per_tile": 32, "bisection": 6, "mode": "reflection", "bounces": 2, "cache": str(tmp_path / "c")}
+           "steps_per_tile": 32, "bisection": 6, "mode": mode, "bounces": 2, "ior": 2.4, "cache": str(tmp_path / "c")}
     for eye, target in (([0, 0, 5], [1.0, 0, 0]), ([1.0, 0, 0], [1.0, 0.3, -1.0]), ([5, 0, 0], [-1, 0, 0])):
         raw = {"object": obj, "camera": {"eye": eye, "target": target, "up": [0, 1, 0], "width": 16, "height": 12},
                "render": {"progress": False}}

@@ -20,18 +20,18 @@ from ..rays import FLAG_STEP_CAP, Hit, masked_hit
 from ._config import CellsConfig as CellsConfig
 from ._membership import INSIDE, memory_table, membership, unpack, words_for
 from ._tiles import OFFSETS, SplitCells, part_links, part_offsets, sphere_tile, split_cells, validate_tile_map, voronoi_tile
-from ._trace import (TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, TraceOptions, cell_id, color_at, first_hit, march,
-                     membership_at, normal_at, object_interval, refract)
+from ._trace import TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, TraceOptions, cell_id, color_at, first_hit, membership_at, normal_at
 
 CACHE_VERSION = 1
+REFRACTED = 0.85  # the refraction mode's weight of the refracted light (0.15 local)
 
 
 class Static(NamedTuple):
-    """Static options of a cell object: trace options, mode (first_hit, reflection, refraction), bounces."""
+    """Static options of a cell object: trace options, and ``two_sided``: a ray that starts in
+    an inside cell gets its exit as the hit (the refraction mode, Alg. 3.3)."""
 
     options: TraceOptions
-    mode: str
-    bounces: int
+    two_sided: bool = False
 
 
 # ---------------------------------------------------------------- tile map, normals, colours
@@ -278,13 +278,16 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
         jnp.asarray(obj.offsets.astype(np.int32)), jnp.asarray(obj.split_cell.astype(np.int32)),
         jnp.asarray(environment_map(cfg.environment), dtype), jnp.asarray(cfg.ior, dtype), jnp.asarray(cfg.reflectivity, dtype),
     )
-    static = Static(TraceOptions(cfg.max_steps, cfg.bisection, cfg.skip), cfg.mode, cfg.bounces)
+    static = Static(TraceOptions(cfg.max_steps, cfg.bisection, cfg.skip), cfg.mode == "refraction")
     info = dict(obj.info)
     info["words_per_tile"] = words_for(slots)
     tol = float(obj.size / cfg.steps_per_tile * 0.5**cfg.bisection)  # the last bisection bracket's width
-    voxel = float(obj.size / obj.split.shape[0])  # secondary rays start one voxel out of the hit cell (Alg. 3.2)
+    # secondary rays start one voxel out of the hit cell (Alg. 3.2); refracted ones one linear
+    # step through the surface, where Alg. 3.3 row 3 takes the sample that decides their side
+    voxel = float(obj.size / obj.split.shape[0])
+    start = float(obj.size / cfg.steps_per_tile) if cfg.mode == "refraction" else voxel
     return Built(params, static, anchor, (lo, lo + extent), info, primitives=int(info["inside_split_cells"]), surface_tolerance=tol,
-                 secondary_offset=voxel)
+                 secondary_offset=start)
 
 
 # ---------------------------------------------------------------- tracing
@@ -293,10 +296,18 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
 def intersect_one(p: CellParams, static: Static, origin, direction, t_min, t_max) -> Hit:
     """First hit (Alg. 3.1): t on the inside cell's boundary, Alg. 4.8 normal, uv 0, prim = the
     whole cell's global id (also written as ``cell.npy``); flags STEP_CAP where ``max_steps``
-    samples ran out before the ray left the object."""
-    m = first_hit(p, origin, direction, t_min, t_max, static.options)
+    samples ran out before the ray left the object. With ``static.two_sided`` (refraction) a
+    ray that starts in an inside cell gets its exit (Alg. 3.3): the normal and the cell are
+    those of the cell it leaves (looked up at the last sample inside)."""
+    m = first_hit(p, origin, direction, t_min, t_max, static.options, static.two_sided)
     x0 = origin + jnp.where(jnp.isfinite(m.t), m.t, 0.0) * direction
-    n = normal_at(p, x0, direction)
+    leaving = (jnp.isfinite(m.t) & (membership_at(p, x0)[0] != INSIDE)) if static.two_sided else jnp.asarray(False)
+    x_cell = jnp.where(leaving, origin + jnp.where(jnp.isfinite(m.t_out), m.t_out, 0.0) * direction, x0)
+    # Alg. 4.8's normal, turned outward at the crossing: against the ray where it enters an
+    # inside cell, along it where it leaves one (the smoothed normal can face the other way at
+    # grazing hits; the voxel face crossed cannot)
+    n = normal_at(p, x_cell, direction)
+    n = jnp.where((jnp.sum(n * direction) > 0) != leaving, -n, n)
     # derivatives (issue 9): cells are unions of tile-map voxels, so the boundary at the hit is
     # the voxel face the ray crosses there (the axis whose voxel coordinate is nearest an
     # integer), fixed in the tile frame: t(origin, direction, lo, size) is the root of
@@ -312,7 +323,7 @@ def intersect_one(p: CellParams, static: Static, origin, direction, t_min, t_max
 
     t = jnp.where(jnp.isfinite(m.t), differentiable_root(g, jnp.where(jnp.isfinite(m.t), m.t, 0.0)), m.t)
     x_in = origin + jnp.where(jnp.isfinite(t), t, 0.0) * direction
-    cid = cell_id(p, x_in)
+    cid = cell_id(p, jnp.where(leaving, x_cell, x_in))
     capped = (~m.found) & (m.steps >= static.options.steps)  # stopped by max_steps: counted, not silent
     return masked_hit(t, x_in, n, jnp.zeros((2,), origin.dtype), cid, jnp.where(capped, FLAG_STEP_CAP, 0))
 
@@ -347,112 +358,34 @@ def environment(env: jnp.ndarray, d):
     return env[i, j]
 
 
-class Segment(NamedTuple):
-    """One traced segment of a secondary ray: boundary found, the sample just before it (on the
-    starting side) and just after it (across), and the Alg. 4.8 normal there (unit, pointing out of
-    the inside cell)."""
-
-    found: jnp.ndarray
-    x_before: jnp.ndarray
-    x_after: jnp.ndarray
-    normal: jnp.ndarray
-
-
-def trace_segment(p: CellParams, opt: TraceOptions, o, d, from_inside: bool) -> Segment:
-    """From o along d to the next boundary: into an INSIDE cell (``from_inside`` False, Alg. 3.2
-    with empty-tile skipping) or out of one (True, Alg. 3.3 skipping all-inside tiles)."""
-    t0, t1 = object_interval(p, o, d, jnp.asarray(0.0, o.dtype), jnp.asarray(jnp.inf, o.dtype))
-    t0 = jnp.maximum(t0, 0.0)
-    m = march(p, o, d, t0, t1, not from_inside, opt, TILE_ALL_INSIDE if from_inside else TILE_HAS_INSIDE)
-    tb, ta = jnp.where(m.found, m.t_out, 0.0), jnp.where(m.found, m.t, 0.0)
-    x_before, x_after = o + tb * d, o + ta * d
-    x_in = x_before if from_inside else x_after
-    return Segment(m.found & (t0 <= t1), x_before, x_after, normal_at(p, x_in, d))
-
-
-def shade_batch(p: CellParams, static: Static, rays, hits: Hit, lights, sh):
-    """Colours of a ray batch by mode. First hit: local shading (Lambert + Blinn-Phong with the
-    cell colour map); the reflection mode (Sec. 3.2.3, Alg. 3.2) is the shared integrator's
-    mirror material (``own_material``), not traced here. Refraction (Sec. 3.2.4, Alg. 3.3):
-    Snell's law at every boundary (eta = 1/ior entering, ior leaving; total internal reflection
-    keeps the ray inside), tinted by 0.5 + 0.5 x each entered cell's colour, up to ``bounces`` boundary
-    events; c = 0.15 local + 0.85 tint x environment(final direction). Secondary rays run only for
-    the rays that need them, gathered into dense sub-batches (``wavefront.compact_map``): compaction,
-    not masking, so the cost follows the number of live rays."""
-    from ..rays import Rays
-    from ..wavefront import compact_map
-    from ..shading import shade_one
-
-    d0 = safe_normalize(rays.directions)
-    env0 = jax.vmap(lambda d: environment(p.env, d))(d0)
-    base = jax.vmap(lambda h: albedo(p, static, h))(hits)
-    local = jax.vmap(lambda h, d, b: shade_one(h, d, b, lights, sh))(hits, d0, base)
-    hit = jnp.isfinite(hits.t)
-    if static.mode != "refraction" or static.bounces == 0:  # reflection: the shared integrator's material
-        return jnp.where(hit[:, None], local, env0)
-    n = d0.shape[0]
-    opt = static.options
-    zeros = jnp.zeros((n,), d0.dtype)
-
-    def seg_fn(from_inside):
-        def f(sub):
-            seg = jax.vmap(lambda o, d: trace_segment(p, opt, o, d, from_inside))(sub.origins, sub.directions)
-            return seg
-        return f
-
-    empty_seg = Segment(jnp.zeros((n,), bool), jnp.zeros((n, 3), d0.dtype), jnp.zeros((n, 3), d0.dtype), jnp.zeros((n, 3), d0.dtype))
-    lanes = 256
-    # refraction
-    eta_in = 1.0 / p.ior
-    d1, _ = jax.vmap(lambda d, nn: refract(d, nn, eta_in))(d0, hits.normal)
-    tint = jnp.where(hit[:, None], 0.5 + 0.5 * base, 1.0)
-    inside_now = hit
-    o = jnp.where(hit[:, None], hits.position, 0.0)
-    d = jnp.where(hit[:, None], d1, d0)
-    alive = hit
-    for b in range(static.bounces):
-        seg_in = compact_map(seg_fn(True), alive & inside_now, Rays(o, d, zeros, zeros + jnp.inf), empty_seg, lanes)
-        seg_out = compact_map(seg_fn(False), alive & ~inside_now, Rays(o, d, zeros, zeros + jnp.inf), empty_seg, lanes)
-        seg = jax.tree_util.tree_map(lambda a, c: jnp.where(inside_now.reshape((-1,) + (1,) * (a.ndim - 1)), a, c), seg_in, seg_out)
-        got = alive & seg.found
-        # leaving (inside -> out): normal faces against d is -n, eta = ior; entering: n, 1/ior
-        nn = jnp.where(inside_now[:, None], -seg.normal, seg.normal)
-        eta = jnp.where(inside_now, p.ior, eta_in)
-        nd, tir = jax.vmap(refract)(d, nn, eta)
-        cross = got & ~tir
-        new_inside = jnp.where(cross, ~inside_now, inside_now)
-        entering = cross & ~inside_now
-        tint = jnp.where(entering[:, None], tint * (0.5 + 0.5 * jax.vmap(lambda x: color_at(p, x))(seg.x_after)), tint)
-        o = jnp.where(got[:, None], jnp.where(cross[:, None], seg.x_after, seg.x_before), o)
-        d = jnp.where(got[:, None], nd, d)
-        inside_now = jnp.where(got, new_inside, inside_now)
-        alive = got
-    final = jax.vmap(lambda dd: environment(p.env, dd))(d)
-    return jnp.where(hit[:, None], 0.15 * local + 0.85 * tint * final, env0)
-
-
 @final
 class _Cells(Representation, module=__name__):
     """The cells representation as the registry hands it to the renderer."""
 
     name = "cells"
     Config = CellsConfig
-    own_shading = True
     own_environment = True
 
     @staticmethod
-    def own_effects(cfg) -> bool:
-        """The refraction mode traces the cells' own secondary rays (shade_batch)."""
+    def exits_from_inside(cfg) -> bool:
+        """The refraction mode's cast reports a ray's exit from an inside cell (Alg. 3.3)."""
         return cfg.mode == "refraction"
 
     @staticmethod
     def own_material(cfg):
-        """The reflection mode (Sec. 3.2.3, Alg. 3.2) as the shared integrator's material: a
-        mirror of weight ``reflectivity`` for ``bounces`` bounces, the last bounce's hit shaded
-        whole; escaping rays see the object's environment."""
-        if cfg.mode != "reflection":
+        """The modes as the shared integrator's material; escaping rays see the object's
+        environment. Reflection (Sec. 3.2.3, Alg. 3.2): a mirror of weight ``reflectivity`` for
+        ``bounces`` bounces, the last bounce's hit shaded whole. Refraction (Sec. 3.2.4, Alg.
+        3.3): Snell's law at every boundary with ``ior`` (total internal reflection keeps the ray
+        inside) for ``bounces`` boundary events after the first hit, each entered cell tinting
+        the ray by 0.5 + 0.5 x its colour, no local light after the first hit, and after the
+        last event the environment in the ray's direction: c = 0.15 local + 0.85 tint x
+        environment. Zero bounces, or the first-hit mode: the default material."""
+        if cfg.bounces == 0 or cfg.mode == "first_hit":
             return None
-        return OwnMaterial(reflectivity=cfg.reflectivity, bounces=cfg.bounces, last_local=True)
+        if cfg.mode == "reflection":
+            return OwnMaterial(reflectivity=cfg.reflectivity, bounces=cfg.bounces, last_local=True)
+        return OwnMaterial(transparency=REFRACTED, ior=cfg.ior, bounces=cfg.bounces, tint=True, local_once=True, last_env=True)
 
     @staticmethod
     def environment(p, static, direction):

@@ -100,11 +100,12 @@ class March(NamedTuple):
     found: jnp.ndarray
 
 
-def march(p: CellParams, o, d, t_start, t_end, want_inside: bool, opt: TraceOptions, skip_flag: int) -> March:
+def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -> March:
     """Linear search from t_start for the first sample whose INSIDE-ness equals ``want_inside``
-    (True: Alg. 3.1 / 3.2, looking for an inside cell; False: Alg. 3.3, leaving one), then
-    bisection. Tiles whose flags lack (want_inside) / have (not want_inside) ``skip_flag`` are
-    jumped over to the first sample past their exit (bitwise the same samples)."""
+    (True: Alg. 3.1 / 3.2, looking for an inside cell; False: Alg. 3.3, leaving one; a Python
+    bool or a traced one per ray), then bisection. Tiles with no INSIDE part (looking for one,
+    Alg. 3.2 rows 11-16) or with INSIDE parts only (leaving, Alg. 3.3 rows 12-15) are jumped
+    over to the first sample past their exit (bitwise the same samples)."""
     h = safe_div(p.step * p.size, safe_sqrt(jnp.sum(d * d)), 0.0)  # d = 0: no step, no NaN
 
     def is_target(t):
@@ -116,7 +117,7 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside: bool, opt: TraceOpti
         t = t_start + k.astype(o.dtype) * h
         hit, tile, ok = is_target(t)
         flags = p.tile_flags[tile[0], tile[1], tile[2]]
-        can_skip = ok & (((flags & skip_flag) == 0) if want_inside else ((flags & skip_flag) != 0))
+        can_skip = ok & jnp.where(want_inside, (flags & TILE_HAS_INSIDE) == 0, (flags & TILE_ALL_INSIDE) != 0)
         if opt.skip:
             lo = p.lo + tile.astype(o.dtype) * p.size
             _, t_exit = box_interval(lo, lo + p.size, o, d)
@@ -151,10 +152,22 @@ def object_interval(p: CellParams, o, d, t_min, t_max):
     return jnp.maximum(t0, t_min), jnp.minimum(t1, t_max)
 
 
-def first_hit(p: CellParams, o, d, t_min, t_max, opt: TraceOptions) -> March:
-    """Alg. 3.1 from the ray's entry into the object's box (see the module docstring)."""
+def starts_inside(p: CellParams, o, d, t_min):
+    """Alg. 3.3 row 3: does the ray start in an INSIDE cell (its first sample, at ``t_min``,
+    inside the object's box and in an inside cell)? A ray from outside the box starts outside."""
+    n = p.words.shape[0]
+    enter, _ = box_interval(p.lo, p.lo + n * p.size, o, d)
+    return (enter <= t_min) & (membership_at(p, o + t_min * d)[0] == INSIDE)
+
+
+def first_hit(p: CellParams, o, d, t_min, t_max, opt: TraceOptions, two_sided: bool = False) -> March:
+    """Alg. 3.1 from the ray's entry into the object's box (see the module docstring): the
+    first entry into an INSIDE cell. ``two_sided`` (the refraction mode): a ray that starts in
+    an inside cell (:func:`starts_inside`) searches for its exit instead (Alg. 3.3 rows 3-17);
+    then ``t`` is the first sample outside and ``t_out`` the last one inside."""
     t0, t1 = object_interval(p, o, d, t_min, t_max)
-    m = march(p, o, d, t0, t1, True, opt, TILE_HAS_INSIDE)
+    want = ~starts_inside(p, o, d, t_min) if two_sided else True
+    m = march(p, o, d, t0, t1, want, opt)
     inf = jnp.asarray(jnp.inf, o.dtype)
     return m._replace(t=jnp.where(t0 <= t1, m.t, inf), found=m.found & (t0 <= t1))
 

@@ -13,17 +13,14 @@ import time
 from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .. import registry
-from ..accel import always, fenced
 from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
 from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Hit, Rays, make_rays
 from ..camera import Camera, tile_inverse, tile_order
 from ..executor import map_chunks
-from ..interface import Object, intersect
-from ..wavefront import compact_map
+from ..interface import Object
 from ._aov import write_aovs as write_aovs
 from ..shading import Lights as Lights
 from ..shading import Shading as Shading
@@ -42,30 +39,6 @@ class RenderResult(NamedTuple):
     image: np.ndarray  # (H, W, 3) uint8
     run: dict  # what run.json holds
     aovs: dict | None = None  # scenes: more per-pixel outputs (obj, visibility, ...), leading axis H*W
-
-
-SHADE_LANES = 1024  # rays per sub-batch of the shading (only rays that hit are shaded)
-
-
-def pixel_batch(params, rays: Rays):
-    """``((obj, lights, shading), rays) -> (Hit, rgb)``: first hit and colour of a batch for an
-    :class:`~jskel.interface.Object` (one module-level function: the representation and its
-    static options ride in the object's tree structure, so each compiles once)."""
-    obj, lights, sh = params
-    rep, scene, static = obj.representation, obj.params, obj.static
-
-    def colour(hit, d):
-        return shade_one(hit, d, rep.albedo(scene, static, hit), lights, sh)
-
-    # fenced: XLA fused the hit's attributes into each consumer (shading, every output)
-    # and computed them once per consumer
-    hits = fenced(always(rays.t_min), lambda: intersect(obj, rays))
-    if rep.own_shading:  # a representation with its own secondary rays
-        rgb = rep.shade_batch(scene, static, rays, hits, lights, sh)
-    else:  # shaded where a ray hit, in dense sub-batches; the background elsewhere
-        back = jnp.broadcast_to(sh.background, rays.directions.shape).astype(rays.directions.dtype)
-        rgb = compact_map(lambda r: jax.vmap(colour)(*r), jnp.isfinite(hits.t), (hits, rays.directions), back, SHADE_LANES)
-    return hits, rgb
 
 
 def camera_of(exp: Experiment) -> Camera:
@@ -256,10 +229,6 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     if exp.is_scene:
         return render_scene(exp, obj, prog)
     rep = registry.get(obj.type)
-    if rep.own_effects(obj):
-        if exp.render.spp > 1:
-            raise ValueError(f"render.spp: {exp.render.spp}; an object with secondary rays of its own (object.mode) renders one sample per pixel")
-        return _render_own(exp, obj, prog)
     dtype = dtype_of(exp)
     t0 = time.perf_counter()
     params, static, built = build_single(exp, obj, dtype)
@@ -281,29 +250,6 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     if static.effects.shadows:
         aovs["visibility"] = fr.first["visibility"]
     return RenderResult(hits, fr.rgb, image=fr.image, run=run, aovs=aovs or None)
-
-
-def _render_own(exp: Experiment, obj, progress) -> RenderResult:
-    """A single object whose section asks for secondary rays of its representation's own
-    (``own_effects``): first hit and ``shade_batch`` per chunk, one sample per pixel."""
-    dtype = dtype_of(exp)
-    rep = registry.get(obj.type)
-    t0 = time.perf_counter()
-    built = rep.build(obj, dtype)
-    jax.block_until_ready(built.params)
-    build_s = time.perf_counter() - t0
-    cam = camera_of(exp)
-    rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype)
-    params = (Object.of(rep, built), lights_from_config(exp.lights, dtype, origin=built.anchor), shading_from_config(exp.shading, dtype))
-    res = _trace(exp, pixel_batch, params, rays, progress)
-    inv = tile_inverse(cam.width, cam.height, exp.render.tile)
-    hits, rgb = jax.tree_util.tree_map(lambda a: a[inv], res.out)
-    hits = hits._replace(position=np.asarray(hits.position, np.float64) + built.anchor)
-    image = encode_png(rgb.reshape(cam.height, cam.width, 3), output_transform(exp.shading))
-    run = _single_run(exp, obj, built, build_s, res, rays.size, hits)
-    if hits.flags is not None:
-        run["flags"] = _flag_counts(hits.flags)
-    return RenderResult(hits, rgb, image, run, rep.extra_aovs(built, hits) or None)
 
 
 def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> RenderResult:
@@ -351,4 +297,4 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
         run["memory_budget"] = fr.res.memory
     return RenderResult(hits, fr.rgb.astype(np.float32), fr.image, run, aovs)
 
-__all__ = ["Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "lights_from_config", "output_transform", "peak_rss_mb", "pixel_batch", "camera_rays", "render", "render_scene", "shade_one", "shading_from_config", "write_aovs"]
+__all__ = ["Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "lights_from_config", "output_transform", "peak_rss_mb", "camera_rays", "render", "render_scene", "shade_one", "shading_from_config", "write_aovs"]

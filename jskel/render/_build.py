@@ -41,8 +41,9 @@ class XForm(NamedTuple):
 class Materials(NamedTuple):
     """Per object (leading axis K): colour (3), specular, shininess, reflectivity,
     transparency, ior, ``offset`` (how far a secondary ray starts off its surface, world
-    units) and ``last_local`` (1: a hit on the last level takes its local light whole, as a
-    cell object's last bounce does, Nürnberg 2011 Alg. 3.2; 0: (1 - kr - kt) of it)."""
+    units), and how a path through the object ends (1 or 0 each; ``interface.OwnMaterial``
+    says what each does): ``last_local`` (a cell object's last reflection bounce, Nürnberg
+    2011 Alg. 3.2), ``last_env``, ``local_once`` and ``tint`` (its refraction, Alg. 3.3)."""
 
     color: jnp.ndarray
     specular: jnp.ndarray
@@ -52,6 +53,9 @@ class Materials(NamedTuple):
     ior: jnp.ndarray
     offset: jnp.ndarray
     last_local: jnp.ndarray
+    last_env: jnp.ndarray
+    local_once: jnp.ndarray
+    tint: jnp.ndarray
 
 
 class SceneParams(NamedTuple):
@@ -142,7 +146,7 @@ def _check_shape(i: int, o, shape, rep):
         raise ValueError(
             f"objects[{i}].material.transparency: {o.material.transparency} on a {shape.type} object, whose tracer "
             "searches for the first entry only (a transparent object must report the exit of a ray from inside: plain frusta do)")
-    if rep.own_effects(shape) or rep.own_material(shape) is not None:
+    if rep.own_material(shape) is not None:
         raise ValueError(
             f"objects[{i}].shape.mode: {getattr(shape, 'mode', '?')!r}; in a scene an object is shaded by its material "
             "(material.reflectivity / transparency), not by effects of its own: give mode: first_hit")
@@ -178,9 +182,9 @@ def assemble(exp, placed: list[Placed], origin, dtype, single: bool = False, own
     spec = [sh.specular if m.specular is None else m.specular for m in mats]
     shin = [sh.shininess if m.shininess is None else m.shininess for m in mats]
     off = [_offset(p) for p in placed]
-    last = [float(own is not None and own.last_local)] * len(placed)
+    ends = [[float(own is not None and getattr(own, f))] * len(placed) for f in ("last_local", "last_env", "local_once", "tint")]
     mat = Materials(*(jnp.asarray(np.asarray(v, np.float64), dtype) for v in (
-        cols, spec, shin, [m.reflectivity for m in mats], [m.transparency for m in mats], [m.ior for m in mats], off, last)))
+        cols, spec, shin, [m.reflectivity for m in mats], [m.transparency for m in mats], [m.ior for m in mats], off, *ends)))
     bg = np.asarray(sh.background, np.float64)
     ev = exp.environment
     env = np.array([bg if v is None else v for v in (ev.zenith, ev.horizon, ev.ground)], np.float64)

@@ -46,8 +46,11 @@ bracket of marched surfaces; ``info["surface_tolerance"]``): a fixed epsilon fai
 scene is scaled or moved.
 
 Transparent objects must report the exit of a ray from inside (``exits_from_inside(cfg)`` in
-the interface: frusta without relief, whose intersection is analytic); the implicit and cell tracers search for the
-first entry only (a ValueError says so).
+the interface: frusta without relief, whose intersection is analytic, and a cell object in
+refraction mode); the implicit tracer searches for the first entry only (a ValueError says so).
+A single object may state a material of its own (``Representation.own_material``): a cell
+object's reflection and refraction modes (Nürnberg 2011, Alg. 3.2-3.3) are such materials, with
+``Materials.last_local``, ``last_env``, ``local_once`` and ``tint`` saying how their paths end.
 """
 
 from __future__ import annotations
@@ -254,10 +257,22 @@ def _compact_queue(cands: Queue, cap: int):
     return q, live & (rank >= cap)
 
 
+def _transmitted(m: Materials, hits: SceneHit, d, kd):
+    """The refracted direction at each hit (the mirrored one under total internal reflection),
+    whether it is one, and the colour factor of a ``tint`` material where the ray enters:
+    0.5 + 0.5 x the colour there (Nürnberg 2011, Sec. 3.2.4), 1 elsewhere."""
+    k = jnp.maximum(hits.obj, 0)
+    t, tir = _refract(d, hits.normal, m.ior[k])
+    entering = (jnp.sum(d * hits.normal, axis=-1) < 0) & ~tir
+    factor = jnp.where(((m.tint[k] > 0) & entering)[:, None], 0.5 + 0.5 * kd, 1.0)
+    return t, tir, factor
+
+
 def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: SceneHit, level=0):
     """Add one level's light to ``rgb`` (N,3) and return (rgb, visibility, kr, kt). On the last
     level (``level == bounces``) a material with ``last_local`` keeps its local light whole
-    (Nürnberg 2011, Alg. 3.2: the last bounce's hit is shaded, not weighted by 1 - k)."""
+    (Nürnberg 2011, Alg. 3.2: the last bounce's hit is shaded, not weighted by 1 - k), and one
+    with ``last_env`` adds the environment its refracted ray would see (Alg. 3.3's end)."""
     n_pix = rgb.shape[0]
     d = q.rays.directions
     got = q.live & jnp.isfinite(hits.t)
@@ -271,11 +286,16 @@ def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: S
     pos0 = jnp.where(got[:, None], hits.position, 0.0)
     local = jax.vmap(lambda p, nn, dd, b, sp, sh, v: shade_local(p, nn, dd, b, params.lights, params.ambient, sp, sh, v))(
         pos0, hits.normal, d, kd, m.specular[k], m.shininess[k], vis)
-    kr = jnp.where(got, m.reflect[k], 0.0)
-    kt = jnp.where(got, m.transmit[k], 0.0)
-    last = (level == static.effects.bounces) & (m.last_local[k] > 0)
-    w_local = jnp.where(last, 1.0, 1.0 - kr - kt)
+    later = (level > 0) & (m.local_once[k] > 0)  # past the first level: light passed on whole
+    kr = jnp.where(got & ~later, m.reflect[k], 0.0)
+    kt = jnp.where(got, jnp.where(later, 1.0, m.transmit[k]), 0.0)
+    last = level == static.effects.bounces
+    w_local = jnp.where(last & (m.last_local[k] > 0), 1.0, 1.0 - kr - kt)
     col = jnp.where(got[:, None], w_local[:, None] * local, _escaped(params, static, d))
+    if static.effects.refraction:
+        t, _, factor = _transmitted(m, hits, safe_normalize(d), kd)
+        ends = got & last & (m.last_env[k] > 0)
+        col = col + jnp.where(ends[:, None], kt[:, None] * factor * _escaped(params, static, t), 0.0)
     dst = jnp.where(q.live, q.pixel, n_pix)
     rgb = rgb.at[dst].add(q.weight * col, mode="drop")
     return rgb, vis, kr, kt
@@ -299,11 +319,11 @@ def spawn(params: SceneParams, static: SceneStatic, q: Queue, hits: SceneHit, kr
             cands.append(Queue(Rays(p0 + nf * off, r, zeros, infs), q.weight * kr[:, None], q.pixel, kind, q.live & (kr > 0)))
     if eff.refraction:
         with jax.named_scope("refraction_rays"):
-            ior = params.mat.ior[jnp.maximum(hits.obj, 0)]
-            t, tir = _refract(d, hits.normal, ior)
+            kd = hits.base * params.mat.color[jnp.maximum(hits.obj, 0)]
+            t, tir, factor = _transmitted(params.mat, hits, d, kd)
             side = jnp.where(tir[:, None], nf, -nf)  # through the surface, or back on the near side
             kind = jnp.where(level == 0, 2, q.kind).astype(jnp.int32)
-            cands.append(Queue(Rays(p0 + side * off, t, zeros, infs), q.weight * kt[:, None], q.pixel, kind, q.live & (kt > 0)))
+            cands.append(Queue(Rays(p0 + side * off, t, zeros, infs), q.weight * kt[:, None] * factor, q.pixel, kind, q.live & (kt > 0)))
     allc = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *cands)
     nq, dropped = _compact_queue(allc, q.live.shape[0])
     return nq, allc.pixel, dropped
