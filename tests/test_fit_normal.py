@@ -14,7 +14,7 @@ import pytest
 from jskel.fit import perturbed, segments_of
 from jskel.fit._bench import bent_chain
 from jskel.fit._config import SolverConfig
-from jskel.fit._fit import normal_equations, normaliser_of, problem_of, residuals
+from jskel.fit._problem import normal_equations, normaliser_of, problem_of, residuals
 from jskel.fit._normal import point_rows, structure
 from jskel.fit._solvers import normal_solver
 
@@ -60,7 +60,7 @@ def test_sparse_normal_equations_equal_the_dense_jacobians(case):
     np.testing.assert_allclose(np.asarray(g), want_g, atol=2e-5 * np.abs(want_g).max())
     from jskel.fit._normal import flat_geometry
     from jskel.fit._distance import geometry
-    from jskel.fit._fit import radii_of, unpack
+    from jskel.fit._problem import radii_of, unpack
     from jskel.fit._solvers import robust_residuals
 
     jj, u = unpack(x)

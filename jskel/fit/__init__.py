@@ -9,7 +9,9 @@ Public API:
 * :func:`fit_points`: fit joints and radii of a fixed topology (jaxopt LM / Gauss-Newton /
   L-BFGS or optax Adam through the adapter in ``_solvers``; for large problems LM and
   Gauss-Newton on normal equations assembled from the problem's sparsity, ``_normal``);
-* :func:`pca_chain`, :func:`mst_skeleton`: starting skeletons estimated from points;
+* :func:`pca_chain`, :func:`mst_skeleton`: starting skeletons estimated from points (``_starts``);
+  :func:`read_points`, :func:`load_points`: the cloud (``_points``); the least-squares problem
+  in normalised coordinates is ``_problem``'s;
 * :func:`run_fit` and :class:`FitFile`: what ``python -m jskel fit FILE --out DIR`` runs."""
 
 from ._bench import FitBenchFile as FitBenchFile
@@ -28,13 +30,13 @@ from ._distance import signed_distance as signed_distance
 from ._fit import FitResult as FitResult
 from ._fit import fit_many as fit_many
 from ._fit import fit_points as fit_points
-from ._fit import load_points as load_points
-from ._fit import mst_skeleton as mst_skeleton
-from ._fit import pca_chain as pca_chain
-from ._fit import perturbed as perturbed
-from ._fit import point_distances as point_distances
-from ._fit import read_points as read_points
-from ._fit import run_fit as run_fit
+from ._measures import point_distances as point_distances
+from ._points import load_points as load_points
+from ._points import read_points as read_points
+from ._run import run_fit as run_fit
+from ._starts import mst_skeleton as mst_skeleton
+from ._starts import pca_chain as pca_chain
+from ._starts import perturbed as perturbed
 from ._solvers import robust_residuals as robust_residuals
 
 __all__ = ["FitBenchFile", "FitFile", "FitResult", "Segments", "checked_distances", "culling_exact", "cutting_planes", "plane_margins", "distances", "fit_many", "fit_points", "geometry", "load_points", "run_fit_bench",

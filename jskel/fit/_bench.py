@@ -23,7 +23,10 @@ from ..config import StrictModel
 from ._config import SolverConfig
 from ._distance import sample_surface
 from ._distance import segments_of
-from ._fit import culling_exact_fraction, fit_many, fit_points, loss, normaliser_of, perturbed, problem_of, uses_sparse
+from ._fit import fit_many, fit_points, uses_sparse
+from ._measures import culling_exact_fraction
+from ._problem import loss, normaliser_of, problem_of
+from ._starts import perturbed
 
 
 class FitBench(StrictModel):

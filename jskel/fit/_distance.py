@@ -93,7 +93,7 @@ def plane_margins(joints, radii, seg: Segments):
     swallow far points. A fit found both on a 50-segment chain with outliers (a segment folded
     back to 0.26 of its length, its cone reaching 25 units out; a plane with n . m = -0.45
     putting an outlier 16 units behind a segment inside it), so the fit keeps these above a
-    margin by a penalty (``_fit.residuals``)."""
+    margin by a penalty (``_problem.residuals``)."""
     return margins_of(geometry(joints, radii, seg), seg)
 
 

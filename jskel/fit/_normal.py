@@ -21,7 +21,7 @@ tangents: joints are coloured so that no two joints of a colour touch the same s
 same penalty row), and one tangent per colour and unknown (x, y, z, radius) carries all joints
 of that colour at once, each output reading back only its own joints (Curtis, Powell and Reid
 1974's compressed Jacobian; a chain needs 5 colours, 20 tangents, for any length). The
-smoothness and plane-validity penalties (``_fit.penalty_residuals``) are rows of their own
+smoothness and plane-validity penalties (``_problem.penalty_rows``) are rows of their own
 through the same forward pass.
 
 Memory is O(points x 17 x 17 + (4J)^2) instead of the dense Jacobian's O(points x 4J), and the
@@ -102,7 +102,7 @@ def structure(seg: Segments, n_joints: int) -> Structure:
 
 
 def _param_index(joints, n_joints: int):
-    """(..., 4) flat parameter indices of joints (x, y, z, radius) in ``_fit.unpack``'s layout."""
+    """(..., 4) flat parameter indices of joints (x, y, z, radius) in ``_problem.unpack``'s layout."""
     j = np.asarray(joints, np.int64)[..., None]
     return np.concatenate([3 * j + np.arange(3), 3 * n_joints + j], -1)
 
@@ -152,7 +152,7 @@ def point_rows(flat, seg: Segments, points, candidates: int, robust):
 
 
 def normal_equations(x, points, model_fn, seg: Segments, n_joints: int, candidates: int, robust):
-    """(r, J^T J, J^T r) of the fit's residuals at ``x`` (4J,): ``r`` in ``_fit.residuals``'s
+    """(r, J^T J, J^T r) of the fit's residuals at ``x`` (4J,): ``r`` in ``_problem.residuals``'s
     order (points, then penalty rows).
 
     ``model_fn(x) -> (Geometry, (K, E))``: the frusta, and ``E`` penalty rows per continuation

@@ -1,0 +1,133 @@
+"""The least-squares problem of a fit (issue 10), in normalised coordinates.
+
+The unknowns are the joints (J,3) and radii (J,) of a skeleton of fixed topology; the residual
+of a point is its signed distance to the frusta surface (``_distance``), made robust (Huber or
+Cauchy) so outliers pull linearly or less, plus ``sqrt(smoothness)`` times the second
+differences of the joints along each chain and the plane-validity penalty. Radii stay positive
+by construction: ``r = min_radius + softplus(u)`` with ``u`` the free parameter.
+
+The problem is solved in normalised coordinates (points centred on their mean and divided by
+their largest extent), so tolerances, damping, the robust scale and the smoothness weight mean
+the same thing for a twig and a tree; :class:`Normaliser` maps to and from world units.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..frusta import ELLIPSE_MARGIN
+from . import _normal, _solvers
+from ._config import SolverConfig
+from ._distance import Segments, distances_of, geometry, margins_of
+
+
+def _softplus_inv(y):
+    y = np.maximum(np.asarray(y, np.float64), 1e-12)
+    return np.where(y > 30, y, np.log(np.expm1(np.minimum(y, 30))))
+
+
+class Problem(NamedTuple):
+    """Static description of a fit (hashable): topology, smoothing triples, loss, solver."""
+
+    seg: Segments
+    triples: tuple
+    loss: str
+    scale: float
+    smoothness: float
+    min_radius: float
+    validity: float
+    candidates: int
+
+
+VALID_MARGIN = 2.0 * ELLIPSE_MARGIN  # the penalty starts where |n . m| - sin(half-angle) falls below this
+
+
+def problem_of(seg: Segments, s: SolverConfig) -> Problem:
+    triples = tuple((int(seg.start[a]), int(seg.start[b]), int(seg.end[b])) for a, b in zip(seg.cont_a, seg.cont_b))
+    return Problem(seg, triples, s.loss, float(s.scale), float(s.smoothness), float(s.min_radius), float(s.validity), int(s.candidates))
+
+
+def radii_of(u, pr: Problem):
+    return pr.min_radius + jax.nn.softplus(u)
+
+
+def unpack(x):
+    """The flat parameter vector (4J,) (jaxopt's least-squares solvers want one array) as
+    joints (J,3) and the radius parameters u (J,)."""
+    nj = x.shape[-1] // 4
+    return x[..., : 3 * nj].reshape(x.shape[:-1] + (nj, 3)), x[..., 3 * nj :]
+
+
+def penalty_rows(joints, g, pr: Problem):
+    """(K, E) penalty residuals per continuation (K = len(pr.triples)): ``sqrt(smoothness)``
+    times the joints' second difference (3 rows) and the plane-validity penalty of its two
+    segments (2 rows), each present when its weight is positive. A row depends only on the
+    two segments' joints (``_normal`` relies on it)."""
+    parts = []
+    if pr.smoothness > 0 and pr.triples:
+        t = np.asarray(pr.triples)
+        parts.append(jnp.sqrt(pr.smoothness) * (joints[t[:, 0]] - 2.0 * joints[t[:, 1]] + joints[t[:, 2]]))
+    if pr.validity > 0 and pr.triples:
+        # keep every shared cutting plane cutting both its cones in ellipses (the geometry the
+        # renderer and its bounds assume); an invalid plane leaves an unbounded piece that can
+        # claim far outliers and so lower the loss below the truth's (see plane_margins)
+        v = margins_of(g, pr.seg)
+        parts.append(jnp.sqrt(pr.validity) * jnp.maximum(VALID_MARGIN - v, 0.0) / VALID_MARGIN)
+    if not parts:
+        return jnp.zeros((len(pr.triples), 0), joints.dtype)
+    return jnp.concatenate(parts, -1)
+
+
+def residuals(x, points, pr: Problem):
+    """Robust point residuals (N,), then the penalty rows (:func:`penalty_rows`), in normalised units."""
+    joints, u = unpack(x)
+    g = geometry(joints, radii_of(u, pr), pr.seg)  # once, for the distances and the plane margins
+    d = distances_of(g, pr.seg, points, pr.candidates)[0]
+    r = _solvers.robust_residuals(d, pr.loss, pr.scale)
+    return jnp.concatenate([r, penalty_rows(joints, g, pr).reshape(-1)])
+
+
+def normal_equations(x, points, pr: Problem):
+    """(r, J^T J, J^T r) of :func:`residuals` at ``x``, assembled from the problem's sparsity
+    (``_normal``): no dense Jacobian, so LM and Gauss-Newton fit long chains in memory."""
+    def model(x):
+        joints, u = unpack(x)
+        g = geometry(joints, radii_of(u, pr), pr.seg)
+        return g, penalty_rows(joints, g, pr)
+
+    return _normal.normal_equations(x, points, model, pr.seg, x.shape[-1] // 4, pr.candidates,
+                                    lambda d: _solvers.robust_residuals(d, pr.loss, pr.scale))
+
+
+def loss(x, points, pr: Problem):
+    r = residuals(x, points, pr)
+    return 0.5 * jnp.sum(r * r)
+
+
+class Normaliser(NamedTuple):
+    centre: np.ndarray
+    extent: float
+
+    def points(self, p):
+        return (np.asarray(p, np.float64) - self.centre) / self.extent
+
+    def start(self, joints, radii, pr: Problem):
+        j = (np.asarray(joints, np.float64) - self.centre) / self.extent
+        return np.concatenate([j.reshape(-1), _softplus_inv(np.asarray(radii, np.float64) / self.extent - pr.min_radius)])
+
+    def world(self, x, pr: Problem):
+        joints, u = unpack(np.asarray(x, np.float64))
+        r = np.asarray(radii_of(jnp.asarray(u), pr), np.float64) * self.extent
+        return joints * self.extent + self.centre, r
+
+
+def normaliser_of(points) -> Normaliser:
+    c = points.mean(0)
+    e = float(np.max(np.ptp(points, axis=0)))
+    if not e > 0:
+        raise ValueError("points: every point is at the same place (the cloud has no extent)")
+    return Normaliser(c, e)

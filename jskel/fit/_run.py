@@ -1,0 +1,155 @@
+"""What ``python -m jskel fit FILE --out DIR`` runs (issue 10): read or synthesise the points,
+start, solve, and write ``fitted.yaml`` (an experiment ``jskel render`` renders), ``fit.json``
+and ``fit.png``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from .. import frusta
+from ._config import FitFile
+from ._fit import FitResult, fit_points
+from ._measures import culling_exact_fraction, plane_margin_min, point_distances
+from ._points import load_points
+from ._starts import perturbed, starting_skeleton
+
+
+def framing_camera(joints, radii, width: int = 480, height: int = 360, fov: float = 40.0) -> dict:
+    """A camera section that frames a skeleton (looking from +z, a little above and right)."""
+    lo = (joints - radii[:, None]).min(0)
+    hi = (joints + radii[:, None]).max(0)
+    c = 0.5 * (lo + hi)
+    rad = 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
+    d = np.array([0.5, 0.35, 1.0])
+    d /= np.linalg.norm(d)
+    dist = 1.15 * rad / np.tan(np.radians(fov) / 2)
+    eye = c + d * dist
+    return {"eye": [float(x) for x in eye], "target": [float(x) for x in c], "up": [0.0, 1.0, 0.0], "fov_deg": fov,
+            "width": width, "height": height}
+
+
+def residual_stats(d: np.ndarray, inlier: float) -> dict:
+    a = np.abs(d)
+    return {"mean_abs": float(a.mean()), "rms": float(np.sqrt(np.mean(d * d))), "median_abs": float(np.median(a)),
+            "p95_abs": float(np.percentile(a, 95)), "max_abs": float(a.max()), "inlier_threshold": inlier,
+            "inlier_fraction": float(np.mean(a <= inlier))}
+
+
+def plot_fit(path: Path, res: FitResult, points: np.ndarray, d: np.ndarray, title: str):
+    """Loss over iterations, the residual histogram, and the points (projected on the cloud's
+    two principal axes) coloured by |residual| with the fitted skeleton drawn over them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 3, figsize=(14, 4.2))
+    ax[0].semilogy(np.arange(len(res.history)), res.history)
+    ax[0].set_xlabel("iteration")
+    ax[0].set_ylabel("loss (normalised units)")
+    ax[0].set_title("loss")
+    ax[1].hist(d, bins=80, color="#4477aa")
+    ax[1].set_yscale("log")
+    ax[1].set_xlabel("signed distance to the fitted surface (world units)")
+    ax[1].set_title("residuals")
+    c = points.mean(0)
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
+    pp = (points - c) @ vt[:2].T
+    jj = (res.joints - c) @ vt[:2].T
+    sc = ax[2].scatter(pp[:, 0], pp[:, 1], c=np.abs(d), s=2, cmap="viridis", vmax=np.percentile(np.abs(d), 95))
+    for i, p in enumerate(res.parents):
+        if p >= 0:
+            ax[2].plot([jj[p, 0], jj[i, 0]], [jj[p, 1], jj[i, 1]], "r-", lw=1.5)
+    ax[2].plot(jj[:, 0], jj[:, 1], "r.", ms=6)
+    ax[2].set_aspect("equal")
+    ax[2].set_title("points by |residual|, fitted skeleton (red)")
+    fig.colorbar(sc, ax=ax[2], shrink=0.8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
+    """Run a fit file: read or synthesise the points, start, solve; write ``fitted.yaml`` (an
+    experiment ``jskel render`` renders), ``fit.json`` and ``fit.png``. Returns fit.json's dict."""
+    import json
+
+    import yaml
+
+    dtype = np.float64 if cfg.dtype == "float64" else np.float32
+    if dtype == np.float64 and not jax.config.jax_enable_x64:
+        raise ValueError("dtype: float64 needs jax_enable_x64 (the CLI's --x64 switches it on)")
+    points, pinfo, truth = load_points(cfg.points, base)
+    j0, r0, parents, how = starting_skeleton(cfg, points, truth)
+    if cfg.init.perturb > 0:
+        j0, r0 = perturbed(j0, r0, parents, cfg.init.perturb, np.random.default_rng(cfg.init.seed))
+    res = fit_points(points, j0, r0, parents, cfg.solver, dtype, seed=cfg.init.seed, perturb=cfg.init.perturb)
+    d = point_distances(points, res.joints, res.radii, res.parents, dtype)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "fitted.yaml").write_text(f"# fitted by `jskel fit` ({cfg.solver.name}, {cfg.solver.loss} loss)\n"
+                                     + yaml.safe_dump(fitted_experiment(cfg, res), sort_keys=False))
+    info = fit_info(cfg, res, how, pinfo, points, d)
+    if truth is not None and len(truth[0]) == len(res.joints) and np.array_equal(truth[2], res.parents):
+        info["truth"] = truth_errors(res, truth, pinfo["skeleton_length"])
+    from ..render import environment
+
+    info.update({k: v for k, v in environment().items() if k in ("jax", "device", "jskel")})
+    (out / "fit.json").write_text(json.dumps(info, indent=2) + "\n")
+    plot_fit(out / "fit.png", res, points, d, f"{cfg.name}: {cfg.solver.name} ({cfg.solver.loss}), {len(points)} points, "
+                                            f"{res.iterations} iterations, {res.seconds:.2f} s")
+    return info
+
+
+def fitted_experiment(cfg: FitFile, res: FitResult) -> dict:
+    """The experiment of the fitted skeleton (``fitted.yaml``): a frusta object and a camera,
+    the fit file's or one that frames the skeleton."""
+    return {
+        "name": f"{cfg.name}-fitted",
+        "object": {"type": frusta.REPRESENTATION.name, "skeleton": {"joints": res.joints.tolist(), "radii": res.radii.tolist(),
+                                                   "parents": [int(p) for p in res.parents]}},
+        "camera": cfg.camera.model_dump(mode="json") if cfg.camera is not None else framing_camera(res.joints, res.radii),
+    }
+
+
+def fit_info(cfg: FitFile, res: FitResult, how: str, pinfo: dict, points: np.ndarray, d: np.ndarray) -> dict:
+    """``fit.json``'s facts of a fit: the solver, the start, the points, the loss curve, the
+    residuals ``d`` (world units; inliers within 3 robust scales of the cloud's extent) and the
+    fitted skeleton's plane margin and culling exactness."""
+    ext = float(np.max(np.ptp(points, axis=0)))
+    return {
+        "name": cfg.name,
+        "solver": cfg.solver.model_dump(mode="json"),
+        "start": how,
+        "points": pinfo,
+        "joints": len(res.joints),
+        "segments": int(np.sum(res.parents >= 0)),
+        "iterations": res.iterations,
+        "converged": res.converged,
+        "solver_error": res.error,
+        "seconds": res.seconds,
+        "compile_s": res.compile_s,
+        "loss_start": res.history[0],
+        "loss_final": res.history[-1],
+        "history": res.history,
+        "restarts": res.restarts,
+        "restart_losses": res.restart_losses,
+        "residuals": residual_stats(d, 3.0 * cfg.solver.scale * ext),
+        # n . m - sin(half-angle) of the worst shared cutting plane (< 0: a piece is unbounded)
+        "plane_margin_min": plane_margin_min(res.joints, res.radii, res.parents),
+        "culling_exact_fraction": culling_exact_fraction(points, res.joints, res.radii, res.parents, cfg.solver.candidates),
+        "dtype": cfg.dtype,
+    }
+
+
+def truth_errors(res: FitResult, truth, length: float) -> dict:
+    """How far the fit lies from the true skeleton ``truth`` = (joints, radii, parents) of the
+    same topology: the worst joint error (world units and of the skeleton's ``length``) and the
+    worst relative radius error."""
+    err = float(np.max(np.linalg.norm(res.joints - truth[0], axis=1)))
+    return {"joint_error_max": err, "joint_error_max_of_length": err / length,
+            "radius_error_max_rel": float(np.max(np.abs(res.radii / truth[1] - 1)))}
