@@ -57,7 +57,7 @@ def test_curve_points_are_one_round_cone_per_segment():
 def test_subdivided_skeleton_is_the_same_surface():
     """Splitting every segment into collinear pieces leaves the skinned surface unchanged: the
     float64 NumPy reference on the original skeleton agrees with jskel on the split one."""
-    from jskel.frusta._scene import subdivide_skeleton
+    from jskel.frusta._edits import subdivide_skeleton
 
     rng = np.random.default_rng(11)
     j, r, p = _tree(rng, 10)
@@ -79,7 +79,7 @@ def test_subdivided_skeleton_is_the_same_surface():
 
 
 def test_replicated_skeleton_tiles_the_original_box():
-    from jskel.frusta._scene import replicate_skeleton
+    from jskel.frusta._edits import replicate_skeleton
 
     rng = np.random.default_rng(2)
     j, r, p = _tree(rng, 7)

@@ -56,7 +56,9 @@ def rebuilder(cfg, dtype=np.float32):
     topology, anchor, colours, padding and static options); every call after rebuilds the plain
     segments' fields and BVH on the device (:func:`frusta_fields`, one jitted function). The
     joints are validated on the host (NaN, negative radii, zero-length segments: ValueError)."""
-    from ._scene import Group, build, host_frusta
+    from ._edits import host_frusta
+    from ._pack import Group
+    from ._scene import build
     from ._skeleton import validate_skeleton
 
     if cfg.relief is not None or cfg.match_minor_axes:

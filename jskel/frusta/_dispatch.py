@@ -1,0 +1,104 @@
+"""Which traversal casts a batch against a frusta object's segments, chosen by its static
+options: the plain segments through the BVH (bins, the Pallas kernel, packets or per-ray walks),
+by block spheres or by brute force; the relief segments by a compacted march. Also the work
+counts of the chosen BVH traversal. ``_scene.cast`` wraps these searches."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ..accel import hold
+from ..interface import Object
+from ..rays import Rays
+from ._accel import nearest_bins, nearest_groups, nearest_packets
+from ._config import FrustaConfig
+from ._intersect import _segment_t, nearest_batch, nearest_batch_compact, nearest_one
+from ._kernel import nearest_kernel
+from ._pack import FrustaScene, Group, Static
+from ._relief import enters_shell, make_relief_t
+
+
+def traversal_of(cfg: FrustaConfig) -> str:
+    """``object.traversal`` resolved: ``auto`` is the Pallas kernel on an accelerator and packet
+    candidate lists (``bins``) on the CPU. On the H100 at 1024x768 the kernel took 13-16 ms on
+    the palm, oasis and cacti, XLA's per-ray walk over the whole frame 48-162 ms, and packets
+    4.6-9.2 s (a ``lax.map`` of scalar loops is bound by launches there). On the 2-core CPU bins
+    beat the BVH packets on every scene of ``experiments/bench_scale_bins.yaml`` (README); a
+    render of ``experiments/scene_cacti.yaml`` (``--set objects.1.shape.traversal=...``), whose
+    shadow and reflection rays reach the cacti too, was faster with bins as well (one warm
+    render each way, not a committed bench)."""
+    if cfg.traversal != "auto":
+        return cfg.traversal
+    if jax.default_backend() != "cpu":
+        return "kernel"
+    return "bins"
+
+# below this many plain segments the block scan beat the BVH (256x192: the 8-segment well 0.11 s
+# with blocks, 0.16 s with the tree; the 30-segment saguaro 0.24 s vs 0.10 s)
+AUTO_BVH_SEGMENTS = 16
+
+
+def _plain_search(static: Static):
+    """(t, s, code, idx) of a batch against the plain segments of a group, by the traversal
+    ``static`` names (see :func:`cast`)."""
+
+    def search(g: Group, rays: Rays):
+        o, d, a, b = rays
+        if static.accel == "bvh" and static.traversal == "bins":
+            out = nearest_bins(g.frusta, g.bvh, *static.bins, o, d, a, b, leaf=static.leaf, walk_group=static.group)
+        elif static.accel == "bvh" and static.traversal == "kernel":
+            out = nearest_kernel(g.frusta, g.bvh, static.leaf, o, d, a, b, static.kernel_block, static.kernel_warps)
+        elif static.accel == "bvh" and static.traversal == "packets" and static.packet > 0:
+            out = nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, o, d, a, b)
+        elif static.accel == "bvh":
+            out = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, o, d, a, b)
+        elif static.accel == "none":  # brute force: every segment for every ray (the reference)
+            out = jax.vmap(lambda o_, d_, a_, b_: nearest_one(g.frusta, _segment_t, o_, d_, a_, b_, static.quality.block))(o, d, a, b)
+        else:
+            out = nearest_batch(g.frusta, g.block_c, g.block_r, _segment_t, o, d, a, b, static.quality.block)
+        return tuple(out[:4])
+
+    return search
+
+
+def _relief_search(static: Static):
+    """(t, s, code, idx) of a batch against the relief segments (marched only for the (ray,
+    segment) pairs whose ray enters a shell), and its closed-form ``winner``: the march and
+    bisection of the winning segment alone, differentiated by the implicit-function theorem
+    (``_relief``)."""
+
+    def search(sc: FrustaScene, rays: Rays):
+        seg_fn = make_relief_t(sc.maps, static.relief)
+        g, cap = sc.relief, min(rays.origins.shape[0], 4096)
+        return tuple(nearest_batch_compact(g.frusta, g.block_c, g.block_r, enters_shell, seg_fn, *rays, static.relief_block, cap))
+
+    def winner(sc: FrustaScene, rays: Rays, out):
+        t, s, code, idx = out
+        hit = jnp.isfinite(t)
+        seg = jax.tree_util.tree_map(lambda x: x[jnp.maximum(idx, 0)], sc.relief.frusta)
+        seg, o, d = hold(hit, (seg, rays.origins, rays.directions))  # (the maps are shared by every ray)
+        tt, ss, _ = jax.vmap(make_relief_t(sc.maps, static.relief))(seg, o, d, rays.t_min, rays.t_max)
+        return tt, ss, None, None
+
+    return search, winner
+
+
+def _stats_batch(obj: Object, rays: Rays):
+    """Work counts per ray of the traversal ``obj.static`` selects (one module-level function:
+    the static options ride in the ``Object`` pytree, so the executor compiles once per static)."""
+    static = obj.static
+    g = obj.params.plain
+    if static.traversal == "kernel":  # the same walk, counted by the kernel (tests/test_accel.py)
+        return nearest_kernel(g.frusta, g.bvh, static.leaf, *rays, block=static.kernel_block, num_warps=static.kernel_warps)[4:]
+    out = nearest_groups(g.frusta, g.bvh, static.leaf, static.group, *rays)[4:]
+    if static.packet > 0 and static.traversal == "packets":
+        out = out + nearest_packets(g.frusta, g.bvh, static.leaf, static.packet, *rays)[4:]
+    if static.traversal == "bins":  # segment tests per ray: the batch's pairs times rays per packet
+        n = rays.size
+        n_list, pairs = nearest_bins(g.frusta, g.bvh, *static.bins, *rays, leaf=static.leaf, walk_group=static.group)[4]
+        g_rays = min(static.bins[0], n)
+        walked = pairs < 0  # a batch cast by walks (its list too long for packets): its leaves' segments
+        tests = jnp.where(walked, out[1] * static.leaf, pairs * g_rays / n)
+        out = out + (tests, jnp.full((n,), n_list), jnp.full((n,), walked))
+    return out
