@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..frusta import cone_sin, cutting_planes, joint_planes, segment_axes, topology, validate_skeleton
+from ..frusta import FrustaParams, cone_sin, cutting_planes, joint_planes, segment_axes, topology, validate_skeleton
 from ..numerics import dot3, norm3
 from ..numerics import safe_div, safe_norm, safe_sqrt
 
@@ -61,18 +61,14 @@ def segments_of(joints, radii, parents, path: str = "skeleton") -> Segments:
                     topo.parent_seg[b].astype(np.int32), b.astype(np.int32))
 
 
-class Geometry(NamedTuple):
-    """Per-segment arrays (S first), the host build's ``FrustaArrays`` subset a distance needs."""
+#: what a distance reads of a segment: its axis (base, direction, length), radii and cutting planes
+DISTANCE_FIELDS = ("c1", "m", "h", "r1", "r2", "nb", "db", "nt", "dt")
 
-    c1: jnp.ndarray
-    m: jnp.ndarray
-    h: jnp.ndarray
-    r1: jnp.ndarray
-    r2: jnp.ndarray
-    nb: jnp.ndarray
-    db: jnp.ndarray
-    nt: jnp.ndarray
-    dt: jnp.ndarray
+# the renderer's record with only those fields, in its order and with its names and meanings, so
+# the two cannot drift apart (a field renamed there makes ``geometry``'s Geometry(...) one argument too many)
+Geometry = NamedTuple("Geometry", [(f, jnp.ndarray) for f in FrustaParams._fields if f in DISTANCE_FIELDS])
+Geometry.__doc__ = """Per-segment arrays (S first): the fields of ``jskel.frusta.FrustaParams`` in
+:data:`DISTANCE_FIELDS`, unpadded and in world (or normalised) units."""
 
 
 def geometry(joints, radii, seg: Segments) -> Geometry:
