@@ -24,7 +24,6 @@ from ._distance import cutting_planes as cutting_planes
 from ._distance import plane_margins as plane_margins
 from ._distance import distances as distances
 from ._distance import geometry as geometry
-from ._distance import sample_surface as sample_surface
 from ._distance import segments_of as segments_of
 from ._distance import signed_distance as signed_distance
 from ._fit import FitResult as FitResult
@@ -33,6 +32,7 @@ from ._fit import fit_points as fit_points
 from ._measures import point_distances as point_distances
 from ._points import load_points as load_points
 from ._points import read_points as read_points
+from ._points import sample_surface as sample_surface
 from ._run import run_fit as run_fit
 from ._starts import mst_skeleton as mst_skeleton
 from ._starts import pca_chain as pca_chain

@@ -21,10 +21,10 @@ from pydantic import Field
 
 from ..config import StrictModel
 from ._config import SolverConfig
-from ._distance import sample_surface
 from ._distance import segments_of
 from ._fit import fit_many, fit_points, uses_sparse
 from ._measures import culling_exact_fraction
+from ._points import sample_surface
 from ._problem import loss, normaliser_of, problem_of
 from ._starts import perturbed
 
