@@ -50,8 +50,10 @@ def test_sparse_normal_equations_equal_the_dense_jacobians(case):
         pr, x, pts = _problem(j, r, p, 1200, 0, 2)
     assert len(pr.seg.cont_b) >= 3 and (case == "chain" or len(pr.seg.cont_b) < len(pr.seg.start) - 1)
     rr, jtj, g = jax.jit(lambda x: normal_equations(x, pts, pr))(x)
-    rd = residuals(x, pts, pr)
-    jac = np.asarray(jax.jacfwd(lambda x: residuals(x, pts, pr))(x), np.float64)
+    # the reference, dense forward mode, as one compiled program (run op by op it took twice the
+    # compile time of the program, on 2 cores)
+    rd, jac = jax.jit(lambda x: (residuals(x, pts, pr), jax.jacfwd(lambda x: residuals(x, pts, pr))(x)))(x)
+    jac = np.asarray(jac, np.float64)
     assert np.count_nonzero(np.abs(jac[-5 * len(pr.triples):]).sum(1)) > 0  # penalty rows are live
     np.testing.assert_allclose(np.asarray(rr), np.asarray(rd), atol=1e-6)
     want = jac.T @ jac
@@ -63,9 +65,12 @@ def test_sparse_normal_equations_equal_the_dense_jacobians(case):
     from jskel.fit._problem import radii_of, unpack
     from jskel.fit._solvers import robust_residuals
 
-    jj, u = unpack(x)
-    flat = flat_geometry(geometry(jj, radii_of(u, pr), pr.seg))
-    spill = point_rows(flat, pr.seg, pts, pr.candidates, lambda d: robust_residuals(d, pr.loss, pr.scale))[3]
+    def unpack_radii(x):
+        jj, u = unpack(x)
+        return jj, radii_of(u, pr), pr.seg
+
+    spill = jax.jit(lambda x: point_rows(flat_geometry(geometry(*unpack_radii(x))), pr.seg, pts, pr.candidates,
+                                         lambda d: robust_residuals(d, pr.loss, pr.scale))[3])(x)
     assert float(jnp.max(spill)) == 0.0
 
 
