@@ -79,7 +79,7 @@ def problems(sk: Skeleton, policy: RepairPolicy, field: str = "skeleton.file") -
     dup = np.setdiff1d(np.arange(sk.ids.size), first)
     if dup.size:
         times = dict(zip(sk.ids[first].tolist(), counts.tolist()))
-        out.append(_problem(field, "id", "nodes repeat an id", sk.ids[dup], [f"{times[i]} times" for i in sk.ids[dup].tolist()]))
+        out.append(_problem(field, "id", "nodes repeat an id used before", sk.ids[dup], [f"{times[i]} times" for i in sk.ids[dup].tolist()]))
     miss = np.nonzero(sk.parents == MISSING)[0]
     if miss.size:
         out.append(_problem(field, "parent", "nodes name a parent id that no node has", sk.ids[miss], [f"parent {p}" for p in sk.parent_ids[miss]]))
