@@ -7,14 +7,31 @@ from typing import Annotated, Literal
 from pydantic import Field, field_validator, model_validator
 
 from ..config import RGB, StrictModel, Vec3
+from ..skeletons import RepairPolicy
 
 Radius = Annotated[float, Field(ge=0.0)]
 
 
 class SkeletonConfig(StrictModel):
-    """Either explicit ``joints``/``radii``/``parents`` or a ``procedural`` generator.
+    """One of explicit ``joints``/``radii``/``parents``, a ``procedural`` generator or a ``file``.
 
-    ``offset`` translates and ``scale`` scales the whole skeleton (world units).
+    ``file``: a skeleton file (a path, relative to the working directory) in ``format`` ``swc``
+    (NeuroMorpho.Org, neuron tools), ``nodes`` (a CSV node table with id, x, y, z, radius and
+    parent columns, as CATMAID and navis export) or ``auto`` (by extension: .swc, .csv); see
+    ``jskel.skeletons``. A file is repaired by ``repair`` (a ``jskel.skeletons.RepairPolicy``;
+    unset: its defaults, i.e. an unknown radius (<= 0, NaN) becomes its nearest ancestor's and
+    nodes that coincide with their parent are merged), and the build's ``info["repairs"]`` (in
+    ``run.json``) holds the policy and, per repair kind, the count and first node ids. Problems
+    no policy repairs (duplicate ids, missing parents, cycles, non-finite coordinates, and
+    unknown radii under ``unknown_radius: error``) are one error listing all. Where the file has
+    SWC types (any nonzero) and no ``colors`` are given, segments take their end node's type
+    colour (``jskel.skeletons.TYPE_COLORS``: soma red, axon blue, basal dendrite green, apical
+    dendrite magenta, undefined grey, custom orange). Explicit joints keep their strict checks:
+    ``repair`` applies to files only.
+
+    ``offset`` translates and ``scale`` scales the whole skeleton (world units): coordinates and
+    radii are multiplied by ``scale`` (e.g. 0.001 for a file in nanometres rendered in micrometres)
+    and then ``offset`` is added.
     ``options`` are generator-specific (see ``jskel.scenes``); unknown options are errors.
     ``subdivide`` splits every segment into that many collinear pieces (radii interpolated): the
     same surface from more segments, for studies of cost against segment count.
@@ -30,6 +47,9 @@ class SkeletonConfig(StrictModel):
     radii: list[Radius] | None = None
     parents: list[int] | None = None
     colors: list[RGB] | None = None
+    file: str | None = None
+    format: Literal["auto", "swc", "nodes"] = "auto"
+    repair: RepairPolicy | None = None
     scale: Annotated[float, Field(gt=0.0)] = 1.0
     offset: Vec3 = (0.0, 0.0, 0.0)
     subdivide: Annotated[int, Field(ge=1, le=4096)] = 1  # split every segment into this many collinear pieces
@@ -38,9 +58,15 @@ class SkeletonConfig(StrictModel):
     @model_validator(mode="after")
     def _one_source(self):
         explicit = [self.joints is not None, self.radii is not None, self.parents is not None]
+        if self.file is not None:
+            if self.procedural is not None or any(explicit):
+                raise ValueError("give one of 'file', 'procedural' or joints/radii/parents")
+            return self
+        if self.repair is not None:
+            raise ValueError("'repair' applies to a skeleton 'file' only (explicit joints are checked strictly)")
         if self.procedural is None and not all(explicit):
             missing = [n for n, e in zip(("joints", "radii", "parents"), explicit) if not e]
-            raise ValueError(f"give 'procedural' or all of joints, radii, parents (missing: {', '.join(missing)})")
+            raise ValueError(f"give 'file', 'procedural' or all of joints, radii, parents (missing: {', '.join(missing)})")
         if self.procedural is not None and any(explicit):
             raise ValueError("give either 'procedural' or joints/radii/parents, not both")
         return self

@@ -1,15 +1,17 @@
-"""The skeleton of a frusta object section (explicit, or procedural at an animation frame) with
-its edits (``scale``, ``offset``, ``subdivide``, ``replicate``), and its frusta on the host."""
+"""The skeleton of a frusta object section (explicit, procedural at an animation frame, or a
+file read and repaired by ``jskel.skeletons``) with its edits (``scale``, ``offset``, ``subdivide``, ``replicate``), and its frusta on the host."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from .. import skeletons
 from ._build import build_frusta
 from ._config import FrustaConfig, SkeletonConfig
 from ._skeleton import topology, validate_skeleton
 
 _SIDE_BRANCH_COLOR_PATH = "object.skeleton.colors"
+_FILE_PATH = "object.skeleton.file"
 
 
 def frusta_from_skeleton(joints, radii, parents, *, twist_deg=0.0, match_minor_axes=False, path="object.skeleton"):
@@ -23,11 +25,36 @@ def frusta_from_skeleton(joints, radii, parents, *, twist_deg=0.0, match_minor_a
 ANIMATED = ("dancing_cacti",)
 
 
+def file_arrays(sk: SkeletonConfig):
+    """(joints, radii, parents, colours or None, repairs) of a skeleton ``file``: read, repaired
+    by ``sk.repair`` (``jskel.skeletons.load``), coloured by SWC type where it has types and no
+    ``colors`` are given; ``repairs`` is the policy and the repair report, for ``run.json``."""
+    policy = sk.repair if sk.repair is not None else skeletons.RepairPolicy()
+    s, report = skeletons.load(sk.file, sk.format, policy, _FILE_PATH)
+    colors = None
+    if sk.colors is not None:
+        colors = np.asarray(sk.colors, np.float64)
+    elif np.any(s.labels != 0):
+        colors = skeletons.label_colors(s.labels)
+    repairs = {"file": str(sk.file), "policy": policy.model_dump(), "default_policy": sk.repair is None, **report}
+    return s.joints, s.radii, s.parents, colors, repairs
+
+
 def skeleton_arrays(sk: SkeletonConfig, frame: float = 0.0):
     """(joints (J, 3), radii (J,), parents (J,), colours (J, 3) or None) of a skeleton section at
-    animation ``frame``: the explicit arrays, or the procedural generator's, with ``scale``,
-    ``offset``, ``subdivide`` and ``replicate`` applied (float64, world units)."""
-    if sk.procedural is not None:
+    animation ``frame``: the explicit arrays, the procedural generator's or a file's, with
+    ``scale``, ``offset``, ``subdivide`` and ``replicate`` applied (float64, world units)."""
+    return skeleton_and_repairs(sk, frame)[:4]
+
+
+def skeleton_and_repairs(sk: SkeletonConfig, frame: float = 0.0):
+    """``skeleton_arrays`` and the repairs of a ``file`` source (None for the others)."""
+    repairs = None
+    if sk.file is not None:
+        j, r, p, colors, repairs = file_arrays(sk)
+        if colors is not None and colors.shape[0] != j.shape[0]:
+            raise ValueError(f"{_SIDE_BRANCH_COLOR_PATH}: has {colors.shape[0]} entries for {j.shape[0]} joints (after repair)")
+    elif sk.procedural is not None:
         from ..scenes import generate
 
         opts = dict(sk.options)
@@ -47,7 +74,7 @@ def skeleton_arrays(sk: SkeletonConfig, frame: float = 0.0):
         j, r, p, colors = subdivide_skeleton(j, r, p, colors, sk.subdivide)
     if sk.replicate > 1:
         j, r, p, colors = replicate_skeleton(j, r, p, colors, sk.replicate)
-    return j, r, p, colors
+    return j, r, p, colors, repairs
 
 
 def replicate_skeleton(joints, radii, parents, colors, k: int):
@@ -93,6 +120,8 @@ def subdivide_skeleton(joints, radii, parents, colors, n: int):
 
 def host_frusta(cfg: FrustaConfig):
     """World-space float64 frusta of an object config: (arrays, topo, info, joints, radii, colors)."""
-    j, r, p, colors = skeleton_arrays(cfg.skeleton, cfg.frame)
+    j, r, p, colors, repairs = skeleton_and_repairs(cfg.skeleton, cfg.frame)
     arrays, topo, info = frusta_from_skeleton(j, r, p, twist_deg=cfg.twist_deg, match_minor_axes=cfg.match_minor_axes)
+    if repairs is not None:
+        info = dict(info, repairs=repairs)
     return arrays, topo, info, j, r, colors
