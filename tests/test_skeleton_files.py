@@ -300,3 +300,39 @@ def test_bad_file_settings_are_one_line_and_exit_2(tmp_path, capsys, no_compile,
     assert rc == 2 and len(err) == 1, err
     for n in needle:
         assert n in err[0], (n, err[0])
+
+
+def _real_swc_files() -> list:
+    """Published SWC files to read: ``JSKEL_REAL_SWC`` (paths separated by the OS path
+    separator), else the hemibrain example neurons navis ships (``navis/data/swc``), where navis is
+    installed. None is committed: navis' repository is GPL-3.0 and a licence of its own for the
+    hemibrain skeletons (Scheffer et al. 2020) was not found from Janelia or navis."""
+    import os
+    from pathlib import Path
+
+    given = os.environ.get("JSKEL_REAL_SWC")
+    if given:
+        return [Path(p) for p in given.split(os.pathsep) if p]
+    try:
+        import navis  # noqa: F401
+    except ImportError:
+        return []
+    return sorted((Path(navis.__file__).parent / "data" / "swc").glob("*.swc"))
+
+
+@pytest.mark.skipif(not _real_swc_files(), reason="no published SWC here: set JSKEL_REAL_SWC or install navis (its data/swc neurons)")
+def test_published_swc_files_read_as_their_text():
+    for path in _real_swc_files():
+        ref = np.loadtxt(path, comments="#", ndmin=2)  # the file's own text, parsed by plain NumPy
+        sk = read_swc(path)
+        assert sk.ids.size == ref.shape[0], path
+        np.testing.assert_array_equal(sk.ids, ref[:, 0].astype(np.int64))
+        np.testing.assert_array_equal(sk.labels, ref[:, 1].astype(np.int64))
+        assert int(np.sum(sk.parents == -1)) == int(np.sum(ref[:, 6] < 0)), path
+        np.testing.assert_array_equal(sk.joints.min(0), ref[:, 2:5].min(0))
+        np.testing.assert_array_equal(sk.joints.max(0), ref[:, 2:5].max(0))
+        np.testing.assert_array_equal(sk.radii, ref[:, 5])
+        has_parent = ref[:, 6] >= 0
+        assert np.all(np.isin(ref[has_parent, 6], ref[:, 0])), path  # every parent names a node
+        np.testing.assert_array_equal(sk.ids[sk.parents[has_parent]], ref[has_parent, 6].astype(np.int64))
+        np.testing.assert_array_equal(sk.parent_ids, np.where(ref[:, 6] < 0, -1, ref[:, 6]).astype(np.int64))
