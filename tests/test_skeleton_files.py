@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+from pathlib import Path
 import pytest
 
 from jskel import cli, executor
@@ -302,25 +303,19 @@ def test_bad_file_settings_are_one_line_and_exit_2(tmp_path, capsys, no_compile,
         assert n in err[0], (n, err[0])
 
 
+DATA = Path(__file__).resolve().parent / "data" / "swc"
+
+
 def _real_swc_files() -> list:
-    """Published SWC files to read: ``JSKEL_REAL_SWC`` (paths separated by the OS path
-    separator), else the hemibrain example neurons navis ships (``navis/data/swc``), where navis is
-    installed. None is committed: navis' repository is GPL-3.0 and a licence of its own for the
-    hemibrain skeletons (Scheffer et al. 2020) was not found from Janelia or navis."""
+    """Published SWC files to read: the NeuroMorpho.Org reconstructions committed in
+    ``tests/data/swc`` (CC BY 4.0; its README names them), plus any given in ``JSKEL_REAL_SWC``
+    (paths separated by the OS path separator)."""
     import os
-    from pathlib import Path
 
-    given = os.environ.get("JSKEL_REAL_SWC")
-    if given:
-        return [Path(p) for p in given.split(os.pathsep) if p]
-    try:
-        import navis  # noqa: F401
-    except ImportError:
-        return []
-    return sorted((Path(navis.__file__).parent / "data" / "swc").glob("*.swc"))
+    given = os.environ.get("JSKEL_REAL_SWC", "")
+    return sorted(DATA.glob("*.swc")) + [Path(p) for p in given.split(os.pathsep) if p]
 
 
-@pytest.mark.skipif(not _real_swc_files(), reason="no published SWC here: set JSKEL_REAL_SWC or install navis (its data/swc neurons)")
 def test_published_swc_files_read_as_their_text():
     for path in _real_swc_files():
         ref = np.loadtxt(path, comments="#", ndmin=2)  # the file's own text, parsed by plain NumPy
