@@ -1,6 +1,7 @@
 """Derivatives of hit distances (issue 9): the implicit tracers' and the relief march's t
 differentiate through the implicit-function theorem (a bisection loop alone gives exactly zero),
-and the closed-form frusta t as it is; all checked against finite differences in float64 by
+the closed-form frusta t as it is, and a BVH traversal's t through its winning segment's closed
+form (in the skeleton, through the device rebuild); all checked against finite differences in float64 by
 ``jax.test_util.check_grads`` (forward and reverse mode) in a process of their own, since the
 test workers stay in float32."""
 
@@ -26,7 +27,7 @@ def test_hit_distances_have_the_derivatives_finite_differences_give():
     assert p.returncode == 0, p.stderr[-3000:]
     checked = json.loads(p.stdout.strip().splitlines()[-1])["checked"]
     assert checked == {"implicit_lipschitz": 2, "implicit_bisection": 2, "implicit_naive": 2, "relief": 3, "frusta": 2,
-                       "fit_distance_random": 6, "fit_distance_hard": 4, "cells": 2}
+                       "fit_distance_random": 6, "fit_distance_hard": 4, "cells": 2, "frusta_bins": 6}
 
 
 def test_differentiable_root_keeps_the_value_and_gives_the_implicit_derivative():

@@ -7,8 +7,15 @@ derivatives of hit distances against finite differences with ``jax.test_util.che
   ``numerics.differentiable_root``; a bisection loop alone would give exactly zero);
 * relief frusta (march + bisection in the shell): t against the shell thickness, the radii and
   the ray origin, for rays whose hit is on the relief surface itself;
-* plain frusta (closed form): t against the radii, the base joint and the ray origin.
+* plain frusta (closed form): t against the radii, the base joint and the ray origin;
+* frusta through a BVH traversal (``accel.nearest_tangent``: the walk gives the value, the
+  winning segment's closed form the derivative): t against the joints and radii of a branching
+  tree, through the device rebuild that makes both the segments and the BVH from them (the
+  packed BVH rows are a cache of the segments, so a derivative is one of the skeleton). The
+  CPU's default traversal (``bins``) by default; ``--traversals bins,packets,walks`` checks more.
 """
+
+import argparse
 
 import json
 
@@ -124,6 +131,42 @@ for xy in ([0.05, 0.4], [0.3, 1.5]):
     each_arg(ft0, (jnp.asarray(1.0), f.c1, o))
     n += 1
 checked["frusta"] = n
+
+# frusta through a traversal of the BVH, differentiated in the skeleton through the device rebuild
+from jskel.frusta import Group, host_frusta  # noqa: E402
+from jskel.frusta._device import _core_jit  # noqa: E402
+from jskel.frusta._geometry import padded_topology  # noqa: E402
+from jskel.interface import Object, intersect  # noqa: E402
+from jskel.rays import Rays  # noqa: E402
+
+ap = argparse.ArgumentParser()
+ap.add_argument("--traversals", default="bins")
+TJ = np.array([[0, 0, 0], [0, 1, 0], [0.3, 2, 0.1], [-0.4, 1.8, 0.2], [0.5, 3, 0.3], [0.1, 2.9, -0.3]])
+TR = np.array([0.3, 0.25, 0.2, 0.15, 0.1, 0.08])
+TP = [-1, 0, 1, 1, 2, 2]
+for trav in ap.parse_args().traversals.split(","):
+    tcfg = frusta.FrustaConfig.model_validate({"type": "frusta", "skeleton": {"joints": TJ.tolist(), "radii": TR.tolist(), "parents": TP},
+                                               "accel": "bvh", "traversal": trav})
+    tpl = frusta.build(tcfg, np.float64)
+    assert tpl.static.traversal == trav, tpl.static.traversal
+    _, topo, _, _, _, _ = host_frusta(tcfg)
+    grp = tpl.params.plain
+    dtopo = padded_topology(topo, grp.frusta.h.shape[0])
+    rng = np.random.default_rng(0)
+    TO = np.stack([rng.uniform(-0.5, 0.6, 64), rng.uniform(0.0, 3.2, 64), np.full(64, 4.0)], 1) - tpl.anchor
+    TD = np.tile([0.01, 0.02, -1.0], (64, 1))
+
+    def t_tree(joints, radii):
+        seg, bvh = _core_jit(joints, radii, 0.0, dtopo, grp.frusta, tpl.static.leaf, int(topo.depth.max()) + 1)
+        scene = tpl.params._replace(plain=Group(seg, grp.block_c, grp.block_r, bvh))
+        rays = Rays(jnp.asarray(TO), jnp.asarray(TD), jnp.zeros(64), jnp.full(64, jnp.inf))
+        return intersect(Object(scene, tpl.static, "frusta"), rays).t
+
+    args = (jnp.asarray(TJ - tpl.anchor), jnp.asarray(TR))
+    hit = np.nonzero(np.isfinite(np.asarray(t_tree(*args))))[0]
+    assert hit.size >= 6, hit.size
+    check_grads(jax.jit(lambda j, r: t_tree(j, r)[hit[:6]]), args, order=1, modes=["fwd", "rev"], eps=1e-6)
+    checked[f"frusta_{trav}"] = 6
 
 # fitting (issue 10): the signed point-to-frusta distance against joints, radii and the point,
 # at random points and at hard ones where the distance is smooth in the argument checked
