@@ -14,15 +14,31 @@ import pytest
 import yaml
 
 from jskel.cli import main
-from jskel.fit import distances, fit_many, fit_points, load_points, mst_skeleton, pca_chain, perturbed, segments_of
+from jskel.fit import culling_exact, distances, fit_many, fit_points, load_points, mst_skeleton, pca_chain, perturbed, segments_of
 from jskel.fit._config import FitFile, PointsConfig, SolverConfig
 
 from conftest import build_skeleton, cast
 
 
+# one compiled distance per topology (``Segments`` hash as static) and candidate count: points
+# are padded to PAD rows (copies of the last), so the tests' clouds of 2 to 4000 points share it
+# instead of running the distance op by op per cloud
+_distances = jax.jit(distances, static_argnums=(2, 4))
+_culling_exact = jax.jit(culling_exact, static_argnums=(2, 4))
+PAD = 4096
+
+
+def dist(joints, radii, seg, pts, candidates=0, fn=_distances):
+    """``fn(joints, radii, seg, points, candidates)`` in float32 on ``pts`` padded to PAD rows."""
+    pts = np.asarray(pts, np.float32)
+    assert len(pts) <= PAD
+    padded = np.pad(pts, ((0, PAD - len(pts)), (0, 0)), mode="edge")
+    out = fn(jnp.asarray(joints, jnp.float32), jnp.asarray(radii, jnp.float32), seg, jnp.asarray(padded), candidates)
+    return np.asarray(out)[: len(pts)]
+
+
 def d32(joints, radii, parents, pts):
-    seg = segments_of(joints, radii, parents)
-    return np.asarray(distances(jnp.asarray(joints, jnp.float32), jnp.asarray(radii, jnp.float32), seg, jnp.asarray(pts, jnp.float32)))
+    return dist(joints, radii, segments_of(joints, radii, parents), pts)
 
 
 def test_distance_closed_forms_on_a_cylinder_and_a_cone():
@@ -112,11 +128,10 @@ def test_distance_gradients_are_finite_at_hard_points():
     def total(j, r, x):
         return jnp.sum(distances(j, r, seg, x))
 
-    g = jax.grad(total, argnums=(0, 1, 2))(jnp.asarray(J, jnp.float32), jnp.asarray(R, jnp.float32), jnp.asarray(hard, jnp.float32))
+    with jax.debug_nans(True):  # run op by op: any NaN on the way raises, not only in the result
+        g = jax.grad(total, argnums=(0, 1, 2))(jnp.asarray(J, jnp.float32), jnp.asarray(R, jnp.float32), jnp.asarray(hard, jnp.float32))
     for a in g:
         assert np.all(np.isfinite(np.asarray(a)))
-    with jax.debug_nans(True):
-        jax.grad(total, argnums=(0, 1, 2))(jnp.asarray(J, jnp.float32), jnp.asarray(R, jnp.float32), jnp.asarray(hard, jnp.float32))
 
 
 @pytest.fixture(scope="module")
@@ -290,11 +305,9 @@ def test_jitted_distance_of_a_long_chain_is_zero_on_its_surface():
     from jskel.fit import sample_surface
 
     j, r, p = bent_chain(50, 0)
-    seg = segments_of(j, r, p)
     pts = sample_surface(j, r, p, 2000, np.random.default_rng(0))
-    d = jax.jit(lambda a, b, q: distances(a, b, seg, q))(jnp.asarray(j, jnp.float32), jnp.asarray(r, jnp.float32),
-                                                          jnp.asarray(pts, jnp.float32))
-    assert np.max(np.abs(np.asarray(d))) < 1e-4
+    d = dist(j, r, segments_of(j, r, p), pts)  # jitted, padded to 4096 points (past the 655th)
+    assert np.max(np.abs(d)) < 1e-4
 
 
 def test_culled_distances_equal_all_segments_where_certified():
@@ -302,7 +315,7 @@ def test_culled_distances_equal_all_segments_where_certified():
     chain: on and off the surface, inside, and far outliers, the culled distance equals the
     distance over all 50 segments wherever ``culling_exact`` certifies it, and it certifies
     nearly every point; the smallest lower bound never exceeds the distance over all segments."""
-    from jskel.fit import culling_exact, sample_surface
+    from jskel.fit import sample_surface
     from jskel.fit._bench import bent_chain
 
     j, r, p = bent_chain(50, 0)
@@ -312,16 +325,16 @@ def test_culled_distances_equal_all_segments_where_certified():
     pts = np.concatenate([surf + rng.normal(0, 0.05, surf.shape), surf + 0.3 * (j.mean(0) - surf) / np.linalg.norm(j.mean(0) - surf, axis=1, keepdims=True),
                           rng.uniform(j.min(0) - 3, j.max(0) + 3, (500, 3))])
     args = (jnp.asarray(j, jnp.float32), jnp.asarray(r, jnp.float32), seg, jnp.asarray(pts, jnp.float32))
-    full = np.asarray(distances(*args))
-    culled = np.asarray(distances(*args, 8))
-    ok = np.asarray(culling_exact(*args, 8))
+    full = dist(j, r, seg, pts)
+    culled = dist(j, r, seg, pts, 8)
+    ok = dist(j, r, seg, pts, 8, fn=_culling_exact)
     assert ok.mean() > 0.99
     np.testing.assert_allclose(culled[ok], full[ok], atol=1e-6)
     # the bound the choice rests on: no piece is nearer than its bound (outside points)
     from jskel.fit._distance import _lower_bounds, _reach, geometry
 
     g = geometry(*args[:3])
-    lb = np.asarray(jax.vmap(lambda x: jnp.min(_lower_bounds(g, _reach(g), x)))(args[3]))
+    lb = np.asarray(jax.jit(jax.vmap(lambda x: jnp.min(_lower_bounds(g, _reach(g), x))))(args[3]))
     assert np.all(lb[full > 0] <= full[full > 0] + 1e-5)
 
 
@@ -343,5 +356,7 @@ def test_robust_residuals_square_to_their_loss(kind):
 
 def test_a_time_budget_stops_the_fit_and_says_so(noisy_branch):
     pts, _ = noisy_branch
-    res = fit_points(pts, BENT, BENT_R, CHAIN, SolverConfig(name="lm", loss="cauchy", maxiter=50, max_seconds=1e-9))
+    # the recovery test's solver (a program the persistent compilation cache already holds) with a budget
+    s = SolverConfig(name="lm", loss="cauchy", scale=0.01, maxiter=300, restarts=1, jacobian="dense", max_seconds=1e-9)
+    res = fit_points(pts, BENT, BENT_R, CHAIN, s)
     assert res.iterations == 1 and not res.converged and len(res.history) == 2
