@@ -156,3 +156,17 @@ def tile_inverse(width: int, height: int, tile: int) -> np.ndarray:
 def permute(rays: Rays, order: np.ndarray) -> Rays:
     """The rays in the order of the index array ``order`` (e.g. :func:`tile_order`)."""
     return Rays(*(a[order] for a in rays))
+
+
+def framing(lo, hi, view, fov_y_deg: float, width: int, height: int, margin: float = 1.05):
+    """(eye, target) in float64 for a camera that sees the box [lo, hi] whole: the target at
+    its centre, the eye along ``view`` at the distance where the box's bounding sphere (radius
+    times ``margin``) fills the narrower of the vertical and horizontal fields of view."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    centre = 0.5 * (lo + hi)
+    radius = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-12) * margin
+    half_y = math.radians(fov_y_deg) / 2
+    half_x = math.atan(math.tan(half_y) * width / height)
+    v = np.asarray(view, np.float64)
+    return centre + radius / math.sin(min(half_x, half_y)) * v / np.linalg.norm(v), centre
+

@@ -47,7 +47,14 @@ RGB = tuple[
 
 
 class CameraConfig(StrictModel):
-    """Pinhole look-at camera; ``up`` may not be parallel to ``target - eye``."""
+    """Pinhole look-at camera; ``up`` may not be parallel to ``target - eye``.
+
+    ``frame: auto`` places the camera from what it looks at (a skeleton read from a file, in
+    whatever units, renders without a hand-placed eye): the target is the centre of the
+    object's (a scene's: all objects') bounding box, and the eye lies along ``view`` from it
+    at the distance where the box's bounding sphere fills the narrower field of view
+    (``camera.framing``); run.json records the eye and target used. ``eye`` and ``target`` are
+    then not given (one or the other would be ignored)."""
 
     eye: Vec3 = (0.0, 1.0, 6.0)
     target: Vec3 = (0.0, 1.0, 0.0)
@@ -55,6 +62,22 @@ class CameraConfig(StrictModel):
     fov_deg: Annotated[float, Field(gt=0.0, lt=180.0)] = 40.0
     width: Annotated[int, Field(ge=1, le=16384)] = 320
     height: Annotated[int, Field(ge=1, le=16384)] = 240
+    frame: Literal["manual", "auto"] = "manual"
+    view: Vec3 = (1.0, 0.5, 1.0)  # frame: auto: the direction from the target to the eye
+
+    @model_validator(mode="after")
+    def _auto_frame(self):
+        if self.frame != "auto":
+            return self
+        given = [k for k in ("eye", "target") if k in self.model_fields_set]
+        if given:
+            raise ValueError(f"{' and '.join(given)} given with frame: auto (auto places the camera; give frame: manual to place it)")
+        v, u = np.asarray(self.view, float), np.asarray(self.up, float)
+        if not np.linalg.norm(v) > 0:
+            raise ValueError("view is the zero vector")
+        if np.linalg.norm(np.cross(v, u)) <= 1e-6 * np.linalg.norm(v) * np.linalg.norm(u):
+            raise ValueError(f"view {list(self.view)} is parallel to up {list(self.up)}")
+        return self
 
     @field_validator("target")
     @classmethod

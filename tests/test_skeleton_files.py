@@ -245,13 +245,13 @@ NEURON = """# soma, a dendrite with an unknown radius and a duplicate node, an a
 """
 
 
-def _experiment(tmp_path, skeleton: str) -> str:
+def _experiment(tmp_path, skeleton: str, camera: str = "{eye: [0, 2, 20], target: [0, 2, 0], width: 32, height: 24}") -> str:
     p = tmp_path / "exp.yaml"
     p.write_text(f"""
 object:
   type: frusta
   skeleton: {skeleton}
-camera: {{eye: [0, 2, 20], target: [0, 2, 0], width: 32, height: 24}}
+camera: {camera}
 render: {{progress: false}}
 """)
     return str(p)
@@ -331,3 +331,43 @@ def test_published_swc_files_read_as_their_text():
         assert np.all(np.isin(ref[has_parent, 6], ref[:, 0])), path  # every parent names a node
         np.testing.assert_array_equal(sk.ids[sk.parents[has_parent]], ref[has_parent, 6].astype(np.int64))
         np.testing.assert_array_equal(sk.parent_ids, np.where(ref[:, 6] < 0, -1, ref[:, 6]).astype(np.int64))
+
+
+def test_an_swc_in_nanometres_far_from_the_origin_is_framed_by_the_camera(tmp_path):
+    """``camera: {frame: auto}``: the file's neuron, in nanometres two millimetres from the
+    origin, read with ``scale: 0.001``, is seen whole without a hand-placed eye. The target is
+    the centre of the joints' boxes grown by their radii (after the repairs: node 3's unknown
+    radius takes its parent's), the eye lies along ``view`` at the distance where that box's
+    bounding sphere (x 1.05) fills the narrower field of view (here the vertical 40 degrees),
+    and no border pixel sees the neuron."""
+    rows = [line.split() for line in NEURON.splitlines()[1:]]
+    nm = "".join(f"{r[0]} {r[1]} {1000 * float(r[2]) + 2e6} {1000 * float(r[3])} {1000 * float(r[4]) - 5e5} {1000 * float(r[5])} {r[6]}\n"
+                 for r in rows)
+    swc = _write(tmp_path, "neuron_nm.swc", nm)
+    exp = _experiment(tmp_path, f"{{file: {swc}, scale: 0.001}}", "{frame: auto, view: [0, 0, 1], width: 32, height: 24}")
+    out = tmp_path / "o"
+    assert cli.main(["render", exp, "--out", str(out)]) == 0
+    cam = json.loads((out / "run.json").read_text())["config"]["camera"]
+    lo = np.array([-2.0, -6.8, -2.0]) + [2000.0, 0.0, -500.0]  # soma radius 2; the axon's end 0.8 below y = -6
+    hi = np.array([3.5, 14.5, 2.0]) + [2000.0, 0.0, -500.0]  # the dendrite's tip at (3, 14) of radius 0.5
+    centre = 0.5 * (lo + hi)
+    dist = 1.05 * 0.5 * np.linalg.norm(hi - lo) / np.sin(np.radians(20.0))
+    np.testing.assert_allclose(cam["target"], centre, atol=1e-9)
+    np.testing.assert_allclose(cam["eye"], centre + [0.0, 0.0, dist], atol=1e-9)
+    hit = np.isfinite(np.load(out / "depth.npy"))
+    assert hit.mean() > 0.01
+    assert not hit[0].any() and not hit[-1].any() and not hit[:, 0].any() and not hit[:, -1].any()
+
+
+@pytest.mark.parametrize("camera, needle", [
+    ("{frame: auto, eye: [0, 0, 9]}", ["camera", "eye given with frame: auto"]),
+    ("{frame: auto, view: [0, 1, 0]}", ["camera", "parallel to up"]),
+    ("{frame: sideways}", ["camera.frame", "sideways"]),
+])
+def test_bad_framing_is_one_line_and_exit_2(tmp_path, capsys, no_compile, camera, needle):
+    swc = _write(tmp_path, "neuron.swc", NEURON)
+    rc = cli.main(["render", _experiment(tmp_path, f"{{file: {swc}}}", camera), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    for n in needle:
+        assert n in err[0], (n, err[0])

@@ -20,7 +20,7 @@ from .. import registry
 from ..config import ConfigError, StrictModel, chunk_of, read_yaml
 from ..fit import FitBenchFile, run_fit_bench
 from ..peers.studies import STUDIES, StudyOptions
-from ..render import camera_of, dtype_of, render
+from ..render import camera_of, dtype_of, framed, render
 from .cast import timed_cast
 from .files import X64, JsonLines, beside, load_experiment, read_model
 from .grid import expand, keys_of, overrides_of
@@ -107,7 +107,7 @@ def traversal_stats(exp, obj) -> dict:
     over the camera's rays in the render's order (screen tiles: packets and bins depend on it)."""
     rep = registry.get(obj.type)
     built = rep.build(obj, dtype_of(exp))
-    rays = camera_of(exp).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
+    rays = camera_of(framed(exp, built.bounds)).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
     stats = rep.traversal_stats(built, rays, chunk_of(exp.render))
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in stats.items()}
 

@@ -20,7 +20,7 @@ from ..config import chunk_of, chunks_per_call_of
 from ..executor import _pad_to, compile_batch_fn, map_chunks, ray_mesh
 from ..interface import Object, cast_t_prim
 from ..rays import Rays
-from ..render import camera_of, devices_of, dtype_of
+from ..render import camera_of, devices_of, dtype_of, framed
 from .timing import Spread, spread, warm_runs
 
 def on_accelerator() -> bool:
@@ -39,7 +39,7 @@ def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
     built = registry.get(obj.type).build(obj, dtype) if built is None else built
     jax.block_until_ready(built.params)  # (asynchronous dispatch: the build's device work ends here)
     build_s = time.perf_counter() - t0
-    rays = camera_of(exp).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype)
+    rays = camera_of(framed(exp, built.bounds)).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype)
     res = map_chunks(cast_t_prim, Object(built.params, built.static, obj.type), rays, chunk=chunk_of(exp.render), progress=False,
                      devices=devices_of(exp), group=chunks_per_call_of(exp.render))
     return build_s, res.run_s, res.compile_s
@@ -56,7 +56,7 @@ def resident_rays(exp, built) -> list:
     (``render.chunk``, times the devices of ``render.devices``; the last padded by repeating its
     last ray, as ``executor.map_chunks`` pads), each placed on the device(s) ahead of a cast: a
     list of device ``Rays`` for :func:`cast_resident`."""
-    rays = camera_of(exp).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
+    rays = camera_of(framed(exp, built.bounds)).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
     mesh = _ray_mesh_of(exp)
     n = rays.size
     per = min(chunk_of(exp.render), n) * (1 if mesh is None else mesh.size)

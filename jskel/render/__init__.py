@@ -18,7 +18,7 @@ import numpy as np
 from .. import registry
 from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
 from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Hit, Rays, make_rays
-from ..camera import Camera, tile_inverse, tile_order
+from ..camera import Camera, framing, tile_inverse, tile_order
 from ..executor import map_chunks
 from ..interface import Object
 from ._aov import write_aovs as write_aovs
@@ -42,9 +42,24 @@ class RenderResult(NamedTuple):
 
 
 def camera_of(exp: Experiment) -> Camera:
-    """The host ``Camera`` of an experiment's ``camera`` section."""
+    """The host ``Camera`` of an experiment's ``camera`` section (``frame: auto`` resolved
+    first by :func:`framed`, which needs the built object's bounds)."""
     c = exp.camera
+    if c.frame == "auto":
+        raise ValueError("camera.frame: auto is placed from the object's bounds: resolve it with jskel.render.framed(exp, built.bounds) first")
     return Camera(np.asarray(c.eye), np.asarray(c.target), np.asarray(c.up), c.fov_deg, c.width, c.height)
+
+
+def framed(exp: Experiment, bounds) -> Experiment:
+    """``exp`` with ``camera.frame: auto`` resolved against the world box ``bounds`` (lo, hi):
+    eye and target placed by ``camera.framing`` (then ``frame: manual``, as run.json records
+    it); ``exp`` itself for a camera placed by hand."""
+    c = exp.camera
+    if c.frame != "auto":
+        return exp
+    eye, target = framing(bounds[0], bounds[1], c.view, c.fov_deg, c.width, c.height)
+    cam = c.model_copy(update={"eye": tuple(map(float, eye)), "target": tuple(map(float, target)), "frame": "manual"})
+    return exp.model_copy(update={"camera": cam})
 
 
 def devices_of(exp: Experiment):
@@ -232,6 +247,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     dtype = dtype_of(exp)
     t0 = time.perf_counter()
     params, static, built = build_single(exp, obj, dtype)
+    exp = framed(exp, built.bounds)
     jax.block_until_ready(built.params)  # dispatch is asynchronous: the build ends here, not in the render
     build_s = time.perf_counter() - t0
     fr = _integrate(exp, params, static, built.anchor, dtype, prog)
@@ -262,11 +278,13 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
     pixel's first reflection / refraction ray ends: the object its last ray hit, -1 if it
     escaped or there is none; through a glass rod that is the object seen behind it; where a
     path branches, one of the branches) and ``secondary`` (secondary rays per pixel)."""
-    from ._build import build_scene
+    from ._build import build_scene, place_objects, world_bounds
 
     dtype = dtype_of(exp)
     t0 = time.perf_counter()
-    params, static, eye, objects_info, primitives = build_scene(exp, shapes, dtype)
+    placed = place_objects(exp, shapes, dtype)
+    exp = framed(exp, world_bounds(placed))
+    params, static, eye, objects_info, primitives = build_scene(exp, shapes, dtype, placed)
     jax.block_until_ready(params)
     build_s = time.perf_counter() - t0
     fr = _integrate(exp, params, static, eye, dtype, progress)
@@ -297,4 +315,4 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
         run["memory_budget"] = fr.res.memory
     return RenderResult(hits, fr.rgb.astype(np.float32), fr.image, run, aovs)
 
-__all__ = ["Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "lights_from_config", "output_transform", "peak_rss_mb", "camera_rays", "render", "render_scene", "shade_one", "shading_from_config", "write_aovs"]
+__all__ = ["Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "framed", "lights_from_config", "output_transform", "peak_rss_mb", "camera_rays", "render", "render_scene", "shade_one", "shading_from_config", "write_aovs"]

@@ -197,10 +197,8 @@ def assemble(exp, placed: list[Placed], origin, dtype, single: bool = False, own
     return params, static, info
 
 
-def build_scene(exp, shapes, dtype):
-    """Build every object of a scene (``objects:``) and the scene's arrays (host). Returns
-    (params, static, eye, info per object, primitives in all)."""
-    eye = np.asarray(exp.camera.eye, np.float64)
+def place_objects(exp, shapes, dtype) -> list[Placed]:
+    """Build every object of a scene (``objects:``) and place it (host)."""
     placed = []
     for i, (o, shape) in enumerate(zip(exp.objects, shapes)):
         rep = registry.get(shape.type)
@@ -208,6 +206,25 @@ def build_scene(exp, shapes, dtype):
         built = rep.build(_shape_at(shape, exp.frame), dtype)
         s, r, t = object_transform(o, exp.frame)
         placed.append(Placed(o.name or f"objects[{i}]", rep, built, s, r, t, o.material))
+    return placed
+
+
+def world_bounds(placed: list[Placed]):
+    """(lo, hi) float64: the world box around every placed object's transformed bounds."""
+    boxes = []
+    for p in placed:
+        lo, hi = (np.asarray(b, np.float64) for b in p.built.bounds)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        boxes.append(p.scale * corners @ p.rotation.T + p.translate)
+    w = np.concatenate(boxes)
+    return w.min(0), w.max(0)
+
+
+def build_scene(exp, shapes, dtype, placed: list[Placed] | None = None):
+    """Build every object of a scene (``objects:``; or take them already ``placed``) and the
+    scene's arrays (host). Returns (params, static, eye, info per object, primitives in all)."""
+    eye = np.asarray(exp.camera.eye, np.float64)
+    placed = place_objects(exp, shapes, dtype) if placed is None else placed
     params, static, info = assemble(exp, placed, eye, dtype)
     return params, static, eye, info, int(sum(i["primitives"] for i in info))
 
@@ -229,4 +246,4 @@ def build_single(exp, obj, dtype):
 
 
 __all__ = ["Effects", "Materials", "Placed", "SceneParams", "SceneStatic", "XForm", "assemble", "build_scene", "build_single",
-           "effects_of", "object_transform", "shadow_lights"]
+           "effects_of", "object_transform", "place_objects", "shadow_lights", "world_bounds"]
