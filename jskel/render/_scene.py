@@ -75,6 +75,9 @@ from ._build import build_single as build_single
 from ._build import effects_of as effects_of
 
 
+SHADE_LANES = 1024  # hits per sub-batch of the local shading (cheap per ray: wide batches)
+
+
 class SceneHit(NamedTuple):
     """Nearest hit of a ray over all objects, in the eye-relative world frame (leading axis N).
 
@@ -284,8 +287,12 @@ def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: S
     k = jnp.maximum(hits.obj, 0)
     kd = hits.base * m.color[k]
     pos0 = jnp.where(got[:, None], hits.position, 0.0)
-    local = jax.vmap(lambda p, nn, dd, b, sp, sh, v: shade_local(p, nn, dd, b, params.lights, params.ambient, sp, sh, v))(
-        pos0, hits.normal, d, kd, m.specular[k], m.shininess[k], vis)
+
+    def shade(args):
+        return jax.vmap(lambda p, nn, dd, b, sp, sh, v: shade_local(p, nn, dd, b, params.lights, params.ambient, sp, sh, v))(*args)
+
+    # local light only where a ray hit, in dense sub-batches (the misses take the environment)
+    local = compact_map(shade, got, (pos0, hits.normal, d, kd, m.specular[k], m.shininess[k], vis), jnp.zeros_like(kd), SHADE_LANES)
     later = (level > 0) & (m.local_once[k] > 0)  # past the first level: light passed on whole
     kr = jnp.where(got & ~later, m.reflect[k], 0.0)
     kt = jnp.where(got, jnp.where(later, 1.0, m.transmit[k]), 0.0)
@@ -296,6 +303,8 @@ def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: S
         t, _, factor = _transmitted(m, hits, safe_normalize(d), kd)
         ends = got & last & (m.last_env[k] > 0)
         col = col + jnp.where(ends[:, None], kt[:, None] * factor * _escaped(params, static, t), 0.0)
+    if static.effects.bounces == 0:  # the camera rays alone: slot i is pixel i, no scatter
+        return rgb + q.weight * col, vis, kr, kt
     dst = jnp.where(q.live, q.pixel, n_pix)
     rgb = rgb.at[dst].add(q.weight * col, mode="drop")
     return rgb, vis, kr, kt
@@ -359,8 +368,10 @@ def scene_batch(static: SceneStatic):
             hits = nearest(params, static, q.rays, q.live)
             rgb, vis, kr, kt = shade_level(params, static, q, rgb, hits, level)
             live_hit = q.live & jnp.isfinite(hits.t)
-            flags = flags.at[jnp.where(live_hit, q.pixel, n)].max(hits.flags, mode="drop")
             first = level == 0
+            if levels == 1:  # the camera rays alone: slot i is pixel i, no scatter, no later level
+                return q, rgb, jnp.maximum(flags, jnp.where(live_hit, hits.flags, 0)), first_obj, secondary, hits, vis
+            flags = flags.at[jnp.where(live_hit, q.pixel, n)].max(hits.flags, mode="drop")
             aov = jax.tree_util.tree_map(lambda a, b: jnp.where(first, a[:n], b), hits, aov)
             vis0 = jnp.where(first, vis[:n], vis0)
             secondary = secondary.at[jnp.where(q.live & ~first, q.pixel, n)].add(1, mode="drop")
