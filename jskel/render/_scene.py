@@ -118,17 +118,21 @@ def _to_object(x: XForm, rays: Rays) -> Rays:
     return Rays(_apply(x.rt, rays.origins) / x.s + x.c, _apply(x.rt, rays.directions), rays.t_min / x.s, rays.t_max / x.s)
 
 
-def _object_hits(rep_name: str, static, p, x: XForm, k: int, rays: Rays) -> SceneHit:
+def _object_hits(rep_name: str, static, p, x: XForm, k: int, rays: Rays, identity: bool = False) -> SceneHit:
+    """Object k's hits of ``rays`` in the rays' frame. ``identity``: the transform is the
+    identity (a scene of one), so the rays and hits skip it (the same floats: ``_apply`` is
+    exact for the identity and its offsets are zero)."""
     rep = registry.get(rep_name)
-    local = _to_object(x, rays)
+    local = rays if identity else _to_object(x, rays)
     h = rep.intersect_batch(p, static, local)
     base = jax.vmap(lambda hh: rep.albedo(p, static, hh))(h)
     hit = jnp.isfinite(h.t)
-    t = h.t * x.s
-    pos = jnp.where(hit[:, None], _apply(x.r, jnp.where(hit[:, None], h.position, 0.0)) * x.s + x.g, jnp.inf)
+    t = h.t if identity else h.t * x.s
+    pos = jnp.where(hit[:, None], h.position if identity else _apply(x.r, jnp.where(hit[:, None], h.position, 0.0)) * x.s + x.g, jnp.inf)
     flags = jnp.zeros_like(h.prim) if h.flags is None else h.flags
     obj = jnp.where(hit, k, -1).astype(jnp.int32)
-    return SceneHit(t, pos, _apply(x.r, h.normal), h.uv, h.prim, obj, base.astype(t.dtype), flags.astype(jnp.int32))
+    nrm = h.normal if identity else _apply(x.r, h.normal)
+    return SceneHit(t, pos, nrm, h.uv, h.prim, obj, base.astype(t.dtype), flags.astype(jnp.int32))
 
 
 def _miss(n: int, dtype) -> SceneHit:
@@ -143,13 +147,13 @@ def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live) -> Scene
     n, dtype = rays.size, rays.origins.dtype
     eff = static.effects
     if static.single and not (eff.reflection or eff.refraction):  # a scene of one, camera rays only: one batch (the representation culls), as computed once
-        fn = functools.partial(_object_hits, static.reps[0], static.statics[0], params.objects[0], params.xforms[0], 0)
+        fn = functools.partial(_object_hits, static.reps[0], static.statics[0], params.objects[0], params.xforms[0], 0, identity=True)
         return fenced(always(rays.t_min), lambda: fn(rays))
     best = _miss(n, dtype)
     for k, (rep, st) in enumerate(zip(static.reps, static.statics)):
         x = params.xforms[k]
         need = (live & _box_crossed(rays, x.lo, x.hi)) if static.compaction else jnp.ones_like(live)
-        fn = functools.partial(_object_hits, rep, st, params.objects[k], x, k)
+        fn = functools.partial(_object_hits, rep, st, params.objects[k], x, k, identity=static.single)
         hk = compact_map(fn, need, rays, _miss(n, dtype), static.lanes)
         closer = hk.t < best.t
         best = jax.tree_util.tree_map(lambda a, b: jnp.where(closer.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), hk, best)
