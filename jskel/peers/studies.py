@@ -13,3 +13,5 @@ STUDIES = {
     "marching_cubes": mesh_studies.marching_cubes,
     "skeleton": skeleton,
 }
+
+__all__ = ["STUDIES", "StudyOptions"]

@@ -55,7 +55,6 @@ object's reflection and refraction modes (Nürnberg 2011, Alg. 3.2-3.3) are such
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -63,119 +62,20 @@ import jax
 import jax.numpy as jnp
 
 from .. import registry
-from ..accel import always, fenced
 from ..numerics import eps_of, safe_normalize, safe_sqrt
 from ..rays import FLAG_OVERFLOW, Hit, Rays
 from ..wavefront import compact_map
 from ..shading import facing, light_at, shade_local
 from ._build import Effects as Effects
-from ._build import Materials, SceneParams, SceneStatic, XForm
+from ._build import Materials, SceneParams, SceneStatic
+from ._hits import SceneHit as SceneHit
+from ._hits import _miss, nearest, occluded
 from ._build import build_scene as build_scene
 from ._build import build_single as build_single
 from ._build import effects_of as effects_of
 
 
 SHADE_LANES = 1024  # hits per sub-batch of the local shading (cheap per ray: wide batches)
-
-
-class SceneHit(NamedTuple):
-    """Nearest hit of a ray over all objects, in the eye-relative world frame (leading axis N).
-
-    t (+inf on a miss), position (3), normal (3, unit, outward), uv (2), prim (-1 on a miss),
-    obj (index of the object, -1 on a miss), base (3, the representation's colour at the hit:
-    skeleton colour or texture), flags (int32 diagnostics of the representation)."""
-
-    t: jnp.ndarray
-    position: jnp.ndarray
-    normal: jnp.ndarray
-    uv: jnp.ndarray
-    prim: jnp.ndarray
-    obj: jnp.ndarray
-    base: jnp.ndarray
-    flags: jnp.ndarray
-
-
-# ----------------------------------------------------------------------------- tracing
-
-
-def _apply(m, v):
-    """``m @ v`` for each row of v (..., 3), written out per component: exact for the identity,
-    and free of the reduced-precision matrix units some accelerators use for float32 dots."""
-    return v[..., 0:1] * m[:, 0] + v[..., 1:2] * m[:, 1] + v[..., 2:3] * m[:, 2]
-
-
-def _box_crossed(rays: Rays, lo, hi):
-    """Slab test: does the ray's interval (t_min, t_max] meet the box [lo, hi]? (N,) bool."""
-    inv = 1.0 / rays.directions  # +-inf for zero components: the slab then holds or fails whole
-    t0 = (lo - rays.origins) * inv
-    t1 = (hi - rays.origins) * inv
-    near = jnp.max(jnp.where(jnp.isnan(t0), -jnp.inf, jnp.minimum(t0, t1)), axis=-1)
-    far = jnp.min(jnp.where(jnp.isnan(t1), jnp.inf, jnp.maximum(t0, t1)), axis=-1)
-    return (near <= far) & (far >= rays.t_min) & (near <= rays.t_max)
-
-
-def _to_object(x: XForm, rays: Rays) -> Rays:
-    return Rays(_apply(x.rt, rays.origins) / x.s + x.c, _apply(x.rt, rays.directions), rays.t_min / x.s, rays.t_max / x.s)
-
-
-def _object_hits(rep_name: str, static, p, x: XForm, k: int, rays: Rays, identity: bool = False) -> SceneHit:
-    """Object k's hits of ``rays`` in the rays' frame. ``identity``: the transform is the
-    identity (a scene of one), so the rays and hits skip it (the same floats: ``_apply`` is
-    exact for the identity and its offsets are zero)."""
-    rep = registry.get(rep_name)
-    local = rays if identity else _to_object(x, rays)
-    h = rep.intersect_batch(p, static, local)
-    base = jax.vmap(lambda hh: rep.albedo(p, static, hh))(h)
-    hit = jnp.isfinite(h.t)
-    t = h.t if identity else h.t * x.s
-    pos = jnp.where(hit[:, None], h.position if identity else _apply(x.r, jnp.where(hit[:, None], h.position, 0.0)) * x.s + x.g, jnp.inf)
-    flags = jnp.zeros_like(h.prim) if h.flags is None else h.flags
-    obj = jnp.where(hit, k, -1).astype(jnp.int32)
-    nrm = h.normal if identity else _apply(x.r, h.normal)
-    return SceneHit(t, pos, nrm, h.uv, h.prim, obj, base.astype(t.dtype), flags.astype(jnp.int32))
-
-
-def _miss(n: int, dtype) -> SceneHit:
-    z3 = jnp.zeros((n, 3), dtype)
-    return SceneHit(jnp.full((n,), jnp.inf, dtype), jnp.full((n, 3), jnp.inf, dtype), z3, jnp.zeros((n, 2), dtype),
-                    jnp.full((n,), -1, jnp.int32), jnp.full((n,), -1, jnp.int32), z3, jnp.zeros((n,), jnp.int32))
-
-
-def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live) -> SceneHit:
-    """Nearest hit over all objects of the ``live`` rays (others: misses). Each object traces
-    only the live rays that cross its bounding box, compacted into sub-batches of ``lanes``."""
-    n, dtype = rays.size, rays.origins.dtype
-    eff = static.effects
-    if static.single and not (eff.reflection or eff.refraction):  # a scene of one, camera rays only: one batch (the representation culls), as computed once
-        fn = functools.partial(_object_hits, static.reps[0], static.statics[0], params.objects[0], params.xforms[0], 0, identity=True)
-        return fenced(always(rays.t_min), lambda: fn(rays))
-    best = _miss(n, dtype)
-    for k, (rep, st) in enumerate(zip(static.reps, static.statics)):
-        x = params.xforms[k]
-        need = (live & _box_crossed(rays, x.lo, x.hi)) if static.compaction else jnp.ones_like(live)
-        fn = functools.partial(_object_hits, rep, st, params.objects[k], x, k, identity=static.single)
-        hk = compact_map(fn, need, rays, _miss(n, dtype), static.lanes)
-        closer = hk.t < best.t
-        best = jax.tree_util.tree_map(lambda a, b: jnp.where(closer.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), hk, best)
-    return best
-
-
-def occluded(params: SceneParams, static: SceneStatic, rays: Rays, need):
-    """Any-hit: (N,) True where a ``need``-ed ray meets some object in (t_min, t_max]. Objects
-    are tested in turn and each only on the rays no earlier object blocked (early out)."""
-    blocked = jnp.zeros_like(need)
-    for k, (rep, st) in enumerate(zip(static.reps, static.statics)):
-        x = params.xforms[k]
-        todo = (need & ~blocked & _box_crossed(rays, x.lo, x.hi)) if static.compaction else jnp.ones_like(need)
-
-        def fn(sub, rep=rep, st=st, k=k, x=x):
-            return registry.get(rep).occluded(params.objects[k], st, _to_object(x, sub))
-
-        if static.compaction:
-            blocked = compact_map(fn, todo, rays, blocked, static.lanes)
-        else:  # masking: every ray traced, the result kept where needed
-            blocked = blocked | (need & compact_map(fn, todo, rays, jnp.zeros_like(blocked), static.lanes))
-    return blocked
 
 
 def offset_of(hit: SceneHit, mat: Materials):
@@ -427,3 +327,8 @@ def scene_call(scene: Scene, rays: Rays) -> dict:
     """``scene_batch(scene.static)(scene.params, rays)``: the executor's batch function of
     every render (a second render of the same shapes compiles nothing)."""
     return scene_batch(scene.static)(scene.params, rays)
+
+
+__all__ = ["Effects", "Queue", "Scene", "SceneHit", "build_scene", "build_single", "effects_of", "nearest", "occluded",
+           "offset_of", "scene_batch", "scene_call", "shade_level", "spawn"]
+
