@@ -25,6 +25,7 @@ EXPERIMENTS = [  # (experiment, caption)
     ("spider", "implicit: spider, metatube bones"),
     ("torus_cells", "cells: Voronoi torus, first hit"),
     ("torus_cells_refraction", "cells: refraction"),
+    ("neuron_swc", "frusta: a published neuron from SWC, framed automatically"),
     ("scene_effects", "scene: shadows, mirror, glass"),
     ("scene_cacti", "scene: dancing cacti, sun and mirror ball"),
 ]
