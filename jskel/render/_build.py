@@ -152,15 +152,20 @@ def _check_shape(i: int, o, shape, rep):
             "(material.reflectivity / transparency), not by effects of its own: give mode: first_hit")
 
 
+def _world_corners(p: Placed) -> np.ndarray:
+    """(8, 3) float64: the corners of the object's bounds, placed in the world."""
+    lo, hi = (np.asarray(b, np.float64) for b in p.built.bounds)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    return p.scale * corners @ p.rotation.T + p.translate
+
+
 def _xform(p: Placed, origin: np.ndarray, dtype) -> XForm:
     """The object's offsets from the rays' frame (``origin``) in float64, then cast."""
     s, r, t = p.scale, p.rotation, p.translate
     a = np.asarray(p.built.anchor, np.float64)
     c = r.T @ (origin - t) / s - a
     g = s * (r @ a) + t - origin
-    lo, hi = (np.asarray(b, np.float64) for b in p.built.bounds)
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    w = (s * corners @ r.T) + t - origin
+    w = _world_corners(p) - origin
     pad = 1e-5 * (np.max(np.abs(w)) + np.max(w.max(0) - w.min(0)))  # float32 rounding of the box test
     return XForm(*(jnp.asarray(v, dtype) for v in (r.T, r, s, c, g, w.min(0) - pad, w.max(0) + pad)))
 
@@ -211,12 +216,7 @@ def place_objects(exp, shapes, dtype) -> list[Placed]:
 
 def world_bounds(placed: list[Placed]):
     """(lo, hi) float64: the world box around every placed object's transformed bounds."""
-    boxes = []
-    for p in placed:
-        lo, hi = (np.asarray(b, np.float64) for b in p.built.bounds)
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        boxes.append(p.scale * corners @ p.rotation.T + p.translate)
-    w = np.concatenate(boxes)
+    w = np.concatenate([_world_corners(p) for p in placed])
     return w.min(0), w.max(0)
 
 
