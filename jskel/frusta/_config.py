@@ -17,7 +17,8 @@ class SkeletonConfig(StrictModel):
 
     ``file``: a skeleton file (a path, relative to the working directory) in ``format`` ``swc``
     (NeuroMorpho.Org, neuron tools), ``nodes`` (a CSV node table with id, x, y, z, radius and
-    parent columns, as CATMAID and navis export) or ``auto`` (by extension: .swc, .csv); see
+    parent columns, as CATMAID and navis export), ``qsm`` (a TreeQSM cylinder table, labels the
+    branch order) or ``auto`` (by extension: .swc, .csv, TreeQSM's cylinder*.txt); see
     ``jskel.skeletons``. A file is repaired by ``repair`` (a ``jskel.skeletons.RepairPolicy``;
     unset: its defaults, i.e. an unknown radius (<= 0, NaN) becomes its nearest ancestor's and
     nodes that coincide with their parent are merged), and the build's ``info["repairs"]`` (in
@@ -48,7 +49,7 @@ class SkeletonConfig(StrictModel):
     parents: list[int] | None = None
     colors: list[RGB] | None = None
     file: str | None = None
-    format: Literal["auto", "swc", "nodes"] = "auto"
+    format: Literal["auto", "swc", "nodes", "qsm"] = "auto"
     repair: RepairPolicy | None = None
     scale: Annotated[float, Field(gt=0.0)] = 1.0
     offset: Vec3 = (0.0, 0.0, 0.0)

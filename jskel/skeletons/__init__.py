@@ -1,6 +1,6 @@
-"""Skeleton files: SWC and CSV node tables in, SWC out, and an explicit repair policy.
+"""Skeleton files: SWC, CSV node tables and QSM cylinder tables in, SWC out, and an explicit repair policy.
 
-* :func:`read_swc`, :func:`read_node_table` read a file into a :class:`Skeleton` (file order,
+* :func:`read_swc`, :func:`read_node_table`, :func:`read_qsm` (TreeQSM cylinder tables) read a file into a :class:`Skeleton` (file order,
   original ids, SWC types as labels), repairing nothing;
 * :func:`repair` applies a :class:`RepairPolicy` and reports every repair, or raises one
   ValueError that lists every problem;
@@ -12,6 +12,7 @@
 from ._load import format_of as format_of
 from ._load import load as load
 from ._nodes import read_node_table as read_node_table
+from ._qsm import read_qsm as read_qsm
 from ._repair import RepairPolicy as RepairPolicy
 from ._repair import problems as problems
 from ._repair import repair as repair
@@ -25,4 +26,4 @@ from ._types import from_arrays as from_arrays
 from ._types import label_colors as label_colors
 
 __all__ = ["CUSTOM_COLOR", "MISSING", "RepairPolicy", "Skeleton", "TYPE_COLORS", "format_of", "from_arrays", "label_colors",
-           "load", "problems", "read_node_table", "read_swc", "repair", "write_swc"]
+           "load", "problems", "read_node_table", "read_qsm", "read_swc", "repair", "write_swc"]
