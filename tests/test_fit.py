@@ -16,6 +16,7 @@ import yaml
 from jskel.cli import main
 from jskel.fit import culling_exact, distances, fit_many, fit_points, load_points, mst_skeleton, pca_chain, perturbed, segments_of
 from jskel.fit._config import FitFile, PointsConfig, SolverConfig
+from jskel.skeletons import read_swc
 
 from conftest import build_skeleton, cast
 
@@ -235,6 +236,10 @@ def test_fit_command_writes_a_file_jskel_renders(tmp_path, capsys):
     assert info["history"][-1] < info["history"][0] and (tmp_path / "out" / "fit.png").stat().st_size > 10_000
     assert info["plane_margin_min"] > 0.05  # every shared plane cuts ellipses, as the renderer needs
     fitted = tmp_path / "out" / "fitted.yaml"
+    sk, swc = yaml.safe_load(fitted.read_text())["object"]["skeleton"], read_swc(tmp_path / "out" / "fitted.swc")
+    np.testing.assert_array_equal(swc.joints, sk["joints"])  # the same float64 values through both files
+    np.testing.assert_array_equal(swc.radii, sk["radii"])
+    np.testing.assert_array_equal(swc.parents, sk["parents"])
     assert main(["render", str(fitted), "--out", str(tmp_path / "render"), "--set", "camera.width=64", "--set", "camera.height=48"]) == 0
     depth = np.load(tmp_path / "render" / "depth.npy")
     assert 0.05 < np.mean(np.isfinite(depth)) < 0.95  # framed: the branch is in view, not filling it

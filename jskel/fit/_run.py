@@ -9,7 +9,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from .. import frusta
+from .. import frusta, skeletons
 from ._config import FitFile
 from ._fit import FitResult, fit_points
 from ._measures import culling_exact_fraction, plane_margin_min, point_distances
@@ -75,7 +75,8 @@ def plot_fit(path: Path, res: FitResult, points: np.ndarray, d: np.ndarray, titl
 
 def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
     """Run a fit file: read or synthesise the points, start, solve; write ``fitted.yaml`` (an
-    experiment ``jskel render`` renders), ``fit.json`` and ``fit.png``. Returns fit.json's dict."""
+    experiment ``jskel render`` renders), ``fitted.swc`` (the skeleton as SWC, ids 1..J, type 0),
+    ``fit.json`` and ``fit.png``. Returns fit.json's dict."""
     import json
 
     import yaml
@@ -93,6 +94,7 @@ def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     (out / "fitted.yaml").write_text(f"# fitted by `jskel fit` ({cfg.solver.name}, {cfg.solver.loss} loss)\n"
                                      + yaml.safe_dump(fitted_experiment(cfg, res), sort_keys=False))
+    skeletons.write_swc(out / "fitted.swc", skeletons.from_arrays(res.joints, res.radii, res.parents))  # for neuron/plant tools
     info = fit_info(cfg, res, how, pinfo, points, d)
     if truth is not None and len(truth[0]) == len(res.joints) and np.array_equal(truth[2], res.parents):
         info["truth"] = truth_errors(res, truth, pinfo["skeleton_length"])
