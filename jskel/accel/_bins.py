@@ -44,7 +44,8 @@ them.
 
 from __future__ import annotations
 
-from typing import Callable
+import functools
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -210,6 +211,31 @@ def first_set(words, q: int):
     return wi * 32 + pos, incl[-1]
 
 
+class _Batch(NamedTuple):
+    """What :func:`nearest_binned`'s loops read of one batch: the primitive boxes, the pair
+    test, the rays cut into ``p`` packets of ``g`` (``po``, ``pd``, ``pa``, ``pb``: (P, G, ...)),
+    the batch's bounds ``whole``, its ``n`` rays, and the ``k`` candidates per block and ``q``
+    pairs per step."""
+
+    lo: jax.Array
+    hi: jax.Array
+    pair_fn: Callable
+    po: jax.Array
+    pd: jax.Array
+    pa: jax.Array
+    pb: jax.Array
+    whole: tuple
+    n: int
+    p: int
+    g: int
+    k: int
+    q: int
+
+
+# every packet's bounds against one block's boxes: (P, K) met and entry t
+_meets_per_packet = jax.vmap(packet_entry, in_axes=(0, 0, 0, 0, 0, 0, None, None))
+
+
 def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pairs: int, origins, directions, t_min, t_max, groups=None,
                    fallback: Callable | None = None, fallback_above: int = 0, root=None):
     """Nearest hit of every ray of a batch (N,) through packet candidate lists (module docstring).
@@ -240,88 +266,8 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
     s = lo.shape[0]
     k = min(candidates, s)
     q = min(pairs, p * k)
-
-    def full():
-        list1, n1 = batch_list(whole, lo, hi, groups)
-        list1 = jnp.concatenate([list1, jnp.zeros((k,), jnp.int32)])
-        meets = jax.vmap(packet_entry, in_axes=(0, 0, 0, 0, 0, 0, None, None))
-
-        big = jnp.int32(jnp.iinfo(jnp.int32).max)
-        best = (jnp.full((p, g), jnp.inf, origins.dtype), jnp.full((p, g), -1, jnp.int32))
-        lin = jnp.arange(k * p, dtype=jnp.int32).reshape(k, p)
-        sizes = [m for m in (q // 4, q // 2) if m >= 16] + [q]
-
-        def block(j, carry):
-            bounds = carry[2]
-            best, tested = carry[:2]
-            ids = jax.lax.dynamic_slice_in_dim(list1, j * k, k)
-            live = j * k + jnp.arange(k) < n1
-            # the block's boxes nearest the batch first (where the batch enters each box)
-            e1 = jnp.where(live, packet_entry(*whole, lo[ids], hi[ids])[1], jnp.inf)
-            perm = jnp.argsort(e1)
-            ids, live = ids[perm], live[perm]
-            m2, e2 = fenced(n1 >= 0, lambda: meets(*bounds, lo[ids], hi[ids]))
-            m2 = (m2 & live[None, :]).T  # (K, P): candidate-major, nearest candidates first
-            e2 = e2.T
-
-            def alive(cursor, bt):
-                # pairs not yet taken (taken pairs all lie before the cursor: each step takes the
-                # first alive pairs in order, and a pruned pair stays pruned as best t only falls)
-                reach = jnp.max(bt, axis=1)  # inf while a ray of the packet has no hit
-                return pack_bits((m2 & (lin >= cursor) & ~(e2 > reach[None, :])).reshape(-1))  # (a NaN bound keeps its pair)
-
-            def lanes(m: int, rows, prim):
-                def test():
-                    r = rows[:m]
-                    t = pair_fn(prim[:m], po[r], pd[r], pa[r], pb[r])
-                    return t if m == q else jnp.concatenate([t, jnp.full((q - m, g), jnp.inf, t.dtype)])
-
-                return test
-
-            def body(st):
-                nt, words, best = st
-                bt, bi = best
-                at, na = first_set(words, q)
-                ok = jnp.arange(q) < na
-                at = jnp.minimum(at, k * p - 1)
-                pk = jnp.where(ok, at % p, p)
-                prim = ids[at // p]
-                rows = jnp.minimum(pk, p - 1)
-                # the test runs on the smallest of q/4, q/2, q lanes that holds the step's pairs (a
-                # switch: one branch runs; a block's last step is often part-full, and the step's
-                # cost is its lanes). Each branch is its own program, so t is materialised once
-                if len(sizes) > 1:
-                    t = jax.lax.switch(sum((na > m).astype(jnp.int32) for m in sizes[:-1]), [lanes(m, rows, prim) for m in sizes])
-                else:  # (a switch of one branch is inlined)
-                    t = fenced(na >= 0, lanes(q, rows, prim))
-                t = jnp.where(ok[:, None], t, jnp.inf)
-                tm = jax.ops.segment_min(t, pk, num_segments=p)
-                hit = (t == tm[rows]) & ok[:, None] & jnp.isfinite(t)
-                im = jax.ops.segment_min(jnp.where(hit, prim[:, None], big), pk, num_segments=p)
-                better = jnp.isfinite(tm) & ((tm < bt) | ((tm == bt) & (im < bi)))
-                best = (jnp.where(better, tm, bt), jnp.where(better, im, bi))
-                # every alive pair up to the last one taken is done; none is left when na <= q
-                cursor = jnp.where(na > q, at[q - 1] + 1, k * p)
-                return nt + jnp.minimum(na, q), alive(cursor, best[0]), best
-
-            nt, _, best = jax.lax.while_loop(lambda st: jnp.any(st[1] != 0), body, (jnp.int32(0), alive(jnp.int32(0), best[0]), best))
-            return best, tested + nt
-
-        def binned():
-            bounds = packet_bounds(po, pd, pa, pb)  # each (P, 3) or (P,)
-
-            def body1(st):
-                best, tested = block(st[0], (st[1], st[2], bounds))
-                return st[0] + 1, best, tested
-
-            _, (t, idx), tested = jax.lax.while_loop(lambda st: st[0] * k < n1, body1, (jnp.int32(0), best, jnp.int32(0)))
-            return t.reshape(n_pad)[:n], idx.reshape(n_pad)[:n], tested
-
-        if fallback is None:
-            t, idx, tested = binned()
-        else:
-            t, idx, tested = jax.lax.cond(n1 > fallback_above, lambda: (*fallback(origins, directions, t_min, t_max), jnp.int32(-1)), binned)
-        return t, idx, n1, tested
+    batch = _Batch(lo, hi, pair_fn, po, pd, pa, pb, whole, n, p, g, k, q)
+    full = functools.partial(_full, batch, groups, fallback, fallback_above, origins, directions, t_min, t_max)
 
     def sky():
         return jnp.full((n,), jnp.inf, origins.dtype), jnp.full((n,), -1, jnp.int32), jnp.int32(0), jnp.int32(0)
@@ -331,3 +277,112 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
     else:
         t, idx, n1, tested = jax.lax.cond(packet_meets(*whole, root[0][None], root[1][None])[0], full, sky)
     return t, idx, (n1, tested)
+
+
+def _full(batch: _Batch, groups, fallback, fallback_above: int, origins, directions, t_min, t_max):
+    """(t, idx, list length, pairs tested) of a batch that may meet the scene: its candidate
+    list (:func:`batch_list`), then the binned loops or, past ``fallback_above`` candidates,
+    the fallback (pairs tested -1)."""
+    k, p, g = batch.k, batch.p, batch.g
+    list1, n1 = batch_list(batch.whole, batch.lo, batch.hi, groups)
+    list1 = jnp.concatenate([list1, jnp.zeros((k,), jnp.int32)])
+    best = (jnp.full((p, g), jnp.inf, origins.dtype), jnp.full((p, g), -1, jnp.int32))
+    lin = jnp.arange(k * p, dtype=jnp.int32).reshape(k, p)
+    binned = functools.partial(_binned, batch, list1, n1, lin, best)
+    if fallback is None:
+        t, idx, tested = binned()
+    else:
+        t, idx, tested = jax.lax.cond(n1 > fallback_above, lambda: (*fallback(origins, directions, t_min, t_max), jnp.int32(-1)), binned)
+    return t, idx, n1, tested
+
+
+def _binned(batch: _Batch, list1, n1, lin, best):
+    """(t (N,), idx (N,), pairs tested): the candidate list ``list1`` (``n1`` valid) taken
+    ``k`` at a time (:func:`_block`), the best hits carried from block to block."""
+    k = batch.k
+    bounds = packet_bounds(batch.po, batch.pd, batch.pa, batch.pb)  # each (P, 3) or (P,)
+
+    def body(st):
+        best, tested = _block(batch, list1, n1, lin, bounds, st[0], st[1], st[2])
+        return st[0] + 1, best, tested
+
+    _, (t, idx), tested = jax.lax.while_loop(lambda st: st[0] * k < n1, body, (jnp.int32(0), best, jnp.int32(0)))
+    n_pad = batch.p * batch.g
+    return t.reshape(n_pad)[:batch.n], idx.reshape(n_pad)[:batch.n], tested
+
+
+def _block(batch: _Batch, list1, n1, lin, bounds, j, best, tested):
+    """(best, tested) after block ``j`` of the list: its boxes sorted nearest the batch first,
+    every packet tested against them, then the (packet, primitive) pairs that pass, ``q`` per
+    step (:func:`_pair_step`), until none is left alive."""
+    k = batch.k
+    ids = jax.lax.dynamic_slice_in_dim(list1, j * k, k)
+    live = j * k + jnp.arange(k) < n1
+    # the block's boxes nearest the batch first (where the batch enters each box)
+    e1 = jnp.where(live, packet_entry(*batch.whole, batch.lo[ids], batch.hi[ids])[1], jnp.inf)
+    perm = jnp.argsort(e1)
+    ids, live = ids[perm], live[perm]
+    m2, e2 = fenced(n1 >= 0, lambda: _meets_per_packet(*bounds, batch.lo[ids], batch.hi[ids]))
+    m2 = (m2 & live[None, :]).T  # (K, P): candidate-major, nearest candidates first
+    e2 = e2.T
+    step = functools.partial(_pair_step, batch, ids, m2, e2, lin)
+    init = (jnp.int32(0), _alive(m2, e2, lin, jnp.int32(0), best[0]), best)
+    nt, _, best = jax.lax.while_loop(lambda st: jnp.any(st[1] != 0), step, init)
+    return best, tested + nt
+
+
+def _alive(m2, e2, lin, cursor, bt):
+    """Bit words (:func:`pack_bits`) of the block's pairs not yet taken: met (``m2``), at or
+    after the cursor (taken pairs all lie before it: each step takes the first alive pairs in
+    order, and a pruned pair stays pruned as best t only falls), and not entered by the packet
+    beyond every one of its rays' best t (``e2``; a NaN bound keeps its pair)."""
+    reach = jnp.max(bt, axis=1)  # inf while a ray of the packet has no hit
+    return pack_bits((m2 & (lin >= cursor) & ~(e2 > reach[None, :])).reshape(-1))
+
+
+def _pair_step(batch: _Batch, ids, m2, e2, lin, st):
+    """One step of a block's pair loop: the first ``q`` alive pairs tested ray by ray, each
+    packet's nearest t (and, of equal t, lowest primitive) merged into the best hits, and the
+    pairs left alive after it."""
+    nt, words, best = st
+    bt, bi = best
+    k, p, q = batch.k, batch.p, batch.q
+    big = jnp.int32(jnp.iinfo(jnp.int32).max)
+    at, na = first_set(words, q)
+    ok = jnp.arange(q) < na
+    at = jnp.minimum(at, k * p - 1)
+    pk = jnp.where(ok, at % p, p)
+    prim = ids[at // p]
+    rows = jnp.minimum(pk, p - 1)
+    t = _lane_test(batch, na, rows, prim)
+    t = jnp.where(ok[:, None], t, jnp.inf)
+    tm = jax.ops.segment_min(t, pk, num_segments=p)
+    hit = (t == tm[rows]) & ok[:, None] & jnp.isfinite(t)
+    im = jax.ops.segment_min(jnp.where(hit, prim[:, None], big), pk, num_segments=p)
+    better = jnp.isfinite(tm) & ((tm < bt) | ((tm == bt) & (im < bi)))
+    best = (jnp.where(better, tm, bt), jnp.where(better, im, bi))
+    # every alive pair up to the last one taken is done; none is left when na <= q
+    cursor = jnp.where(na > q, at[q - 1] + 1, k * p)
+    return nt + jnp.minimum(na, q), _alive(m2, e2, lin, cursor, best[0]), best
+
+
+def _lane_test(batch: _Batch, na, rows, prim):
+    """t (Q, G) of a step's pairs (packet ``rows``, primitive ``prim``), on the smallest of
+    q/4, q/2, q lanes that holds the step's ``na`` pairs (a switch: one branch runs; a block's
+    last step is often part-full, and the step's cost is its lanes). Each branch is its own
+    program, so t is materialised once."""
+    q = batch.q
+    sizes = [m for m in (q // 4, q // 2) if m >= 16] + [q]
+    if len(sizes) > 1:
+        return jax.lax.switch(sum((na > m).astype(jnp.int32) for m in sizes[:-1]), [_lanes(batch, m, rows, prim) for m in sizes])
+    return fenced(na >= 0, _lanes(batch, q, rows, prim))  # (a switch of one branch is inlined)
+
+
+def _lanes(batch: _Batch, m: int, rows, prim):
+    """The pair test on the first ``m`` of a step's pairs, padded with misses to ``q`` rows."""
+    def test():
+        r = rows[:m]
+        t = batch.pair_fn(prim[:m], batch.po[r], batch.pd[r], batch.pa[r], batch.pb[r])
+        return t if m == batch.q else jnp.concatenate([t, jnp.full((batch.q - m, batch.g), jnp.inf, t.dtype)])
+
+    return test
