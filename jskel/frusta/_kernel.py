@@ -33,6 +33,7 @@ traversal is no longer what a frame waits on. The CPU's packet candidate lists (
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -120,6 +121,84 @@ def _flat_pow2(a):
     return jnp.concatenate([a, jnp.zeros((_pow2(a.shape[0]) - a.shape[0],), a.dtype)])
 
 
+class _Rays(NamedTuple):
+    """A program's rays as the walk reads them: origins, directions, their reciprocals (per
+    axis, signed infinity for a zero component) and the window's start."""
+
+    o: V3
+    d: V3
+    inv_d: tuple
+    t_min: jax.Array
+
+
+def _inv(x):
+    """1 / x, with x = +-0 giving +-inf (python-float constants: Triton's lowering cannot
+    negate a constant array)."""
+    return jnp.where(x == 0, jnp.where(jnp.signbit(x), -jnp.inf, jnp.inf), 1.0 / jnp.where(x == 0, 1.0, x))
+
+
+def _meets(r: _Rays, box_lo, box_hi, t_hi):
+    """(met, t0) of every ray against one box per ray (slab test, ``accel.ray_box``'s), met
+    only where the box's interval overlaps [t_min, t_hi] and the box is not empty."""
+    t0 = t1 = None
+    ok = None
+    for k in range(3):
+        ta = (box_lo[k] - r.o[k]) * r.inv_d[k]
+        tb = (box_hi[k] - r.o[k]) * r.inv_d[k]
+        a, b = jnp.minimum(ta, tb), jnp.maximum(ta, tb)
+        t0 = a if t0 is None else jnp.maximum(t0, a)
+        t1 = b if t1 is None else jnp.minimum(t1, b)
+        ok = (box_lo[k] <= box_hi[k]) if ok is None else ok & (box_lo[k] <= box_hi[k])
+    return (t0 <= t1) & (t1 >= r.t_min) & (t0 <= t_hi) & ok, t0
+
+
+def _anyv(x):
+    """Whether any lane of the boolean vector ``x`` is set (a reduction Triton lowers)."""
+    return jnp.max(x.astype(jnp.int32)) > 0
+
+
+def _to_leaf(r: _Rays, kids, n_leaves: int, node, trail, t_hi, visits):
+    """(node, trail, visits) once every ray has descended to a leaf or finished: inner nodes
+    are ``0 < node < n_leaves``, each visit gathers the node's row of child boxes from ``kids``
+    and takes ``accel.descend``'s step (near child first, bit trail)."""
+    def cond(st):
+        nd = st[0]
+        return _anyv((nd > 0) & (nd < n_leaves))
+
+    def body(st):
+        node, trail, v = st
+        walking = (node > 0) & (node < n_leaves)
+        base = jnp.where(walking, node, 0) * 12
+        row = [kids[base + k] for k in range(12)]
+        nxt, ntrail = descend(node, trail, row, lambda lo, hi: _meets(r, lo, hi, t_hi), pop)
+        return (jnp.where(walking, nxt, node), jnp.where(walking, ntrail, trail), v + walking.astype(jnp.int32))
+
+    return jax.lax.while_loop(cond, body, (node, trail, visits))
+
+
+def _outer(r: _Rays, kids, rows, order, st, *, n_leaves: int, leaf: int, widths, n_cols: int):
+    """One step of the walk: down to the next leaf (:func:`_to_leaf`), its ``leaf`` slots
+    tested in order against the best hit (the first of equal t wins, as in ``_leaf_best``),
+    then popped to the next subtree."""
+    node, trail, bt, bs, bc, bi, visits, leaves = st
+    node, trail, visits = _to_leaf(r, kids, n_leaves, node, trail, bt, visits)
+    found = node >= n_leaves
+    slot0 = (jnp.maximum(node, n_leaves) - n_leaves) * leaf
+    t_hi = bt
+    for j in range(leaf):
+        seg = _row_fields(lambda i: rows[i], slot0 + j, widths, n_cols)
+        # u_off, twist, sid, shell, v_off are shading fields _segment_t never reads: placeholders
+        seg = FrustaParams(**seg, u_off=t_hi, twist=t_hi, sid=node, shell=t_hi, v_off=t_hi)
+        tc, sc, cc = _segment_t(seg, r.o, r.d, r.t_min, t_hi)
+        better = found & (tc < bt)
+        bt = jnp.where(better, tc, bt)
+        bs = jnp.where(better, sc, bs)
+        bc = jnp.where(better, cc, bc)
+        bi = jnp.where(better, order[slot0 + j], bi)
+    pn, pt = pop(node, trail)
+    return (jnp.where(found, pn, 0), jnp.where(found, pt, trail), bt, bs, bc, bi, visits, leaves + found.astype(jnp.int32))
+
+
 def _kernel(ox, oy, oz, dx, dy, dz, tmin, tmax, kids, lo, hi, rows, order,
             t_out, s_out, c_out, i_out, v_out, l_out, *, n_leaves: int, leaf: int, widths, n_cols: int):
     """One program: ``block`` rays walk the tree (see the module docstring and ``accel.nearest``)."""
@@ -128,67 +207,13 @@ def _kernel(ox, oy, oz, dx, dy, dz, tmin, tmax, kids, lo, hi, rows, order,
     t_min, t_max = tmin[...], tmax[...]
     dt = t_min.dtype
     inf = jnp.asarray(jnp.inf, dt)
-
-    def inv(x):  # python-float constants: Triton's lowering cannot negate a constant array
-        return jnp.where(x == 0, jnp.where(jnp.signbit(x), -jnp.inf, jnp.inf), 1.0 / jnp.where(x == 0, 1.0, x))
-
-    inv_d = (inv(d[0]), inv(d[1]), inv(d[2]))
-
-    def meets(box_lo, box_hi, t_hi):
-        t0 = t1 = None
-        ok = None
-        for k in range(3):
-            ta = (box_lo[k] - o[k]) * inv_d[k]
-            tb = (box_hi[k] - o[k]) * inv_d[k]
-            a, b = jnp.minimum(ta, tb), jnp.maximum(ta, tb)
-            t0 = a if t0 is None else jnp.maximum(t0, a)
-            t1 = b if t1 is None else jnp.minimum(t1, b)
-            ok = (box_lo[k] <= box_hi[k]) if ok is None else ok & (box_lo[k] <= box_hi[k])
-        return (t0 <= t1) & (t1 >= t_min) & (t0 <= t_hi) & ok, t0
-
-    def anyv(x):
-        return jnp.max(x.astype(jnp.int32)) > 0
-
-
-    def to_leaf(node, trail, t_hi, visits):
-        def cond(st):
-            nd = st[0]
-            return anyv((nd > 0) & (nd < n_leaves))
-
-        def body(st):
-            node, trail, v = st
-            walking = (node > 0) & (node < n_leaves)
-            base = jnp.where(walking, node, 0) * 12
-            row = [kids[base + k] for k in range(12)]
-            nxt, ntrail = descend(node, trail, row, lambda lo, hi: meets(lo, hi, t_hi), pop)
-            return (jnp.where(walking, nxt, node), jnp.where(walking, ntrail, trail), v + walking.astype(jnp.int32))
-
-        return jax.lax.while_loop(cond, body, (node, trail, visits))
-
-    def outer(st):
-        node, trail, bt, bs, bc, bi, visits, leaves = st
-        node, trail, visits = to_leaf(node, trail, bt, visits)
-        found = node >= n_leaves
-        slot0 = (jnp.maximum(node, n_leaves) - n_leaves) * leaf
-        t_hi = bt
-        for j in range(leaf):  # the leaf's slots in order: the first of equal t wins, as in _leaf_best
-            seg = _row_fields(lambda i: rows[i], slot0 + j, widths, n_cols)
-            # u_off, twist, sid, shell, v_off are shading fields _segment_t never reads: placeholders
-            seg = FrustaParams(**seg, u_off=t_hi, twist=t_hi, sid=node, shell=t_hi, v_off=t_hi)
-            tc, sc, cc = _segment_t(seg, o, d, t_min, t_hi)
-            better = found & (tc < bt)
-            bt = jnp.where(better, tc, bt)
-            bs = jnp.where(better, sc, bs)
-            bc = jnp.where(better, cc, bc)
-            bi = jnp.where(better, order[slot0 + j], bi)
-        pn, pt = pop(node, trail)
-        return (jnp.where(found, pn, 0), jnp.where(found, pt, trail), bt, bs, bc, bi, visits, leaves + found.astype(jnp.int32))
-
-    root, _ = meets([lo[3 + k] for k in range(3)], [hi[3 + k] for k in range(3)], t_max)
+    r = _Rays(o, d, (_inv(d[0]), _inv(d[1]), _inv(d[2])), t_min)
+    root, _ = _meets(r, [lo[3 + k] for k in range(3)], [hi[3 + k] for k in range(3)], t_max)
     z = jnp.zeros_like(t_min)
     zi = z.astype(jnp.int32)
     st = (jnp.where(root, 1, 0).astype(jnp.int32), zi.astype(jnp.uint32), jnp.minimum(inf + z, t_max), z, zi + SIDE, zi - 1, zi, zi)
-    st = jax.lax.while_loop(lambda st: anyv(st[0] > 0), outer, st)
+    outer = functools.partial(_outer, r, kids, rows, order, n_leaves=n_leaves, leaf=leaf, widths=widths, n_cols=n_cols)
+    st = jax.lax.while_loop(lambda st: _anyv(st[0] > 0), outer, st)
     _, _, bt, bs, bc, bi, visits, leaves = st
     t_out[...] = bt
     s_out[...] = bs
@@ -196,7 +221,6 @@ def _kernel(ox, oy, oz, dx, dy, dz, tmin, tmax, kids, lo, hi, rows, order,
     i_out[...] = jnp.where(jnp.isfinite(bt), bi, -1)
     v_out[...] = visits
     l_out[...] = leaves
-
 
 
 @functools.partial(jax.jit, static_argnames=("f_shape", "leaf", "block", "num_warps", "interpret"))
