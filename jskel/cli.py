@@ -1,4 +1,4 @@
-"""Command line: ``python -m jskel render|bench|sweep|fit ...``: parses arguments and calls.
+"""Command line: ``python -m jskel render|bench|sweep|fit|export ...``: parses arguments and calls.
 
 ``bench`` and ``sweep`` are ``jskel.measure`` (one harness: timing, grid, plots, experiment
 loading), ``fit`` is ``jskel.fit``. Every bad input (unknown key, wrong type, bad value, bad
@@ -114,6 +114,20 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def cmd_export(args) -> int:
+    """``jskel export EXPERIMENT --out mesh.ply``: the frusta object as a triangle mesh
+    (``jskel.frusta.export_mesh``)."""
+    from . import frusta
+
+    frusta.mesh_format(args.out, "--out")  # the extension, before loading anything
+    exp, obj = load_experiment(args.experiment, args.set)
+    if exp.is_scene or not isinstance(obj, frusta.FrustaConfig):
+        raise ConfigError([f"object.type: export writes a single skeleton object (got {'a scene' if exp.is_scene else repr(obj.type)})"])
+    info = frusta.export_mesh(args.out, obj, args.level, "--out")
+    print(f"jskel: exported {info['segments']} segments at level {info['level']}: {info['faces']} triangles -> {info['path']}")
+    return 0
+
+
 def _command(sub, name: str, help: str, file_help: tuple, set_help: str, x64_help: str, progress: bool = False):
     """A subcommand with its input file, ``--set`` overrides, ``--x64`` and (optionally) progress."""
     c = sub.add_parser(name, help=help)
@@ -150,6 +164,12 @@ def parser() -> argparse.ArgumentParser:
                  "override a fit key", "fit in float64")
     f.add_argument("--out", required=True, help="output folder")
     f.set_defaults(func=cmd_fit)
+    e = sub.add_parser("export", help="write a skeleton object's frusta as a triangle mesh (.ply, .obj, .glb, .stl)")
+    e.add_argument("experiment", help="experiment YAML")
+    e.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key (repeatable)")
+    e.add_argument("--out", required=True, help="mesh file; its extension picks the format")
+    e.add_argument("--level", type=int, default=2, help="subdivision level m: 16 x 4^m triangles a segment (Table 1)")
+    e.set_defaults(func=cmd_export)
     return ap
 
 

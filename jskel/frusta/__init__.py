@@ -5,6 +5,7 @@ Public API:
 * :func:`build` (host) validates a skeleton and returns a :class:`jskel.interface.Built`;
 * :func:`intersect_one` / :func:`intersect` ray cast it (pure, jit/vmap friendly);
 * :func:`frusta_from_skeleton` is the array-level entry point for scripts and notebooks;
+* :func:`frusta_mesh` tessellates frusta (Table 1's mesh), :func:`export_mesh` writes it (PLY, OBJ, glTF);
 * :func:`segment_axes`, :func:`joint_planes`, :func:`cutting_planes` are the geometry (JAX,
   differentiable) that the host build, the device rebuild and the fit share;
 * ``REPRESENTATION`` is what the registry hands to the renderer."""
@@ -35,6 +36,9 @@ from ._build import build_frusta as build_frusta
 from ._scene import cast as cast
 from ._geometry import cutting_planes as cutting_planes
 from ._edits import frusta_from_skeleton as frusta_from_skeleton
+from ._export import export_mesh as export_mesh
+from ._export import frusta_mesh as frusta_mesh
+from ._export import mesh_format as mesh_format
 from ._edits import host_frusta as host_frusta
 from ._scene import inside as inside
 from ._scene import intersect as intersect
@@ -52,4 +56,4 @@ from ._skeleton import topology as topology
 from ._scene import traversal_stats as traversal_stats
 from ._skeleton import validate_skeleton as validate_skeleton
 
-__all__ = ["ANIMATED", "ELLIPSE_MARGIN", "FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaPayload", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cast", "cone_sin", "cutting_planes", "frusta_from_skeleton", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "joint_planes", "load_height_map", "make_group", "minor_semi_axis", "rebuilder", "relief_memory", "rim_points", "segment_axes", "skeleton_arrays", "surface", "to_params", "topology", "traversal_stats", "validate_skeleton"]
+__all__ = ["ANIMATED", "ELLIPSE_MARGIN", "FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaPayload", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cast", "cone_sin", "cutting_planes", "export_mesh", "frusta_from_skeleton", "frusta_mesh", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "joint_planes", "load_height_map", "make_group", "mesh_format", "minor_semi_axis", "rebuilder", "relief_memory", "rim_points", "segment_axes", "skeleton_arrays", "surface", "to_params", "topology", "traversal_stats", "validate_skeleton"]

@@ -2,7 +2,7 @@
 by Embree, and Mitsuba 3's round linear curves, on the rays jskel casts.
 
 Embree (Bhagvat et al. 2009, Sec. 4, Table 1 "GS"): before subdivision the paper rasterizes 16
-triangles per conical segment, and 16 n x 4^m after m subdivisions. :func:`frusta_mesh` builds
+triangles per conical segment, and 16 n x 4^m after m subdivisions. :func:`frusta_mesh` (``jskel.frusta``) builds
 exactly that lateral surface from jskel's own frusta (the same cutting planes, so neighbouring
 segments share their seam ellipse): 8 x 2^m generators around, 2^m rings along, two triangles a
 quad; free ends are closed by fans (reported in the triangle count). Vertices lie on the cone, so
@@ -26,52 +26,14 @@ import time
 
 import numpy as np
 
+from ..frusta import frusta_mesh as frusta_mesh  # the one tessellation, shared with the mesh export
+
+__all__ = ["EmbreeMesh", "LLVM15", "MitsubaCurves", "TABLE1_GS_LEVEL", "curve_points", "frusta_mesh"]
+
 #: Table 1's subdivision level m for "similar quality" (GS column) per scene generator
 TABLE1_GS_LEVEL = {"palm": 1, "pine": 1, "lsystem_tree": 1, "aloe": 2, "saguaro": 2, "well": 2, "oasis": 0, "dancing_cacti": 0}
 
 LLVM15 = "/usr/lib/x86_64-linux-gnu/libLLVM-15.so.1"
-
-
-def frusta_mesh(arr, level: int):
-    """(vertices (V,3) float64, faces (F,3) int64) of every frustum in ``arr`` (``FrustaArrays``,
-    world space): 16 x 4^level lateral triangles per segment, plus fans on capped ends."""
-    s = arr.h.shape[0]
-    nu, nv = 8 * 2**level, 2**level
-    theta = 2 * np.pi * np.arange(nu) / nu
-    radial = np.cos(theta)[None, :, None] * arr.u[:, None, :] + np.sin(theta)[None, :, None] * arr.w[:, None, :]  # (S,nu,3)
-    k = (arr.r2 - arr.r1) / arr.h
-    base = arr.c1[:, None, :] + arr.r1[:, None, None] * radial
-    g = arr.m[:, None, :] + k[:, None, None] * radial  # generator direction (unit y step)
-
-    def cut(n, d):  # parameter y where each generator meets the plane n . (P - C1) = d
-        den = np.einsum("sk,sak->sa", n, g)
-        return (d[:, None] - np.einsum("sk,sak->sa", n, base - arr.c1[:, None, :])) / np.where(den == 0, 1.0, den)
-
-    yl, yu = cut(arr.nb, arr.db), cut(arr.nt, arr.dt)
-    v = np.arange(nv + 1) / nv
-    y = yl[:, None, :] + v[None, :, None] * (yu - yl)[:, None, :]  # (S, nv+1, nu)
-    P = base[:, None] + y[..., None] * g[:, None]  # (S, nv+1, nu, 3)
-    per = (nv + 1) * nu
-    i = np.arange(nv)[:, None]
-    j = np.arange(nu)[None, :]
-    a = i * nu + j
-    b = i * nu + (j + 1) % nu
-    quad = np.concatenate([np.stack([a, b, b + nu], -1).reshape(-1, 3), np.stack([a, b + nu, a + nu], -1).reshape(-1, 3)])
-    faces = [(quad[None] + (np.arange(s) * per)[:, None, None]).reshape(-1, 3)]
-    verts = [P.reshape(-1, 3)]
-    off = s * per
-    for capped, row, n, dist, flip in ((arr.cap_b, 0, arr.nb, arr.db, False), (arr.cap_t, nv, arr.nt, arr.dt, True)):
-        ids = np.nonzero(capped)[0]
-        if ids.size == 0:
-            continue
-        centre = arr.c1[ids] + arr.m[ids] * (dist[ids] / np.sum(n[ids] * arr.m[ids], -1))[:, None]
-        verts.append(centre)
-        c = off + np.arange(ids.size)
-        ring = ids[:, None] * per + row * nu + np.arange(nu)[None, :]
-        fan = np.stack([np.broadcast_to(c[:, None], ring.shape), np.roll(ring, -1, axis=1), ring], -1).reshape(-1, 3)
-        faces.append(fan[:, [0, 2, 1]] if flip else fan)
-        off += ids.size
-    return np.concatenate(verts), np.concatenate(faces).astype(np.int64)
 
 
 class EmbreeMesh:
