@@ -303,6 +303,37 @@ def test_bad_file_settings_are_one_line_and_exit_2(tmp_path, capsys, no_compile,
         assert n in err[0], (n, err[0])
 
 
+FOLDS = """# a duplicate node (merged by repair) and an unknown radius (the parent's), then a fold back
+10 3 0 0 0 1 -1
+20 3 0 10 0 1 10
+21 3 0 10 0 1 20
+30 3 0 5 0 0 21
+"""
+
+
+@pytest.mark.parametrize("repair, needle", [
+    # after repair the nodes are 10, 20, 30 (rows 0, 1, 2): node 30 turns back 180 degrees at 20
+    ("", ["object.skeleton.file node id 20 (line 3): object.skeleton.joints[1]: ", "folds back"]),
+    # kept, the duplicate node 21 (row 2, line 4) ends a zero-length segment from 20
+    (", repair: {merge_zero_length: false}", ["object.skeleton.file node id 21 (line 4): object.skeleton.joints[2]: ",
+                                               "zero-length segment 1 -> 2 (node ids 20 -> 21)"]),
+])
+def test_a_problem_repair_leaves_names_the_file_node_id_and_line(tmp_path, capsys, no_compile, repair, needle):
+    swc = _write(tmp_path, "folds.swc", FOLDS)
+    rc = cli.main(["render", _experiment(tmp_path, f"{{file: {swc}{repair}}}"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert err[0].startswith("jskel: error: " + needle[0]) and needle[1] in err[0], err[0]
+
+
+def test_node_lines_are_the_files_lines(tmp_path):
+    csv = _write(tmp_path, "n.csv", "node_id,x,y,z,radius,parent_id\n5,0,0,0,1,-1\n\n6,0,1,0,1,5\n7,0,2,0,1,6\n")
+    np.testing.assert_array_equal(read_node_table(csv).lines, [2, 4, 5])
+    np.testing.assert_array_equal(read_swc(_write(tmp_path, "f.swc", FOLDS)).lines, [2, 3, 4, 5])
+    fixed, _ = repair(read_swc(_write(tmp_path, "f.swc", FOLDS)))
+    np.testing.assert_array_equal(fixed.lines, [2, 3, 5])  # node 21 merged away
+
+
 DATA = Path(__file__).resolve().parent / "data" / "swc"
 
 

@@ -57,6 +57,7 @@ def test_treeqsm_export_with_its_header(tmp_path):
     sk = read_qsm(_write(tmp_path, "cylinder_tree.txt", ["\t".join(TREEQSM_HEADER)] + rows))
     _check(sk)
     np.testing.assert_array_equal(sk.labels, LABELS)
+    np.testing.assert_array_equal(sk.lines, [2, 3, 4, 5, 2, 4])  # a joint's line is its cylinder's
 
 
 def test_treeqsm_headerless_and_short_tables(tmp_path):

@@ -31,6 +31,11 @@ def file_arrays(sk: SkeletonConfig):
     ``colors`` are given; ``repairs`` is the policy and the repair report, for ``run.json``."""
     policy = sk.repair if sk.repair is not None else skeletons.RepairPolicy()
     s, report = skeletons.load(sk.file, sk.format, policy, _FILE_PATH)
+    try:  # what repair leaves for the build to reject, named by the file's node ids and lines
+        j, _, p = validate_skeleton(s.joints, s.radii, s.parents, "object.skeleton")
+        topology(j, p, "object.skeleton")
+    except ValueError as e:
+        raise ValueError(skeletons.name_nodes(str(e), s, "object.skeleton", _FILE_PATH)) from None
     colors = None
     if sk.colors is not None:
         colors = np.asarray(sk.colors, np.float64)

@@ -6,11 +6,14 @@
   ValueError that lists every problem;
 * :func:`load` reads by format (``auto``: by extension) and repairs;
 * :func:`write_swc` writes any skeleton (:func:`from_arrays` wraps index arrays, e.g. a fit's)
-  as SWC; :func:`label_colors` colours SWC types by ``TYPE_COLORS``.
+  as SWC; :func:`label_colors` colours SWC types by ``TYPE_COLORS``;
+* :func:`name_nodes` names the file's node id and line in an error about a joint index.
 """
 
 from ._load import format_of as format_of
 from ._load import load as load
+from ._names import name_nodes as name_nodes
+from ._names import node_name as node_name
 from ._nodes import read_node_table as read_node_table
 from ._qsm import read_qsm as read_qsm
 from ._repair import RepairPolicy as RepairPolicy
@@ -26,4 +29,4 @@ from ._types import from_arrays as from_arrays
 from ._types import label_colors as label_colors
 
 __all__ = ["CUSTOM_COLOR", "MISSING", "RepairPolicy", "Skeleton", "TYPE_COLORS", "format_of", "from_arrays", "label_colors",
-           "load", "problems", "read_node_table", "read_qsm", "read_swc", "repair", "write_swc"]
+           "load", "name_nodes", "node_name", "problems", "read_node_table", "read_qsm", "read_swc", "repair", "write_swc"]

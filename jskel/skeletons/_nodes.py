@@ -78,7 +78,9 @@ def _ints(values: np.ndarray, what: str, field: str, first_line: int, empty: int
 def read_node_table(path, field: str = "skeleton.file") -> Skeleton:
     """Read a CSV node table into a ``Skeleton`` (row order, original ids, labels from an
     integer type column or 0). Nothing is repaired (see ``read_swc``)."""
-    rows = [r for r in csv.reader(io.StringIO(_read_text(path, field))) if any(c.strip() for c in r)]
+    reader = csv.reader(io.StringIO(_read_text(path, field)))
+    numbered = [(reader.line_num, r) for r in reader if any(c.strip() for c in r)]  # (line, cells)
+    rows = [r for _, r in numbered]
     if len(rows) < 2:
         raise ValueError(f"{field}: expected a header line and at least one node")
     header, body = rows[0], rows[1:]
@@ -98,4 +100,5 @@ def read_node_table(path, field: str = "skeleton.file") -> Skeleton:
         if all(c.lstrip("-").isdigit() for c in cells):  # navis' node types ("root", "slab") are not labels
             labels = np.asarray([int(c) for c in cells], np.int64)
     joints = np.stack([col["x"], col["y"], col["z"]], axis=1)
-    return Skeleton(joints, col["radius"], resolve_parents(ids, parent_ids), labels, ids, parent_ids)
+    lines = np.asarray([n for n, _ in numbered[1:]], np.int64)
+    return Skeleton(joints, col["radius"], resolve_parents(ids, parent_ids), labels, ids, parent_ids, lines)

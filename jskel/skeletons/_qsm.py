@@ -216,4 +216,5 @@ def read_qsm(path, field: str = "skeleton.file", join: float = JOIN) -> Skeleton
     order = v[:, where["order"]].astype(np.int64) if "order" in where else np.zeros(n, np.int64)
     labels = np.concatenate([order, order[own]])
     ids = np.concatenate([np.arange(1, n + 1), n + 1 + own]).astype(np.int64)
-    return Skeleton(joints, radii, parents, labels, ids, np.where(parents >= 0, ids[np.maximum(parents, 0)], -1))
+    lines = np.concatenate([lines, lines[own]]).astype(np.int64)  # a joint's line: its cylinder's
+    return Skeleton(joints, radii, parents, labels, ids, np.where(parents >= 0, ids[np.maximum(parents, 0)], -1), lines)

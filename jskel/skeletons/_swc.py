@@ -79,7 +79,7 @@ def read_swc(path, field: str = "skeleton.file") -> Skeleton:
     labels = _integers(v[:, 1], lines, "type", field)
     parent_ids = _integers(v[:, 6], lines, "parent", field)
     parent_ids = np.where(parent_ids < 0, -1, parent_ids)
-    return Skeleton(v[:, 2:5].copy(), v[:, 5].copy(), resolve_parents(ids, parent_ids), labels, ids, parent_ids)
+    return Skeleton(v[:, 2:5].copy(), v[:, 5].copy(), resolve_parents(ids, parent_ids), labels, ids, parent_ids, lines.astype(np.int64))
 
 
 def _header() -> list[str]:

@@ -3,7 +3,7 @@
 ``Skeleton`` is what every reader returns and every writer takes. Nodes keep the order of the
 file; ``parents`` are row indices (-1 for a root, ``MISSING`` where the file names a parent id
 that no node has), ``ids`` and ``parent_ids`` the numbers the file used, so every report and
-error can name a node as the file does. ``labels`` are SWC structure types (Cannon et al. 1998;
+error can name a node as the file does; ``lines`` the line of the file each node came from. ``labels`` are SWC structure types (Cannon et al. 1998;
 0 where the format has none); :func:`label_colors` turns them into colours by ``TYPE_COLORS``.
 """
 
@@ -37,6 +37,7 @@ class Skeleton(NamedTuple):
     labels: np.ndarray  # (J,) int64 SWC type (0: undefined)
     ids: np.ndarray  # (J,) int64 node ids as in the file
     parent_ids: np.ndarray  # (J,) int64 parent ids as in the file (-1 for a root)
+    lines: np.ndarray | None = None  # (J,) int64 line of the file each node was read from (None: not from a file)
 
 
 def from_arrays(joints, radii, parents, labels=None, ids=None) -> Skeleton:
@@ -89,7 +90,8 @@ def subset(sk: Skeleton, keep: np.ndarray) -> Skeleton:
     row = np.cumsum(keep) - 1
     q = np.where(new_parent >= 0, row[np.maximum(new_parent, 0)], -1)[keep]
     ids = sk.ids[keep]
-    return Skeleton(sk.joints[keep], sk.radii[keep], q, sk.labels[keep], ids, np.where(q >= 0, ids[np.maximum(q, 0)], -1))
+    lines = None if sk.lines is None else sk.lines[keep]
+    return Skeleton(sk.joints[keep], sk.radii[keep], q, sk.labels[keep], ids, np.where(q >= 0, ids[np.maximum(q, 0)], -1), lines)
 
 
 def root_of(parents: np.ndarray) -> np.ndarray:
