@@ -28,6 +28,7 @@ generator, L its length between the cutting planes).
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -151,83 +152,115 @@ def enters_shell(seg: FrustaParams, o, d, t_min, t_max):
 
 def make_relief_t(maps: ReliefMaps, q: ReliefQuality):
     """Per-segment relief test ``(seg, o, d, t_min, t_max) -> (t, s, code)`` for nearest_*."""
+    return functools.partial(_relief_t, maps, q)
+
+
+def _relief_t(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, o, d, t_min, t_max):
+    """(t, s, code) of one ray against one relief segment (Sec. 3): the ray's interval in the
+    shell (:func:`_shell_window`), marched (:func:`_march`) and bisected (:func:`_bisect`) for
+    its first crossing of the relief surface; inf where it has none in (t_min, t_max]."""
     n_steps, n_bis = int(q.steps), int(q.bisection)
+    inf = jnp.asarray(jnp.inf, o.dtype)
+    t0, e, s_a, s_b, ok, entry, from_outside = _shell_window(seg, o, d, t_min, t_max)
+    gap = _gap_of(maps, q, seg, e, d, s_a, s_b)
 
-    def relief_t(seg: FrustaParams, o, d, t_min, t_max):
-        inf = jnp.asarray(jnp.inf, o.dtype)
-        t0, e = recentre(seg, o, d)
-        s_in, s_out, ok, entry = shell_interval(seg, e, d)
-        lo_lim = t_min - t0
-        s_a = jnp.maximum(s_in, lo_lim)
-        s_b = jnp.minimum(s_out, t_max - t0)
-        ok = ok & (s_a < s_b) & seg.valid & (seg.shell > 0)
-        s_a = jnp.where(ok, s_a, 0.0)
-        s_b = jnp.where(ok, s_b, 1.0)
-        from_outside = s_in > lo_lim
-        k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
-        if q.uv == "approximate":
-            v_a = exact_v(seg, e + s_a * d)[0]
-            v_b = exact_v(seg, e + s_b * d)[0]
+    def below(s):
+        return gap(s) <= 0  # exactly w <= h: a float difference is 0 only when equal
 
-        def gap(s):
-            """w - h: negative below the relief surface (Eq. 11-12 against the map)."""
-            p = e + s * d
-            y = dot3(p, seg.m)
-            x, z = dot3(p, seg.u), dot3(p, seg.w)
-            rho = safe_sqrt(x * x + z * z)
-            w = safe_div(rho - (seg.r1 + k * y), seg.shell, 0.0)  # Eq. 11-12
-            if q.uv == "exact":
-                v = exact_v(seg, p)[0]
-            else:
-                v = v_a + (v_b - v_a) * safe_div(s - s_a, s_b - s_a, 0.0)
-            u = _angle_u(seg, p, v)
-            hgt = sample_height(maps, u * maps.scale[0], (v + seg.v_off) * maps.scale[1], q.v_mode)
-            return w - hgt
+    b0 = below(s_a)
+    inside0 = (~from_outside) & b0  # the march starts below the relief surface
+    hit_at_entry = from_outside & b0
+    found, lo, hi = _march(below, inside0, hit_at_entry, s_a, s_b, n_steps, q.early_exit)
+    if n_bis > 0:
+        lo, hi = _bisect(below, inside0, lo, hi, n_bis)
+    # the crossing found by the march and bisection, differentiable by the implicit-function
+    # theorem (numerics.differentiable_root); an entry hit is the shell's own analytic root
+    s_hit = jnp.where(hit_at_entry, s_a, differentiable_root(gap, 0.5 * (lo + hi)))
+    t = t0 + s_hit
+    good = ok & found & (t > t_min) & (t <= t_max)
+    code = jnp.where(hit_at_entry, entry, RELIEF)
+    return jnp.where(good, t, inf), s_hit, code.astype(jnp.int32)
 
-        def below(s):
-            return gap(s) <= 0  # exactly w <= h: a float difference is 0 only when equal
 
-        b0 = below(s_a)
-        inside0 = (~from_outside) & b0  # the march starts below the relief surface
-        hit_at_entry = from_outside & b0
-        ds = (s_b - s_a) / n_steps
+def _shell_window(seg: FrustaParams, o, d, t_min, t_max):
+    """(t0, e, s_a, s_b, ok, entry, from_outside): the ray recentred on the segment (o + t0 d
+    = C1 + e), its part [s_a, s_b] inside the shell and (t_min, t_max] (ok: not empty; where it
+    is, [0, 1] keeps the march finite), the shell's entry code, and whether the ray enters the
+    shell within its window rather than starting inside it."""
+    t0, e = recentre(seg, o, d)
+    s_in, s_out, ok, entry = shell_interval(seg, e, d)
+    lo_lim = t_min - t0
+    s_a = jnp.maximum(s_in, lo_lim)
+    s_b = jnp.minimum(s_out, t_max - t0)
+    ok = ok & (s_a < s_b) & seg.valid & (seg.shell > 0)
+    s_a = jnp.where(ok, s_a, 0.0)
+    s_b = jnp.where(ok, s_b, 1.0)
+    from_outside = s_in > lo_lim
+    return t0, e, s_a, s_b, ok, entry, from_outside
 
-        def visit(i, carry):
-            found, lo, hi = carry
-            s_i = s_a + ds * i
-            c = (~found) & (below(s_i) != inside0)
-            return found | c, jnp.where(c, s_i - ds, lo), jnp.where(c, s_i, hi)
 
-        init = (hit_at_entry, s_a, s_a)
-        if q.early_exit:
-            def cond(st):
-                return (st[0] < n_steps + 1) & ~st[1][0]
+def _gap_of(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, e, d, s_a, s_b):
+    """``gap(s)`` = w - h at e + s d: negative below the relief surface (Eq. 11-12 against the
+    map), (u, v) exact per sample or, ``approximate``, v linear between the window's ends."""
+    k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
+    if q.uv == "approximate":
+        v_a = exact_v(seg, e + s_a * d)[0]
+        v_b = exact_v(seg, e + s_b * d)[0]
 
-            def body(st):
-                i, carry = st
-                return i + 1, visit(i, carry)
-
-            _, (found, lo, hi) = jax.lax.while_loop(cond, body, (jnp.int32(1), init))
+    def gap(s):
+        p = e + s * d
+        y = dot3(p, seg.m)
+        x, z = dot3(p, seg.u), dot3(p, seg.w)
+        rho = safe_sqrt(x * x + z * z)
+        w = safe_div(rho - (seg.r1 + k * y), seg.shell, 0.0)  # Eq. 11-12
+        if q.uv == "exact":
+            v = exact_v(seg, p)[0]
         else:
-            found, lo, hi = jax.lax.fori_loop(1, n_steps + 1, visit, init)
+            v = v_a + (v_b - v_a) * safe_div(s - s_a, s_b - s_a, 0.0)
+        u = _angle_u(seg, p, v)
+        hgt = sample_height(maps, u * maps.scale[0], (v + seg.v_off) * maps.scale[1], q.v_mode)
+        return w - hgt
 
-        def bis(_, lh):
-            lo, hi = lh
-            mid = 0.5 * (lo + hi)
-            c = below(mid) != inside0
-            return jnp.where(c, lo, mid), jnp.where(c, mid, hi)
+    return gap
 
-        if n_bis > 0:
-            lo, hi = jax.lax.fori_loop(0, n_bis, bis, (lo, hi))
-        # the crossing found by the march and bisection, differentiable by the implicit-function
-        # theorem (numerics.differentiable_root); an entry hit is the shell's own analytic root
-        s_hit = jnp.where(hit_at_entry, s_a, differentiable_root(gap, 0.5 * (lo + hi)))
-        t = t0 + s_hit
-        good = ok & found & (t > t_min) & (t <= t_max)
-        code = jnp.where(hit_at_entry, entry, RELIEF)
-        return jnp.where(good, t, inf), s_hit, code.astype(jnp.int32)
 
-    return relief_t
+def _march(below, inside0, hit_at_entry, s_a, s_b, n_steps: int, early_exit: bool):
+    """(found, lo, hi): ``n_steps`` uniform samples of [s_a, s_b] (Sec. 3), the first bracket
+    [lo, hi] where ``below`` changes from its value at the start; ``early_exit`` stops the
+    loop once found (a ``while_loop``), else a ``fori_loop`` of exactly ``n_steps``."""
+    ds = (s_b - s_a) / n_steps
+
+    def visit(i, carry):
+        found, lo, hi = carry
+        s_i = s_a + ds * i
+        c = (~found) & (below(s_i) != inside0)
+        return found | c, jnp.where(c, s_i - ds, lo), jnp.where(c, s_i, hi)
+
+    init = (hit_at_entry, s_a, s_a)
+    if early_exit:
+        def cond(st):
+            return (st[0] < n_steps + 1) & ~st[1][0]
+
+        def body(st):
+            i, carry = st
+            return i + 1, visit(i, carry)
+
+        _, (found, lo, hi) = jax.lax.while_loop(cond, body, (jnp.int32(1), init))
+    else:
+        found, lo, hi = jax.lax.fori_loop(1, n_steps + 1, visit, init)
+    return found, lo, hi
+
+
+def _bisect(below, inside0, lo, hi, n_bis: int):
+    """The bracket [lo, hi] halved ``n_bis`` times, keeping the half where ``below`` changes
+    (Sec. 3's bisectional search)."""
+    def bis(_, lh):
+        lo, hi = lh
+        mid = 0.5 * (lo + hi)
+        c = below(mid) != inside0
+        return jnp.where(c, lo, mid), jnp.where(c, mid, hi)
+
+    return jax.lax.fori_loop(0, n_bis, bis, (lo, hi))
 
 
 def make_relief_finish(maps: ReliefMaps, q: ReliefQuality):
