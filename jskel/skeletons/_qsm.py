@@ -54,19 +54,25 @@ SHOW = 5  # rows named per problem
 AXIS_TOLERANCE = 1e-3  # | |axis| - 1 | allowed (TreeQSM rounds axes to 1e-4 per component)
 JOIN = 0.5  # a start within JOIN * parent radius of the parent's end continues the parent
 
-#: header names (lower case, units dropped) -> column keys; a tuple value spans three columns
-NAMES = {
-    "radius": "radius", "r": "radius", "rad": "radius",
-    "length": "length", "len": "length",
-    "parent": "parent", "parent_id": "parent", "parent_cylinder": "parent",
-    "branch_order": "order", "branchorder": "order", "order": "order", "bo": "order",
-}
-for _key, _aliases in (("start", ("start", "start_point", "startpoint")), ("axis", ("axis", "axis_direction")),
-                       ("end", ("end", "end_point", "endpoint"))):
-    _short = _key[0] if _key != "axis" else "a"
-    for _k, _c in enumerate("xyz"):
-        NAMES.update({f"{_key}_{_c}": f"{_key}{_k}", f"{_key}{_c}": f"{_key}{_k}", f"{_short}{_c}": f"{_key}{_k}"})
-    NAMES.update({a: tuple(f"{_key}{k}" for k in range(3)) for a in _aliases})
+def _header_names() -> dict:
+    """Header names (lower case, units dropped) -> column keys; a tuple value spans three
+    columns (TreeQSM's ``start_point``, ``axis_direction``)."""
+    names = {
+        "radius": "radius", "r": "radius", "rad": "radius",
+        "length": "length", "len": "length",
+        "parent": "parent", "parent_id": "parent", "parent_cylinder": "parent",
+        "branch_order": "order", "branchorder": "order", "order": "order", "bo": "order",
+    }
+    for key, short, aliases in (("start", "s", ("start", "start_point", "startpoint")), ("axis", "a", ("axis", "axis_direction")),
+                                ("end", "e", ("end", "end_point", "endpoint"))):
+        for k, c in enumerate("xyz"):
+            names.update({f"{key}_{c}": f"{key}{k}", f"{key}{c}": f"{key}{k}", f"{short}{c}": f"{key}{k}"})
+        names.update({a: tuple(f"{key}{k}" for k in range(3)) for a in aliases})
+    return names
+
+
+#: header names (lower case, units dropped) -> column keys
+NAMES = _header_names()
 #: TreeQSM's headerless column order (save_model_text.m, versions 1.0.0 and 1.1.0)
 TREEQSM = ("radius", "length", "start0", "start1", "start2", "axis0", "axis1", "axis2", "parent",
            "extension", "branch", "order")
