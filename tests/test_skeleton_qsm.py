@@ -89,6 +89,25 @@ def test_rounded_axis_is_normalised(tmp_path):
     np.testing.assert_array_equal(sk.parents, [1, -1])
 
 
+def test_an_extension_continues_its_parent_across_treeqsms_gap(tmp_path):
+    # cylinder 2 starts 0.6 parent radii across the axis from cylinder 1's end (TreeQSM fits
+    # cylinders one by one); with TreeQSM's extension column naming it (1 -> 2) it starts at
+    # cylinder 1's end joint; without the column, or 5 radii away, it is a cylinder of its own
+    def table(offset, extension=True):
+        rows = [[0.5, 2, 0, 0, 0, 0, 0, 1, 0, 2], [0.4, 1, offset, 0, 2, 0, 0, 1, 1, 0]]
+        return [" ".join(map(str, r if extension else r[:9])) for r in rows]
+
+    sk = read_qsm(_write(tmp_path, "x.txt", table(0.3)))
+    np.testing.assert_array_equal(sk.joints, [[0, 0, 2], [0.3, 0, 3], [0, 0, 0]])
+    np.testing.assert_array_equal(sk.parents, [2, 0, -1])
+    np.testing.assert_array_equal(sk.radii, [0.5, 0.4, 0.5])
+    for lines in (table(0.3, extension=False), table(2.5)):
+        sk = read_qsm(_write(tmp_path, "y.txt", lines))
+        np.testing.assert_array_equal(sk.parents, [2, 3, -1, -1])
+        np.testing.assert_array_equal(sk.ids, [1, 2, 3, 4])
+        np.testing.assert_array_equal(sk.joints[3], [float(lines[1].split()[2]), 0, 2])
+
+
 def test_every_bad_cylinder_in_one_error(tmp_path):
     good = "0.2 1 0 0 0 0 0 1 0"
     lines = [good,

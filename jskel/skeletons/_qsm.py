@@ -30,14 +30,20 @@ then they are 0-based with -1 for none.
 
 Cylinders to a ``Skeleton``: cylinder i (1-based, the row of the table) ends at joint id i,
 placed at ``start + length * axis`` (``axis`` normalised), with the cylinder's radius. A cylinder
-whose start lies within ``join`` times its parent's radius of the parent's end (an extension,
-TreeQSM's next cylinder of a branch) starts at that joint, so consecutive cylinders of radii
-r_p, r_i render as a frustum tapering from r_p to r_i (Bhagvat et al. 2009, Sec. 3's cones
-through the joints' radii). Any other cylinder (a root, or a branch's first cylinder, which
-TreeQSM places on its parent's surface part way along it, ``cylinders.m: parent_cylinder``)
-gets its own start joint, id N + i, radius r_i, as a root: a cylinder of its own, touching its
-parent as TreeQSM's own plots draw it. Labels are the branch order (0 where the table has
-none).
+continues its parent, starting at the parent's end joint, where its start lies within ``join``
+(0.5) parent radii of the parent's end, or within 4 where the table has TreeQSM's ``extension``
+column and the parent names it as its extension: TreeQSM fits every cylinder on its own, so
+consecutive cylinders of a branch do not meet exactly (in TreeQSM's example model,
+``src/results/qsm.mat``, 7471 cylinders, the gap from a parent's end to its extension's start
+has median 0.62 and 99th percentile 7.9 parent radii, mostly across the axis: -2.5 to 2.3 radii
+along it; 97% of the 5903 extensions lie within 4, and 5713 of the cylinders continue their
+parent). Consecutive cylinders of radii r_p, r_i then render as a frustum tapering from r_p to
+r_i (Bhagvat et al. 2009, Sec. 3's cones through the joints' radii), the child's start moved to
+its parent's end. Any other cylinder (a root, a branch's first cylinder, which TreeQSM places on
+its parent's surface part way along it, ``cylinders.m: parent_cylinder``, or an extension
+beyond the gap) gets its own start joint, id N + i, radius r_i, as a root: a cylinder of its
+own, touching its parent as TreeQSM's own plots draw it. Labels are the branch order (0 where
+the table has none).
 """
 
 from __future__ import annotations
@@ -53,6 +59,7 @@ from ._types import Skeleton
 SHOW = 5  # rows named per problem
 AXIS_TOLERANCE = 1e-3  # | |axis| - 1 | allowed (TreeQSM rounds axes to 1e-4 per component)
 JOIN = 0.5  # a start within JOIN * parent radius of the parent's end continues the parent
+JOIN_EXTENSION = 4.0  # ... and within 4 parent radii where the parent names it as its extension
 
 def _header_names() -> dict:
     """Header names (lower case, units dropped) -> column keys; a tuple value spans three
@@ -62,6 +69,7 @@ def _header_names() -> dict:
         "length": "length", "len": "length",
         "parent": "parent", "parent_id": "parent", "parent_cylinder": "parent",
         "branch_order": "order", "branchorder": "order", "order": "order", "bo": "order",
+        "extension": "extension", "extension_cylinder": "extension",
     }
     for key, short, aliases in (("start", "s", ("start", "start_point", "startpoint")), ("axis", "a", ("axis", "axis_direction")),
                                 ("end", "e", ("end", "end_point", "endpoint"))):
@@ -73,6 +81,7 @@ def _header_names() -> dict:
 
 #: header names (lower case, units dropped) -> column keys
 NAMES = _header_names()
+OPTIONAL = ("extension", "order")  # read where every row holds them
 #: TreeQSM's headerless column order (save_model_text.m, versions 1.0.0 and 1.1.0)
 TREEQSM = ("radius", "length", "start0", "start1", "start2", "axis0", "axis1", "axis2", "parent",
            "extension", "branch", "order")
@@ -112,11 +121,11 @@ def _table(text: str, field: str) -> tuple[dict[str, int], np.ndarray, np.ndarra
     first = lines[0][1]
     try:
         [float(w) for w in first]
-        where = {k: i for i, k in enumerate(TREEQSM) if k in ("radius", "length", "parent", "order") or k[-1].isdigit()}
+        where = {k: i for i, k in enumerate(TREEQSM) if k != "branch"}
     except ValueError:
         where = _columns(first, field)
         lines = lines[1:]
-    order = where.pop("order", None)
+    optional = {k: where.pop(k) for k in OPTIONAL if k in where}
     width = max(where.values()) + 1
     bad, rows, nums = [], [], []
     for k, words in lines:  # host parsing of the file's lines
@@ -132,9 +141,9 @@ def _table(text: str, field: str) -> tuple[dict[str, int], np.ndarray, np.ndarra
     if bad:
         raise ValueError(f"{field}: expected at least {width} numbers a line ({'; '.join(bad[:SHOW])}"
                          f"{f', ... ({len(bad)} lines)' if len(bad) > SHOW else ''})")
-    if order is not None and min(len(r) for r in rows) > order:
-        where["order"] = order
-        width = order + 1
+    shortest = min(len(r) for r in rows)
+    where.update({k: i for k, i in optional.items() if i < shortest})  # columns every row holds
+    width = max(where.values()) + 1
     return where, np.asarray(nums), np.asarray([r[:width] for r in rows], np.float64)
 
 
@@ -158,11 +167,26 @@ def _geometry(where: dict[str, int], v: np.ndarray):
     return start, end, v[:, where["radius"]], length, norm
 
 
-def _parents(raw: np.ndarray) -> np.ndarray:
-    """0-based parent rows (-1: none) of a parent column, 1-based (0: none) unless negative."""
-    zero_based = bool(np.any(raw < 0))
+def _rows(raw: np.ndarray, zero_based: bool) -> np.ndarray:
+    """0-based cylinder rows (-1: none) of a parent or extension column: 1-based with 0 for
+    none, or 0-based with -1 for none."""
     p = np.where(raw < 0, -1, raw) if zero_based else raw - 1
     return np.where(np.isfinite(p), p, -1).astype(np.int64)
+
+
+def _joined(where: dict[str, int], v: np.ndarray, start, end, radius, join: float) -> tuple[np.ndarray, np.ndarray]:
+    """(parent rows (N,), (N,) bool: the cylinder starts at its parent's end joint): its start
+    lies within ``join`` parent radii of the parent's end, or within ``JOIN_EXTENSION`` where
+    the parent's ``extension`` column names it."""
+    raw = v[:, where["parent"]]
+    zero_based = bool(np.any(raw < 0))
+    parent = _rows(raw, zero_based)
+    q = np.maximum(parent, 0)
+    gap = np.linalg.norm(start - end[q], axis=1) / radius[q]
+    extends = np.zeros(v.shape[0], bool)
+    if "extension" in where:
+        extends = _rows(v[:, where["extension"]], zero_based)[q] == np.arange(v.shape[0])
+    return parent, (parent >= 0) & ((gap <= join) | (extends & (gap <= JOIN_EXTENSION)))
 
 
 def _problems(field: str, where: dict[str, int], v: np.ndarray, lines: np.ndarray) -> list[str]:
@@ -197,7 +221,8 @@ def _problems(field: str, where: dict[str, int], v: np.ndarray, lines: np.ndarra
 def read_qsm(path, field: str = "skeleton.file", join: float = JOIN) -> Skeleton:
     """Read a QSM cylinder table (see the module) into a ``Skeleton``: cylinder i ends at joint
     id i with its radius; it starts at its parent's end joint where its start lies within
-    ``join`` x the parent's radius of it, else at its own root joint (id N + i, radius r_i).
+    ``join`` x the parent's radius of it (or 4 x where the parent names it as its extension),
+    else at its own root joint (id N + i, radius r_i).
 
     Every bad cylinder (non-finite numbers, radius or length <= 0, axis not of unit length
     within 1e-3, parent out of range) is listed in one ValueError: per kind the count and the
@@ -208,10 +233,8 @@ def read_qsm(path, field: str = "skeleton.file", join: float = JOIN) -> Skeleton
         raise ConfigError(issues)
     n = v.shape[0]
     start, end, radius, _, _ = _geometry(where, v)
-    parent = _parents(v[:, where["parent"]])
-    has = parent >= 0
+    parent, joined = _joined(where, v, start, end, radius, join)
     q = np.maximum(parent, 0)
-    joined = has & (np.linalg.norm(start - end[q], axis=1) <= join * radius[q])
     own = np.nonzero(~joined)[0]  # cylinders with a start joint of their own
     start_row = np.full(n, -1, np.int64)
     start_row[own] = n + np.arange(own.size)
