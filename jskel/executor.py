@@ -221,11 +221,48 @@ def map_chunks(
     took 0.103 s with 16 chunks of 4,096 rays per call against 0.125 s with one, on one device
     (``experiments/bench_scale_cpu_paths.yaml``).
     """
-    from tqdm.auto import tqdm
-
     n = rays.size
     if n == 0:
         raise ValueError("rays: the batch is empty")
+    plan = _plan(batch_fn, params, rays, chunk, devices, memory_budget, group)
+    mesh, chunk, per_call = plan.mesh, plan.chunk, plan.per_call
+    n_chunks = -(-n // chunk)
+
+    slice_rays, spread, host_s = _slicer(rays, plan)
+    first = slice_rays(0)
+    compiled, compile_s = compile_batch_fn(plan.batch_fn, (params, first), mesh)
+    if plan.memory is not None:
+        compile_s += plan.memory["seconds"]  # the tries compiled (the chosen size among them)
+    disable = (not sys.stderr.isatty()) if progress is None else (not progress)
+    t0 = time.perf_counter()
+    if mesh is not None:
+        # replicated once per call of map_chunks, not once per compiled call: parameters living
+        # on one device were copied to the others at every call (300,000 segments: 36 MB a call)
+        params = jax.device_put(params, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+    unspread = (lambda got: _interleave(got, mesh.size, per_call)) if spread else (lambda got: got)
+    outs = _dispatch(compiled, params, first, slice_rays, n_chunks, unspread, desc, disable)
+    run_s = time.perf_counter() - t0 + host_s
+    out = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=0)[:n], *outs)
+    return ChunkedResult(out, compile_s, run_s, plan.memory)
+
+
+class _Plan(NamedTuple):
+    """How :func:`map_chunks` cuts a batch: the ray mesh (None: one device), the rays per
+    compiled call, the chunks per call, the batch function as called (:func:`grouped`), and
+    the memory budget's report (None without one)."""
+
+    mesh: object
+    chunk: int
+    per_call: int
+    batch_fn: Callable
+    memory: dict | None
+
+
+def _plan(batch_fn: Callable, params, rays: Rays, chunk: int, devices, memory_budget: int | None, group: int) -> _Plan:
+    """:func:`map_chunks`'s chunk: at most the batch, lowered to fit ``memory_budget``
+    (:func:`chunk_for_budget`, per device) or times the chunks grouped per call, times the
+    devices of the mesh."""
+    n = rays.size
     chunk = int(min(chunk, n))
     mesh = ray_mesh(None if devices == "all" else devices) if devices is not None else None
     memory = None
@@ -240,8 +277,15 @@ def map_chunks(
     chunk *= per_call
     if mesh is not None:
         chunk *= mesh.size  # ``chunk`` rays per device per call
-    n_chunks = -(-n // chunk)
+    return _Plan(mesh, chunk, per_call, batch_fn, memory)
 
+
+def _slicer(rays: Rays, plan: _Plan) -> tuple[Callable, bool, float]:
+    """(slice_rays, spread, seconds): ``slice_rays(i)``, the i-th call's rays padded to the
+    plan's chunk by repeating the last ray (interleaved over the devices when ``spread``:
+    several chunks per call on several devices, :func:`_interleave`), and the seconds taken to
+    view host rays as NumPy."""
+    chunk, per_call, mesh = plan.chunk, plan.per_call, plan.mesh
     t_host = time.perf_counter()
     if _on_host(rays):  # slicing NumPy costs nothing; slicing a CPU jax array dispatches ops
         rays = Rays(*(np.asarray(a) for a in rays))
@@ -253,25 +297,23 @@ def map_chunks(
         r = Rays(*(_pad_to(a[lo : lo + chunk], chunk) for a in rays))
         return _interleave(r, per_call, mesh.size) if spread else r
 
-    first = slice_rays(0)
-    compiled, compile_s = compile_batch_fn(batch_fn, (params, first), mesh)
-    if memory is not None:
-        compile_s += memory["seconds"]  # the tries compiled (the chosen size among them)
-    disable = (not sys.stderr.isatty()) if progress is None else (not progress)
+    return slice_rays, spread, host_s
+
+
+def _dispatch(compiled, params, first, slice_rays: Callable, n_chunks: int, unspread: Callable, desc: str, disable: bool) -> list:
+    """Host outputs of ``compiled`` on each of ``n_chunks`` chunks (``slice_rays(i)``, the
+    first given), each call dispatched one ahead of the host copy of the previous one so the
+    device is not idle while the host gathers results; ``unspread`` restores each output's
+    ray order. A tqdm bar unless ``disable``."""
+    from tqdm.auto import tqdm
+
     outs = []
-    t0 = time.perf_counter()
-    if mesh is not None:
-        # replicated once per call of map_chunks, not once per compiled call: parameters living
-        # on one device were copied to the others at every call (300,000 segments: 36 MB a call)
-        params = jax.device_put(params, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
     with tqdm(total=n_chunks, desc=desc, unit="chunk", disable=disable, leave=False) as bar:
         pending = compiled(params, first)
         for i in range(1, n_chunks + 1):
             nxt = compiled(params, slice_rays(i)) if i < n_chunks else None
             got = jax.tree_util.tree_map(np.asarray, pending)
-            outs.append(_interleave(got, mesh.size, per_call) if spread else got)
+            outs.append(unspread(got))
             bar.update(1)
             pending = nxt
-    run_s = time.perf_counter() - t0 + host_s
-    out = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=0)[:n], *outs)
-    return ChunkedResult(out, compile_s, run_s, memory)
+    return outs
