@@ -40,7 +40,8 @@ def _fmt(v) -> str:
 
 
 def validate_skeleton(joints, radii, parents, path: str = "object.skeleton"):
-    """Return float64/int arrays after checking every field; raise ValueError naming the bad one."""
+    """Return float64/int arrays after checking every field; raise ValueError naming the bad one
+    (the first bad joint, in the order: shapes, joint values, parent indices, cycles, segments)."""
     j = np.asarray(joints, dtype=np.float64)
     if j.ndim != 2 or j.shape[1] != 3 or j.shape[0] < 2:
         raise ValueError(f"{path}.joints: expected a list of at least 2 [x, y, z] points, got shape {j.shape}")
@@ -51,6 +52,17 @@ def validate_skeleton(joints, radii, parents, path: str = "object.skeleton"):
         raise ValueError(f"{path}.radii: has {r.shape[0]} entries for {nj} joints")
     if p_raw.reshape(-1).shape[0] != nj:
         raise ValueError(f"{path}.parents: has {p_raw.size} entries for {nj} joints")
+    _check_joint_values(j, r, path)
+    p = _parent_indices(p_raw, nj, path)
+    _check_cycles(p, path)
+    if np.all(p == -1):
+        raise ValueError(f"{path}.parents: every joint is a root, so there is no segment")
+    _check_segments(j, r, p, path)
+    return j, r, p
+
+
+def _check_joint_values(j: np.ndarray, r: np.ndarray, path: str) -> None:
+    """Every joint finite, every radius finite and not negative."""
     bad = ~np.all(np.isfinite(j), axis=1) | ~np.isfinite(r) | (r < 0)
     for i in np.nonzero(bad)[0][:1]:  # vectorised test; the first bad joint named as before
         if not np.all(np.isfinite(j[i])):
@@ -58,6 +70,10 @@ def validate_skeleton(joints, radii, parents, path: str = "object.skeleton"):
         if not np.isfinite(r[i]):
             raise ValueError(f"{path}.radii[{i}]: not finite: {r[i]}")
         raise ValueError(f"{path}.radii[{i}]: negative radius {r[i]:.6g}")
+
+
+def _parent_indices(p_raw: np.ndarray, nj: int, path: str) -> np.ndarray:
+    """The parents as int64, each an integer in [-1, nj - 1] and not the joint itself."""
     p = p_raw.reshape(-1)
     if not np.issubdtype(p.dtype, np.integer):
         pf = p.astype(np.float64)
@@ -70,6 +86,12 @@ def validate_skeleton(joints, radii, parents, path: str = "object.skeleton"):
         if p[i] < -1 or p[i] >= nj:
             raise ValueError(f"{path}.parents[{i}]: index {p[i]} out of range [-1, {nj - 1}]")
         raise ValueError(f"{path}.parents[{i}]: joint is its own parent")
+    return p
+
+
+def _check_cycles(p: np.ndarray, path: str) -> None:
+    """Every joint reaches a root; a cycle is named by its joints."""
+    nj = p.shape[0]
     # cycles: pointer doubling (every joint's 2^k-th ancestor) finds whether any joint fails to
     # reach a root in nj steps; only then the walk below names the cycle
     anc = p.copy()
@@ -90,8 +112,10 @@ def validate_skeleton(joints, radii, parents, path: str = "object.skeleton"):
             k = p[k]
         for c in chain:
             state[c] = 1
-    if np.all(p == -1):
-        raise ValueError(f"{path}.parents: every joint is a root, so there is no segment")
+
+
+def _check_segments(j: np.ndarray, r: np.ndarray, p: np.ndarray, path: str) -> None:
+    """Every segment longer than 1e-9 of the skeleton's extent and of radius > 0 at an end."""
     scale = float(np.max(np.ptp(j, axis=0))) or 1.0
     kids = np.nonzero(p >= 0)[0]
     lengths = np.linalg.norm(j[kids] - j[p[kids]], axis=1)
@@ -104,7 +128,6 @@ def validate_skeleton(joints, radii, parents, path: str = "object.skeleton"):
             )
         if r[i] == 0 and r[p[i]] == 0:
             raise ValueError(f"{path}.radii[{i}]: segment {p[i]} -> {i} has radius 0 at both ends")
-    return j, r, p
 
 
 def topology(joints: np.ndarray, parents: np.ndarray, path: str = "object.skeleton") -> Topology:
