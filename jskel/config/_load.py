@@ -1,0 +1,131 @@
+"""Experiment files in: YAML read, ``--set key.path=value`` overrides applied (parsed as YAML
+scalars, before validation, so an override is checked like the file itself), then every
+section validated with every bad key reported at once; and the resolved config out as plain
+data for ``run.json``."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+from .. import registry
+from ._errors import ConfigError, _format, _loc, _short
+from ._schema import Experiment
+
+DEFAULT_EXPERIMENT = Path(__file__).parent.parent / "data" / "default.yaml"
+
+
+def _validate_shape(raw_obj: dict, where: tuple) -> tuple[BaseModel | None, list[str]]:
+    kind = raw_obj.get("type")
+    if kind not in registry.names():
+        return None, [f"{_loc(where)}.type: unknown representation (got {_short(kind)}; known: {', '.join(registry.names())})"]
+    try:
+        return registry.get(kind).Config.model_validate(raw_obj), []
+    except ValidationError as e:
+        return None, _format(e, where)
+
+
+def validate(raw: dict) -> tuple[Experiment, Any]:
+    """Validate a raw experiment dict; returns (experiment, object config) or raises ConfigError.
+
+    For a scene (``objects:``) the second item is the tuple of the objects' validated shapes."""
+    if not isinstance(raw, dict):
+        raise ConfigError([f"<root>: an experiment must be a mapping (got {_short(raw)})"])
+    lines: list[str] = []
+    exp = obj = None
+    try:
+        exp = Experiment.model_validate(raw)
+    except ValidationError as e:
+        lines += _format(e)
+    raw_obj = raw.get("object")
+    if isinstance(raw_obj, dict):
+        obj, more = _validate_shape(raw_obj, ("object",))
+        lines += more
+    elif raw_obj is not None:
+        lines.append(f"object: must be a mapping with a 'type' key (got {_short(raw_obj)})")
+    raw_objs = raw.get("objects")
+    if isinstance(raw_objs, list):
+        shapes = []
+        for i, o in enumerate(raw_objs):
+            shape = o.get("shape") if isinstance(o, dict) else None
+            if isinstance(shape, dict):
+                got, more = _validate_shape(shape, ("objects", i, "shape"))
+                shapes.append(got)
+                lines += more
+        obj = tuple(shapes)
+    if lines:
+        raise ConfigError(lines)
+    return exp, obj
+
+
+def _set_path(d: dict, path: str, value):
+    parts = path.split(".")
+    cur = d
+    for i, p in enumerate(parts[:-1]):
+        if isinstance(cur, list):
+            cur = cur[int(p)]
+            continue
+        if p not in cur or not isinstance(cur[p], (dict, list)):
+            cur[p] = {}
+        cur = cur[p]
+    last = parts[-1]
+    if isinstance(cur, list):
+        cur[int(last)] = value
+    else:
+        cur[last] = value
+
+
+def apply_overrides(raw: dict, overrides: list[str]) -> dict:
+    """Return a copy of ``raw`` with ``key.path=value`` overrides applied (values parsed as YAML)."""
+    out = copy.deepcopy(raw)
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError([f"--set: expected key.path=value (got {item!r})"])
+        key, val = item.split("=", 1)
+        key = key.strip()
+        if not key:
+            raise ConfigError([f"--set: empty key (got {item!r})"])
+        try:
+            parsed = yaml.safe_load(val)
+        except yaml.YAMLError as e:
+            raise ConfigError([f"--set {key}: value is not valid YAML (got {val!r}): {e}"]) from None
+        try:
+            _set_path(out, key, parsed)
+        except (ValueError, IndexError, TypeError):
+            raise ConfigError([f"--set {key}: no such list index in the experiment"]) from None
+    return out
+
+
+def read_yaml(path: str | Path | None) -> dict:
+    """Read an experiment file (the embedded default when ``path`` is None)."""
+    p = Path(path) if path is not None else DEFAULT_EXPERIMENT
+    if not p.exists():
+        raise ConfigError([f"experiment: file not found (got {str(p)!r})"])
+    try:
+        raw = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError([f"experiment: {p} is not valid YAML: {str(e).splitlines()[0]}"]) from None
+    return raw if raw is not None else {}
+
+
+def load(path: str | Path | None = None, overrides: list[str] | None = None) -> tuple[Experiment, BaseModel]:
+    """Read, override and validate an experiment file."""
+    raw = apply_overrides(read_yaml(path), overrides or [])
+    return validate(raw)
+
+
+def resolved(exp: Experiment, obj: BaseModel) -> dict:
+    """The resolved config as plain data (saved to ``run.json``)."""
+    d = exp.model_dump(mode="json")
+    if exp.is_scene:
+        for o, shape in zip(d["objects"], obj):
+            o["shape"] = shape.model_dump(mode="json")
+        d.pop("object")
+    else:
+        d["object"] = obj.model_dump(mode="json")
+        d.pop("objects")
+    return d
