@@ -7,16 +7,16 @@ import hashlib
 import json
 import time
 from pathlib import Path
-from typing import Callable, NamedTuple, final
+from typing import NamedTuple, final
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import accel
 from ..interface import Built, OwnMaterial, Representation
 from ..numerics import differentiable_root, safe_normalize
 from ..rays import FLAG_STEP_CAP, Hit, masked_hit
+from ._base import base_inside as base_inside
 from ._config import CellsConfig as CellsConfig
 from ._membership import INSIDE, memory_table, membership, unpack, words_for
 from ._tiles import OFFSETS, SplitCells, part_links, part_offsets, sphere_tile, split_cells, validate_tile_map, voronoi_tile
@@ -71,95 +71,6 @@ def worley_colors(tile: np.ndarray, normals: np.ndarray, seed: int) -> np.ndarra
     col = pal[tile.astype(np.int64)]
     edge = np.sum(normals * normals, -1) > 0
     return np.where(edge[..., None], 0.6 * col, col) ** 2.2
-
-
-# ---------------------------------------------------------------- base shapes
-
-
-def base_inside(cfg: CellsConfig) -> tuple[Callable, np.ndarray, np.ndarray, str]:
-    """(inside(points (M,3) world float64) -> (M,) bool, lo, hi, a digest of the shape's inputs)."""
-    b = cfg.base
-    c = np.asarray(b.center, np.float64)
-    if b.type == "torus":
-        def inside(p):
-            q = np.hypot(p[:, 0] - c[0], p[:, 2] - c[2]) - b.major
-            return q * q + (p[:, 1] - c[1]) ** 2 < b.minor * b.minor
-
-        ext = np.array([b.major + b.minor, b.minor, b.major + b.minor])
-        return inside, c - ext, c + ext, ""
-    if b.type == "sphere":
-        def inside(p):
-            return np.sum((p - c) ** 2, 1) < b.radius * b.radius
-
-        return inside, c - b.radius, c + b.radius, ""
-    if b.type == "voxel_mesh":
-        import trimesh
-
-        try:
-            mesh = trimesh.load(b.path, force="mesh")
-        except Exception as e:  # noqa: BLE001
-            raise ValueError(f"object.base.path: cannot read mesh {b.path!r}: {e}") from None
-        if not mesh.is_watertight:
-            raise ValueError(f"object.base.path: mesh {b.path!r} is not watertight (the inside/outside voxelization of Sec. 3.1.4 needs a closed mesh)")
-        digest = hashlib.sha256(Path(b.path).read_bytes()).hexdigest()
-        # voxelize once and fill the inside (trimesh's subdivision voxelizer + scipy fill): no ray
-        # tests, so no rtree or Embree; ``base.voxels`` voxels along the longest side
-        ext = float(np.max(mesh.extents))
-        vox = mesh.voxelized(ext / float(b.voxels)).fill()
-        grid = np.asarray(vox.matrix, bool)
-
-        def inside(p):
-            idx = vox.points_to_indices(np.asarray(p, np.float64) - c)
-            ok = np.all((idx >= 0) & (idx < np.array(grid.shape)), axis=1)
-            idx = np.clip(idx, 0, np.array(grid.shape) - 1)
-            return ok & grid[idx[:, 0], idx[:, 1], idx[:, 2]]
-
-        return inside, mesh.bounds[0] + c, mesh.bounds[1] + c, digest
-    # another representation's object: its own inside test, jitted over point batches
-    from .. import registry
-
-    kind = (b.object or {}).get("type")
-    known = [n for n in registry.names() if n != "cells"]  # any representation's inside test but a cell object's own
-    if kind not in known:
-        raise ValueError(f"object.base.object.type: must be one of {', '.join(known)} (got {kind!r})")
-    rep = registry.get(kind)
-    try:
-        ocfg = rep.Config.model_validate(b.object)
-    except Exception as e:  # noqa: BLE001 - reported with its path
-        first = str(e).splitlines()
-        raise ValueError(f"object.base.object: {first[1] if len(first) > 1 else first[0]}") from None
-    built = rep.build(ocfg, np.float32)
-    # in groups of 4,096 points: an inside test that loops (a mesh's BVH walks) runs each vmapped
-    # group until its slowest point ends
-    fn = jax.jit(lambda xs: accel.map_groups(jax.vmap(lambda x: rep.inside(built.params, built.static, x)), 4096, xs))
-    anchor = built.anchor
-
-    def inside(p):
-        out = np.empty(len(p), bool)
-        for i in range(0, len(p), 1 << 18):
-            q = p[i : i + (1 << 18)]
-            pad = (1 << 18) - len(q)
-            x = np.concatenate([q, np.repeat(q[-1:], pad, 0)]) - anchor - c
-            out[i : i + len(q)] = np.asarray(fn(np.float32(x)))[: len(q)]
-        return out
-
-    lo, hi = (np.asarray(v, np.float64) + c for v in built.bounds)
-    return inside, lo, hi, json.dumps({"object": b.object, "files": _files_digest(b.object)}, sort_keys=True)
-
-
-def _files_digest(section) -> dict:
-    """SHA-256 of every file a section's strings name (a mesh, a height map, a texture), so a
-    cached precompute is not reused after the file changed."""
-    out = {}
-    if isinstance(section, dict):
-        for v in section.values():
-            out.update(_files_digest(v))
-    elif isinstance(section, list):
-        for v in section:
-            out.update(_files_digest(v))
-    elif isinstance(section, str) and Path(section).is_file():
-        out[section] = hashlib.sha256(Path(section).read_bytes()).hexdigest()
-    return out
 
 
 # ---------------------------------------------------------------- precompute + cache
