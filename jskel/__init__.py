@@ -6,6 +6,7 @@ __version__ = "0.1.0"
 from .config import ConfigError as ConfigError
 from .config import load as load
 from .devices import use_host_devices as use_host_devices
+from .cache import use_compilation_cache as use_compilation_cache
 from .interface import Built as Built
 from .camera import Camera as Camera
 from .rays import Hit as Hit
@@ -13,4 +14,4 @@ from .rays import Rays as Rays
 from .rays import make_rays as make_rays
 from .executor import map_chunks as map_chunks
 
-__all__ = ["Built", "Camera", "ConfigError", "Hit", "Rays", "load", "make_rays", "map_chunks", "use_host_devices"]
+__all__ = ["Built", "Camera", "ConfigError", "Hit", "Rays", "load", "make_rays", "map_chunks", "use_compilation_cache", "use_host_devices"]

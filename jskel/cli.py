@@ -17,6 +17,7 @@ import imageio.v3 as iio
 import jax
 import numpy as np
 
+from .cache import use_compilation_cache
 from .config import ConfigError
 from .devices import use_host_devices
 from .distributed import init_from_env
@@ -177,6 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
         use_host_devices()  # before JAX starts: one XLA host device per core (JSKEL_HOST_DEVICES sets the count)
+        use_compilation_cache()  # before anything compiles: ~/.cache/jskel/jax (JSKEL_CACHE_DIR moves it, JSKEL_CACHE=off)
         init_from_env()
         return args.func(args)
     except ConfigError as e:

@@ -18,6 +18,7 @@ import numpy as np
 from .. import registry
 from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
 from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Hit, Rays, make_rays
+from ..cache import count_programs, program_counts
 from ..camera import Camera, framing, tile_inverse, tile_order
 from ..executor import map_chunks
 from ..interface import Object
@@ -146,6 +147,7 @@ def _run_base(exp: Experiment, obj, build_s: float, res, n: int, primitives: int
         "devices_used": len(devices_of(exp) or [None]),
         "processes": jax.process_count(),
         "mrays_per_s": n / res.run_s / 1e6 if res.run_s > 0 else None,
+        "programs": program_counts(),  # this process's so far: compiled by XLA, loaded from the persistent cache
     }
 
 
@@ -240,6 +242,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     secondary-ray code."""
     from ._build import build_single
 
+    count_programs()
     prog = exp.render.progress if progress is None else progress
     if exp.is_scene:
         return render_scene(exp, obj, prog)
@@ -280,6 +283,7 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
     path branches, one of the branches) and ``secondary`` (secondary rays per pixel)."""
     from ._build import build_scene, place_objects, world_bounds
 
+    count_programs()
     dtype = dtype_of(exp)
     t0 = time.perf_counter()
     placed = place_objects(exp, shapes, dtype)

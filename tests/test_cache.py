@@ -1,0 +1,83 @@
+"""The persistent compilation cache: where it lives, when it is refused, and run.json's counts
+of programs compiled and loaded (``jskel.cache``)."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from jskel import cache
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_the_directory_follows_the_environment():
+    home = os.path.expanduser("~")
+    assert cache.default_cache_dir({}) == Path(home) / ".cache" / "jskel" / "jax"
+    assert cache.default_cache_dir({"XDG_CACHE_HOME": "/x/c"}) == Path("/x/c/jskel/jax")
+    assert cache.default_cache_dir({"XDG_CACHE_HOME": "/x/c", "JSKEL_CACHE_DIR": "/y/j"}) == Path("/y/j")
+    for off in ("off", "OFF", "0", "false"):
+        assert cache.default_cache_dir({"JSKEL_CACHE": off, "JSKEL_CACHE_DIR": "/y/j"}) is None
+    assert cache.default_cache_dir({"JSKEL_CACHE": "on", "JSKEL_CACHE_DIR": "/y/j"}) == Path("/y/j")
+    with pytest.raises(ValueError, match=r"^JSKEL_CACHE: 'maybe' is not on or off$"):
+        cache.default_cache_dir({"JSKEL_CACHE": "maybe"})
+
+
+def test_a_new_directory_is_private_and_an_open_one_is_refused(tmp_path, capsys, monkeypatch):
+    new = tmp_path / "a" / "b" / "jax"
+    assert cache.prepared_dir(new) == new
+    assert stat.S_IMODE(new.stat().st_mode) == 0o700
+    assert capsys.readouterr().err == ""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    for mode in (0o770, 0o707, 0o777):
+        os.chmod(shared, mode)
+        assert cache.prepared_dir(shared) is None
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1 and str(shared) in err[0] and f"chmod 700 {shared}" in err[0] and "without it" in err[0], err
+    not_dir = tmp_path / "file"
+    not_dir.write_text("")
+    assert cache.prepared_dir(not_dir) is None  # cannot be made: a warning, never a crash
+    assert len(capsys.readouterr().err.splitlines()) == 1
+    # the whole switch refuses before it touches JAX's configuration
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.setenv("JSKEL_CACHE_DIR", str(shared))
+    before = cache.jax.config.jax_compilation_cache_dir
+    assert cache.use_compilation_cache() is None
+    assert cache.jax.config.jax_compilation_cache_dir == before
+    assert str(shared) in capsys.readouterr().err
+    monkeypatch.setenv("JSKEL_CACHE", "off")
+    assert cache.use_compilation_cache() is None
+    # an explicit JAX_COMPILATION_CACHE_DIR wins, and JAX's configuration is left alone
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "jaxs"))
+    assert cache.use_compilation_cache() == tmp_path / "jaxs"
+    assert cache.jax.config.jax_compilation_cache_dir == before
+
+
+def _render(out: Path, env: dict) -> dict:
+    cmd = [sys.executable, "-m", "jskel", "render", str(ROOT / "experiments" / "saguaro.yaml"), "--out", str(out),
+           "--set", "camera.width=16", "--set", "camera.height=12", "--set", "render.progress=false"]
+    p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    return json.loads((out / "run.json").read_text())["programs"]
+
+
+def test_a_second_process_loads_what_the_first_compiled(tmp_path):
+    """Two CLI renders with the same fresh cache directory (``JSKEL_CACHE_DIR``, JAX's own
+    variable unset): the first compiles and loads nothing, the second loads programs and
+    compiles fewer; the directory is created private and holds entries."""
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env["JSKEL_CACHE_DIR"] = str(tmp_path / "cache")
+    first = _render(tmp_path / "o1", env)
+    assert first["loaded"] == 0 and first["compiled"] > 0 and first["cache_dir"] == env["JSKEL_CACHE_DIR"]
+    assert stat.S_IMODE((tmp_path / "cache").stat().st_mode) == 0o700
+    assert len(list((tmp_path / "cache").iterdir())) >= first["compiled"] // 2
+    second = _render(tmp_path / "o2", env)
+    assert second["loaded"] > 0 and second["compiled"] < first["compiled"], (first, second)
+    assert second["loaded"] + second["compiled"] == first["compiled"]  # the same programs, from the cache
