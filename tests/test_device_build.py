@@ -90,7 +90,7 @@ def test_t_is_differentiable_in_the_joints_through_planes_and_frames():
     d = jnp.asarray([0.0, -0.02, -1.0], jnp.float32)
 
     def t_of(jnts):
-        f = params_from(frusta_fields(jnts - jnp.asarray(built.anchor, jnp.float32), jnp.asarray(radii, jnp.float32), dtopo, 0.0, 3), g)
+        f = params_from(frusta_fields(jnts - jnp.asarray(built.anchor, jnp.float32), jnp.asarray(radii, jnp.float32), dtopo, 0.0, 3)[0], g)
         return nearest_one(f, _segment_t, o, d / jnp.linalg.norm(d), 0.0, jnp.inf, 8)[0]
 
     x = jnp.asarray(joints, jnp.float32)

@@ -267,6 +267,9 @@ def test_cli_renders_an_swc_and_reports_the_repairs(tmp_path):
     assert rep["unknown_radius"] == {"count": 1, "ids": [3]}
     assert rep["zero_length_merged"] == {"count": 1, "ids": [4]}
     assert run["info"]["segments"] == 4 and run["info"]["joints"] == 5
+    # two joints continue a segment: node 2 in line with the soma's segment, node 3 after a
+    # 36.9 degree bend (Eq. 3-5's plane, its pieces within reach)
+    assert run["info"]["joint_planes"] == {"eq_3_5": 1, "collinear": 1, "bisector": 0, "perpendicular_caps": 0}
     depth = np.load(out / "depth.npy")
     hit = np.isfinite(depth)
     assert 0.01 < hit.mean() < 0.6

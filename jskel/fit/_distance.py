@@ -73,9 +73,14 @@ Geometry.__doc__ = """Per-segment arrays (S first): the fields of ``jskel.frusta
 
 def geometry(joints, radii, seg: Segments) -> Geometry:
     """Frusta of a skeleton from traced ``joints`` (J,3) and ``radii`` (J,): the axes and cutting
-    planes of ``jskel.frusta`` (``segment_axes``, ``joint_planes``), the build's own functions."""
+    planes of ``jskel.frusta`` (``segment_axes``, ``joint_planes``), the build's own functions.
+    A joint where no shared plane keeps both pieces within ``frusta.PIECE_REACH`` gets
+    perpendicular planes there as in the renderer, but the distance still treats them as
+    shared (``caps_of`` is the topology's): the renderer's caps at such a joint lie inside the
+    neighbouring piece except on the outer side of the bend, and the fit's plane-validity
+    penalty keeps a fitted skeleton's planes away from that fallback."""
     c1, m, h, r1, r2 = segment_axes(joints, radii, seg.start, seg.end)
-    nb, db, nt, dt, _, _ = joint_planes(c1, m, h, r1, r2, seg.cont_a, seg.cont_b)
+    nb, db, nt, dt, _, _, _ = joint_planes(c1, m, h, r1, r2, seg.cont_a, seg.cont_b)
     return Geometry(c1, m, h, r1, r2, nb, db, nt, dt)
 
 

@@ -22,6 +22,9 @@ from ._scene import REPRESENTATION as REPRESENTATION
 from ._relief import ReliefMaps as ReliefMaps
 from ._relief import ReliefQuality as ReliefQuality
 from ._geometry import ELLIPSE_MARGIN as ELLIPSE_MARGIN
+from ._geometry import PIECE_REACH as PIECE_REACH
+from ._geometry import plane_reach as plane_reach
+from ._build import piece_reach as piece_reach
 from ._edits import ANIMATED as ANIMATED
 from ._geometry import cone_sin as cone_sin
 from ._geometry import joint_planes as joint_planes
@@ -56,4 +59,4 @@ from ._skeleton import topology as topology
 from ._scene import traversal_stats as traversal_stats
 from ._skeleton import validate_skeleton as validate_skeleton
 
-__all__ = ["ANIMATED", "ELLIPSE_MARGIN", "FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaPayload", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cast", "cone_sin", "cutting_planes", "export_mesh", "frusta_from_skeleton", "frusta_mesh", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "joint_planes", "load_height_map", "make_group", "mesh_format", "minor_semi_axis", "rebuilder", "relief_memory", "rim_points", "segment_axes", "skeleton_arrays", "surface", "to_params", "topology", "traversal_stats", "validate_skeleton"]
+__all__ = ["ANIMATED", "ELLIPSE_MARGIN", "PIECE_REACH", "FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaPayload", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cast", "cone_sin", "cutting_planes", "export_mesh", "frusta_from_skeleton", "frusta_mesh", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "joint_planes", "load_height_map", "make_group", "mesh_format", "minor_semi_axis", "piece_reach", "plane_reach", "rebuilder", "relief_memory", "rim_points", "segment_axes", "skeleton_arrays", "surface", "to_params", "topology", "traversal_stats", "validate_skeleton"]

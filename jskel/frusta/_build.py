@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._geometry import cutting_planes, frusta_fields, medial_normal, padded_topology, segment_axes
+from ._geometry import PLANE_KINDS, PLANE_SPLIT, cutting_planes, frusta_fields, medial_normal, padded_topology, plane_reach, segment_axes
 from ._skeleton import Topology
 
 
@@ -83,12 +83,12 @@ _fields_jit = jax.jit(frusta_fields, compiler_options=_HOST_OPTS)  # levels trac
 @partial(jax.jit, compiler_options=_HOST_OPTS)
 def _axes_and_planes(joints, radii, topo, r1):
     """The axes and every row's cutting plane with the row it continues (placeholders on rows
-    that continue nothing), with base radii ``r1`` (N,): ``(c1, m, h, r2, n, p, nm)``."""
+    that continue nothing), with base radii ``r1`` (N,): ``(c1, m, h, r2, n, p, nm, kind)``."""
     c1, m, h, _, r2 = segment_axes(joints, radii, topo.start, topo.end, topo.valid)
     r1 = jnp.where(topo.valid, r1, 0.0)
     a = jnp.maximum(topo.parent, 0)
-    n, p = cutting_planes(c1, m[a], c1[a], r1[a], r2[a], h[a], m, r1, r2, h)
-    return c1, m, h, r2, n, p, medial_normal(m[a], m)[0]
+    n, p, kind = cutting_planes(c1, m[a], c1[a], r1[a], r2[a], h[a], m, r1, r2, h)
+    return c1, m, h, r2, n, p, medial_normal(m[a], m)[0], kind
 
 
 def _match_minor_axes(joints, radii, ptopo, topo: Topology, info: dict, tol: float, iters: int):
@@ -101,14 +101,15 @@ def _match_minor_axes(joints, radii, ptopo, topo: Topology, info: dict, tol: flo
         bs = cont[topo.depth[cont] == lvl]
         a = topo.parent_seg[bs]
         for it in range(iters):
-            c1, m, h, r2, n, p, nm = (np.asarray(x) for x in _axes_and_planes(joints, radii, ptopo, r1))
+            c1, m, h, r2, n, p, nm, kind = (np.asarray(x) for x in _axes_and_planes(joints, radii, ptopo, r1))
             ba = minor_semi_axis(c1[a], m[a], r1[a], (r2[a] - r1[a]) / h[a], n[bs], p[bs], nm[bs])
             bb = minor_semi_axis(c1[bs], m[bs], r1[bs], (r2[bs] - r1[bs]) / h[bs], n[bs], p[bs], nm[bs])
-            mis = np.abs(ba - bb) / np.maximum(ba, 1e-300)
+            # joints without a shared plane (PLANE_SPLIT: capped ends) have no cuts to match
+            mis = np.where(kind[bs] == PLANE_SPLIT, 0.0, np.abs(ba - bb) / np.maximum(ba, 1e-300))
             info["minor_axis_iterations"] = max(info["minor_axis_iterations"], it)
             if np.all(mis <= tol):
                 break
-            r1[bs] = r1[bs] * np.where(bb > 0, ba / np.where(bb > 0, bb, 1.0), 1.0)
+            r1[bs] = r1[bs] * np.where((bb > 0) & (kind[bs] != PLANE_SPLIT), ba / np.where(bb > 0, bb, 1.0), 1.0)
         info["minor_axis_mismatch"] = max(info["minor_axis_mismatch"], float(np.max(mis)))
     return r1
 
@@ -122,7 +123,8 @@ def build_frusta(
     match_tol: float = 1e-10,
     match_iters: int = 100,
 ) -> tuple[FrustaArrays, dict]:
-    """Build every segment's frustum; returns (arrays, info) with info on minor-axis matching."""
+    """Build every segment's frustum; returns (arrays, info) with info on minor-axis matching
+    and the joints' plane choices (:func:`plane_counts`)."""
     s, nj = topo.seg_start.shape[0], joints.shape[0]
     n = _bucket(s)
     j = np.concatenate([np.asarray(joints, np.float64), np.zeros((_bucket(nj) - nj, 3))])
@@ -134,6 +136,34 @@ def build_frusta(
         r1 = None
         if match_minor_axes:
             r1 = _match_minor_axes(j, r, ptopo, topo, info, match_tol, match_iters)
-        f = jax.device_get(_fields_jit(j, r, ptopo, np.float64(twist_turns), levels, r1))
+        f, kinds = jax.device_get(_fields_jit(j, r, ptopo, np.float64(twist_turns), levels, r1))
     arrays = FrustaArrays(**{name: np.array(x[:s]) for name, x in f.items()})
+    info["joint_planes"] = plane_counts(np.asarray(kinds)[:s])
     return arrays, info
+
+
+def plane_counts(kinds) -> dict:
+    """How many joints took each plane of ``_geometry.cutting_planes``' chain (``run.json``'s
+    ``joint_planes``): Eq. 3-5's, the collinear limit, the bisector, or perpendicular planes with
+    caps (no shared plane), the last two where a piece would otherwise reach beyond
+    ``PIECE_REACH`` times its larger radius from its segment."""
+    return {name: int(np.sum(kinds == i)) for i, name in enumerate(PLANE_KINDS)}
+
+
+def piece_reach(arr: FrustaArrays) -> np.ndarray:
+    """(S,) how far each frustum piece reaches from its axis segment: the larger of its two
+    planes' :func:`_geometry.plane_reach` (exact: the distance is convex along the axis, so it
+    peaks at a cut's axial extreme), at most ``PIECE_REACH * max(r1, r2)`` by construction.
+    Evaluated eagerly in float64 (a few array operations, no compile)."""
+    with jax.enable_x64(True):
+        bottom = plane_reach(arr.nb, arr.db, arr.m, arr.r1, arr.r2, arr.h)
+        top = plane_reach(arr.nt, arr.dt, arr.m, arr.r1, arr.r2, arr.h)
+        return np.asarray(jnp.maximum(bottom, top), np.float64)
+
+
+def piece_bounds(arr: FrustaArrays, grow: float = 0.0):
+    """(lo, hi) (3,) world box of every piece: each segment's box grown by its
+    :func:`piece_reach` (plus ``grow``, a relief shell's thickness)."""
+    reach = piece_reach(arr)[:, None] + grow
+    c2 = arr.c1 + arr.h[:, None] * arr.m
+    return np.min(np.minimum(arr.c1, c2) - reach, axis=0), np.max(np.maximum(arr.c1, c2) + reach, axis=0)

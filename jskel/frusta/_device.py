@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._accel import build_bvh
-from ._geometry import SegmentTopology, frusta_fields, padded_topology
+from ._geometry import PIECE_REACH, SegmentTopology, frusta_fields, padded_topology
 from ._intersect import FrustaParams
 
 
@@ -41,7 +41,7 @@ def params_from(fields: dict, template: FrustaParams) -> FrustaParams:
 
 
 def _core(joints, radii, twist_turns, topo: SegmentTopology, template: FrustaParams, leaf: int, levels: int):
-    fields = frusta_fields(joints.astype(template.h.dtype), radii.astype(template.h.dtype), topo,
+    fields, _ = frusta_fields(joints.astype(template.h.dtype), radii.astype(template.h.dtype), topo,
                            jnp.asarray(twist_turns, template.h.dtype), levels)
     params = params_from(fields, template)
     return params, build_bvh(params, leaf)
@@ -79,7 +79,7 @@ def rebuilder(cfg, dtype=np.float32):
         rel = j - tpl.anchor[None, :]
         params, bvh = _core_jit(jnp.asarray(rel, g.frusta.h.dtype), jnp.asarray(r, g.frusta.h.dtype), twist, dtopo,
                                 g.frusta, tpl.static.leaf, levels)
-        rmax = r[:, None]
+        rmax = PIECE_REACH * r[:, None]  # every piece lies within PIECE_REACH radii of its segment
         scene = tpl.params._replace(plain=Group(params, g.block_c, g.block_r, bvh))
         return dataclasses.replace(tpl, params=scene, bounds=(np.min(j - rmax, 0), np.max(j + rmax, 0)))
 

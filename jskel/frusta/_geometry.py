@@ -123,6 +123,50 @@ def medial_normal(ma, mb):
     return jnp.where(collinear[:, None], _any_perp(ma), safe_div(cr, sin[:, None], 0.0)), collinear
 
 
+#: every frustum piece lies within ``PIECE_REACH * max(r1, r2)`` of its own segment (the capsule
+#: of that radius around C1-C2): a shared cutting plane that would let a piece reach farther is
+#: replaced (:func:`cutting_planes`). 6 keeps the bisector of two equal cylinders up to a bend of
+#: 2 atan(sqrt(35)) = 161 degrees (its ellipse reaches r tan(bend / 2) past the joint)
+PIECE_REACH = 6.0
+
+#: how a joint's planes were chosen (:func:`cutting_planes`' ``kind``)
+PLANE_EQ35, PLANE_COLLINEAR, PLANE_BISECTOR, PLANE_SPLIT = 0, 1, 2, 3
+PLANE_KINDS = ("eq_3_5", "collinear", "bisector", "perpendicular_caps")
+
+
+def plane_reach(n, dist, m, r1, r2, h):
+    """How far the cut of a segment's cone by the plane ``n . (P - C1) = dist`` reaches from the
+    axis segment (C1 to C1 + h m), or ``inf`` where the plane does not cut the cone's first
+    nappe in an ellipse facing along ``m`` (then the piece it bounds is unbounded).
+
+    Closed form: with ``n = n_m m + n_e e`` (``e`` the unit radial direction of the tilt), a
+    point of the cone ``y m + (r1 + k y) e(phi)`` lies on the plane where
+    ``y = (dist - n_e r1 cos phi) / (n_m + n_e k cos phi)``, monotone in ``cos phi`` when
+    ``n_m > n_e |k|`` (the ellipse condition), so the cut's axial extremes are at ``cos phi = +-1``:
+    ``y = (dist -+ n_e r1) / (n_m +- n_e k)``. The distance of a cone point at ``y`` from the
+    axis segment, ``sqrt((r1 + k y)^2 + overhang(y)^2)``, is convex in ``y``, so its largest
+    value over the piece is at one of those extremes: the bound is exact, not sampled."""
+    k = safe_div(r2 - r1, h, 0.0)
+    nm = dot3(n, m)
+    ne = safe_sqrt(jnp.maximum(1.0 - nm * nm, 0.0))
+    ok = nm > cone_sin(r1, r2, h) + ELLIPSE_MARGIN  # cuts_ellipse, and facing along m (nm > sin implies nm > ne |k|)
+
+    def at(y):
+        over = jnp.maximum(jnp.maximum(-y, y - h), 0.0)
+        rad = r1 + k * y
+        return safe_sqrt(rad * rad + over * over)
+
+    lo = safe_div(dist - ne * r1, jnp.where(ok, nm + ne * k, 1.0), 0.0)
+    hi = safe_div(dist + ne * r1, jnp.where(ok, nm - ne * k, 1.0), 0.0)
+    return jnp.where(ok, jnp.maximum(at(lo), at(hi)), jnp.inf)
+
+
+def _within_reach(n, p, c, m, r1, r2, h):
+    """Whether the plane (n, p) cuts the segment (base ``c``) in an ellipse facing along ``m``
+    that stays within :data:`PIECE_REACH` times its larger radius (:func:`plane_reach`)."""
+    return plane_reach(n, dot3(n, p - c), m, r1, r2, h) <= PIECE_REACH * jnp.maximum(r1, r2)
+
+
 def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
     """Cutting planes at joints ``j`` between segments a (ending at j) and b (starting at j).
 
@@ -131,12 +175,20 @@ def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
     for ``hb`` with radii ``rb0 -> rb1``. The construction is done in 2D inside the medial plane
     (origin j, axes e1 = ma, e2 = Nm x ma), as the paper suggests.
 
-    Returns ``(n, p)``: unit plane normals with n . (ma + mb) > 0 and a point on each plane.
-    Collinear axes (the paper's coordinate-axis fallback) give the plane through j perpendicular
-    to the axis, which is the limit of the construction; side lines that are parallel (A or B
-    at infinity), or a plane that would not cut both cones in ellipses (:func:`cuts_ellipse`),
-    fall back to the bisector plane through j. Differentiable (``numerics.safe_*``).
-    """
+    Returns ``(n, p, kind)``: unit plane normals with n . (ma + mb) > 0, a point on each plane,
+    and which plane was taken (``PLANE_*``). Collinear axes (the paper's coordinate-axis
+    fallback) give the plane through j perpendicular to the axis, the construction's limit.
+    Every other joint takes the first plane of a chain that keeps both pieces bounded: Eq. 3-5's
+    plane; where its side lines are parallel (A or B at infinity), it does not cut both cones in
+    ellipses facing their segments, or a piece would reach beyond :data:`PIECE_REACH` times its
+    larger radius from its segment (:func:`plane_reach`), the bisector plane through j; where
+    the bisector fails the same test, no shared plane (``PLANE_SPLIT``: each segment is cut
+    perpendicular to its axis at j and capped, by :func:`joint_planes`; ``n``, ``p`` are then
+    the bisector's, unused). So every piece lies within ``PIECE_REACH * max(r1, r2)`` of its
+    segment whatever the skeleton (a taper to zero after a sharp bend put Eq. 3-5's plane
+    nearly through the axis, a piece reaching hundreds of radii; a child thicker than its
+    joint after a 20 degree bend reached several segment lengths). Differentiable
+    (``numerics.safe_*``; the choice is piecewise constant)."""
     nm, collinear = medial_normal(ma, mb)
     e1, e2 = ma, jnp.cross(nm, ma)
     # 2D coordinates (origin j) of the axis directions and the joints; side(d) = M x Nm in 2D
@@ -148,18 +200,19 @@ def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
     b2, okb = _meet(ca2, db * hb[:, None], sa, sb, ra0, ra1, rb0, rb1, -1.0)
     ab = a2 - b2
     n = _unit(jnp.cross(ab[:, :1] * e1 + ab[:, 1:] * e2, nm))
+    n = n * jnp.where(dot3(n, ma + mb) < 0, -1.0, 1.0)[:, None]
     p = j + a2[:, :1] * e1 + a2[:, 1:] * e2
-    # a plane must cut each cone in an ellipse (|n . m| above the sine of the cone's half-angle),
-    # else the region between the planes is unbounded along a generator (a hyperbolic cut): a
-    # strong change of taper with a small bend (a palm leaflet leaving the thick rachis) puts
-    # Eq. 3-5's A and B far along the axis and the plane nearly through it. Those joints take
-    # the bisector plane.
-    fallback = ~collinear & ~(oka & okb & cuts_ellipse(n, ma, ra0, ra1, ha) & cuts_ellipse(n, mb, rb0, rb1, hb))
-    n = jnp.where(fallback[:, None], _unit(ma + mb), n)
-    p = jnp.where(fallback[:, None], j, p)
-    n = jnp.where(collinear[:, None], ma, n)
-    p = jnp.where(collinear[:, None], j, p)
-    return n * jnp.where(dot3(n, ma + mb) < 0, -1.0, 1.0)[:, None], p
+
+    def bounded(n, p):  # both pieces: an ellipse facing their segment, within reach
+        return _within_reach(n, p, ca, ma, ra0, ra1, ha) & _within_reach(n, p, j, mb, rb0, rb1, hb)
+
+    bis = _unit(ma + mb)
+    eq35 = ~collinear & oka & okb & bounded(n, p)
+    bisector = ~collinear & ~eq35 & bounded(bis, j)
+    kind = jnp.where(collinear, PLANE_COLLINEAR, jnp.where(eq35, PLANE_EQ35, jnp.where(bisector, PLANE_BISECTOR, PLANE_SPLIT)))
+    n = jnp.where(eq35[:, None], n, jnp.where(collinear[:, None], ma, bis))
+    p = jnp.where(eq35[:, None], p, j)
+    return n, p, kind.astype(jnp.int32)
 
 
 def segment_axes(joints, radii, start, end, valid=None):
@@ -177,20 +230,23 @@ def segment_axes(joints, radii, start, end, valid=None):
 
 
 def joint_planes(c1, m, h, r1, r2, a, b, cont=None):
-    """``(nb, db, nt, dt, cap_b, cap_t)``: every segment's bottom and top planes. Where row
+    """``(nb, db, nt, dt, cap_b, cap_t, kind)``: every segment's bottom and top planes. Where row
     ``b[i]`` continues row ``a[i]`` (and ``cont[i]``, default all), both share the cutting plane
-    of Eq. 3-5 at their joint; every other end is cut perpendicular to the axis and capped."""
-    n, p = cutting_planes(c1[b], m[a], c1[a], r1[a], r2[a], h[a], m[b], r1[b], r2[b], h[b])
+    of Eq. 3-5 at their joint or its bounded fallback (:func:`cutting_planes`, whose ``kind``
+    (K,) is returned); every other end, and both ends of a ``PLANE_SPLIT`` joint, is cut
+    perpendicular to the axis and capped."""
+    n, p, kind = cutting_planes(c1[b], m[a], c1[a], r1[a], r2[a], h[a], m[b], r1[b], r2[b], h[b])
+    shared = kind != PLANE_SPLIT if cont is None else cont & (kind != PLANE_SPLIT)
     s = h.shape[0]
-    ta = a if cont is None else jnp.where(cont, a, s)  # out of range: dropped
-    tb = b if cont is None else jnp.where(cont, b, s)
+    ta = jnp.where(shared, a, s)  # out of range: dropped
+    tb = jnp.where(shared, b, s)
     nb = m.at[tb].set(n, mode="drop")
     db = jnp.zeros_like(h).at[tb].set(dot3(n, p - c1[b]), mode="drop")
     nt = m.at[ta].set(n, mode="drop")
     dt = h.at[ta].set(dot3(n, p - c1[a]), mode="drop")
     cap_b = jnp.ones(h.shape, bool).at[tb].set(False, mode="drop")
     cap_t = jnp.ones(h.shape, bool).at[ta].set(False, mode="drop")
-    return nb, db, nt, dt, cap_b, cap_t
+    return nb, db, nt, dt, cap_b, cap_t, kind
 
 
 def _frame_level(lvl, st, c1, m, h, r1, r2, nt, dt, topo: SegmentTopology, twist):
@@ -237,15 +293,19 @@ def frames(c1, m, h, r1, r2, nt, dt, topo: SegmentTopology, twist, levels: int):
 
 
 def frusta_fields(joints, radii, topo: SegmentTopology, twist_turns, levels: int, r1=None):
-    """Every per-segment field of the frusta (the names of ``_build.FrustaArrays``) from (J, 3)
-    joints, (J,) radii and the topology, rows in the topology's order; padding rows are
-    placeholders that no ray hits. ``r1`` (N,), when given, replaces the base radii (the host
-    build's minor-axis matching, Sec. 2.2, rescales them)."""
+    """``(fields, kinds)``: every per-segment field of the frusta (a dict of the names of
+    ``_build.FrustaArrays``) from (J, 3) joints, (J,) radii and the topology, rows in the
+    topology's order, and (N,) how each row's base plane was chosen where it continues a row
+    (``PLANE_*`` of :func:`cutting_planes`; -1 elsewhere); padding rows are placeholders that no
+    ray hits. ``r1`` (N,), when given, replaces the base radii (the host build's minor-axis
+    matching, Sec. 2.2, rescales them)."""
     c1, m, h, r1_j, r2 = segment_axes(joints, radii, topo.start, topo.end, topo.valid)
     r1 = r1_j if r1 is None else jnp.where(topo.valid, r1, 0.0)
     a = jnp.maximum(topo.parent, 0)
-    nb, db, nt, dt, cap_b, cap_t = joint_planes(c1, m, h, r1, r2, a, jnp.arange(h.shape[0]), topo.parent >= 0)
+    cont = topo.parent >= 0
+    nb, db, nt, dt, cap_b, cap_t, kind = joint_planes(c1, m, h, r1, r2, a, jnp.arange(h.shape[0]), cont)
     twist = jnp.full(h.shape, twist_turns, joints.dtype)
     u, w, u_off, v_off = frames(c1, m, h, r1, r2, nt, dt, topo, twist, levels)
-    return dict(c1=c1, m=m, u=u, w=w, h=h, r1=r1, r2=r2, nb=nb, db=db, nt=nt, dt=dt, cap_b=cap_b, cap_t=cap_t,
-                u_off=u_off, twist=twist, v_off=v_off)
+    fields = dict(c1=c1, m=m, u=u, w=w, h=h, r1=r1, r2=r2, nb=nb, db=db, nt=nt, dt=dt, cap_b=cap_b, cap_t=cap_t,
+                  u_off=u_off, twist=twist, v_off=v_off)
+    return fields, jnp.where(cont & topo.valid, kind, -1)

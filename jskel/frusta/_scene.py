@@ -16,7 +16,7 @@ from ..interface import Built, Object, Preliminary, Representation
 from ..rays import Hit, Rays
 from ..textures import bilinear_wrap, load_texture
 from ._accel import build_bvh, winner_ts
-from ._build import FrustaArrays
+from ._build import FrustaArrays, piece_bounds
 from ._config import FrustaConfig
 from ._dispatch import AUTO_BVH_SEGMENTS, _plain_search, _relief_search, _stats_batch, traversal_of
 from ._edits import host_frusta
@@ -38,7 +38,9 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
     rmax = r[:, None] + grow
     lo = np.min(j - rmax, axis=0)
     hi = np.max(j + rmax, axis=0)
-    anchor = 0.5 * (lo + hi)
+    anchor = 0.5 * (lo + hi)  # of the joints' box, as before the pieces' reach was bounded (same float32 offsets)
+    plo, phi = piece_bounds(arrays, grow)
+    lo, hi = np.minimum(lo, plo), np.maximum(hi, phi)  # a piece past a bend reaches beyond its joints' spheres
     relief_ids = _relief_ids(rel, s)
     plain, plain_block = _plain_group(cfg, arrays, np.setdiff1d(np.arange(s), relief_ids), anchor, dtype)
     relief = maps = rq = None
