@@ -4,6 +4,8 @@ The problem itself (residuals, loss, normalisation) is ``_problem``'s."""
 
 from __future__ import annotations
 
+import os
+import sys
 import time
 from typing import NamedTuple
 
@@ -150,10 +152,20 @@ def _best_start(step, pr: Problem, s: SolverConfig, nz, start, pts, seed: int, p
     return xb[best], [float(v) for v in ls]  # the best is stepped again from its start, for its loss curve
 
 
+def _quiet() -> bool:
+    """Progress only on a terminal, as a render's (``executor.map_chunks``), and never in CI."""
+    return not sys.stderr.isatty() or bool(os.environ.get("CI"))
+
+
 def _stepped(step, pr: Problem, s: SolverConfig, x0, pts):
     """The stepping loop: one compiled update per iteration on the host, the loss recorded after
     each, stopped by the solver's criterion, ``patience`` iterations of stalled loss or
     ``max_seconds``. Returns (x, state, loss history, iterations, converged, compile seconds)."""
+    from tqdm.auto import tqdm
+
+    quiet = _quiet()
+    if not quiet:
+        print(f"jskel: compiling the {s.name} solver ...", file=sys.stderr, flush=True)
     lossf = jax.jit(lambda x: loss(x, pts, pr))
     t0 = time.perf_counter()
     st0 = _typed_state(step, x0, (pts,))
@@ -165,9 +177,12 @@ def _stepped(step, pr: Problem, s: SolverConfig, x0, pts):
     it = 0
     stalled = 0
     t_loop = time.perf_counter()
+    bar = tqdm(total=s.maxiter, desc=f"fit ({s.name})", unit="it", disable=quiet, leave=False)  # elapsed time is tqdm's own
     for it in range(1, s.maxiter + 1):  # host loop over iterations: one compiled update each
         x, st = upd(x, st)
         history.append(float(lossf(x)))
+        bar.update(1)
+        bar.set_postfix(loss=f"{history[-1]:.4g}", refresh=False)
         if s.max_seconds is not None and time.perf_counter() - t_loop > s.max_seconds:
             break  # not converged: the time budget ran out (FitResult.converged says so)
         if float(step.error(st)) <= s.tol:
@@ -179,6 +194,7 @@ def _stepped(step, pr: Problem, s: SolverConfig, x0, pts):
         if stalled >= s.patience:
             converged = True
             break
+    bar.close()
     return x, st, history, it, converged, compile_s
 
 
