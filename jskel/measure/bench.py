@@ -146,6 +146,12 @@ def job_row(bench: BenchFile, job: Job, runs: int, ref) -> dict:
     return row
 
 
+def as_rendered(exp, ref):
+    """``exp`` with the camera its render ``ref`` used (``camera.frame: auto`` resolved from the
+    built object's bounds, as run.json records it), so that a peer casts the same rays."""
+    return exp.model_copy(update={"camera": type(exp.camera).model_validate(ref.run["config"]["camera"])})
+
+
 def run_group(bench: BenchFile, group: Group, runs: int, emit: JsonLines) -> list[dict]:
     """Render the reference (one log line), time every job, then the peer's study: the rows."""
     ref = None
@@ -157,7 +163,8 @@ def run_group(bench: BenchFile, group: Group, runs: int, emit: JsonLines) -> lis
         rows.append(job_row(bench, job, runs, ref))
         emit(rows[-1])
     if bench.peer is not None and ref is not None:
-        for row in STUDIES[bench.peer](*group.reference, ref.hits, runs, rows, bench.study_options()):
+        exp, obj = group.reference
+        for row in STUDIES[bench.peer](as_rendered(exp, ref), obj, ref.hits, runs, rows, bench.study_options()):
             emit(row)
             rows.append(row)
     return rows
