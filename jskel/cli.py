@@ -23,6 +23,7 @@ from .devices import use_host_devices
 from .distributed import init_from_env
 from .fit import FitFile, run_fit
 from .measure.bench import run_bench
+from .measure.latency import is_latency_file, run_latency_file
 from .measure.files import X64, load_experiment, read_model
 from .measure.sweep import load_sweep, run_sweep
 from .render import render, write_aovs
@@ -86,8 +87,11 @@ def cmd_render(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    """``jskel bench FILE``: see ``jskel.measure.bench``."""
-    run_bench(args.file, args.set, args.runs, args.out, args.x64)
+    """``jskel bench FILE``: see ``jskel.measure.bench`` (time to first image: ``jskel.measure.latency``)."""
+    if is_latency_file(args.file):
+        run_latency_file(args.file, args.set, args.out)
+    else:
+        run_bench(args.file, args.set, args.runs, args.out, args.x64)
     return 0
 
 

@@ -10,7 +10,9 @@
 * ``plots``, ``results``: bars, error against time with the Pareto front, cost against size;
   a sweep's ``results.csv`` and ``report.md``;
 * ``bench``, ``sweep``: the two commands, each a short sequence of the above (import them as
-  ``jskel.measure.bench`` and ``jskel.measure.sweep``); the peers' studies are ``jskel.peers``.
+  ``jskel.measure.bench`` and ``jskel.measure.sweep``); the peers' studies are ``jskel.peers``;
+* ``latency``: time to first image, fresh processes with an empty and a warm compilation cache
+  and re-renders after a change (``jskel bench`` of a file with a ``latency:`` section).
 """
 
 from .cast import cast_once as cast_once

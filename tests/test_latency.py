@@ -1,0 +1,63 @@
+"""The latency benchmark's harness (``jskel.measure.latency``), without compiling anything:
+its process timing and what it reads back, its cases, and the changes it re-renders after."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from jskel.frusta import skeleton_arrays
+from jskel.measure.files import load_experiment, read_model
+from jskel.measure.latency import LatencyFile, cases, changes, process_env, timed_process
+
+ROOT = Path(__file__).resolve().parent.parent
+SAGUARO = ROOT / "experiments" / "saguaro.yaml"
+
+
+def test_a_process_is_timed_to_its_outputs_and_its_report_read(tmp_path):
+    out = tmp_path / "o"
+    run = {"compile_s": 1.25, "build_s": 0.5, "render_s": 0.125, "programs": {"compiled": 7, "loaded": 3, "cache_dir": None}}
+    code = f"import json, os, time; os.makedirs({str(out)!r}); time.sleep(0.3); open({str(out / 'run.json')!r}, 'w').write({json.dumps(run)!r}); time.sleep(0.4)"
+    row = timed_process([sys.executable, "-c", code], process_env(tmp_path / "c"), out, 60)
+    assert row["compile_s"] == 1.25 and row["build_s"] == 0.5 and row["render_s"] == 0.125
+    assert row["compiled"] == 7 and row["loaded"] == 3
+    assert 0.3 <= row["outputs_s"] < row["wall_s"] and row["wall_s"] - row["outputs_s"] >= 0.35
+    bad = timed_process([sys.executable, "-c", "import sys; sys.exit('jskel: error: camera.width: bad')"], {}, None, 60)
+    assert bad["error"] == "jskel: error: camera.width: bad"
+
+
+def test_each_process_gets_its_own_cache_and_no_bars(monkeypatch, tmp_path):
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/elsewhere")
+    monkeypatch.setenv("JSKEL_CACHE", "off")
+    env = process_env(tmp_path / "c")
+    assert env["JSKEL_CACHE_DIR"] == str(tmp_path / "c") and env["CI"] == "1"
+    assert "JAX_COMPILATION_CACHE_DIR" not in env and "JSKEL_CACHE" not in env
+    spec = read_model(LatencyFile, ROOT / "experiments" / "bench_latency.yaml", []).latency
+    labels = [label for label, _ in cases(spec, ROOT / "experiments" / "bench_latency.yaml", tmp_path)]
+    assert labels[0] == "default" and "saguaro" in labels and labels[-2].startswith("sweep:") and labels[-1].startswith("fit:")
+
+
+def test_the_rerender_changes_change_one_thing_each():
+    exp, obj = load_experiment(SAGUARO, [])
+    j, r, p = skeleton_arrays(obj.skeleton, obj.frame)[:3]
+    got = {}
+    for name, sets in changes(exp, obj).items():
+        e, o = load_experiment(SAGUARO, sets)
+        got[name] = (e, *skeleton_arrays(o.skeleton, o.frame)[:3])
+    e0, j0, r0, p0 = got["none"]
+    assert np.array_equal(j0, j) and np.array_equal(r0, r) and np.array_equal(p0, p)
+    _, j1, r1, p1 = got["radius"]
+    assert np.array_equal(j1, j) and np.array_equal(p1, p)
+    (k,) = np.nonzero(r1 != r)[0]
+    assert np.isclose(r1[k], 1.2 * r[k], rtol=1e-12)
+    ec = got["camera"][0]
+    assert np.allclose(np.subtract(ec.camera.eye, exp.camera.eye), [0.5, 0, 0]) and ec.camera.target == exp.camera.target
+    es = got["image_size"][0]
+    assert (es.camera.width, es.camera.height) == (exp.camera.width + 16, exp.camera.height + 12)
+    _, j4, r4, p4 = got["segments"]
+    assert len(j4) == len(j) + 1 and np.array_equal(j4[:-1], j) and p4[-1] == len(j) - 1 and np.isclose(r4[-1], 0.8 * r[-1])
+    for e, *_ in got.values():
+        assert e.render.progress is False
