@@ -81,3 +81,24 @@ def test_a_second_process_loads_what_the_first_compiled(tmp_path):
     second = _render(tmp_path / "o2", env)
     assert second["loaded"] > 0 and second["compiled"] < first["compiled"], (first, second)
     assert second["loaded"] + second["compiled"] == first["compiled"]  # the same programs, from the cache
+
+
+def test_the_cli_warns_once_and_runs_on_without_an_open_cache(tmp_path):
+    """A group-writable JSKEL_CACHE_DIR: the CLI says so in one line and carries on (here to a
+    bad experiment's own error line and exit code 2, before anything compiles); JSKEL_CACHE
+    with a bad value is one error line naming the variable."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    os.chmod(shared, 0o775)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: bad\nobject: {type: nothing}\n")
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    cmd = [sys.executable, "-m", "jskel", "render", str(bad), "--out", str(tmp_path / "o")]
+    p = subprocess.run(cmd, env=dict(env, JSKEL_CACHE_DIR=str(shared)), capture_output=True, text=True, timeout=120)
+    lines = p.stderr.strip().splitlines()
+    assert p.returncode == 2 and len(lines) == 2, p.stderr
+    assert lines[0].startswith("jskel: warning: compilation cache") and f"chmod 700 {shared}" in lines[0]
+    assert lines[1].startswith("jskel: error: object")
+    assert stat.S_IMODE(shared.stat().st_mode) == 0o775 and list(shared.iterdir()) == []
+    p = subprocess.run(cmd, env=dict(env, JSKEL_CACHE="sometimes"), capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and p.stderr.strip() == "jskel: error: JSKEL_CACHE: 'sometimes' is not on or off"
