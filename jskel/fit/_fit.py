@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -54,10 +55,31 @@ def uses_sparse(s: SolverConfig, n_res: int, n_par: int) -> bool:
     return s.jacobian == "sparse" or (s.jacobian == "auto" and n_res * n_par >= SPARSE_FROM)
 
 
-def _steppers(name, pr: Problem, s: SolverConfig, n_res: int, n_par: int):
-    normal = (lambda x, p: normal_equations(x, p, pr)) if uses_sparse(s, n_res, n_par) else None
-    return _solvers.make(name, lambda x, p: residuals(x, p, pr), lambda x, p: loss(x, p, pr), s.maxiter, s.tol, s.learning_rate,
-                         dense=n_res * n_par <= DENSE_JACOBIAN_MAX, normal=normal)
+class SolverKey(NamedTuple):
+    """The solver settings a compiled fit depends on (hashable: a static argument of the fit's
+    module-level jitted functions, so a second fit of the same topology and settings, new points
+    and starts included, reuses the executables instead of compiling again)."""
+
+    name: str
+    maxiter: int
+    tol: float
+    learning_rate: float
+    patience: int
+    ftol: float
+    dense: bool  # jaxopt's LM forms the Jacobian
+    sparse: bool  # LM / Gauss-Newton on the assembled sparse normal equations
+
+
+def solver_key(s: SolverConfig, n_res: int, n_par: int) -> SolverKey:
+    return SolverKey(s.name, int(s.maxiter), float(s.tol), float(s.learning_rate), int(s.patience), float(s.ftol),
+                     n_res * n_par <= DENSE_JACOBIAN_MAX, uses_sparse(s, n_res, n_par))
+
+
+def stepper(pr: Problem, key: SolverKey) -> _solvers.Stepper:
+    """The solver of ``key`` on the problem ``pr`` (built while tracing; nothing compiles here)."""
+    normal = (lambda x, p: normal_equations(x, p, pr)) if key.sparse else None
+    return _solvers.make(key.name, lambda x, p: residuals(x, p, pr), lambda x, p: loss(x, p, pr), key.maxiter, key.tol,
+                         key.learning_rate, dense=key.dense, normal=normal)
 
 
 def _typed_state(step, x0, args):
@@ -66,6 +88,21 @@ def _typed_state(step, x0, args):
     st0 = step.init(x0, *args)
     shapes = jax.eval_shape(lambda x, st: step.update(x, st, *args), x0, st0)[1]
     return jax.tree_util.tree_map(lambda a, sh: jnp.asarray(a, sh.dtype), st0, shapes)
+
+
+@partial(jax.jit, static_argnums=(2, 3))
+def _initial(x0, points, pr: Problem, key: SolverKey):
+    return _typed_state(stepper(pr, key), x0, (points,))
+
+
+@partial(jax.jit, static_argnums=(3, 4))
+def _update(x, st, points, pr: Problem, key: SolverKey):
+    return stepper(pr, key).update(x, st, points)
+
+
+@partial(jax.jit, static_argnums=(2,))
+def _loss(x, points, pr: Problem):
+    return loss(x, points, pr)
 
 
 # solvers whose batches run one fit after another (``lax.map``) instead of in lockstep
@@ -83,26 +120,39 @@ def over_batch(name: str, fn):
     return jax.vmap(fn)
 
 
-def run_to_end(step, pr: Problem, s: SolverConfig, x0, points):
+def run_to_end(pr: Problem, key: SolverKey, x0, points):
     """One fit as a single ``while_loop`` with the stepping loop's stopping rule (the solver's
     criterion, or ``patience`` iterations in a row whose loss fell by less than ``ftol``);
     ``vmap`` of it fits many problems in one call. Returns (x, iterations, final loss)."""
+    step = stepper(pr, key)
     st0 = _typed_state(step, x0, (points,))
     l0 = loss(x0, points, pr)
 
     def cond(c):
         x, st, it, prev, stalled = c
-        return (it < s.maxiter) & (step.error(st) > s.tol) & (stalled < s.patience)
+        return (it < key.maxiter) & (step.error(st) > key.tol) & (stalled < key.patience)
 
     def body(c):
         x, st, it, prev, stalled = c
         x, st = step.update(x, st, points)
         cur = loss(x, points, pr)
-        stalled = jnp.where(prev - cur <= s.ftol * jnp.abs(prev), stalled + 1, 0)
+        stalled = jnp.where(prev - cur <= key.ftol * jnp.abs(prev), stalled + 1, 0)
         return x, st, it + 1, cur, stalled
 
     x, _, it, cur, _ = jax.lax.while_loop(cond, body, (x0, st0, jnp.int32(0), l0, jnp.int32(0)))
     return x, it, cur
+
+
+@partial(jax.jit, static_argnums=(2, 3))
+def _solve_starts(xb, points, pr: Problem, key: SolverKey):
+    """Every start of ``xb`` (B, P) solved to its end on the same points (:func:`over_batch`)."""
+    return over_batch(key.name, lambda x: run_to_end(pr, key, x, points))(xb)
+
+
+@partial(jax.jit, static_argnums=(2, 3))
+def _solve_clouds(x0, points, pr: Problem, key: SolverKey):
+    """Each start of ``x0`` (B, P) solved to its end on its own cloud of ``points`` (B, N, 3)."""
+    return over_batch(key.name, lambda x, p: run_to_end(pr, key, x, p)[0])(x0, points)
 
 
 def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dtype=np.float32, seed: int = 1,
@@ -118,13 +168,13 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
     pr = problem_of(seg, s)
     nz = normaliser_of(points)
     pts = jnp.asarray(nz.points(points), dtype)
-    step = _steppers(s.name, pr, s, len(points) + 5 * len(pr.triples), n_par)
+    key = solver_key(s, len(points) + 5 * len(pr.triples), n_par)
     x0 = jnp.asarray(nz.start(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), pr), dtype)
     t_all = time.perf_counter()
     restart_losses = []
     if s.restarts > 1:
-        x0, restart_losses = _best_start(step, pr, s, nz, (joints0, radii0, parents), pts, seed, perturb)
-    x, st, history, it, converged, compile_s = _stepped(step, pr, s, x0, pts)
+        x0, restart_losses = _best_start(pr, key, s, nz, (joints0, radii0, parents), pts, seed, perturb)
+    x, st, history, it, converged, compile_s = _stepped(pr, key, s, x0, pts)
     seconds = time.perf_counter() - t_all - compile_s
     if not np.all(np.isfinite(np.asarray(x))) or not np.isfinite(history[-1]):
         raise ValueError(f"solver.name: {s.name} diverged to a non-finite loss after {it} iterations (try another solver or a smaller learning_rate)")
@@ -132,10 +182,11 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
         raise ValueError(f"solver.name: {s.name} diverged: the loss rose from {history[0]:.4g} to {history[-1]:.4g} in {it} iterations "
                          "(try lm, a smaller learning_rate or more points)")
     j, r = nz.world(x, pr)
-    return FitResult(j, r, np.asarray(parents), history, it, converged, seconds, compile_s, float(step.error(st)), s.restarts, restart_losses)
+    return FitResult(j, r, np.asarray(parents), history, it, converged, seconds, compile_s, float(stepper(pr, key).error(st)), s.restarts,
+                     restart_losses)
 
 
-def _best_start(step, pr: Problem, s: SolverConfig, nz, start, pts, seed: int, perturb: float):
+def _best_start(pr: Problem, key: SolverKey, s: SolverConfig, nz, start, pts, seed: int, perturb: float):
     """The best of ``s.restarts`` starts (the given ``start`` = (joints, radii, parents) and
     perturbed copies, at least 0.1 of a segment), each solved to its end in one compiled call
     (:func:`over_batch`): (its parameters, every start's final loss)."""
@@ -146,7 +197,7 @@ def _best_start(step, pr: Problem, s: SolverConfig, nz, start, pts, seed: int, p
         j, r = perturbed(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), np.asarray(parents), max(perturb, 0.1), rng)
         starts.append(nz.start(j, r, pr))
     xb = jnp.asarray(np.stack(starts), pts.dtype)
-    xs, _, ls = jax.jit(over_batch(s.name, lambda x: run_to_end(step, pr, s, x, pts)))(xb)
+    xs, _, ls = _solve_starts(xb, pts, pr, key)
     ls = np.asarray(ls)
     best = int(np.nanargmin(ls))
     return xb[best], [float(v) for v in ls]  # the best is stepped again from its start, for its loss curve
@@ -157,7 +208,7 @@ def _quiet() -> bool:
     return not sys.stderr.isatty() or bool(os.environ.get("CI"))
 
 
-def _stepped(step, pr: Problem, s: SolverConfig, x0, pts):
+def _stepped(pr: Problem, key: SolverKey, s: SolverConfig, x0, pts):
     """The stepping loop: one compiled update per iteration on the host, the loss recorded after
     each, stopped by the solver's criterion, ``patience`` iterations of stalled loss or
     ``max_seconds``. Returns (x, state, loss history, iterations, converged, compile seconds)."""
@@ -166,21 +217,22 @@ def _stepped(step, pr: Problem, s: SolverConfig, x0, pts):
     quiet = _quiet()
     if not quiet:
         print(f"jskel: compiling the {s.name} solver ...", file=sys.stderr, flush=True)
-    lossf = jax.jit(lambda x: loss(x, pts, pr))
-    t0 = time.perf_counter()
-    st0 = _typed_state(step, x0, (pts,))
-    upd = jax.jit(lambda x, st: step.update(x, st, pts)).lower(x0, st0).compile()
+    step = stepper(pr, key)
+    t0 = time.perf_counter()  # compile seconds: the initial state's and the update's programs (none when cached)
+    st0 = _initial(x0, pts, pr, key)
+    upd = _update.lower(x0, st0, pts, pr, key).compile()
+    lossf = _loss.lower(x0, pts, pr).compile()
     compile_s = time.perf_counter() - t0
     x, st = x0, st0
-    history = [float(lossf(x))]
+    history = [float(lossf(x, pts))]
     converged = False
     it = 0
     stalled = 0
     t_loop = time.perf_counter()
     bar = tqdm(total=s.maxiter, desc=f"fit ({s.name})", unit="it", disable=quiet, leave=False)  # elapsed time is tqdm's own
     for it in range(1, s.maxiter + 1):  # host loop over iterations: one compiled update each
-        x, st = upd(x, st)
-        history.append(float(lossf(x)))
+        x, st = upd(x, st, pts)
+        history.append(float(lossf(x, pts)))
         bar.update(1)
         bar.set_postfix(loss=f"{history[-1]:.4g}", refresh=False)
         if s.max_seconds is not None and time.perf_counter() - t_loop > s.max_seconds:
@@ -213,10 +265,9 @@ def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32
     nzs = [normaliser_of(c) for c in clouds]
     pts = jnp.asarray(np.stack([nz.points(c) for nz, c in zip(nzs, clouds)]), dtype)
     x0 = jnp.asarray(np.stack([nz.start(j, r, pr) for nz, j, r in zip(nzs, j0, r0)]), dtype)
-    step = _steppers(s.name, pr, s, clouds.shape[1] + 5 * len(pr.triples), x0.shape[-1])
-    solve = jax.jit(over_batch(s.name, lambda x, p: run_to_end(step, pr, s, x, p)[0]))
+    key = solver_key(s, clouds.shape[1] + 5 * len(pr.triples), x0.shape[-1])
     t0 = time.perf_counter()
-    solve = solve.lower(x0, pts).compile()
+    solve = _solve_clouds.lower(x0, pts, pr, key).compile()
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     xs = solve(x0, pts)

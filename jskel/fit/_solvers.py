@@ -61,6 +61,15 @@ class Stepper(NamedTuple):
 SOLVERS = ("lm", "gauss_newton", "lbfgs", "adam")
 
 
+class AdamState(NamedTuple):
+    """State of the ``adam`` stepper (module level: a state returned by one stepper is the input
+    type of another's compiled update, so its class must be the same)."""
+
+    opt: object
+    error: jnp.ndarray
+    iter_num: jnp.ndarray
+
+
 DAMPING_MAX = 2.0**32  # as jaxopt's cap on mu (and on nu)
 
 
@@ -152,11 +161,6 @@ def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: floa
 
         opt = optax.adam(learning_rate)
         grad = jax.grad(loss)
-
-        class AdamState(NamedTuple):
-            opt: object
-            error: jnp.ndarray
-            iter_num: jnp.ndarray
 
         def init(x0, *args):
             return AdamState(opt.init(x0), jnp.asarray(jnp.inf, x0.dtype), jnp.int32(0))
