@@ -1,15 +1,25 @@
-"""Documentation (issue 11): every public name of jskel and of each subpackage (its
-``__all__``) has a docstring of its own (a NamedTuple's generated "Name(a, b)" does not count)."""
+"""Documentation: every public name of jskel and of each subpackage (its ``__all__``) has a
+docstring of its own (a NamedTuple's generated "Name(a, b)" does not count); the site in ``docs/``
+builds with ``mkdocs build --strict`` (broken links, anchors and API references fail it); README.md
+stays short, keeps the two set-up commands ``.ci/run`` runs, and its relative links resolve."""
 
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import inspect
+import os
 import re
+import subprocess
+import sys
+import unicodedata
+from pathlib import Path
 
 import pytest
 
 from jskel import registry
+
+ROOT = Path(__file__).resolve().parents[1]
 
 # the core packages, and every registered representation's folder
 PACKAGES = list(dict.fromkeys(["jskel", "jskel.accel", "jskel.render", "jskel.fit", "jskel.measure"] + [f"jskel.{n}" for n in registry.names()]))
@@ -37,3 +47,74 @@ def test_every_public_name_has_a_docstring(name):
         if not own_doc(obj):
             missing.append(n)
     assert not missing, f"{name}: no docstring for {missing}"
+
+
+def test_docs_site_builds_strict(tmp_path):
+    if importlib.util.find_spec("mkdocs") is None or importlib.util.find_spec("mkdocstrings") is None:
+        pytest.skip("mkdocs and mkdocstrings are not installed (pip install -e '.[dev]' installs them)")
+    env = dict(os.environ, NO_MKDOCS_2_WARNING="1")
+    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, f"mkdocs build --strict failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
+    for page in ("index.html", "api/index.html", "performance/index.html", "frusta/index.html"):
+        assert (tmp_path / "site" / page).is_file(), page
+    api = (tmp_path / "site" / "api" / "index.html").read_text(encoding="utf-8")
+    assert "rebuilder" in api and "read_swc" in api, "the API page holds no generated reference"
+
+
+def slug(heading: str) -> str:
+    """Python-Markdown's toc slug (what mkdocs and the site's anchors use)."""
+    text = unicodedata.normalize("NFKD", heading).encode("ascii", "ignore").decode()
+    text = re.sub(r"[^\w\s-]", "", text).strip().lower()
+    return re.sub(r"[-\s]+", "-", text)
+
+
+def anchors(md: Path) -> set[str]:
+    out, fence = set(), False
+    for line in md.read_text(encoding="utf-8").splitlines():
+        if line.startswith("```"):
+            fence = not fence
+        elif not fence and re.match(r"#{1,6} ", line):
+            out.add(slug(line.lstrip("#").strip()))
+    return out
+
+
+README_COMMANDS = (
+    'python -m venv .venv && . .venv/bin/activate && pip install -e ".[dev]" && python -m jskel render --out out/default',
+    "python -m pytest -q",
+)
+
+
+def test_readme_is_short_and_keeps_the_two_commands():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 200, f"README.md has {len(text.splitlines())} lines (at most 200)"
+    commands = [line.strip() for line in text.splitlines() if line.startswith("    ")]
+    for cmd in README_COMMANDS:
+        assert cmd in commands, f"README.md lost the set-up command {cmd!r}"
+    ci = (ROOT / ".ci" / "run").read_text(encoding="utf-8")
+    assert 'pip install -e ".[dev]" && python -m jskel render --out out/default' in ci and "python -m pytest -q" in ci
+
+
+def test_readme_relative_links_resolve():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    links = re.findall(r"\]\(([^)\s]+)\)", text)
+    assert links, "README.md links nowhere"
+    broken = []
+    for link in links:
+        if re.match(r"[a-z]+:", link):
+            continue
+        path, _, anchor = link.partition("#")
+        target = ROOT / path
+        if not target.exists():
+            broken.append(link)
+        elif anchor and target.suffix == ".md" and anchor not in anchors(target):
+            broken.append(link)
+    assert not broken, f"README.md: broken relative links {broken}"
+
+
+def test_docs_speak_of_the_project_only():
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    bad = re.compile(r"\bstop \d+|\bthis stop\b|\bsession\b|during development", re.I)
+    found = [f"{p.name}:{i}: {line.strip()}" for p in pages
+             for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1) if bad.search(line)]
+    assert not found, "wording about how the work was organised:\n" + "\n".join(found)
