@@ -2,7 +2,7 @@
 bounds (``camera.frame: auto``, as the neuron benchmark's is): the study gets the experiment with
 the camera the render used. The rays the study would cast are checked against a float64 NumPy
 ray-cylinder intersection written here. Also: the neuron benchmark files validate and expand
-to the settings their README section describes. No peer is needed (the study is replaced)."""
+to the settings their section of docs/performance.md describes. No peer is needed (the study is replaced)."""
 
 from __future__ import annotations
 

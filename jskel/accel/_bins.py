@@ -37,7 +37,7 @@ lowest primitive index, as ``frusta._intersect.nearest_one`` does.
 Why on the CPU: XLA runs dense elementwise work at full width, while a per-ray walk is a
 vmapped while loop that runs until its slowest ray ends. On the 2,158-segment cacti at
 1024 x 768 (packets of 64, 8 x 8 pixels) a packet's list held 7.5 segments per ray on average,
-4.0 tested after pruning, against the 14 segments per ray that the BVH walk tests (README).
+4.0 tested after pruning, against the 14 segments per ray that the BVH walk tests (docs/performance.md).
 Incoherent rays still get the right answer, only with long lists: the BVH traversals remain for
 them.
 """
@@ -251,7 +251,7 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
     while primitives are no smaller than a packet's footprint; below that every packet's list
     holds everything under it, and a packet's cost grows with the primitives' density, not with
     log(primitives): a per-ray BVH walk is the fallback that keeps the cost per ray
-    logarithmic (README: cost per ray against log(segments)).
+    logarithmic (docs/performance.md: cost per ray against log(segments)).
 
     ``root = (lo (3,), hi (3,))``, a box around every primitive: a batch that cannot meet it
     (sky) skips everything but its own bounds (a ``lax.cond``)."""

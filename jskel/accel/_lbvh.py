@@ -23,7 +23,7 @@ rays 1.53 s, 4,096 rays 3.05 s (per-iteration overhead of XLA's while loop again
 on the slowest ray); a wavefront that quarters its width as rays finish (gathering the active
 rays, so the tail runs at 256 then 64 lanes) gave 1.43-2.12 s and compiled 3-6x longer, so it
 was not kept. Traversal work per ray grows with log2(segments) at fixed coverage (about one more
-internal node per doubling; README, ``experiments/bench_scale_size.yaml``).
+internal node per doubling; docs/performance.md, ``experiments/bench_scale_size.yaml``).
 
 Why this structure and not a uniform grid with 3D-DDA: skeletons are long thin primitives of
 very different sizes (a palm's trunk and its leaflets), which a single grid resolution bounds

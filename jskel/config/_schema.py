@@ -127,7 +127,7 @@ AUTO_CHUNK_ACCELERATOR = 1 << 20
 
 def chunk_of(render) -> int:
     """``render.chunk`` resolved: ``auto`` is 4,096 rays per call on the CPU (small calls keep
-    per-ray work in cache; README's chunk rows) and 1,048,576 on an accelerator, where one call
+    per-ray work in cache; docs/performance.md's chunk rows) and 1,048,576 on an accelerator, where one call
     per frame is what fills the device (on the H100 the per-ray walk of the palm at 1024x768 took
     0.10 s in one call, 0.24 s in 65,536-ray calls; ``experiments/bench_scale_device.yaml``)."""
     import jax
@@ -145,7 +145,7 @@ def chunks_per_call_of(render) -> int:
     whose auto chunk is already a whole frame. Several chunks per call save the host's per-call
     slicing, transfer and dispatch; on the 2-core CPU a 1024x768 frame runs as two calls of 48
     chunks per device (``rays.calls_grouping``), measured against 1 and 16 in
-    ``experiments/bench_scale_cpu_paths.yaml`` (README)."""
+    ``experiments/bench_scale_cpu_paths.yaml`` (docs/performance.md)."""
     import jax
 
     if render.chunks_per_call != "auto":

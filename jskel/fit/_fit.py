@@ -41,7 +41,7 @@ DENSE_JACOBIAN_MAX = 1 << 24  # entries (residuals x unknowns) up to which LM fo
 
 
 # Jacobian entries (residuals x unknowns) from which ``solver.jacobian: auto`` assembles the
-# sparse normal equations. In the fitting benchmark (README, docs/bench_fit_*cpu.jsonl) LM took
+# sparse normal equations. In the fitting benchmark (docs/performance.md, docs/bench_fit_*cpu.jsonl) LM took
 # the same steps either way, 3.04 s dense / 1.22 s sparse at 10,000 points x 24 unknowns and
 # 90.7 / 1.70 s at 10,000 x 204, and the dense form ran out of 24 GB at 10,000 x 2,004; at
 # 1,000 x 24 (below the threshold) jaxopt's dense form takes 0.94 s

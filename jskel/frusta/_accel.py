@@ -162,7 +162,7 @@ def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, p
     ``walk_ratio`` > 0: a batch whose list holds more than ``walk_ratio`` segments per ray is
     cast by per-ray walks (:func:`nearest_groups`, groups of ``walk_group``) instead: segments
     smaller than a packet's footprint (``experiments/bench_scale_size.yaml``'s wall of small
-    copies: bins and walks cost the same at about 1.6 segments per ray in the list; README).
+    copies: bins and walks cost the same at about 1.6 segments per ray in the list; docs/performance.md).
 
     The loop keeps t and the segment only; (s, code) come from one more test of each ray
     against its segment. That test is a program of its own, which XLA may round apart from the

@@ -24,7 +24,7 @@ def traversal_of(cfg: FrustaConfig) -> str:
     candidate lists (``bins``) on the CPU. On the H100 at 1024x768 the kernel took 13-16 ms on
     the palm, oasis and cacti, XLA's per-ray walk over the whole frame 48-162 ms, and packets
     4.6-9.2 s (a ``lax.map`` of scalar loops is bound by launches there). On the 2-core CPU bins
-    beat the BVH packets on every scene of ``experiments/bench_scale_bins.yaml`` (README); a
+    beat the BVH packets on every scene of ``experiments/bench_scale_bins.yaml`` (docs/performance.md); a
     render of ``experiments/scene_cacti.yaml`` (``--set objects.1.shape.traversal=...``), whose
     shadow and reflection rays reach the cacti too, was faster with bins as well (one warm
     render each way, not a committed bench)."""

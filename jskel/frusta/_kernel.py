@@ -17,7 +17,7 @@ equal :func:`jskel.frusta._accel.nearest_groups` bit for bit (tested). On a GPU 
 compiled by Triton and XLA's loop by XLA; they may contract multiply-adds differently, so t can
 differ in the last bits there (the benchmark reports the agreement it measured).
 
-Measured on the H100 (``experiments/bench_scale_kernel.yaml``, 1024x768, jax 0.11.2; README):
+Measured on the H100 (``experiments/bench_scale_kernel.yaml``, 1024x768, jax 0.11.2; docs/performance.md):
 the palm 13.8-16.1 ms, the oasis 13.3-15.6 ms and the cacti 13.7 ms per frame (render: shading
 and the copy of every output to the host included) against 97, 162 and 48 ms for XLA's walk over
 the whole frame, with identical hits, ids and depths on all three; 32, 64 and 128 rays per

@@ -150,7 +150,7 @@ class ImplicitConfig(StrictModel):
     capacity: Annotated[int, Field(ge=1, le=4096)] = 32
     block_size: Annotated[int, Field(ge=0, le=1024)] = 16  # primitives per culling block; 0: flat culling
     # culling blocks kept per ray (more: the ray is retraced with flat culling); default 16 for
-    # the tree, 32 for blocks (block spheres are looser than the tree's leaf boxes: README)
+    # the tree, 32 for blocks (block spheres are looser than the tree's leaf boxes: docs/performance.md)
     block_capacity: Annotated[int, Field(ge=1, le=4096)] | None = None
     cull: Literal["blocks", "tree"] = "tree"  # how a ray finds its blocks: walk the shared BVH, or test every block sphere
     early_exit: bool = True

@@ -27,7 +27,7 @@ culling by ``intersect_batch``) and tests only their primitives. ``Quality.cull`
 * ``blocks``: every group's bounding sphere (``block_spheres``) is tested and the nearest
   ``block_capacity`` met are kept: P / block sphere tests per ray.
 
-Chosen by measurement (``experiments/bench_implicit_cull.yaml``, README): on 160 x 120 primary
+Chosen by measurement (``experiments/bench_implicit_cull.yaml``, docs/performance.md): on 160 x 120 primary
 rays of the blob slabs (development A/B, same process, 2-core CPU), culling alone took 0.35 s
 (blocks, 32 kept) against 0.13 s (tree, 16 kept) at 5,000 blobs and 0.92 s against 0.15 s at
 50,000, with identical candidate sets and hits; whole traces 0.61 against 0.39 s and 1.34

@@ -73,7 +73,7 @@ def cast_resident(exp, obj, built, chunks) -> tuple[float, list]:
     where :func:`cast_once` also times the rays' copy to the device and the results' copy back.
     The same compiled cast as ``cast_once``'s (one chunk per call, no grouping), every call
     dispatched before one wait. On a CPU the copies cost nothing; on a GPU they are most of a
-    1024x768 cast (README, performance)."""
+    1024x768 cast (docs/performance.md)."""
     mesh = _ray_mesh_of(exp)
     params = Object(built.params, built.static, obj.type)
     if mesh is not None:
