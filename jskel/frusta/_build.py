@@ -161,9 +161,40 @@ def piece_reach(arr: FrustaArrays) -> np.ndarray:
         return np.asarray(jnp.maximum(bottom, top), np.float64)
 
 
+def _cut_boxes(arr: FrustaArrays, n: np.ndarray, dist: np.ndarray):
+    """(lo, hi) (S, 3) boxes of the ellipses the planes ``n . (P - C1) = dist`` cut from the
+    cones, in closed form: the major axis joins the cut's two points in the plane of ``m`` and
+    ``n`` (the axial extremes of :func:`_geometry.plane_reach`), the minor axis is the half chord
+    through its centre across that plane, ``sqrt((r1 + k y_c)^2 - rho_c^2)`` (Sec. 2.2's minor
+    axis, :func:`minor_semi_axis`); an ellipse of semi-axes a, b spans ``sqrt(a_i^2 + b_i^2)``
+    about its centre along axis i."""
+    k = (arr.r2 - arr.r1) / arr.h
+    nm = np.sum(n * arr.m, -1)
+    tilt = n - nm[:, None] * arr.m
+    tn = np.linalg.norm(tilt, axis=-1)
+    e = np.where((tn > 1e-12)[:, None], tilt / np.maximum(tn, 1e-300)[:, None], arr.u)  # a circle: any radial direction
+    ne = np.where(tn > 1e-12, tn, 0.0)
+    ends = []
+    for sign in (1.0, -1.0):
+        y = (dist - sign * ne * arr.r1) / (nm + sign * ne * k)
+        ends.append(arr.c1 + y[:, None] * arr.m + (sign * (arr.r1 + k * y))[:, None] * e)
+    centre = 0.5 * (ends[0] + ends[1])
+    semi_a = 0.5 * (ends[0] - ends[1])
+    yc = np.sum((centre - arr.c1) * arr.m, -1)
+    rho_c = np.sum((centre - arr.c1) * e, -1)
+    semi_b = np.sqrt(np.maximum((arr.r1 + k * yc) ** 2 - rho_c**2, 0.0))
+    b_dir = np.cross(n, semi_a / np.maximum(np.linalg.norm(semi_a, axis=-1), 1e-300)[:, None])
+    half = np.sqrt(semi_a**2 + (semi_b[:, None] * b_dir) ** 2)
+    return centre - half, centre + half
+
+
 def piece_bounds(arr: FrustaArrays, grow: float = 0.0):
-    """(lo, hi) (3,) world box of every piece: each segment's box grown by its
-    :func:`piece_reach` (plus ``grow``, a relief shell's thickness)."""
-    reach = piece_reach(arr)[:, None] + grow
-    c2 = arr.c1 + arr.h[:, None] * arr.m
-    return np.min(np.minimum(arr.c1, c2) - reach, axis=0), np.max(np.maximum(arr.c1, c2) + reach, axis=0)
+    """(lo, hi) (3,) world box of every piece: each piece is the convex hull of its two
+    elliptical cuts (every generator runs straight from one to the other; a flat cap lies inside
+    its cut), so the boxes of the cuts (:func:`_cut_boxes`, exact) bound it; ``grow``, a relief
+    shell's thickness, takes the shell's outer frusta (radii + grow) instead."""
+    if grow:
+        arr = arr._replace(r1=arr.r1 + grow, r2=arr.r2 + grow)
+    lo_b, hi_b = _cut_boxes(arr, arr.nb, arr.db)
+    lo_t, hi_t = _cut_boxes(arr, arr.nt, arr.dt)
+    return np.minimum(lo_b, lo_t).min(0), np.maximum(hi_b, hi_t).max(0)
