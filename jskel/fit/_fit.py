@@ -120,27 +120,41 @@ def over_batch(name: str, fn):
     return jax.vmap(fn)
 
 
-def run_to_end(pr: Problem, key: SolverKey, x0, points):
+class RunEnd(NamedTuple):
+    """How one fit of :func:`run_to_end` ended: the parameters, iterations, final loss, the loss
+    after each iteration (``maxiter + 1``, the start first, NaN past the end), the solver's
+    stopping measure and the count of iterations in a row whose loss stalled."""
+
+    x: jnp.ndarray
+    iterations: jnp.ndarray
+    loss: jnp.ndarray
+    history: jnp.ndarray
+    error: jnp.ndarray
+    stalled: jnp.ndarray
+
+
+def run_to_end(pr: Problem, key: SolverKey, x0, points) -> RunEnd:
     """One fit as a single ``while_loop`` with the stepping loop's stopping rule (the solver's
-    criterion, or ``patience`` iterations in a row whose loss fell by less than ``ftol``);
-    ``vmap`` of it fits many problems in one call. Returns (x, iterations, final loss)."""
+    criterion, or ``patience`` iterations in a row whose loss fell by less than ``ftol``),
+    recording the loss after each iteration; ``vmap`` of it fits many problems in one call."""
     step = stepper(pr, key)
     st0 = _typed_state(step, x0, (points,))
     l0 = loss(x0, points, pr)
+    hist0 = jnp.full((key.maxiter + 1,), jnp.nan, l0.dtype).at[0].set(l0)
 
     def cond(c):
-        x, st, it, prev, stalled = c
+        x, st, it, prev, stalled, hist = c
         return (it < key.maxiter) & (step.error(st) > key.tol) & (stalled < key.patience)
 
     def body(c):
-        x, st, it, prev, stalled = c
+        x, st, it, prev, stalled, hist = c
         x, st = step.update(x, st, points)
         cur = loss(x, points, pr)
         stalled = jnp.where(prev - cur <= key.ftol * jnp.abs(prev), stalled + 1, 0)
-        return x, st, it + 1, cur, stalled
+        return x, st, it + 1, cur, stalled, hist.at[it + 1].set(cur)
 
-    x, _, it, cur, _ = jax.lax.while_loop(cond, body, (x0, st0, jnp.int32(0), l0, jnp.int32(0)))
-    return x, it, cur
+    x, st, it, cur, stalled, hist = jax.lax.while_loop(cond, body, (x0, st0, jnp.int32(0), l0, jnp.int32(0), hist0))
+    return RunEnd(x, it, cur, hist, step.error(st), stalled)
 
 
 @partial(jax.jit, static_argnums=(2, 3))
@@ -152,15 +166,17 @@ def _solve_starts(xb, points, pr: Problem, key: SolverKey):
 @partial(jax.jit, static_argnums=(2, 3))
 def _solve_clouds(x0, points, pr: Problem, key: SolverKey):
     """Each start of ``x0`` (B, P) solved to its end on its own cloud of ``points`` (B, N, 3)."""
-    return over_batch(key.name, lambda x, p: run_to_end(pr, key, x, p)[0])(x0, points)
+    return over_batch(key.name, lambda x, p: run_to_end(pr, key, x, p).x)(x0, points)
 
 
 def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dtype=np.float32, seed: int = 1,
                perturb: float = 0.0) -> FitResult:
     """Fit a skeleton of ``parents``' topology to ``points`` from (joints0, radii0): the
     stepping loop records the loss after every iteration; with ``s.restarts > 1`` that many
-    starts (the given one and perturbed copies) are first solved in one call (:func:`over_batch`) and
-    the best is stepped again for its loss curve (one more fit, counted in ``seconds``)."""
+    starts (the given one and perturbed copies) are solved in one call (:func:`over_batch`,
+    each recording its loss curve) and the best is the result: one program, not a second
+    compile of the stepping loop (L-BFGS compiles for about a minute on 2 cores). A time budget
+    (``max_seconds``) needs the host loop: then the best start is stepped again."""
     seg = segments_of(joints0, radii0, parents, "init.skeleton")
     n_par = 4 * len(joints0)
     if len(points) < n_par:
@@ -172,9 +188,16 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
     x0 = jnp.asarray(nz.start(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), pr), dtype)
     t_all = time.perf_counter()
     restart_losses = []
+    end = None
     if s.restarts > 1:
-        x0, restart_losses = _best_start(pr, key, s, nz, (joints0, radii0, parents), pts, seed, perturb)
-    x, st, history, it, converged, compile_s = _stepped(pr, key, s, x0, pts)
+        x0, restart_losses, end, compile_s = _best_start(pr, key, s, nz, (joints0, radii0, parents), pts, seed, perturb)
+    if end is not None and s.max_seconds is None:
+        it = int(end.iterations)
+        x, history, error = end.x, [float(v) for v in np.asarray(end.history)[: it + 1]], float(end.error)
+        converged = error <= s.tol or int(end.stalled) >= s.patience
+    else:
+        x, st, history, it, converged, compile_s = _stepped(pr, key, s, x0, pts)
+        error = float(stepper(pr, key).error(st))
     seconds = time.perf_counter() - t_all - compile_s
     if not np.all(np.isfinite(np.asarray(x))) or not np.isfinite(history[-1]):
         raise ValueError(f"solver.name: {s.name} diverged to a non-finite loss after {it} iterations (try another solver or a smaller learning_rate)")
@@ -182,14 +205,13 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
         raise ValueError(f"solver.name: {s.name} diverged: the loss rose from {history[0]:.4g} to {history[-1]:.4g} in {it} iterations "
                          "(try lm, a smaller learning_rate or more points)")
     j, r = nz.world(x, pr)
-    return FitResult(j, r, np.asarray(parents), history, it, converged, seconds, compile_s, float(stepper(pr, key).error(st)), s.restarts,
-                     restart_losses)
+    return FitResult(j, r, np.asarray(parents), history, it, converged, seconds, compile_s, error, s.restarts, restart_losses)
 
 
 def _best_start(pr: Problem, key: SolverKey, s: SolverConfig, nz, start, pts, seed: int, perturb: float):
     """The best of ``s.restarts`` starts (the given ``start`` = (joints, radii, parents) and
     perturbed copies, at least 0.1 of a segment), each solved to its end in one compiled call
-    (:func:`over_batch`): (its parameters, every start's final loss)."""
+    (:func:`over_batch`): (its start, every start's final loss, its :class:`RunEnd`, compile seconds)."""
     joints0, radii0, parents = start
     rng = np.random.default_rng(seed)
     starts = [nz.start(np.asarray(joints0), np.asarray(radii0), pr)]
@@ -197,10 +219,13 @@ def _best_start(pr: Problem, key: SolverKey, s: SolverConfig, nz, start, pts, se
         j, r = perturbed(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), np.asarray(parents), max(perturb, 0.1), rng)
         starts.append(nz.start(j, r, pr))
     xb = jnp.asarray(np.stack(starts), pts.dtype)
-    xs, _, ls = _solve_starts(xb, pts, pr, key)
-    ls = np.asarray(ls)
+    t0 = time.perf_counter()
+    solve = _solve_starts.lower(xb, pts, pr, key).compile()
+    compile_s = time.perf_counter() - t0
+    ends = solve(xb, pts)
+    ls = np.asarray(ends.loss)
     best = int(np.nanargmin(ls))
-    return xb[best], [float(v) for v in ls]  # the best is stepped again from its start, for its loss curve
+    return xb[best], [float(v) for v in ls], jax.tree_util.tree_map(lambda a: a[best], ends), compile_s
 
 
 def _quiet() -> bool:
