@@ -26,6 +26,15 @@ def _loc(loc) -> str:
     return out or "<root>"
 
 
+def _under(loc: tuple, line: str) -> str:
+    """A problem line relative to a model (``b: ...``, ``[2]: ...``, ``<root>: ...``) placed
+    under the model's own path ``loc``."""
+    head = _loc(loc)
+    if line.startswith("<root>"):
+        return head + line[len("<root>"):]
+    return line if head == "<root>" else head + ("" if line.startswith("[") else ".") + line
+
+
 def _short(v) -> str:
     s = repr(v)
     return s if len(s) <= 80 else s[:77] + "..."
@@ -45,7 +54,9 @@ def _format(err: ValidationError, prefix: tuple = ()) -> list[str]:
         msg = e["msg"]
         if e["type"] == "value_error":
             msg = msg.removeprefix("Value error, ")
-        if e["type"] == "missing":
+        if e["type"] == "value_error" and isinstance((e.get("ctx") or {}).get("error"), ConfigError):
+            lines += [_under(loc, x) for x in e["ctx"]["error"].lines]  # a model's checks, one line each (jskel.checks)
+        elif e["type"] == "missing":
             lines.append(f"{_loc(loc)}: required key is missing")
         elif e["type"] == "extra_forbidden":
             lines.append(f"{_loc(loc)}: unknown key (got {_short(e['input'])})")

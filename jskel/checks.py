@@ -1,0 +1,121 @@
+"""Degenerate input rejected where it enters, every problem at once (issue 29, class 4).
+
+A check takes a field path and an array and returns the problems it finds as lines, each
+naming the path, the index and the value, in the config errors' form
+``<path>[<index>]: <what is wrong> (got <value>)``; where several entries share a problem, one
+line gives the count and the first ``SHOW`` (the style of ``jskel.skeletons``' repair report):
+``<path>: <n> <noun>: <what is wrong> (indices 3: nan, 7: -1, ...)``. :func:`raise_all` raises
+the lines of every check as ONE :class:`jskel.config.ConfigError` (a ``ValueError``; the CLI
+prints a line per problem and exits 2).
+
+In a pydantic model, :func:`validate_with` is the body of a ``mode="wrap"`` model validator:
+the model's field errors (NaN, inf, out of range: pydantic's own, one per entry) and the
+checks between its fields (a tube's two ends coinciding, a segment of zero length) come in one
+error, so a NaN in one field does not hide a degenerate pair in another. The config error
+formatter places each line under the model's path (``object.tubes[0].b: ...``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .config import ConfigError, _format
+
+SHOW = 5  # entries named per problem (as jskel.skeletons' repair report)
+REL_LENGTH = 1e-9  # two points closer than this fraction of their scale coincide (the frusta build's zero-length bound)
+
+
+def value_str(v) -> str:
+    """A value as the messages print it: ``nan``, ``-1``, ``[0, inf, 2.5]``; strings as given."""
+    if isinstance(v, str):
+        return v
+    a = np.ravel(np.asarray(v, np.float64))
+    if a.size == 1:
+        return f"{a[0]:.6g}"
+    return "[" + ", ".join(f"{x:.6g}" for x in a) + "]"
+
+
+def at(field: str, what: str, index, values, noun: str = "entries") -> list[str]:
+    """The problem ``what`` at ``index`` ((k,) ints, or (k, d) for an entry of a d-dimensional
+    grid) with ``values`` (one each, or the first SHOW): [] for none, one
+    ``field[i]: what (got v)`` line for one, else one line with the count and the first SHOW."""
+    index = np.asarray(index, np.int64)
+    if index.size == 0:
+        return []
+    names = [", ".join(str(int(x)) for x in row) for row in index.reshape(index.shape[0] if index.ndim else 1, -1)[:SHOW]]
+    n = index.shape[0] if index.ndim else 1
+    if n == 1:
+        return [f"{field}[{names[0]}]: {what} (got {value_str(values[0])})"]
+    shown = ", ".join(f"{'(' + i + ')' if ',' in i else i}: {value_str(v)}" for i, v in zip(names, values[:SHOW]))
+    return [f"{field}: {n} {noun}: {what} (indices {shown}{', ...' if n > SHOW else ''})"]
+
+
+def _rows(a) -> np.ndarray:
+    """(N, k) float64 view of an (N,) or (N, ...) array-like."""
+    a = np.asarray(a, np.float64)
+    return a.reshape(a.shape[0] if a.ndim else 1, -1)
+
+
+def nonfinite(field: str, a, noun: str = "entries") -> list[str]:
+    """Entries (rows of an (N, ...) array) holding a NaN or an infinity."""
+    rows = _rows(a)
+    bad = np.nonzero(~np.all(np.isfinite(rows), axis=1))[0]
+    return at(field, "not finite", bad, rows[bad], noun)
+
+
+def zero_vectors(field: str, a, noun: str = "entries") -> list[str]:
+    """Rows of an (N, 3) array that are the zero vector (a direction that has none)."""
+    rows = _rows(a)
+    bad = np.nonzero(np.all(rows == 0, axis=1))[0]
+    return at(field, "is the zero vector", bad, rows[bad], noun)
+
+
+def same_point(field: str, a, b, scale, what: str) -> list[str]:
+    """One pair of points (3,) no farther apart than REL_LENGTH x ``scale`` (0: only equal
+    points): ``field: what (got b)``; [] otherwise, or where either is not finite."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    length = float(np.linalg.norm(b - a))
+    return [f"{field}: {what} (got {value_str(b)})"] if length <= REL_LENGTH * float(scale) else []
+
+
+def count_mismatch(field: str, got: int, want: int, of: str) -> list[str]:
+    """``field: has <got> entries for <want> <of>`` where the counts differ."""
+    return [] if got == want else [f"{field}: has {got} entries for {want} {of}"]
+
+
+def floats(raw, width: int | None = None) -> np.ndarray | None:
+    """Unvalidated input (a list from YAML) as a float64 array of rows of ``width``, or None
+    where it is not one (pydantic reports why): checks between fields run on what they can."""
+    try:
+        a = np.asarray(raw, np.float64)
+    except (TypeError, ValueError):
+        return None
+    if raw is None or width is not None and (a.ndim != 2 or a.shape[1] != width):
+        return None
+    return a
+
+
+def raise_all(lines: list[str]) -> None:
+    """Raise every problem as one ConfigError (one line each); nothing when there is none."""
+    if lines:
+        raise ConfigError(lines)
+
+
+def validate_with(data, handler, problems):
+    """The body of a pydantic ``mode="wrap"`` model validator: ``handler(data)``'s errors and
+    ``problems(data)``'s lines (``data`` the unvalidated mapping, read with :func:`floats`)
+    raised together as one ConfigError, each line relative to the model; the model otherwise.
+    An instance of the model (already validated) passes through."""
+    from pydantic import ValidationError
+
+    if not isinstance(data, dict):
+        return handler(data)
+    lines = problems(data)
+    try:
+        model = handler(data)
+    except ValidationError as e:
+        if not lines:
+            raise
+        raise ConfigError(_format(e) + lines) from None
+    raise_all(lines)
+    return model
