@@ -67,14 +67,15 @@ class CameraConfig(StrictModel):
     @field_validator("up")
     @classmethod
     def _up_not_parallel(cls, v, info: ValidationInfo):
+        u = np.asarray(v, float)
+        nu = np.linalg.norm(u)
+        if nu == 0:  # whatever eye and target are (a bad eye is its own error line)
+            raise ValueError("up is the zero vector")
         eye, target = info.data.get("eye"), info.data.get("target")
         if eye is None or target is None:
             return v
         f = np.asarray(target, float) - np.asarray(eye, float)
-        u = np.asarray(v, float)
-        nf, nu = np.linalg.norm(f), np.linalg.norm(u)
-        if nu == 0:
-            raise ValueError("up is the zero vector")
+        nf = np.linalg.norm(f)
         if nf > 0 and np.linalg.norm(np.cross(f, u)) <= 1e-6 * nf * nu:
             raise ValueError("camera looks along its up vector")
         return v

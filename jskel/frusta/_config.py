@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
+import numpy as np
 from pydantic import Field, field_validator, model_validator
 
+from .. import checks
 from ..config import RGB, StrictModel, Vec3
 from ..skeletons import RepairPolicy
 
@@ -71,6 +73,40 @@ class SkeletonConfig(StrictModel):
         if self.procedural is not None and any(explicit):
             raise ValueError("give either 'procedural' or joints/radii/parents, not both")
         return self
+
+    @model_validator(mode="wrap")  # after _one_source, so it wraps it (pydantic applies validators in order)
+    @classmethod
+    def _degenerate(cls, data, handler):
+        return checks.validate_with(data, handler, explicit_problems)
+
+
+def explicit_problems(data: dict) -> list[str]:
+    """Explicit joints' problems between fields, all of them (NaN, inf and negative radii are
+    the fields' own): counts that differ from the joints', segments of zero length (ends within
+    1e-9 of the skeleton's extent, the build's bound) and segments of radius 0 at both ends."""
+    j, r, c = checks.floats(data.get("joints"), 3), checks.floats(data.get("radii")), checks.floats(data.get("colors"), 3)
+    p = checks.floats(data.get("parents"))
+    if j is None:
+        return []
+    n = j.shape[0]
+    lines = [] if r is None else checks.count_mismatch("radii", r.size, n, "joints")
+    lines += [] if p is None else checks.count_mismatch("parents", p.size, n, "joints")
+    lines += [] if c is None else checks.count_mismatch("colors", c.shape[0], n, "joints")
+    if lines or r is None or p is None or r.ndim != 1 or p.ndim != 1 or not np.all((p == np.round(p)) & (p >= -1) & (p < n)):
+        return lines  # parents out of range or shapes off: the segments are not known (the build names the parent)
+    p = p.astype(np.int64)
+    kids = np.nonzero((p >= 0) & (p != np.arange(n)))[0]
+    fin = np.all(np.isfinite(j), axis=1)
+    extent = float(np.max(np.ptp(j[fin], axis=0))) if fin.sum() > 1 else 0.0
+    length = np.linalg.norm(j[kids] - j[p[kids]], axis=1)
+    zero = kids[length <= checks.REL_LENGTH * (extent or 1.0)]
+    thin = kids[(r[kids] == 0) & (r[p[kids]] == 0)]
+
+    def seg(ids):  # the first SHOW only: the lines name no more
+        return [f"{p[i]} -> {i} at {checks.value_str(j[i])}" for i in ids[:checks.SHOW]]
+
+    lines += checks.at("joints", "zero-length segment", zero, seg(zero), "joints")
+    return lines + checks.at("radii", "segment of radius 0 at both ends", thin, seg(thin), "joints")
 
 
 class ReliefConfig(StrictModel):

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
+import numpy as np
 from pydantic import Field, model_validator
 
+from .. import checks
 from ..config import RGB, StrictModel, Vec3
 
 Pos = Annotated[float, Field(gt=0.0)]
@@ -31,11 +33,57 @@ class TubeConfig(StrictModel):
     bone: str | None = None
     group: str = "main"
 
-    @model_validator(mode="after")
-    def _not_both_zero(self):
-        if self.radius_a == 0 and self.radius_b == 0:
-            raise ValueError("a tube needs a positive radius at one end at least (both radii are 0)")
-        return self
+    @model_validator(mode="wrap")
+    @classmethod
+    def _ends_apart(cls, data, handler):
+        return checks.validate_with(data, handler, _tube_problems)
+
+
+def _point(raw) -> np.ndarray | None:
+    """An unvalidated [x, y, z] as (3,) float64, or None where it is not one."""
+    a = checks.floats([raw], 3)
+    return None if a is None else a[0]
+
+
+def _both_zero(r, field: str) -> list[str]:
+    """A tube of radius 0 at both ends is empty (its effective radius is 0 everywhere)."""
+    if r is None or r.shape != (2,) or not np.all(r == 0):
+        return []
+    return [f"{field}both radii are 0; a tube needs a positive radius at one end at least (got [0, 0])"]
+
+
+def _tube_problems(d: dict) -> list[str]:
+    """A tube whose ends lie within 1e-9 of its larger radius has no axis (Rouiller 2011,
+    Sec. 2.1.1's segment distance divides by its length); one of radius 0 at both ends is empty."""
+    a, b, r = _point(d.get("a")), _point(d.get("b")), checks.floats([d.get("radius_a"), d.get("radius_b")])
+    lines = _both_zero(r, "<root>: ")
+    if a is None or b is None:
+        return lines
+    scale = float(np.max(np.where(np.isfinite(r), np.abs(r), 0.0))) if r is not None and r.ndim == 1 else 0.0
+    return lines + checks.same_point("b", a, b, scale, "coincides with a; a tube needs a length")
+
+
+def _bone_problems(d: dict) -> list[str]:
+    """A bone whose tail is its head has no direction to rotate about or to skin along; its
+    ``tube`` is a tube (radius > 0 at one end)."""
+    a, b = _point(d.get("head")), _point(d.get("tail"))
+    lines = _both_zero(checks.floats(d.get("tube")) if d.get("tube") is not None else None, "tube: ")
+    return lines + ([] if a is None or b is None else checks.same_point("tail", a, b, 0.0, "equals its head; a bone needs a length"))
+
+
+def _projector_problems(d: dict) -> list[str]:
+    """A projector's axis must be a direction and its up vector must not lie along it (u = 0
+    is fixed by up's part perpendicular to the axis, Sec. 6)."""
+    lines = []
+    ax, up = _point(d.get("axis", (0.0, 1.0, 0.0))), _point(d.get("up", (0.0, 0.0, 1.0)))
+    for name, v in (("axis", ax), ("up", up)):
+        if v is not None and np.all(v == 0):
+            lines.append(f"{name}: is the zero vector (got {checks.value_str(v)})")
+    if not lines and ax is not None and up is not None and np.all(np.isfinite(ax)) and np.all(np.isfinite(up)):
+        perp = np.linalg.norm(np.cross(ax, up)) / np.linalg.norm(ax)
+        if perp <= checks.REL_LENGTH * np.linalg.norm(up):
+            lines.append(f"up: is parallel to the axis {checks.value_str(ax)} (got {checks.value_str(up)})")
+    return lines
 
 
 class KeyConfig(StrictModel):
@@ -59,6 +107,11 @@ class BoneConfig(StrictModel):
     keys: list[KeyConfig] = []
     group: str = "main"
 
+    @model_validator(mode="wrap")
+    @classmethod
+    def _has_length(cls, data, handler):
+        return checks.validate_with(data, handler, _bone_problems)
+
 
 class ProjectorConfig(StrictModel):
     """A texture projector applied in the rest pose (Sec. 6, 6.1): planar (u, v along two axes
@@ -70,6 +123,11 @@ class ProjectorConfig(StrictModel):
     axis: Vec3 = (0.0, 1.0, 0.0)
     up: Vec3 = (0.0, 0.0, 1.0)
     scale: tuple[Pos, Pos] = (1.0, 1.0)
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _directions(cls, data, handler):
+        return checks.validate_with(data, handler, _projector_problems)
 
 
 class RegionConfig(StrictModel):
