@@ -13,6 +13,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from . import checks
+
 
 class Rays(NamedTuple):
     """A batch of rays ``x(t) = origins + t * directions`` for ``t`` in ``(t_min, t_max]``.
@@ -72,14 +74,36 @@ def masked_hit(t, position, normal, uv, prim, flags=None) -> Hit:
 
 
 def make_rays(origins, directions, t_min=0.0, t_max=np.inf, dtype=np.float32) -> Rays:
-    """Build a ``Rays`` batch from array-likes, broadcasting ``t_min``/``t_max`` to (N,)."""
-    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
-    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    """Build a ``Rays`` batch from array-likes, broadcasting ``t_min``/``t_max`` to (N,).
+
+    Raises one ValueError listing every bad ray by index and value (``jskel.checks``): origins
+    or directions not finite, zero directions, a NaN ``t_min`` or ``t_max`` (``t_max = inf``
+    is the unbounded ray; an empty window ``t_min >= t_max`` is a valid ray that hits nothing);
+    a shape that is not (N, 3), or a window that is neither one value nor N, names its field."""
+    o, d = np.asarray(origins, dtype=np.float64), np.asarray(directions, dtype=np.float64)
+    for name, a in (("rays.origins", o), ("rays.directions", d)):
+        if a.ndim == 0 or a.shape[-1] != 3:
+            raise ValueError(f"{name}: expected (N, 3) values, got shape {a.shape}")
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
     if o.shape != d.shape:
         raise ValueError(f"rays: origins {o.shape} and directions {d.shape} differ in shape")
     n = o.shape[0]
-    tmin = np.broadcast_to(np.asarray(t_min, dtype=np.float64), (n,))
-    tmax = np.broadcast_to(np.asarray(t_max, dtype=np.float64), (n,))
+    tmin, tmax = np.asarray(t_min, dtype=np.float64), np.asarray(t_max, dtype=np.float64)
+    for name, t in (("rays.t_min", tmin), ("rays.t_max", tmax)):
+        if t.ndim > 1 or t.size not in (1, n):
+            raise ValueError(f"{name}: expected one value or {n} (one a ray), got shape {t.shape}")
+    tmin, tmax = np.broadcast_to(tmin.reshape(-1), (n,)), np.broadcast_to(tmax.reshape(-1), (n,))
+    checks.raise_all(_bad_rays(o, d, tmin, tmax))
     return Rays(
         jnp.asarray(o, dtype), jnp.asarray(d, dtype), jnp.asarray(tmin, dtype), jnp.asarray(tmax, dtype)
     )
+
+
+def _bad_rays(o: np.ndarray, d: np.ndarray, tmin: np.ndarray, tmax: np.ndarray) -> list[str]:
+    """Every bad ray of a batch, one line per kind (``jskel.checks``)."""
+    lines = checks.nonfinite("rays.origins", o, "rays") + checks.nonfinite("rays.directions", d, "rays")
+    lines += checks.zero_vectors("rays.directions", d, "rays")
+    for name, t in (("rays.t_min", tmin), ("rays.t_max", tmax)):
+        nan = np.nonzero(np.isnan(t))[0]
+        lines += checks.at(name, "is not a number", nan, t[nan], "rays")
+    return lines
