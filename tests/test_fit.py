@@ -256,7 +256,7 @@ def test_bad_fit_input_is_one_line_and_exit_2(tmp_path, capsys):
     empty.write_text("")
     cases = [
         ({"points": {"file": str(few)}, "init": {"estimate": {"segments": 5}}}, "10 points for 24 unknowns"),
-        ({"points": {"file": str(nan)}}, "1 of 200 points are NaN or inf (first at index 17"),
+        ({"points": {"file": str(nan)}}, "points.file[17]: not finite (got [nan, nan, nan]); set points.nonfinite: drop"),
         ({"points": {"file": str(empty)}}, "points.file: no points in"),
         ({"points": {"file": str(tmp_path / "none.ply")}}, "points.file: not found"),
         ({"init": {"skeleton": {"joints": [[0, 0, 0], [0, 0, 0]], "radii": [1, 1], "parents": [-1, 0]}}}, "init.skeleton.joints[1]: zero-length segment"),

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import checks
 from ..interface import Built, OwnMaterial, Representation
 from ..numerics import differentiable_root, safe_normalize
 from ..rays import FLAG_STEP_CAP, Hit, masked_hit
@@ -135,6 +136,8 @@ def precompute(cfg: CellsConfig) -> CellObject:
             raise ValueError(f"object.color_map: cannot read {cfg.color_map!r} as a .npy array: {e}") from None
         if colors.ndim != 4 or colors.shape[3] != 3 or len(set(colors.shape[:3])) != 1:
             raise ValueError(f"object.color_map: a colour map must be a (c, c, c, 3) array (got shape {colors.shape})")
+        bad = np.argwhere(~np.all(np.isfinite(colors), axis=3))  # every texel with a NaN or inf, by its (i, j, k)
+        checks.raise_all(checks.at("object.color_map", "not finite", bad, colors[tuple(bad[:checks.SHOW].T)], "texels"))
     codes = unpack(mem.words, slots)
     info = {
         "tile_resolution": int(tile.shape[0]), "cells_per_tile": int(sc.cells), "split_cells": int(np.count_nonzero(sc.split_cell)),

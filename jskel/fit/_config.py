@@ -26,8 +26,9 @@ class SyntheticConfig(StrictModel):
 
 class PointsConfig(StrictModel):
     """A point cloud: a ``file`` (.npy (N,3), .xyz / .txt (x y z per line), .ply) or
-    ``synthetic`` points. ``nonfinite``: NaN or inf points are rejected (an error naming how
-    many and the first index) or dropped (counted in fit.json)."""
+    ``synthetic`` points. ``nonfinite``: NaN or inf points are rejected (an error naming
+    each bad point's index and value, the count and the first five where many) or dropped
+    (counted in fit.json)."""
 
     file: str | None = None
     synthetic: SyntheticConfig | None = None

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import checks
 from . import _solvers
 from ._config import SolverConfig
 from ._distance import segments_of
@@ -177,6 +178,7 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
     each recording its loss curve) and the best is the result: one program, not a second
     compile of the stepping loop (L-BFGS compiles for about a minute on 2 cores). A time budget
     (``max_seconds``) needs the host loop: then the best start is stepped again."""
+    checks.raise_all(checks.nonfinite("points", points, f"of {len(points)} points"))  # every bad point by index, before any compile
     seg = segments_of(joints0, radii0, parents, "init.skeleton")
     n_par = 4 * len(joints0)
     if len(points) < n_par:

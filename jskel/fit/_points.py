@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import frusta
+from .. import checks, frusta
+from ..config import ConfigError
 from ._config import PointsConfig
 from ._distance import segments_of
 
@@ -75,10 +76,9 @@ def load_points(cfg: PointsConfig, base: Path | None = None) -> tuple[np.ndarray
         info["source"] = str(cfg.file)
     bad = ~np.all(np.isfinite(pts), axis=1)
     if bad.any():
-        first = int(np.argmax(bad))
-        if cfg.nonfinite == "reject":
-            raise ValueError(f"points: {int(bad.sum())} of {len(pts)} points are NaN or inf (first at index {first}: "
-                             f"{pts[first].tolist()}); set points.nonfinite: drop to drop them")
+        if cfg.nonfinite == "reject":  # each bad point by its index in the cloud and its value (jskel.checks)
+            field = "points.file" if cfg.synthetic is None else "points.synthetic"
+            raise ConfigError([line + "; set points.nonfinite: drop to drop them" for line in checks.nonfinite(field, pts, f"of {len(pts)} points")])
         pts = pts[~bad]
         info["dropped_nonfinite"] = int(bad.sum())
     info["points"] = int(len(pts))
