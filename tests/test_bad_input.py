@@ -1,0 +1,158 @@
+"""Degenerate input rejected at construction (issue 29, class 4): a table of bad inputs, one row
+per class of problem per representation and section, each with the exact lines it gives, and
+rows with several problems that come in one error. Each experiment row runs the CLI
+(``jskel render``) with compilation made to fail, so every problem is found before anything is
+traced: exit code 2, one ``jskel: error:`` line per problem, each naming the field path, the
+index and the value. The array entry points (``make_rays``, ``load_points``, ``fit_points``)
+raise one ValueError the same way."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jskel import cli, executor
+from jskel.config import ConfigError
+from jskel.fit import fit_points, load_points
+from jskel.fit._config import PointsConfig, SolverConfig
+from jskel.rays import make_rays
+
+FRUSTA = "{type: frusta, skeleton: {joints: [[0,0,0],[0,1,0],[0,2,0]], radii: [0.3, 0.2, 0.1], parents: [-1, 0, 1]}}"
+CAMERA = "{eye: [0, 1, 5], target: [0, 1, 0], width: 16, height: 16}"
+
+
+def _body(obj: str = FRUSTA, camera: str = CAMERA, extra: str = "") -> str:
+    return f"object: {obj}\ncamera: {camera}\n{extra}"
+
+
+def _skeleton(joints: str, radii: str, parents: str) -> str:
+    return f"{{type: frusta, skeleton: {{joints: {joints}, radii: {radii}, parents: {parents}}}}}"
+
+
+def _implicit(balls: str = "[]", tubes: str = "[]", more: str = "") -> str:
+    return f"{{type: implicit, balls: {balls}, tubes: {tubes}{more}}}"
+
+
+BALL = "[{center: [0, 0, 0], radius: 1}]"
+BAD_OBJ = "v 0 0 0\nv nan 0 0\nv 0 1 0\nv 1 0 0\nf 1 2 3\nf 1 3 4\n"
+
+# (id, experiment body, the exact error lines); MESH in a body is the path of an OBJ holding BAD_OBJ
+TABLE = [
+    ("frusta_joint_nan", _body(_skeleton("[[0,0,0],[.nan,1,0],[0,2,0]]", "[0.3, 0.2, 0.1]", "[-1, 0, 1]")),
+     ["object.skeleton.joints[1][0]: Input should be a finite number (got nan)"]),
+    ("frusta_radius_negative", _body(_skeleton("[[0,0,0],[0,1,0],[0,2,0]]", "[0.3, -0.2, 0.1]", "[-1, 0, 1]")),
+     ["object.skeleton.radii[1]: Input should be greater than or equal to 0 (got -0.2)"]),
+    ("frusta_joints_coincide", _body(_skeleton("[[0,0,0],[0,1,0],[0,1,0]]", "[0.3, 0.2, 0.1]", "[-1, 0, 1]")),
+     ["object.skeleton.joints[2]: zero-length segment (got 1 -> 2 at [0, 1, 0])"]),
+    ("frusta_radii_zero_both_ends", _body(_skeleton("[[0,0,0],[0,1,0],[0,2,0]]", "[0.3, 0, 0]", "[-1, 0, 1]")),
+     ["object.skeleton.radii[2]: segment of radius 0 at both ends (got 1 -> 2 at [0, 2, 0])"]),
+    ("frusta_count_mismatch", _body(_skeleton("[[0,0,0],[0,1,0],[0,2,0]]", "[0.3, 0.2]", "[-1, 0, 1]")),
+     ["object.skeleton.radii: has 2 entries for 3 joints"]),
+    ("implicit_tube_ends_coincide", _body(_implicit(tubes="[{a: [1, 2, 3], b: [1, 2, 3], radius_a: 0.5, radius_b: 0.3}]")),
+     ["object.tubes[0].b: coincides with a; a tube needs a length (got [1, 2, 3])"]),
+    ("implicit_ball_radius_zero", _body(_implicit(balls="[{center: [0, 0, 0], radius: 0}]")),
+     ["object.balls[0].radius: Input should be greater than 0 (got 0)"]),
+    ("implicit_threshold_negative", _body(_implicit(BALL, more=", threshold: -0.5")),
+     ["object.threshold: Input should be greater than 0 (got -0.5)"]),
+    ("implicit_centre_inf", _body(_implicit("[{center: [.inf, 0, 0], radius: 1}]")),
+     ["object.balls[0].center[0]: Input should be a finite number (got inf)"]),
+    ("implicit_bone_no_length", _body(_implicit(more=", bones: [{name: arm, head: [0, 1, 0], tail: [0, 1, 0], tube: [0.2, 0.1]}]")),
+     ["object.bones[0].tail: equals its head; a bone needs a length (got [0, 1, 0])"]),
+    ("implicit_projector_axis_zero", _body(_implicit(BALL, more=", texture: brick, projector: {axis: [0, 0, 0]}")),
+     ["object.projector.axis: is the zero vector (got [0, 0, 0])"]),
+    ("cells_base_radius_negative", _body("{type: cells, base: {type: sphere, radius: -1}}"),
+     ["object.base.radius: Input should be greater than 0 (got -1)"]),
+    ("mesh_vertex_nan", _body("{type: mesh, path: MESH}"),
+     ["object.path: 'MESH' vertex 1 is [nan, 0.0, 0.0] (1 non-finite vertices)"]),
+    ("camera_fov_zero", _body(camera="{fov_deg: 0, width: 16, height: 16}"),
+     ["camera.fov_deg: Input should be greater than 0 (got 0)"]),
+    ("camera_eye_is_target", _body(camera="{eye: [0, 1, 0], target: [0, 1, 0], width: 16, height: 16}"),
+     ["camera.target: target equals eye (got [0, 1, 0])"]),
+    ("camera_up_nan", _body(camera="{up: [0, .nan, 0], width: 16, height: 16}"),
+     ["camera.up[1]: Input should be a finite number (got nan)"]),
+    ("light_direction_zero", _body(extra="lights: [{direction: [0, 0, 0]}]\n"),
+     ["lights[0].direction: direction is the zero vector (got [0, 0, 0])"]),
+    # several problems, all in one error: field errors and the checks between fields together
+    ("several_frusta", _body(_skeleton("[[0,0,0],[0,1,0],[0,1,0],[.nan,3,0]]", "[0.3, -0.2, 0.1, 0.1]", "[-1, 0, 1, 2]"),
+                             camera="{fov_deg: 0, width: 16, height: 16}", extra="lights: [{direction: [0, 0, 0]}]\n"),
+     ["camera.fov_deg: Input should be greater than 0 (got 0)",
+      "lights[0].direction: direction is the zero vector (got [0, 0, 0])",
+      "object.skeleton.joints[3][0]: Input should be a finite number (got nan)",
+      "object.skeleton.radii[1]: Input should be greater than or equal to 0 (got -0.2)",
+      "object.skeleton.joints[2]: zero-length segment (got 1 -> 2 at [0, 1, 0])"]),
+    ("several_implicit", _body(_implicit("[{center: [0, 0, 0], radius: 0}]",
+                                         "[{a: [0, 0, 0], b: [0, 0, 0], radius_a: -1, radius_b: 0.3}, {a: [0, 0, 0], b: [0, 1, 0], radius_a: 0, radius_b: 0}]",
+                                         ", threshold: 0")),
+     ["object.threshold: Input should be greater than 0 (got 0)",
+      "object.balls[0].radius: Input should be greater than 0 (got 0)",
+      "object.tubes[0].radius_a: Input should be greater than or equal to 0 (got -1)",
+      "object.tubes[0].b: coincides with a; a tube needs a length (got [0, 0, 0])",
+      "object.tubes[1]: both radii are 0; a tube needs a positive radius at one end at least (got [0, 0])"]),
+    ("several_segments_counted", _body(_skeleton("[[0,0,0],[0,1,0],[0,1,0],[0,1,0],[0,1,0],[0,1,0],[0,1,0],[0,1,0]]",
+                                                 "[0.3, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2]", "[-1, 0, 1, 2, 3, 4, 5, 6]")),
+     ["object.skeleton.joints: 6 joints: zero-length segment (indices 2: 1 -> 2 at [0, 1, 0], 3: 2 -> 3 at [0, 1, 0], "
+      "4: 3 -> 4 at [0, 1, 0], 5: 4 -> 5 at [0, 1, 0], 6: 5 -> 6 at [0, 1, 0], ...)"]),
+]
+
+
+@pytest.fixture
+def no_compile(monkeypatch):
+    def boom(*a, **k):
+        raise AssertionError("compiled despite bad input")
+
+    monkeypatch.setattr(executor, "compile_batch_fn", boom)
+
+
+@pytest.mark.parametrize("body, lines", [row[1:] for row in TABLE], ids=[row[0] for row in TABLE])
+def test_bad_experiment_is_every_problem_in_one_error_before_any_compile(tmp_path, capsys, no_compile, body, lines):
+    mesh = tmp_path / "bad.obj"
+    mesh.write_text(BAD_OBJ)
+    exp = tmp_path / "exp.yaml"
+    exp.write_text(body.replace("MESH", str(mesh)))
+    rc = cli.main(["render", str(exp), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2
+    assert err == ["jskel: error: " + line.replace("MESH", str(mesh)) for line in lines]
+
+
+def test_rays_every_bad_ray_by_index_and_value():
+    o = np.zeros((9, 3))
+    d = np.tile([0.0, 0.0, 1.0], (9, 1))
+    d[1] = 0.0
+    with pytest.raises(ConfigError) as e:
+        make_rays(o, d)
+    assert e.value.lines == ["rays.directions[1]: is the zero vector (got [0, 0, 0])"]
+    o[[0, 2, 3, 5, 6, 8], 0] = [np.nan, np.inf, np.nan, -np.inf, np.nan, np.nan]
+    d[4, 2] = np.nan
+    with pytest.raises(ConfigError) as e:
+        make_rays(o, d, t_min=np.r_[0.0, np.nan, np.zeros(7)])
+    assert e.value.lines == [
+        "rays.origins: 6 rays: not finite (indices 0: [nan, 0, 0], 2: [inf, 0, 0], 3: [nan, 0, 0], 5: [-inf, 0, 0], 6: [nan, 0, 0], ...)",
+        "rays.directions[4]: not finite (got [0, 0, nan])",
+        "rays.directions[1]: is the zero vector (got [0, 0, 0])",
+        "rays.t_min[1]: is not a number (got nan)",
+    ]
+
+
+def test_a_cloud_with_one_bad_point_names_the_point(tmp_path):
+    pts = np.random.default_rng(0).normal(size=(50, 3))
+    pts[31, 1] = np.nan
+    f = tmp_path / "cloud.npy"
+    np.save(f, pts)
+    with pytest.raises(ValueError) as e:
+        load_points(PointsConfig(file=str(f)))
+    assert str(e.value) == f"points.file[31]: not finite (got [{pts[31, 0]:.6g}, nan, {pts[31, 2]:.6g}]); set points.nonfinite: drop to drop them"
+    pts[[3, 7], 2] = np.inf
+    np.save(f, pts)
+    with pytest.raises(ValueError) as e:
+        load_points(PointsConfig(file=str(f)))
+    v = [f"[{x:.6g}, {y:.6g}, {z:.6g}]" for x, y, z in pts[[3, 7, 31]]]
+    assert str(e.value) == f"points.file: 3 of 50 points: not finite (indices 3: {v[0]}, 7: {v[1]}, 31: {v[2]}); set points.nonfinite: drop to drop them"
+
+
+def test_fit_points_names_the_bad_point_before_compiling(no_compile):
+    pts = np.random.default_rng(1).normal(size=(40, 3))
+    pts[5] = [np.nan, 0.0, 1.0]
+    with pytest.raises(ValueError) as e:
+        fit_points(pts, [[0, 0, 0], [0, 1, 0]], [0.2, 0.2], [-1, 0], SolverConfig())
+    assert str(e.value) == "points[5]: not finite (got [nan, 0, 1])"
