@@ -156,3 +156,16 @@ def test_fit_points_names_the_bad_point_before_compiling(no_compile):
     with pytest.raises(ValueError) as e:
         fit_points(pts, [[0, 0, 0], [0, 1, 0]], [0.2, 0.2], [-1, 0], SolverConfig())
     assert str(e.value) == "points[5]: not finite (got [nan, 0, 1])"
+
+
+def test_skeleton_arrays_every_problem_at_once(no_compile):
+    from jskel import frusta
+
+    joints = [[0, 0, 0], [np.nan, 1, 0], [0, 2, 0], [0, 2, 0]]
+    with pytest.raises(ConfigError) as e:
+        frusta.frusta_from_skeleton(joints, [0.3, 0.2, -0.1, 0.1], [-1, 0, 1, 2])
+    assert e.value.lines == [
+        "object.skeleton.joints[1]: not finite (got [nan, 1, 0])",
+        "object.skeleton.radii[2]: negative radius (got -0.1)",
+        "object.skeleton.joints[3]: zero-length segment (got 2 -> 3 at [0, 2, 0])",
+    ]

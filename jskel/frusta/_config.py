@@ -109,6 +109,18 @@ def explicit_problems(data: dict) -> list[str]:
     return lines + checks.at("radii", "segment of radius 0 at both ends", thin, seg(thin), "joints")
 
 
+def array_problems(joints, radii, parents) -> list[str]:
+    """Every problem of a skeleton's arrays (``frusta_from_skeleton``'s input), relative to the
+    skeleton's path: joints or radii not finite, negative radii (a config's own field checks)
+    and :func:`explicit_problems`."""
+    j, r = checks.floats(joints, 3), checks.floats(radii)
+    lines = [] if j is None else checks.nonfinite("joints", j, "joints")
+    if r is not None and r.ndim == 1:
+        neg = np.nonzero(r < 0)[0]
+        lines += checks.nonfinite("radii", r, "joints") + checks.at("radii", "negative radius", neg, r[neg], "joints")
+    return lines + explicit_problems({"joints": joints, "radii": radii, "parents": parents})
+
+
 class ReliefConfig(StrictModel):
     """A height field in a shell over some or all segments (Sec. 3).
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import skeletons
+from .. import checks, skeletons
 from ._build import build_frusta
-from ._config import FrustaConfig, SkeletonConfig
+from ._config import FrustaConfig, SkeletonConfig, array_problems
 from ._skeleton import topology, validate_skeleton
 
 _SIDE_BRANCH_COLOR_PATH = "object.skeleton.colors"
@@ -16,6 +16,7 @@ _FILE_PATH = "object.skeleton.file"
 
 def frusta_from_skeleton(joints, radii, parents, *, twist_deg=0.0, match_minor_axes=False, path="object.skeleton"):
     """Validate a skeleton and build its frusta on the host (float64). Returns (arrays, topo, info)."""
+    checks.raise_all([f"{path}.{line}" for line in array_problems(joints, radii, parents)])  # every value problem at once
     j, r, p = validate_skeleton(joints, radii, parents, path)
     topo = topology(j, p, path)
     arrays, info = build_frusta(j, r, topo, twist_turns=twist_deg / 360.0, match_minor_axes=match_minor_axes)
