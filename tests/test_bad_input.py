@@ -169,3 +169,17 @@ def test_skeleton_arrays_every_problem_at_once(no_compile):
         "object.skeleton.radii[2]: negative radius (got -0.1)",
         "object.skeleton.joints[3]: zero-length segment (got 2 -> 3 at [0, 2, 0])",
     ]
+
+
+def test_a_cell_colour_map_names_every_bad_texel(tmp_path):
+    from jskel import cells
+
+    colors = np.full((4, 4, 4, 3), 0.5)
+    colors[0, 0, 0, 0] = np.nan
+    colors[1, 2, 3, 1] = np.inf
+    np.save(tmp_path / "colors.npy", colors)
+    cfg = cells.CellsConfig.model_validate({"type": "cells", "tiles": 2, "cache": None, "color_map": str(tmp_path / "colors.npy"),
+                                            "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 1}})
+    with pytest.raises(ConfigError) as e:
+        cells.precompute(cfg)
+    assert e.value.lines == ["object.color_map: 2 texels: not finite (indices (0, 0, 0): [nan, 0.5, 0.5], (1, 2, 3): [0.5, inf, 0.5])"]
