@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import checks
 from ._accel import build_bvh
 from ._geometry import PIECE_REACH, SegmentTopology, frusta_fields, padded_topology
 from ._intersect import FrustaParams
@@ -56,6 +57,7 @@ def rebuilder(cfg, dtype=np.float32):
     topology, anchor, colours, padding and static options); every call after rebuilds the plain
     segments' fields and BVH on the device (:func:`frusta_fields`, one jitted function). The
     joints are validated on the host (NaN, negative radii, zero-length segments: ValueError)."""
+    from ._config import array_problems
     from ._edits import host_frusta
     from ._pack import Group
     from ._scene import build
@@ -75,6 +77,7 @@ def rebuilder(cfg, dtype=np.float32):
     twist = cfg.twist_deg / 360.0
 
     def fn(joints, radii):
+        checks.raise_all([f"object.skeleton.{x}" for x in array_problems(joints, radii, parents)])  # every bad joint at once
         j, r, _ = validate_skeleton(joints, radii, parents)
         rel = j - tpl.anchor[None, :]
         params, bvh = _core_jit(jnp.asarray(rel, g.frusta.h.dtype), jnp.asarray(r, g.frusta.h.dtype), twist, dtopo,
