@@ -14,10 +14,13 @@ import subprocess
 import sys
 import unicodedata
 from pathlib import Path
+from typing import Annotated, Literal
 
 import pytest
+from pydantic import Field
 
 from jskel import registry
+from jskel.config import ConfigFile, StrictModel, config_files, reference_rows, undocumented
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -56,10 +59,65 @@ def test_docs_site_builds_strict(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, f"mkdocs build --strict failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
-    for page in ("index.html", "api/index.html", "performance/index.html", "frusta/index.html"):
+    for page in ("index.html", "api/index.html", "performance/index.html", "frusta/index.html", "config/index.html"):
         assert (tmp_path / "site" / page).is_file(), page
     api = (tmp_path / "site" / "api" / "index.html").read_text(encoding="utf-8")
     assert "rebuilder" in api and "read_swc" in api, "the API page holds no generated reference"
+    cfg = (tmp_path / "site" / "config" / "index.html").read_text(encoding="utf-8")
+    shown = {}  # as the page lists them: a section met again refers to where it was listed
+    keys = [r.path for f in config_files() for r in reference_rows(f.model, f.prefix, shown)]
+    missing = [k for k in keys if f"<code>{k.replace('<', '&lt;').replace('>', '&gt;')}</code>" not in cfg]
+    assert not missing, f"the configuration reference lacks {missing[:10]}"
+
+
+# --- the configuration reference: every key of every file the project reads has a description ---
+
+class _Inner(StrictModel):
+    documented: int = 0
+    """Has a description."""
+    bare: int = 1
+
+
+class _Outer(StrictModel):
+    """A model with undocumented keys at two levels, for the walker's own tests."""
+
+    inner: _Inner = _Inner()
+    """A section."""
+    items: list[_Inner] = []
+    """The same section's model again, in a list."""
+    plain: float = 0.0
+    count: Annotated[int, Field(ge=1, le=8)] | Literal["auto"] = "auto"
+    """A bounded integer or a word."""
+    rgb: tuple[Annotated[float, Field(ge=0.0)], Annotated[float, Field(ge=0.0)], Annotated[float, Field(ge=0.0)]] = (1.0, 0.5, 0.0)
+    """A colour."""
+
+
+def test_every_config_key_has_a_description():
+    files = config_files()
+    assert {f.model for f in files} >= {registry.get(n).Config for n in registry.names()}, "a representation's section is not walked"
+    missing = [f"{f.title}: {p}" for f in files for p in undocumented(f.model, f.prefix)]
+    assert not missing, "configuration keys without a description:\n" + "\n".join(missing)
+
+
+def test_the_walker_reports_undocumented_keys_and_the_docs_build_fails_on_them(monkeypatch):
+    # a model nested twice is walked once; keys are reported by their dotted path
+    assert undocumented(_Outer) == ["plain", "inner.bare"]
+    spec = importlib.util.spec_from_file_location("config_reference_hook", ROOT / "docs" / "hooks" / "config_reference.py")
+    hook = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hook)
+    monkeypatch.setattr(hook, "config_files", lambda: [ConfigFile("Test file", "jskel test", _Outer, "")])
+    from mkdocs.exceptions import PluginError
+    with pytest.raises(PluginError, match=r"Test file: plain(.|\n)*Test file: inner\.bare"):
+        hook.on_files([], None)
+
+
+def test_reference_rows_give_type_default_and_range_from_the_declaration():
+    rows = {r.path: r for r in reference_rows(_Outer, "x.")}
+    assert list(rows) == ["x.inner", "x.inner.documented", "x.inner.bare", "x.items", "x.plain", "x.count", "x.rgb"]
+    assert rows["x.count"][1:] == ('int or "auto"', '"auto"', "≥ 1, ≤ 8", "A bounded integer or a word.")
+    assert rows["x.rgb"][1:4] == ("[float, float, float]", "[1.0, 0.5, 0.0]", "each ≥ 0.0")
+    assert rows["x.items"].description.endswith("Its keys are those of `x.inner`.")
+    assert rows["x.inner"].default == "its keys' defaults" and rows["x.plain"].description == ""
 
 
 def slug(heading: str) -> str:

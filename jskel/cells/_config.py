@@ -16,11 +16,17 @@ class TileMapConfig(StrictModel):
     ``radius`` tile units with empty space, Fig. 4.1) or ``file`` (a user's integer .npy array)."""
 
     type: Literal["voronoi", "spheres", "file"] = "voronoi"
+    """How the tile map is made: tileable Voronoi cells, spherical cells, or an array file."""
     resolution: Annotated[int, Field(ge=16, le=256)] = 32
+    """Voxels per edge of the tile map."""
     cells: Annotated[int, Field(ge=1, le=64)] = 8
+    """Cells per tile (Voronoi sites or spheres)."""
     radius: Annotated[float, Field(gt=0.0, lt=0.5)] = 0.2
+    """``spheres``: cell radius, tile units."""
     seed: int = 0
+    """Random seed of the cell sites."""
     path: str | None = None
+    """``file``: a .npy integer array (cell indices 0..255, 0 empty), required for that type."""
 
     @model_validator(mode="after")
     def _file_has_path(self):
@@ -38,16 +44,22 @@ class BaseShapeConfig(StrictModel):
     triangles on the 2-core CPU; a frusta skeleton; an implicit surface)."""
 
     type: Literal["torus", "sphere", "voxel_mesh", "object"] = "torus"
+    """The kind of base shape."""
     center: Vec3 = (0.0, 0.0, 0.0)
+    """Centre of a torus or sphere, world units."""
     major: Pos = 1.0
+    """Torus: distance from the centre to the tube's centre line."""
     minor: Pos = 0.4
+    """Torus: tube radius (below ``major``)."""
     radius: Pos = 1.0
+    """Sphere: radius."""
     path: str | None = None
-    # voxel_mesh: voxels along the mesh's longest side in its inside test (trimesh's
-    # voxelization, then filled); 512 took 30 s for a 20,480-face icosphere on the 2-core CPU,
-    # 256 about 4x less
+    """``voxel_mesh``: a watertight triangle mesh file."""
     voxels: Annotated[int, Field(ge=16, le=2048)] = 512
+    """``voxel_mesh``: voxels along the mesh's longest side in its inside test (trimesh's voxelization, then
+    filled); 512 took 30 s for a 20,480-face icosphere on the 2-core CPU, 256 about 4x less."""
     object: dict[str, Any] | None = None
+    """``object``: another representation's ``object`` section (with its ``type``), whose ``inside`` decides."""
 
     @model_validator(mode="after")
     def _needs(self):
@@ -65,19 +77,36 @@ class CellsConfig(StrictModel):
     map, ray traced by linear + binary search (Alg. 3.1-3.3) in one of three modes."""
 
     type: Literal["cells"]
+    """Selects this representation."""
     base: BaseShapeConfig = BaseShapeConfig()
+    """The basic shape whose inside the cells fill (Sec. 3.1.1)."""
     tile_map: TileMapConfig = TileMapConfig()
+    """The tile of cells repeated through the shape (Sec. 4.1)."""
     tiles: Annotated[int, Field(ge=1, le=512)] = 32
-    margin: Annotated[float, Field(ge=0.0, le=1.0)] = 0.02  # of the base shape's extent
-    coarse: Annotated[int, Field(ge=1, le=256)] = 2  # classification samples per tile edge
+    """Tiles per axis of the cube around the base shape (its longest side, padded by ``margin``)."""
+    margin: Annotated[float, Field(ge=0.0, le=1.0)] = 0.02
+    """Padding of that cube on each side, a fraction of the base shape's extent."""
+    coarse: Annotated[int, Field(ge=1, le=256)] = 2
+    """Samples per tile edge when tiles are classified as empty, full or mixed."""
     mode: Literal["first_hit", "reflection", "refraction"] = "first_hit"
+    """First hit only, self-reflection (Alg. 3.2) or refraction (Alg. 3.3)."""
     bounces: Annotated[int, Field(ge=0, le=16)] = 1
+    """Reflection or refraction levels in those modes."""
     ior: Pos = 1.5
+    """``refraction``: index of refraction."""
     reflectivity: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
-    steps_per_tile: Annotated[int, Field(ge=1, le=65536)] = 256  # linear step = 1/steps_per_tile of a tile
+    """``reflection``: weight of the mirrored light."""
+    steps_per_tile: Annotated[int, Field(ge=1, le=65536)] = 256
+    """Linear search step, 1/steps_per_tile of a tile (the main quality knob)."""
     bisection: Annotated[int, Field(ge=0, le=40)] = 10
-    max_steps: Annotated[int, Field(ge=1, le=1 << 24)] = 1 << 18  # samples per ray segment (a capped ray is flagged)
-    skip: bool = True  # empty / full tile skipping (Alg. 3.2, 3.3)
-    color_map: str = "worley"  # worley | path to an (c,c,c,3) .npy in [0, 1]
-    environment: str = "sky"  # sky | path to an equirectangular image
-    cache: str | None = ".jskel_cache/cells"  # folder for precomputed objects; null: none
+    """Bisection iterations refining a linear step's crossing."""
+    max_steps: Annotated[int, Field(ge=1, le=1 << 24)] = 1 << 18
+    """Samples per ray segment; a ray that reaches the cap is flagged."""
+    skip: bool = True
+    """Skip empty and full tiles (Alg. 3.2, 3.3)."""
+    color_map: str = "worley"
+    """Cell colours: ``worley``, or a path to a (c, c, c, 3) .npy array in [0, 1]."""
+    environment: str = "sky"
+    """What reflected and refracted rays see: ``sky``, or a path to an equirectangular image."""
+    cache: str | None = ".jskel_cache/cells"
+    """Folder for precomputed objects; null: none."""

@@ -10,7 +10,9 @@ per problem, ``<dotted.path[index]>: <what is wrong> (got <value>)``.
 applied before validation, so an override is checked like the file itself.
 
 The package holds one idea a module: the schema (``_schema``), the error lines (``_errors``),
-and reading, overriding, validating and resolving an experiment (``_load``); every public name
+reading, overriding, validating and resolving an experiment (``_load``), and the configuration
+reference read off the models (``_reference``: every key's type, default, range and
+description, which docs/config.md shows); every public name
 is importable from ``jskel.config``.
 """
 
@@ -43,6 +45,11 @@ from ._schema import MaterialConfig as MaterialConfig
 from ._schema import SceneObjectConfig as SceneObjectConfig
 from ._schema import EnvironmentConfig as EnvironmentConfig
 from ._schema import Experiment as Experiment
+from ._reference import ConfigFile as ConfigFile
+from ._reference import Row as Row
+from ._reference import config_files as config_files
+from ._reference import reference_rows as reference_rows
+from ._reference import undocumented as undocumented
 
 # (_format: the error lines of a pydantic ValidationError, for loaders of other files)
-__all__ = ["apply_overrides", "AUTO_CHUNK_ACCELERATOR", "AUTO_CHUNK_CPU", "AUTO_CHUNKS_PER_CALL_CPU", "CameraConfig", "chunk_of", "chunks_per_call_of", "ConfigError", "DEFAULT_EXPERIMENT", "EnvironmentConfig", "Experiment", "_format", "LightConfig", "load", "MaterialConfig", "MotionConfig", "read_yaml", "RenderConfig", "resolved", "RGB", "SceneObjectConfig", "ShadingConfig", "StrictModel", "TransformConfig", "Unit", "validate", "Vec3"]
+__all__ = ["apply_overrides", "AUTO_CHUNK_ACCELERATOR", "AUTO_CHUNK_CPU", "AUTO_CHUNKS_PER_CALL_CPU", "CameraConfig", "chunk_of", "chunks_per_call_of", "config_files", "ConfigError", "ConfigFile", "DEFAULT_EXPERIMENT", "EnvironmentConfig", "Experiment", "_format", "LightConfig", "load", "MaterialConfig", "MotionConfig", "read_yaml", "reference_rows", "RenderConfig", "resolved", "RGB", "Row", "SceneObjectConfig", "ShadingConfig", "StrictModel", "TransformConfig", "undocumented", "Unit", "validate", "Vec3"]

@@ -14,7 +14,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 class StrictModel(BaseModel):
     """Base for every config section: frozen, no unknown keys, no NaN or inf."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    # a string literal right under a field is its description (pydantic >= 2.7), which the
+    # configuration reference (``jskel.config.reference_rows``; docs/config.md) shows
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, use_attribute_docstrings=True)
 
 
 Vec3 = tuple[float, float, float]
@@ -34,13 +36,21 @@ class CameraConfig(StrictModel):
     then not given (one or the other would be ignored)."""
 
     eye: Vec3 = (0.0, 1.0, 6.0)
+    """Camera position (world units); not given with ``frame: auto``."""
     target: Vec3 = (0.0, 1.0, 0.0)
+    """The point the camera looks at; not given with ``frame: auto``."""
     up: Vec3 = (0.0, 1.0, 0.0)
+    """World direction that appears upwards in the image; not parallel to the view direction."""
     fov_deg: Annotated[float, Field(gt=0.0, lt=180.0)] = 40.0
+    """Vertical field of view, degrees."""
     width: Annotated[int, Field(ge=1, le=16384)] = 320
+    """Image width, pixels."""
     height: Annotated[int, Field(ge=1, le=16384)] = 240
+    """Image height, pixels."""
     frame: Literal["manual", "auto"] = "manual"
-    view: Vec3 = (1.0, 0.5, 1.0)  # frame: auto: the direction from the target to the eye
+    """``manual``: ``eye`` and ``target`` as given; ``auto``: placed from the object's bounding box."""
+    view: Vec3 = (1.0, 0.5, 1.0)
+    """``frame: auto`` only: the direction from the target to the eye."""
 
     @model_validator(mode="after")
     def _auto_frame(self):
@@ -88,11 +98,17 @@ class LightConfig(StrictModel):
     a single object has shadow rays only from a light whose section sets ``shadows: true``."""
 
     type: Literal["directional", "point"] = "directional"
+    """A light at infinity (``direction``) or at a point (``position``)."""
     direction: Vec3 = (0.4, 0.8, 0.6)
+    """Directional light: from the scene towards the light (need not be unit length)."""
     position: Vec3 | None = None
+    """Point light: its position (world units); required for ``type: point``, absent otherwise."""
     color: RGB = (1.0, 1.0, 1.0)
+    """Linear RGB colour of the light."""
     intensity: Annotated[float, Field(ge=0.0)] = 1.0
+    """Radiance scale (a point light's radiance at distance 1)."""
     shadows: bool = True
+    """Whether it casts shadows in a scene; a single object casts them only where this is set explicitly."""
 
     @field_validator("direction")
     @classmethod
@@ -115,11 +131,17 @@ class ShadingConfig(StrictModel):
     linear light to the PNG's 8 bits, the sRGB curve (IEC 61966-2-1) or a plain power 1/gamma."""
 
     ambient: Annotated[float, Field(ge=0.0)] = 0.15
+    """Ambient term, a fraction of the surface colour added regardless of the lights."""
     specular: Annotated[float, Field(ge=0.0)] = 0.25
+    """Weight of the Blinn-Phong highlight."""
     shininess: Annotated[float, Field(gt=0.0)] = 32.0
+    """Blinn-Phong exponent: larger is a smaller, sharper highlight."""
     background: RGB = (0.82, 0.86, 0.92)
+    """Linear RGB colour of pixels whose ray hits nothing (and of unset environment colours)."""
     output: Literal["srgb", "gamma"] = "srgb"
+    """Transfer function from linear light to the PNG's 8 bits: the sRGB curve or a power 1/``gamma``."""
     gamma: Annotated[float, Field(gt=0.0)] = 2.2
+    """Exponent of ``output: gamma``."""
 
 
 AUTO_CHUNK_CPU = 4096
@@ -172,18 +194,30 @@ class RenderConfig(StrictModel):
     ``lanes`` is the size of the dense sub-batches that compacted rays are traced in.
     """
 
-    chunk: Annotated[int, Field(ge=1, le=1 << 24)] | Literal["auto"] = "auto"  # rays per chunk; auto: see chunk_of
-    chunks_per_call: Annotated[int, Field(ge=1, le=4096)] | Literal["auto"] = "auto"  # chunks in one compiled call (lax.map) on big batches; auto: see chunks_per_call_of
+    chunk: Annotated[int, Field(ge=1, le=1 << 24)] | Literal["auto"] = "auto"
+    """Rays per chunk (per device); ``auto``: 4,096 on the CPU, 1,048,576 on an accelerator (``chunk_of``)."""
+    chunks_per_call: Annotated[int, Field(ge=1, le=4096)] | Literal["auto"] = "auto"
+    """Chunks in one compiled call (a ``lax.map``) on big batches; ``auto``: 64 on the CPU, 1 on an accelerator."""
     tile: Annotated[int, Field(ge=1, le=4096)] = 64
+    """Edge of the square screen tiles rays are ordered in, pixels."""
     dtype: Literal["float32", "float64"] = "float32"
+    """Floating-point precision of the build and of every ray computation."""
     progress: bool | None = None
-    devices: Literal["all", "one"] | Annotated[int, Field(ge=1, le=4096)] = "all"  # shard rays over local devices
-    memory_mb: Annotated[float, Field(gt=0.0, le=1 << 24)] | None = None  # device memory budget of one call: chunk shrinks to fit
-    spp: Annotated[int, Field(ge=1, le=1024)] = 1  # samples per pixel (jittered)
-    seed: int = 0  # of the jitter
-    bounces: Annotated[int, Field(ge=0, le=16)] = 2  # reflection / refraction depth (scenes)
-    lanes: Annotated[int, Field(ge=1, le=1 << 20)] = 256  # rays per compacted sub-batch (scenes)
-    compaction: bool = True  # scenes: false traces every queue slot against every object (masking), for comparison
+    """Show a progress bar; unset: when standard error is a terminal."""
+    devices: Literal["all", "one"] | Annotated[int, Field(ge=1, le=4096)] = "all"
+    """Local devices the rays are sharded over: all, one, or a count."""
+    memory_mb: Annotated[float, Field(gt=0.0, le=1 << 24)] | None = None
+    """Device memory budget of one compiled call, MiB: ``chunk`` is halved until the call fits."""
+    spp: Annotated[int, Field(ge=1, le=1024)] = 1
+    """Jittered samples per pixel (the first at the pixel centre)."""
+    seed: int = 0
+    """Seed of the sample jitter."""
+    bounces: Annotated[int, Field(ge=0, le=16)] = 2
+    """Scenes: reflection and refraction depth."""
+    lanes: Annotated[int, Field(ge=1, le=1 << 20)] = 256
+    """Scenes: rays per dense sub-batch that compacted rays are traced in."""
+    compaction: bool = True
+    """Scenes: gather the rays an effect needs (true) or trace every queue slot against every object (false, masking; for comparison)."""
 
 
 Unit = Annotated[float, Field(ge=0.0, le=1.0)]
@@ -194,8 +228,11 @@ class TransformConfig(StrictModel):
     first), then translate. Uniform scale keeps every representation's distances exact."""
 
     translate: Vec3 = (0.0, 0.0, 0.0)
+    """Translation, world units, applied last."""
     rotate_deg: Vec3 = (0.0, 0.0, 0.0)
+    """XYZ Euler angles, degrees, X first."""
     scale: Annotated[float, Field(gt=0.0)] = 1.0
+    """Uniform scale, applied first."""
 
 
 class MotionConfig(StrictModel):
@@ -203,7 +240,9 @@ class MotionConfig(StrictModel):
     angles (degrees) per frame (rigidly moving objects, e.g. cell objects, issue 7)."""
 
     translate: Vec3 = (0.0, 0.0, 0.0)
+    """Translation per frame, world units."""
     rotate_deg: Vec3 = (0.0, 0.0, 0.0)
+    """XYZ Euler angles per frame, degrees."""
 
 
 class MaterialConfig(StrictModel):
@@ -213,11 +252,17 @@ class MaterialConfig(StrictModel):
     (total internal reflection turns into reflection); the rest is shaded locally."""
 
     color: RGB = (1.0, 1.0, 1.0)
+    """Linear RGB factor on the representation's own colour."""
     specular: Annotated[float, Field(ge=0.0)] | None = None
+    """Weight of the highlight; unset: ``shading.specular``."""
     shininess: Annotated[float, Field(gt=0.0)] | None = None
+    """Blinn-Phong exponent; unset: ``shading.shininess``."""
     reflectivity: Unit = 0.0
+    """Fraction of the light mirrored."""
     transparency: Unit = 0.0
+    """Fraction of the light refracted; ``reflectivity + transparency`` is at most 1."""
     ior: Annotated[float, Field(gt=0.0, le=10.0)] = 1.5
+    """Index of refraction of a transparent material."""
 
     @model_validator(mode="after")
     def _energy(self):
@@ -231,10 +276,15 @@ class SceneObjectConfig(StrictModel):
     the registry), its transform, material and motion."""
 
     name: str | None = None
+    """A name for the object (error messages, run.json)."""
     shape: dict
+    """The object's own section: any representation's ``object`` section, with its ``type``."""
     transform: TransformConfig = TransformConfig()
+    """Object to world placement."""
     material: MaterialConfig = MaterialConfig()
+    """Surface response in the scene."""
     motion: MotionConfig | None = None
+    """Rigid motion per animation frame; unset: static."""
 
 
 class EnvironmentConfig(StrictModel):
@@ -243,8 +293,11 @@ class EnvironmentConfig(StrictModel):
     ``shading.background`` (all unset: a constant background)."""
 
     zenith: RGB | None = None
+    """Linear RGB colour straight up; unset: ``shading.background``."""
     horizon: RGB | None = None
+    """Linear RGB colour at y = 0; unset: ``shading.background``."""
     ground: RGB | None = None
+    """Linear RGB colour straight down; unset: ``shading.background``."""
 
 
 class Experiment(StrictModel):
@@ -252,14 +305,23 @@ class Experiment(StrictModel):
     scene of several ``objects`` with materials, an ``environment`` and a ``frame``."""
 
     name: str = "experiment"
+    """The experiment's name (run.json, benchmark rows)."""
     object: Any = None
+    """One object: its ``type`` names the representation whose section this is (see below); not with ``objects``."""
     objects: list[SceneObjectConfig] | None = None
+    """A scene: several placed objects with materials; not with ``object``."""
     camera: CameraConfig = CameraConfig()
+    """The pinhole camera."""
     lights: list[LightConfig] = [LightConfig()]
+    """The lights; by default one white directional light."""
     shading: ShadingConfig = ShadingConfig()
+    """Local shading and output transfer."""
     environment: EnvironmentConfig = EnvironmentConfig()
+    """What rays escaping a scene see."""
     render: RenderConfig = RenderConfig()
-    frame: float = 0.0  # animation frame of a scene (objects' shapes with a frame, motions)
+    """How rays are evaluated."""
+    frame: float = 0.0
+    """Animation frame of a scene (shapes with a ``frame`` key, motions)."""
 
     @model_validator(mode="after")
     def _object_or_objects(self):

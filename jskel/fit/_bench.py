@@ -33,30 +33,50 @@ class FitBench(StrictModel):
     """``fit:`` section of a bench file."""
 
     points: list[Annotated[int, Field(ge=10, le=10_000_000)]] = [1000, 10000, 100000]
+    """Point counts fitted."""
     segments: list[Annotated[int, Field(ge=1, le=100_000)]] = [5, 50, 500]
+    """Segment counts of the bent chains fitted."""
     solvers: list[Literal["lm", "gauss_newton", "lbfgs", "adam"]] = ["lm", "gauss_newton", "lbfgs", "adam"]
+    """Solvers timed (``solver.name``)."""
     loss: Literal["l2", "huber", "cauchy", "geman_mcclure"] = "cauchy"
-    noise_sd: Annotated[float, Field(ge=0.0)] = 0.05  # world units (segments are 1 long, radii 0.5 -> 0.25)
+    """Robust loss of every fit."""
+    noise_sd: Annotated[float, Field(ge=0.0)] = 0.05
+    """Gaussian noise, world units (segments are 1 long, radii 0.5 -> 0.25)."""
     outliers: Annotated[float, Field(ge=0.0, le=1.0)] = 0.05
+    """Fraction of uniform outliers."""
     perturb: Annotated[float, Field(ge=0.0, le=1.0)] = 0.1
+    """Perturbation of the start (``init.perturb``)."""
     maxiter: Annotated[int, Field(ge=1)] = 200
-    smoothness: Annotated[float, Field(ge=0.0)] = 0.0  # the solver's joint smoothness weight
-    candidates: Annotated[int, Field(ge=0, le=4096)] = 8  # segments each point is measured against (0: all)
-    max_seconds: Annotated[float, Field(gt=0.0)] | None = 300.0  # per fit's stepping loop; a row says when it ran out
-    jacobian: Literal["auto", "dense", "sparse"] = "auto"  # lm / gauss_newton (solver.jacobian); rows say which ran
+    """Most iterations per fit."""
+    smoothness: Annotated[float, Field(ge=0.0)] = 0.0
+    """The solver's joint smoothness weight."""
+    candidates: Annotated[int, Field(ge=0, le=4096)] = 8
+    """Segments each point is measured against (0: all)."""
+    max_seconds: Annotated[float, Field(gt=0.0)] | None = 300.0
+    """Limit of each fit's stepping loop; a row says when it ran out."""
+    jacobian: Literal["auto", "dense", "sparse"] = "auto"
+    """``lm`` / ``gauss_newton`` (``solver.jacobian``); rows say which ran."""
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.003
-    max_work: Annotated[float, Field(gt=0.0)] = 1e7  # points x segments above which a combination is skipped
+    """``adam``: step size."""
+    max_work: Annotated[float, Field(gt=0.0)] = 1e7
+    """Points x segments above which a combination is skipped (and reported as skipped)."""
     batch: list[Annotated[int, Field(ge=1, le=4096)]] = [1, 8, 32]
+    """Batch sizes of the vmapped fits timed for throughput."""
     batch_points: Annotated[int, Field(ge=10)] = 1000
+    """Points per fit in the batch runs."""
     batch_segments: Annotated[int, Field(ge=1)] = 5
+    """Segments per fit in the batch runs."""
     batch_solvers: list[Literal["lm", "gauss_newton", "lbfgs", "adam"]] = ["lm", "lbfgs"]
+    """Solvers of the batch runs."""
     seed: int = 0
+    """Random seed of the chains, clouds and starts."""
 
 
 class FitBenchFile(StrictModel):
     """A bench file whose ``fit:`` section is the fitting benchmark (``python -m jskel bench``)."""
 
     fit: FitBench
+    """The fitting benchmark's settings."""
 
 
 def bent_chain(segments: int, seed: int = 0):

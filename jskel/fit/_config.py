@@ -18,10 +18,15 @@ class SyntheticConfig(StrictModel):
     ``outliers`` of the points replaced by uniform samples in the bounding box grown by 20%."""
 
     skeleton: SkeletonConfig
+    """The true skeleton the points are sampled from."""
     count: Annotated[int, Field(ge=1, le=10_000_000)] = 2000
+    """Number of points."""
     noise: Annotated[float, Field(ge=0.0, le=1.0)] = 0.01
+    """Standard deviation of the Gaussian noise, a fraction of the skeleton's length."""
     outliers: Frac = 0.05
+    """Fraction of the points replaced by uniform samples in the grown bounding box."""
     seed: int = 0
+    """Random seed of the sampling."""
 
 
 class PointsConfig(StrictModel):
@@ -31,8 +36,11 @@ class PointsConfig(StrictModel):
     (counted in fit.json)."""
 
     file: str | None = None
+    """A point file: .npy (N, 3), .xyz / .txt (x y z per line) or .ply."""
     synthetic: SyntheticConfig | None = None
+    """Points sampled from a known skeleton instead of a file."""
     nonfinite: Literal["reject", "drop"] = "reject"
+    """NaN or inf points: an error naming them, or dropped (counted in fit.json)."""
 
     @model_validator(mode="after")
     def _one_source(self):
@@ -49,10 +57,15 @@ class EstimateConfig(StrictModel):
     voxels wider than the tubes and narrower than the gaps between branches."""
 
     method: Literal["pca_chain", "mst"] = "pca_chain"
+    """A chain along the principal axis, or a minimum spanning tree over occupied voxels."""
     segments: Annotated[int, Field(ge=1, le=4096)] = 5
+    """``pca_chain``: number of segments."""
     voxel: Annotated[float, Field(gt=0.0, le=1.0)] = 0.08
+    """``mst``: voxel edge, a fraction of the cloud's extent."""
     segment: Annotated[float, Field(gt=0.0, le=1.0)] = 0.15
-    prune: Annotated[float, Field(ge=0.0, le=1000.0)] = 3.0  # twigs shorter than this many voxel edges are cut
+    """``mst``: spacing of the simplified joints, a fraction of the cloud's extent."""
+    prune: Annotated[float, Field(ge=0.0, le=1000.0)] = 3.0
+    """``mst``: twigs shorter than this many voxel edges are cut."""
 
 
 class InitConfig(StrictModel):
@@ -61,9 +74,13 @@ class InitConfig(StrictModel):
     fraction of the mean segment length, radii scaled by 1 +- perturb (random signs)."""
 
     skeleton: SkeletonConfig | None = None
+    """A given starting skeleton; not with ``estimate``."""
     estimate: EstimateConfig | None = None
+    """Estimate the starting skeleton from the points."""
     perturb: Frac = 0.0
+    """Random perturbation of the start: joints by this fraction of the mean segment length, radii by 1 +- it."""
     seed: int = 1
+    """Random seed of the perturbation."""
 
     @model_validator(mode="after")
     def _not_both(self):
@@ -88,20 +105,35 @@ class SolverConfig(StrictModel):
     unknowns, 131,072: about 5,000 points on a 5-segment chain), where it is as fast or faster."""
 
     name: Literal["lm", "gauss_newton", "lbfgs", "adam"] = "lm"
+    """The solver: Levenberg-Marquardt, Gauss-Newton, L-BFGS (jaxopt) or Adam (optax)."""
     loss: Literal["l2", "huber", "cauchy", "geman_mcclure"] = "huber"
+    """Robust loss on the point distances."""
     scale: Annotated[float, Field(gt=0.0, le=1.0)] = 0.01
+    """The robust loss's scale, a fraction of the cloud's extent."""
     maxiter: Annotated[int, Field(ge=1, le=100_000)] = 100
-    tol: Annotated[float, Field(gt=0.0)] = 1e-6  # the solver's own criterion (gradient norm, normalised units)
-    ftol: Annotated[float, Field(ge=0.0)] = 1e-6  # or stop when the loss falls by less than this fraction ...
-    patience: Annotated[int, Field(ge=1, le=100_000)] = 10  # ... for this many iterations in a row
+    """Most iterations."""
+    tol: Annotated[float, Field(gt=0.0)] = 1e-6
+    """The solver's own stopping criterion (gradient norm, normalised units)."""
+    ftol: Annotated[float, Field(ge=0.0)] = 1e-6
+    """Or stop when the loss falls by less than this fraction ..."""
+    patience: Annotated[int, Field(ge=1, le=100_000)] = 10
+    """... for this many iterations in a row."""
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.01
+    """``adam``: step size."""
     smoothness: Annotated[float, Field(ge=0.0)] = 0.0
+    """Weight of the joints' second differences along chains."""
     restarts: Annotated[int, Field(ge=1, le=4096)] = 1
-    min_radius: Annotated[float, Field(ge=0.0, le=1.0)] = 1e-4  # fraction of extent: radii = min + softplus(u)
-    candidates: Annotated[int, Field(ge=0, le=4096)] = 8  # segments each point is measured against (0: all)
-    max_seconds: Annotated[float, Field(gt=0.0)] | None = None  # stop the stepping loop after this long (reported)
-    validity: Annotated[float, Field(ge=0.0)] = 1.0  # weight keeping shared cutting planes cutting ellipses (0: off)
-    jacobian: Literal["auto", "dense", "sparse"] = "auto"  # lm / gauss_newton: jaxopt's dense Jacobian or the sparse normal equations
+    """Fits from that many perturbed starts in one call; the best is kept."""
+    min_radius: Annotated[float, Field(ge=0.0, le=1.0)] = 1e-4
+    """Smallest radius, a fraction of the extent (radii = min + softplus(u))."""
+    candidates: Annotated[int, Field(ge=0, le=4096)] = 8
+    """Nearest segments each point is measured against (0: all)."""
+    max_seconds: Annotated[float, Field(gt=0.0)] | None = None
+    """Stop the stepping loop after this long (reported); unset: no limit."""
+    validity: Annotated[float, Field(ge=0.0)] = 1.0
+    """Weight of the penalty keeping shared cutting planes cutting ellipses (0: off)."""
+    jacobian: Literal["auto", "dense", "sparse"] = "auto"
+    """``lm`` / ``gauss_newton``: jaxopt's dense Jacobian, the sparse normal equations, or ``auto`` (sparse for big problems)."""
 
 
 class FitFile(StrictModel):
@@ -109,8 +141,14 @@ class FitFile(StrictModel):
     fitted skeleton when omitted)."""
 
     name: str = "fit"
+    """The fit's name (the output experiment's)."""
     points: PointsConfig
+    """The point cloud."""
     init: InitConfig = InitConfig()
+    """The starting skeleton."""
     solver: SolverConfig = SolverConfig()
+    """The solver and its loss."""
     camera: CameraConfig | None = None
+    """The output experiment's camera; unset: framed on the fitted skeleton."""
     dtype: Literal["float32", "float64"] = "float32"
+    """Precision of the fit."""

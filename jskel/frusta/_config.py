@@ -44,19 +44,33 @@ class SkeletonConfig(StrictModel):
     """
 
     procedural: Literal["saguaro", "aloe", "well", "lsystem_tree", "palm", "pine", "oasis", "dancing_cacti"] | None = None
+    """A generated skeleton (``jskel.scenes``); not with ``file`` or explicit joints."""
     seed: int = 0
+    """Random seed of a procedural generator."""
     options: dict[str, float] = {}
+    """Generator-specific options of ``procedural`` (unknown options are errors)."""
     joints: list[Vec3] | None = None
+    """Explicit joint positions (with ``radii`` and ``parents``)."""
     radii: list[Radius] | None = None
+    """Explicit radius at each joint."""
     parents: list[int] | None = None
+    """Explicit parent index of each joint (-1: a root)."""
     colors: list[RGB] | None = None
+    """Linear RGB colour per joint (a segment takes its end joint's); unset: the object's ``color``."""
     file: str | None = None
+    """A skeleton file (SWC, CSV node table, TreeQSM cylinder table), relative to the working directory."""
     format: Literal["auto", "swc", "nodes", "qsm"] = "auto"
+    """The file's format; ``auto``: by extension (.swc, .csv, TreeQSM's cylinder*.txt)."""
     repair: RepairPolicy | None = None
+    """How a file's problems are repaired (files only); unset: the policy's defaults."""
     scale: Annotated[float, Field(gt=0.0)] = 1.0
+    """Coordinates and radii are multiplied by this (e.g. 0.001 for nanometres to micrometres)."""
     offset: Vec3 = (0.0, 0.0, 0.0)
-    subdivide: Annotated[int, Field(ge=1, le=4096)] = 1  # split every segment into this many collinear pieces
-    replicate: Annotated[int, Field(ge=1, le=1024)] = 1  # k x k copies side by side in x-y, each scaled 1/k
+    """Translation added after ``scale``, world units."""
+    subdivide: Annotated[int, Field(ge=1, le=4096)] = 1
+    """Split every segment into this many collinear pieces (the same surface from more segments)."""
+    replicate: Annotated[int, Field(ge=1, le=1024)] = 1
+    """Lay k x k copies side by side in x-y, each scaled 1/k (k^2 times the segments)."""
 
     @model_validator(mode="after")
     def _one_source(self):
@@ -132,45 +146,75 @@ class ReliefConfig(StrictModel):
     """
 
     map: str
+    """The height map: an 8-bit image file, or ``brick``, ``gravel`` or ``grass``."""
     thickness: Annotated[float, Field(gt=0.0)] = 0.05
+    """Shell thickness: the height of a white texel above the frustum, world units."""
     scale: tuple[Annotated[float, Field(gt=0.0)], Annotated[float, Field(gt=0.0)]] = (4.0, 1.0)
+    """Repeats of the map per unit u and per unit v (v runs 0..1 per segment)."""
     steps: Annotated[int, Field(ge=1, le=65536)] = 32
+    """Linear search steps through the shell (the relief's main quality knob)."""
     bisection: Annotated[int, Field(ge=0, le=64)] = 6
+    """Bisection iterations refining a linear step's crossing."""
     uv: Literal["auto", "approximate", "exact"] = "auto"
+    """How v is computed in the shell: the paper's fast approximation, exact, or ``auto`` (approximate where it is exact)."""
     v_mode: Literal["wrap", "clamp"] = "wrap"
+    """Map lookup beyond [0, 1] in v: repeat or clamp."""
     early_exit: bool = False
+    """March in a loop that stops once every ray of the batch has found its bracket, instead of exactly ``steps`` steps."""
     segments: list[Annotated[int, Field(ge=0)]] | None = None
+    """Indices of the segments that carry relief; unset: all."""
 
 
 class FrustaConfig(StrictModel):
     """Conical frusta skinning a skeleton (Bhagvat et al. 2009)."""
 
     type: Literal["frusta"]
+    """Selects this representation."""
     skeleton: SkeletonConfig
+    """The skeleton the frusta skin: a file, a generator or explicit joints."""
     normals: Literal["interpolated", "geometric"] = "interpolated"
+    """Shading normals: interpolated across cutting planes (smooth joints) or each cone's own."""
     match_minor_axes: bool = False
+    """Rescale continuations' base radii until the minor axes of the two elliptical cuts at each joint agree (Sec. 2.2)."""
     twist_deg: float = 0.0
+    """Twist of the texture's u frame along the segments, degrees per unit v (Sec. 2.3)."""
     color: RGB = (0.35, 0.55, 0.3)
+    """Linear RGB colour where the skeleton gives none and there is no texture."""
     texture: str | None = None
+    """An image file mapped over (u, v); unset: plain colour."""
     texture_scale: tuple[Annotated[float, Field(gt=0.0)], Annotated[float, Field(gt=0.0)]] = (1.0, 1.0)
+    """Repeats of the texture per unit u and per unit v."""
     relief: ReliefConfig | None = None
-    block: Annotated[int, Field(ge=1, le=4096)] = 64  # segments per scan step (smaller for small skeletons)
-    frame: float = 0.0  # animation frame, for animated generators (dancing_cacti)
-    accel: Literal["auto", "blocks", "bvh", "none"] = "auto"  # plain segments: auto = bvh from 16 segments; none = brute force
-    leaf: Annotated[int, Field(ge=1, le=64)] = 4  # segments per BVH leaf
-    group: Annotated[int, Field(ge=1, le=1 << 24)] = 512  # traversal walks: rays per vmapped group of walks
-    packet: Annotated[int, Field(ge=0, le=65536)] = 256  # traversal packets: rays sharing one BVH walk (0: walks)
-    # how rays find their segments: candidate lists of packets of coherent rays (CPU default,
-    # ``jskel.accel._bins``), BVH packets, per-ray BVH walks under vmap, or the Pallas kernel
-    # (accelerator default, ``jskel.frusta._kernel``); auto picks by the default backend
+    """A height field in a shell over the frusta (Sec. 3); unset: plain frusta."""
+    block: Annotated[int, Field(ge=1, le=4096)] = 64
+    """Segments per scan step of the blocks traversal (smaller for small skeletons)."""
+    frame: float = 0.0
+    """Animation frame, for animated generators (``dancing_cacti``)."""
+    accel: Literal["auto", "blocks", "bvh", "none"] = "auto"
+    """Plain segments' acceleration: ``auto`` is a BVH from 16 segments, ``none`` brute force."""
+    leaf: Annotated[int, Field(ge=1, le=64)] = 4
+    """Segments per BVH leaf."""
+    group: Annotated[int, Field(ge=1, le=1 << 24)] = 512
+    """``traversal: walks``: rays per vmapped group of walks."""
+    packet: Annotated[int, Field(ge=0, le=65536)] = 256
+    """``traversal: packets``: rays sharing one BVH walk (0: walks)."""
     traversal: Literal["auto", "bins", "packets", "walks", "kernel"] = "auto"
-    bin_packet: Annotated[int, Field(ge=1, le=65536)] = 64  # bins: consecutive rays sharing one candidate list
-    bin_candidates: Annotated[int, Field(ge=1, le=65536)] = 128  # bins: segments tested against every packet at once
-    bin_pairs: Annotated[int, Field(ge=1, le=65536)] = 256  # bins: (packet, segment) pairs cast at once
-    bin_group: Annotated[int, Field(ge=0, le=65536)] = 32  # bins: leaf slots per BVH node tested before its segments (0: every segment's box)
-    bin_walk_ratio: Annotated[float, Field(ge=0.0, le=1e6)] = 1.5  # bins: a chunk whose list holds more segments per ray walks instead (0: never)
-    kernel_block: Annotated[int, Field(ge=1, le=1024)] = 32  # rays per kernel program (a power of two)
-    kernel_warps: Annotated[int, Field(ge=1, le=32)] = 1  # warps per kernel program
+    """How rays find their segments: candidate lists of packets of coherent rays (``bins``, the CPU default), BVH
+    packets, per-ray BVH walks under vmap, or the Pallas kernel (the accelerator default); ``auto`` picks by backend."""
+    bin_packet: Annotated[int, Field(ge=1, le=65536)] = 64
+    """``bins``: consecutive rays sharing one candidate list."""
+    bin_candidates: Annotated[int, Field(ge=1, le=65536)] = 128
+    """``bins``: segments tested against every packet at once."""
+    bin_pairs: Annotated[int, Field(ge=1, le=65536)] = 256
+    """``bins``: (packet, segment) pairs cast at once."""
+    bin_group: Annotated[int, Field(ge=0, le=65536)] = 32
+    """``bins``: leaf slots per BVH node tested before its segments (0: every segment's box)."""
+    bin_walk_ratio: Annotated[float, Field(ge=0.0, le=1e6)] = 1.5
+    """``bins``: a chunk whose list holds more segments per ray than this walks instead (0: never)."""
+    kernel_block: Annotated[int, Field(ge=1, le=1024)] = 32
+    """``kernel``: rays per kernel program (a power of two)."""
+    kernel_warps: Annotated[int, Field(ge=1, le=32)] = 1
+    """``kernel``: warps per kernel program."""
 
     @field_validator("kernel_block")
     @classmethod

@@ -18,20 +18,30 @@ class BallConfig(StrictModel):
     attaches it to a bone (Sec. 5, Fig. 8)."""
 
     center: Vec3
+    """Centre of the ball, model units."""
     radius: Pos
+    """Effective radius R: the field reaches zero at this distance."""
     bone: str | None = None
+    """Name of the bone it moves with; unset: static."""
     group: str = "main"
+    """The primitive group it adds to (a leaf of the ``csg`` tree)."""
 
 
 class TubeConfig(StrictModel):
     """A metatube: segment a-b with effective radius interpolated from radius_a to radius_b."""
 
     a: Vec3
+    """First end of the segment, model units."""
     b: Vec3
+    """Second end of the segment (apart from ``a``)."""
     radius_a: Annotated[float, Field(ge=0.0)]
+    """Effective radius at ``a``."""
     radius_b: Annotated[float, Field(ge=0.0)]
+    """Effective radius at ``b`` (one of the two is positive)."""
     bone: str | None = None
+    """Name of the bone it moves with; unset: static."""
     group: str = "main"
+    """The primitive group it adds to (a leaf of the ``csg`` tree)."""
 
     @model_validator(mode="wrap")
     @classmethod
@@ -90,7 +100,9 @@ class KeyConfig(StrictModel):
     """A keyframe: XYZ Euler rotation (degrees) of a bone about its head at ``frame``."""
 
     frame: float
+    """The animation frame of this key."""
     rotate: Vec3 = (0.0, 0.0, 0.0)
+    """XYZ Euler rotation about the bone's head, degrees (interpolated between keys)."""
 
 
 class BoneConfig(StrictModel):
@@ -99,13 +111,21 @@ class BoneConfig(StrictModel):
     by default 0.75 x its length."""
 
     name: str
+    """The bone's name, referred to by primitives' ``bone`` and other bones' ``parent``."""
     parent: str | None = None
+    """The parent bone, whose motion this one inherits; unset: a root."""
     head: Vec3
+    """Rest-pose head (the pivot), model units."""
     tail: Vec3
+    """Rest-pose tail (apart from the head)."""
     tube: tuple[Annotated[float, Field(ge=0.0)], Annotated[float, Field(ge=0.0)]] | None = None
+    """``[ra, rb]``: the bone is also a metatube from head to tail with these radii."""
     influence: Pos | None = None
+    """Radius of its texture-skinning weight (Sec. 6.1); unset: 0.75 x its length."""
     keys: list[KeyConfig] = []
+    """Keyframes of its rotation."""
     group: str = "main"
+    """The primitive group its tube adds to."""
 
     @model_validator(mode="wrap")
     @classmethod
@@ -119,10 +139,15 @@ class ProjectorConfig(StrictModel):
     spherical (azimuth and polar angle about ``axis``); ``up`` fixes u = 0."""
 
     type: Literal["planar", "cylindrical", "spherical"] = "cylindrical"
+    """The projection."""
     origin: Vec3 = (0.0, 0.0, 0.0)
+    """Centre of the projection, rest-pose model units."""
     axis: Vec3 = (0.0, 1.0, 0.0)
+    """The projection's axis (not zero)."""
     up: Vec3 = (0.0, 0.0, 1.0)
+    """Fixes u = 0 (its part perpendicular to ``axis``; not parallel to it)."""
     scale: tuple[Pos, Pos] = (1.0, 1.0)
+    """Repeats of the texture per unit u and per unit v."""
 
     @model_validator(mode="wrap")
     @classmethod
@@ -134,7 +159,9 @@ class RegionConfig(StrictModel):
     """A ball of the rest pose (world units) where a local projector applies."""
 
     center: Vec3
+    """Centre of the region, rest-pose world units."""
     radius: Pos
+    """Radius of the region."""
 
 
 class LocalProjectorConfig(ProjectorConfig):
@@ -143,7 +170,9 @@ class LocalProjectorConfig(ProjectorConfig):
     (default: the model's)."""
 
     region: RegionConfig
+    """Where this projector applies."""
     texture: str | None = None
+    """Its own texture image; unset: the model's ``texture``."""
 
 
 class CSGNode(StrictModel):
@@ -153,8 +182,11 @@ class CSGNode(StrictModel):
     ``children``."""
 
     op: Literal["group", "sum", "max", "min", "diff"] = "group"
+    """A leaf (``group``) or an operation on two children: blend, union, intersection, difference."""
     group: str | None = None
+    """A leaf's primitive group."""
     children: list["CSGNode"] = []
+    """An operation's two operands (nodes of this same form)."""
 
     @model_validator(mode="after")
     def _shape(self):
@@ -173,10 +205,15 @@ class DisplaceConfig(StrictModel):
     its guarantee (so only planar projection, whose uv gradient is bounded, is accepted)."""
 
     type: Literal["noise", "image"] = "noise"
+    """3D value noise, or a height map through a planar projector."""
     amplitude: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.2
+    """Relative displacement: F is scaled by 1 + amplitude x n(x)."""
     frequency: Pos = 4.0
+    """``noise``: noise cells per model unit."""
     map: str | None = None
+    """``image``: an image file or brick, gravel, grass or checker."""
     projector: ProjectorConfig | None = None
+    """``image``: the planar projector giving the map's uv."""
 
     @model_validator(mode="after")
     def _image_needs_map(self):
@@ -192,34 +229,60 @@ class ImplicitConfig(StrictModel):
     """Skeletal implicit surface F = T (Rouiller 2011) and how it is ray traced."""
 
     type: Literal["implicit"]
+    """Selects this representation."""
     threshold: Pos = 0.5
+    """The iso-value T of the surface F = T."""
     balls: list[BallConfig] = []
+    """Metaballs."""
     tubes: list[TubeConfig] = []
+    """Metatubes."""
     procedural: Literal["gecko", "blob_grid", "spider", "dinosaur"] | None = None
+    """A generated model instead of explicit primitives."""
     seed: int = 0
+    """Random seed of a procedural model."""
     options: dict[str, float] = {}
+    """Options of the procedural model."""
     scale: Pos = 1.0
+    """Scale of the model about the origin."""
     offset: Vec3 = (0.0, 0.0, 0.0)
+    """Translation after ``scale``, world units."""
     method: Literal["naive", "bisection", "lipschitz"] = "lipschitz"
+    """Root search: constant steps (Alg. 1), inside points (Alg. 2), or Lipschitz steps (guaranteed)."""
     step: Pos = 0.02
+    """``naive``: march step, world units."""
     eps: Pos = 1e-3
+    """``lipschitz``: the smallest step; inside intervals shorter than this may be missed."""
     steps: Annotated[int, Field(ge=1, le=1 << 20)] = 2048
+    """Most march steps per ray (a ray that runs out is flagged)."""
     bisection: Annotated[int, Field(ge=0, le=64)] = 12
+    """Bisection iterations refining the bracket."""
     capacity: Annotated[int, Field(ge=1, le=4096)] = 32
-    block_size: Annotated[int, Field(ge=0, le=1024)] = 16  # primitives per culling block; 0: flat culling
-    # culling blocks kept per ray (more: the ray is retraced with flat culling); default 16 for
-    # the tree, 32 for blocks (block spheres are looser than the tree's leaf boxes: docs/performance.md)
+    """Candidate primitives kept per ray after culling (more: the ray is flagged as overflowing)."""
+    block_size: Annotated[int, Field(ge=0, le=1024)] = 16
+    """Primitives per culling block (BVH leaf); 0: flat culling."""
     block_capacity: Annotated[int, Field(ge=1, le=4096)] | None = None
-    cull: Literal["blocks", "tree"] = "tree"  # how a ray finds its blocks: walk the shared BVH, or test every block sphere
+    """Culling blocks kept per ray (more: the ray is retraced with flat culling); unset: 16 for ``tree``,
+    32 for ``blocks`` (block spheres are looser than the tree's leaf boxes)."""
+    cull: Literal["blocks", "tree"] = "tree"
+    """How a ray finds its blocks: walk the shared BVH, or test every block sphere."""
     early_exit: bool = True
+    """March in a loop that ends at the bracket, instead of exactly ``steps`` steps."""
     color: RGB = (0.75, 0.45, 0.3)
+    """Linear RGB colour where there is no texture."""
     bones: list[BoneConfig] = []
+    """The rig (Sec. 5)."""
     frame: float = 0.0
+    """Animation frame of the rig's keys."""
     texture: str | None = None
+    """An image mapped by the projector(s); unset: plain colour."""
     projector: ProjectorConfig | None = None
+    """The global texture projector (Sec. 6)."""
     projectors: list[LocalProjectorConfig] = []
+    """Local projectors, each applying inside its region (Sec. 6.1)."""
     csg: CSGNode | None = None
+    """A CSG tree over the primitive groups; unset: every primitive blended in one sum."""
     displace: DisplaceConfig | None = None
+    """Displacement of the field (Sec. 6.2); unset: none."""
 
     @model_validator(mode="after")
     def _has_primitives(self):

@@ -33,25 +33,40 @@ class BenchFile(StrictModel):
     """A benchmark file: experiments rendered at one size, timed over warm runs."""
 
     scenes: list[str]
+    """Experiment files timed (as given, or relative to the bench file's folder)."""
     width: Annotated[int, Field(ge=1, le=16384)] = 1024
+    """Image width every scene is rendered at."""
     height: Annotated[int, Field(ge=1, le=16384)] = 768
+    """Image height every scene is rendered at."""
     runs: Annotated[int, Field(ge=1, le=1000)] = 5
+    """Warm runs timed (median, min and max reported)."""
     warmup: Annotated[int, Field(ge=0, le=100)] = 1
+    """Untimed runs after the compile."""
     set: list[str] = []
-    sweep: dict[str, list[Any]] | list[dict[str, Any]] | None = None  # a grid, or explicit settings
+    """``key=value`` overrides applied to every scene."""
+    sweep: dict[str, list[Any]] | list[dict[str, Any]] | None = None
+    """Settings to time each scene at: a grid (key -> values), or explicit settings."""
     reference: list[str] = []
+    """Overrides of the reference render every setting is scored against (empty: timing only)."""
     metric: str = "depth_rmse"
+    """The error plotted against time."""
     peer: Literal["embree_mesh", "embree_same_mesh", "marching_cubes", "skeleton"] | None = None
+    """A peer's study run on the reference's rays (``[peers]`` extra)."""
     peer_levels: list[Annotated[int, Field(ge=0, le=4096)]] = [0, 1, 2, 3, 4, 5]
+    """The peer's subdivision or grid levels."""
     peer_match: dict[str, Any] | None = None
-    # animated scenes (``peer: skeleton``): frames timed per frame with rebuild, for jskel and peers
+    """The jskel setting (key -> value) whose error a peer must match."""
     frames: list[float] = []
+    """Animated scenes (``peer: skeleton``): frames timed per frame with rebuild, for jskel and the peers."""
     mitsuba_variant: str = "llvm_ad_rgb"
-    stats: bool = False  # frusta BVH: nodes and leaves visited per ray (one extra untimed pass)
-    # also time the cast alone (nearest t and primitive of every ray, on the device, no shading
-    # and no other output; what the peers' cast times hold): ``cast_s_median`` in each row
+    """The Mitsuba variant tried first."""
+    stats: bool = False
+    """Frusta BVH: count nodes and leaves visited per ray (one extra untimed pass)."""
     cast: bool = False
-    labels: list[str] | None = None  # a name per sweep setting (rows and the bar chart of a timing-only sweep)
+    """Also time the cast alone (nearest t and primitive of every ray, no shading; what the peers' cast times
+    hold): ``cast_s_median`` in each row."""
+    labels: list[str] | None = None
+    """A name per sweep setting (rows and the bar chart of a timing-only sweep)."""
 
     def settings(self) -> list[dict]:
         """The sweep's settings (``grid.expand``; none without a sweep)."""

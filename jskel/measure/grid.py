@@ -22,10 +22,15 @@ class Range(StrictModel):
     ``log: true``; ``integer: true`` rounds them (duplicates dropped)."""
 
     start: float
+    """First value."""
     stop: float
+    """Last value (inclusive)."""
     num: Annotated[int, Field(ge=1, le=10000)]
+    """Number of values."""
     log: bool = False
+    """Space geometrically (start and stop > 0) instead of evenly."""
     integer: bool = False
+    """Round to integers (duplicates dropped)."""
 
     @model_validator(mode="after")
     def _positive_for_log(self):

@@ -37,26 +37,41 @@ class Case(StrictModel):
     """A sweep or fit file and the overrides that make it small."""
 
     file: str
+    """The sweep or fit file."""
     set: list[str] = []
+    """``key=value`` overrides that make it small."""
 
 
 class LatencySpec(StrictModel):
     """What the latency benchmark times (the ``latency:`` section of its file)."""
 
-    default: bool = True  # the embedded default experiment (``jskel render --out X``)
-    gallery: list[str] = []  # experiment files, rendered as they are (with ``set``)
-    set: list[str] = []  # overrides for every gallery render (the default runs as it is)
+    default: bool = True
+    """Time the embedded default experiment (``jskel render --out X``)."""
+    gallery: list[str] = []
+    """Experiment files, rendered as they are (with ``set``)."""
+    set: list[str] = []
+    """Overrides for every gallery render (the default runs as it is)."""
     sweep: Case | None = None
+    """A sweep timed as ``jskel sweep`` processes."""
     fit: Case | None = None
-    rerender: str | None = None  # a skeleton experiment re-rendered in this process after each change
-    mitsuba: str | None = None  # the experiment whose skeleton Mitsuba's process renders
+    """A fit timed as ``jskel fit`` processes."""
+    rerender: str | None = None
+    """A skeleton experiment re-rendered in this process after each change."""
+    mitsuba: str | None = None
+    """The experiment whose skeleton Mitsuba's process renders."""
     mitsuba_variant: str = "scalar_rgb"
-    repeats: Annotated[int, Field(ge=1, le=20)] = 1  # cold/warm pairs per case
+    """Mitsuba's variant."""
+    repeats: Annotated[int, Field(ge=1, le=20)] = 1
+    """Cold/warm pairs per case."""
     timeout_s: Annotated[float, Field(gt=0)] = 1800.0
+    """Limit on each process, seconds."""
 
 
 class LatencyFile(StrictModel):
+    """A latency benchmark file (``python -m jskel bench``)."""
+
     latency: LatencySpec
+    """What is timed."""
 
 
 def process_env(cache_dir: Path) -> dict:

@@ -49,17 +49,27 @@ class SweepFile(StrictModel):
     metrics and the timing."""
 
     base: str
+    """The base experiment (as given, or relative to the sweep file's folder)."""
     set: list[str] = []
+    """``key=value`` overrides for every setting."""
     vary: dict[str, list[Any] | Range] = {}
+    """The grid: key -> values or a range; the cartesian product, first key slowest."""
     settings: list[dict[str, Any]] | None = Field(default=None, validate_default=True)
+    """Explicit settings (each key -> value) instead of ``vary``."""
     reference: list[str] | None = None
+    """Overrides of the reference render (empty or unset: no reference, no error metrics)."""
     metrics: list[str] = ["hit_miss_pct", "depth_rmse", "psnr_db"]
+    """Metrics in results.csv; the first is plotted against time."""
     runs: Annotated[int, Field(ge=1, le=1000)] = 5
+    """Warm runs timed per setting."""
     warmup: Annotated[int, Field(ge=0, le=100)] = 1
-    parallel: Annotated[int, Field(ge=1, le=256)] = 1  # worker processes, one setting at a time each
-    # Bhagvat Fig. 6: the relief as displaced meshes cast by Embree ([peers] extra), one row per level
+    """Untimed runs after the compile."""
+    parallel: Annotated[int, Field(ge=1, le=256)] = 1
+    """Worker processes, one setting at a time each."""
     peer: Literal["relief_mesh"] | None = None
+    """Bhagvat Fig. 6: the relief as displaced meshes cast by Embree (``[peers]`` extra), one row per level."""
     peer_levels: list[Annotated[int, Field(ge=0, le=12)]] = [0, 1, 2, 3, 4, 5, 6]
+    """The peer's subdivision levels."""
 
     @field_validator("metrics")
     @classmethod

@@ -21,12 +21,22 @@ class MeshConfig(StrictModel):
     rays). ``leaf``: triangles per BVH leaf."""
 
     type: Literal["mesh"]
+    """Selects this representation."""
     path: str
+    """The mesh file (OBJ, PLY, STL, OFF, GLB: whatever trimesh reads)."""
     scale: Annotated[float, Field(gt=0.0)] = 1.0
+    """Scale about the origin."""
     offset: Vec3 = (0.0, 0.0, 0.0)
+    """Translation after ``scale``, world units."""
     color: RGB = (0.7, 0.7, 0.72)
+    """Linear RGB colour of the surface."""
     normals: Literal["flat", "smooth"] = "flat"
+    """Face normals, or trimesh's area-weighted vertex normals interpolated by barycentric coordinates."""
     leaf: Annotated[int, Field(ge=1, le=64)] = 4
+    """Triangles per BVH leaf."""
     traversal: Literal["packets", "walks"] = "packets"
+    """One BVH walk per packet of ``packet`` coherent rays, or one per ray in vmapped groups of ``group``."""
     packet: Annotated[int, Field(ge=1, le=65536)] = 64
+    """``packets``: consecutive rays sharing one walk."""
     group: Annotated[int, Field(ge=1, le=65536)] = 64
+    """``walks``: rays per vmapped group of walks."""

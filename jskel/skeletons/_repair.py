@@ -43,11 +43,17 @@ class RepairPolicy(StrictModel):
     """
 
     min_radius: Annotated[float, Field(ge=0.0)] = 0.0
+    """Radii below it are raised to it (0: none)."""
     unknown_radius: Literal["error", "parent", "median"] | Annotated[float, Field(gt=0.0)] = "parent"
+    """What a radius <= 0 or NaN becomes: an error, the nearest ancestor's, the median of the known radii, or a number."""
     merge_zero_length: bool = True
+    """Merge a node that coincides with its parent into it (children re-parented)."""
     merge_tolerance: Annotated[float, Field(ge=0.0)] = 0.0
+    """Distance within which a node coincides with its parent (at least 1e-9 of the skeleton's extent)."""
     drop_fragments_below: Annotated[int, Field(ge=0)] = 0
+    """Connected pieces of fewer nodes are dropped (0 keeps all)."""
     soma: Literal["keep", "merge"] = "keep"
+    """Soma nodes (SWC type 1) kept as written, or each connected group merged into one node."""
 
 
 def _value(v) -> str:
