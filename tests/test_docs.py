@@ -59,7 +59,7 @@ def test_docs_site_builds_strict(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, f"mkdocs build --strict failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
-    for page in ("index.html", "api/index.html", "performance/index.html", "frusta/index.html", "config/index.html"):
+    for page in ("index.html", "api/index.html", "performance/index.html", "frusta/index.html", "config/index.html", "results/index.html"):
         assert (tmp_path / "site" / page).is_file(), page
     api = (tmp_path / "site" / "api" / "index.html").read_text(encoding="utf-8")
     assert "rebuilder" in api and "read_swc" in api, "the API page holds no generated reference"
@@ -68,6 +68,9 @@ def test_docs_site_builds_strict(tmp_path):
     keys = [r.path for f in config_files() for r in reference_rows(f.model, f.prefix, shown)]
     missing = [k for k in keys if f"<code>{k.replace('<', '&lt;').replace('>', '&gt;')}</code>" not in cfg]
     assert not missing, f"the configuration reference lacks {missing[:10]}"
+    results = (tmp_path / "site" / "results" / "index.html").read_text(encoding="utf-8")
+    files = sorted(p.name for p in (ROOT / "docs").glob("*.jsonl"))
+    assert files and not [f for f in files if f"<h2 id=\"{f.replace('.', '')}\">" not in results], "a result file has no section"
 
 
 # --- the configuration reference: every key of every file the project reads has a description ---

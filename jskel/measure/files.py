@@ -8,6 +8,12 @@ or elsewhere in the package imports the CLI. Bad input is a ``ConfigError`` nami
 from __future__ import annotations
 
 import json
+import os
+import platform
+import shlex
+import subprocess
+import sys
+from datetime import datetime, timezone
 from pathlib import Path
 
 import jax
@@ -57,20 +63,71 @@ def beside(name: str, file, field: str) -> Path:
     return p
 
 
+def _cpu() -> str:
+    """The host CPU as a measurement names it: cores, model and widest vector unit
+    ("2-core AMD EPYC 7B13, AVX2"), from /proc/cpuinfo where there is one."""
+    model, flags = platform.processor() or platform.machine(), set()
+    try:
+        info = Path("/proc/cpuinfo").read_text(errors="replace")
+        model = next((ln.split(":", 1)[1].strip() for ln in info.splitlines() if ln.startswith("model name")), model)
+        flags = set(next((ln.split(":", 1)[1].split() for ln in info.splitlines() if ln.startswith("flags")), []))
+    except OSError:
+        pass
+    vector = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else ""
+    return ", ".join(x for x in (f"{os.cpu_count()}-core {model}", vector) if x)
+
+
+def _commit() -> str | None:
+    """The working tree's commit (short hash, ``+changes`` when tracked files differ from it),
+    None outside a git checkout."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if head.returncode != 0:
+        return None
+    return head.stdout.strip() + ("+changes" if dirty.returncode == 0 and dirty.stdout.strip() else "")
+
+
+def command_line() -> str:
+    """This process's command as it was typed: ``python -m jskel ...`` for the CLI."""
+    main = Path(sys.argv[0])
+    if main.name == "jskel" or main.parts[-2:] == ("jskel", "__main__.py"):
+        return shlex.join(["python", "-m", "jskel", *sys.argv[1:]])
+    return shlex.join([sys.executable, *sys.argv])
+
+
+def provenance(command: str | None = None) -> dict:
+    """What identifies a measurement: when it started (UTC), the commit, the machine, the
+    command and the versions. Every row a result file keeps carries it as ``run``."""
+    import jaxlib
+    import numpy
+
+    from .. import __version__
+
+    return {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "commit": _commit(), "machine": _cpu(),
+            "devices": sorted({f"{d.platform}:{d.device_kind}" for d in jax.devices()}),
+            "command": command or command_line(), "versions": {"jskel": __version__, "jax": jax.__version__,
+            "jaxlib": jaxlib.__version__, "numpy": numpy.__version__, "python": platform.python_version()}}
+
+
 class JsonLines:
     """Rows printed as JSON lines as they are measured and, with ``out``, appended to that file
-    (emptied first), so an interrupted benchmark keeps the rows it measured."""
+    (emptied first), so an interrupted benchmark keeps the rows it measured. Each row the file
+    keeps carries the run's :func:`provenance` as ``run`` (docs/results.md shows it)."""
 
-    def __init__(self, out=None):
+    def __init__(self, out=None, command: str | None = None):
         self.out = None if out is None else Path(out)
+        self.run = None
         if self.out is not None:
             self.out.parent.mkdir(parents=True, exist_ok=True)
             self.out.write_text("")
+            self.run = provenance(command)
 
     def __call__(self, row: dict, keep: bool = True):
-        """Print ``row``; also append it to ``out`` unless ``keep`` is False (a log line)."""
-        line = json.dumps(row)
-        print(line, flush=True)
+        """Print ``row``; also append it to ``out`` (with ``run``) unless ``keep`` is False (a log line)."""
+        print(json.dumps(row), flush=True)
         if keep and self.out is not None:
             with self.out.open("a") as f:
-                f.write(line + "\n")
+                f.write(json.dumps({**row, "run": self.run}) + "\n")
