@@ -93,7 +93,7 @@ def marked_table(spec: str, docs_dir, src_uri: str) -> str:
     if not rows or missing:
         raise PluginError(f"{src_uri}: results marker {spec!r}: " + (f"no row has {missing}" if rows else "no row matches"))
     link = posixpath.relpath(PAGE, posixpath.dirname(src_uri) or ".") + "#" + anchor(path.name)
-    where = provenance_line(path, run._replace(rows=rows), f"docs/{path.name}")
+    where = provenance_line(path, run, f"docs/{path.name}")
     return f"{markdown_table(rows, cols)}\n\nLatest run of {where} [Every column]({link}).\n"
 
 
