@@ -12,6 +12,7 @@ from .camera import Camera as Camera
 from .rays import Hit as Hit
 from .rays import Rays as Rays
 from .rays import make_rays as make_rays
+from .spawning import spawn as spawn
 from .executor import map_chunks as map_chunks
 
-__all__ = ["Built", "Camera", "ConfigError", "Hit", "Rays", "load", "make_rays", "map_chunks", "use_compilation_cache", "use_host_devices"]
+__all__ = ["Built", "Camera", "ConfigError", "Hit", "Rays", "load", "make_rays", "map_chunks", "spawn", "use_compilation_cache", "use_host_devices"]

@@ -217,11 +217,18 @@ def intersect_one(p: CellParams, static: Static, origin, direction, t_min, t_max
     x0 = origin + jnp.where(jnp.isfinite(m.t), m.t, 0.0) * direction
     leaving = (jnp.isfinite(m.t) & (membership_at(p, x0)[0] != INSIDE)) if static.two_sided else jnp.asarray(False)
     x_cell = jnp.where(leaving, origin + jnp.where(jnp.isfinite(m.t_out), m.t_out, 0.0) * direction, x0)
-    # Alg. 4.8's normal, turned outward at the crossing: against the ray where it enters an
-    # inside cell, along it where it leaves one (the smoothed normal can face the other way at
-    # grazing hits; the voxel face crossed cannot)
+    # Alg. 4.8's normal, turned outward at the crossing: where a ray enters an inside cell, to
+    # the side where half a voxel along it is outside while half a voxel against it is inside
+    # (by the ray's direction alone, a smoothed normal at a grazing hit near an edge was turned
+    # into the cell, and a secondary ray offset along it started inside: tests/test_spawn.py);
+    # where that does not decide (thin parts), and in the two-sided cast of the refraction
+    # mode (whose Alg. 3.3 reading orients by the ray, tests/test_cells_trace.py), by the ray
     n = normal_at(p, x_cell, direction)
-    n = jnp.where((jnp.sum(n * direction) > 0) != leaving, -n, n)
+    h = 0.5 * p.size / p.split.shape[0]
+    out_along, out_against = (membership_at(p, x_cell + k * h * n)[0] != INSIDE for k in (1.0, -1.0))
+    by_ray = (jnp.sum(n * direction) > 0) != leaving
+    probe = (out_along != out_against) & (not static.two_sided)
+    n = jnp.where(jnp.where(probe, out_against, by_ray), -n, n)
     # derivatives (issue 9): cells are unions of tile-map voxels, so the boundary at the hit is
     # the voxel face the ray crosses there (the axis whose voxel coordinate is nearest an
     # integer), fixed in the tile frame: t(origin, direction, lo, size) is the root of

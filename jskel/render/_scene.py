@@ -40,10 +40,11 @@ Shading (Whitted 1980): a hit's colour is ``(1 - kr - kt) * local + kr * L(refle
 L(refracted)``, where ``local`` is ambient + Lambert + Blinn-Phong with each light's
 visibility; total internal reflection turns the refracted ray into a reflected one; rays beyond
 ``render.bounces`` contribute nothing; rays that escape take the environment's colour. Secondary
-rays start on the hit's side of the surface, offset along the normal by a bound that scales
-with the hit's magnitude plus the representation's own surface tolerance (the last bisection
-bracket of marched surfaces; ``info["surface_tolerance"]``): a fixed epsilon fails once the
-scene is scaled or moved.
+rays (shadow, reflection, refraction) are spawned as ``jskel.spawn`` spawns them
+(``spawning.spawn_rays``): offset along the normal, to the side of their direction, by a float
+rounding bound on the hit's position (pbrt-v4 Sec. 6.8.6) plus the object's own surface offset
+(``Built.secondary_offset`` or four times ``Built.surface_tolerance``, scaled by its placement):
+a fixed epsilon fails once the scene is scaled or moved.
 
 Transparent objects must report the exit of a ray from inside (``exits_from_inside(cfg)`` in
 the interface: frusta without relief, whose intersection is analytic, and a cell object in
@@ -62,8 +63,9 @@ import jax
 import jax.numpy as jnp
 
 from .. import registry
-from ..numerics import eps_of, safe_normalize, safe_sqrt
+from ..numerics import safe_normalize, safe_sqrt
 from ..rays import FLAG_OVERFLOW, Hit, Rays
+from ..spawning import spawn_rays
 from ..wavefront import compact_map
 from ..shading import facing, light_at, shade_local
 from ._build import Effects as Effects
@@ -78,14 +80,14 @@ from ._build import effects_of as effects_of
 SHADE_LANES = 1024  # hits per sub-batch of the local shading (cheap per ray: wide batches)
 
 
-def offset_of(hit: SceneHit, mat: Materials):
-    """Distance to move a secondary ray's origin off the surface: a float rounding bound that
-    grows with the hit's magnitude and its distance along the ray, plus the object's tracer
-    tolerance (see the module docstring)."""
-    eps = eps_of(hit.t)
-    mag = jnp.max(jnp.abs(jnp.where(jnp.isfinite(hit.position), hit.position, 0.0)), axis=-1)
-    tt = jnp.where(jnp.isfinite(hit.t), hit.t, 0.0)
-    return 64.0 * eps * (mag + tt) + mat.offset[jnp.maximum(hit.obj, 0)]
+def spawned(q_rays: Rays, hit: SceneHit, mat: Materials, directions, t_max=jnp.inf) -> Rays:
+    """Secondary rays from each hit along ``directions`` (``spawning.spawn_rays``, as
+    ``jskel.spawn``): offset along the normal, to the directions' side, by a float rounding bound
+    on the hit's position (pbrt-v4 Sec. 6.8.6) plus the object's own surface offset
+    (``Materials.offset``: ``Built.secondary_offset`` or four times its surface tolerance,
+    scaled by its placement)."""
+    surface = mat.offset[jnp.maximum(hit.obj, 0)]
+    return spawn_rays(q_rays, hit.t, hit.position, hit.normal, directions, surface, t_max)
 
 
 def environment(env, d):
@@ -105,21 +107,21 @@ def _escaped(params: SceneParams, static: SceneStatic, d):
     return environment(params.env, d)
 
 
-def _visibility(params: SceneParams, static: SceneStatic, hit: SceneHit, d, live):
+def _visibility(params: SceneParams, static: SceneStatic, hit: SceneHit, q_rays: Rays, live):
     """(N, L) visibility of each light from each live hit: 1, or 0 where a shadow ray is
     blocked. Shadow rays exist only for hits facing the light, of lights casting shadows."""
     n, nl = hit.t.shape[0], params.lights.radiance.shape[0]
     got = live & jnp.isfinite(hit.t)
-    nf = jax.vmap(facing)(hit.normal, d)
+    nf = jax.vmap(facing)(hit.normal, q_rays.directions)
     p0 = jnp.where(got[:, None], hit.position, 0.0)
     ldir, _, dist = jax.vmap(lambda p: light_at(params.lights, p))(p0)  # (N,L,3), (N,L)
     facing_light = jnp.sum(ldir * nf[:, None, :], axis=-1) > 0
     need = got[:, None] & params.shadows[None, :] & facing_light
-    org = p0 + nf * offset_of(hit, params.mat)[:, None]
-    rays = Rays(jnp.repeat(org, nl, axis=0), ldir.reshape(n * nl, 3), jnp.zeros((n * nl,), org.dtype), dist.reshape(n * nl))
+    each = jax.tree_util.tree_map(lambda a: jnp.repeat(a, nl, axis=0), (q_rays, hit))
+    rays = spawned(each[0], each[1], params.mat, ldir.reshape(n * nl, 3), dist.reshape(n * nl))
     with jax.named_scope("shadow_rays"):
         blocked = occluded(params, static, rays, need.reshape(n * nl))
-    return jnp.where(blocked.reshape(n, nl), 0.0, 1.0).astype(org.dtype)
+    return jnp.where(blocked.reshape(n, nl), 0.0, 1.0).astype(p0.dtype)
 
 
 def _reflect(d, n):
@@ -184,7 +186,7 @@ def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: S
     d = q.rays.directions
     got = q.live & jnp.isfinite(hits.t)
     if static.effects.shadows:
-        vis = _visibility(params, static, hits, d, q.live)
+        vis = _visibility(params, static, hits, q.rays, q.live)
     else:
         vis = jnp.ones((hits.t.shape[0], params.lights.radiance.shape[0]), d.dtype)
     m = params.mat
@@ -219,24 +221,19 @@ def spawn(params: SceneParams, static: SceneStatic, q: Queue, hits: SceneHit, kr
     Returns (queue, the candidates' pixels, which candidates were dropped)."""
     eff = static.effects
     d = safe_normalize(q.rays.directions)
-    p0 = jnp.where(jnp.isfinite(hits.position), hits.position, 0.0)
-    off = offset_of(hits, params.mat)[:, None]
     nf = jax.vmap(facing)(hits.normal, d)
-    zeros = jnp.zeros_like(q.rays.t_min)
-    infs = jnp.full_like(q.rays.t_max, jnp.inf)
     cands = []
     if eff.reflection:
         with jax.named_scope("reflection_rays"):
             r = _reflect(d, nf)
             kind = jnp.where(level == 0, 1, q.kind).astype(jnp.int32)
-            cands.append(Queue(Rays(p0 + nf * off, r, zeros, infs), q.weight * kr[:, None], q.pixel, kind, q.live & (kr > 0)))
+            cands.append(Queue(spawned(q.rays, hits, params.mat, r), q.weight * kr[:, None], q.pixel, kind, q.live & (kr > 0)))
     if eff.refraction:
         with jax.named_scope("refraction_rays"):
             kd = hits.base * params.mat.color[jnp.maximum(hits.obj, 0)]
-            t, tir, factor = _transmitted(params.mat, hits, d, kd)
-            side = jnp.where(tir[:, None], nf, -nf)  # through the surface, or back on the near side
+            t, _, factor = _transmitted(params.mat, hits, d, kd)  # t: through the surface, or back on the near side under TIR
             kind = jnp.where(level == 0, 2, q.kind).astype(jnp.int32)
-            cands.append(Queue(Rays(p0 + side * off, t, zeros, infs), q.weight * kt[:, None] * factor, q.pixel, kind, q.live & (kt > 0)))
+            cands.append(Queue(spawned(q.rays, hits, params.mat, t), q.weight * kt[:, None] * factor, q.pixel, kind, q.live & (kt > 0)))
     allc = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *cands)
     nq, dropped = _compact_queue(allc, q.live.shape[0])
     return nq, allc.pixel, dropped
@@ -330,5 +327,5 @@ def scene_call(scene: Scene, rays: Rays) -> dict:
 
 
 __all__ = ["Effects", "Queue", "Scene", "SceneHit", "build_scene", "build_single", "effects_of", "nearest", "occluded",
-           "offset_of", "scene_batch", "scene_call", "shade_level", "spawn"]
+           "scene_batch", "scene_call", "shade_level", "spawn", "spawned"]
 

@@ -1,0 +1,98 @@
+"""Secondary rays that leave a surface without hitting it again (``jskel.spawn``).
+
+A hit's position is computed in floating point (``o + t d``, a bisection's last bracket, a
+voxel's face), so it lies on either side of the true surface; a ray started there hits the
+surface it leaves on a large share of rays ("surface acne"), more so the farther the object is
+from the rays' origin. pbrt-v4 (Pharr, Jakob, Humphreys, Sec. 6.8.6 "Robust spawned ray
+origins") bounds the error of the position with gamma(n) = n u / (1 - n u) (Sec. 6.8.1) and moves
+the origin along the normal, to the side of the new direction, by that bound projected on the
+normal, then one float further. Here the bound is the error of ``o + t d`` (every tracer reports
+its position that way, or nearer) plus the representation's own tolerance, a fact of its
+``Built`` (:func:`surface_offset`), so no representation is named. The renderer's integrator
+(``render/_scene.py``) spawns every shadow, reflection and refraction ray through
+:func:`spawn_rays`; docs/numerics.md states the bound and its test (``tests/test_spawn.py``).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .interface import Built
+from .rays import Hit, Rays
+
+#: the n of gamma(n) bounding a hit position's error per unit of |o| + |t d| + |p|, per
+#: component. pbrt-v4 bounds ``o + t d`` by gamma(3) for an exact t (Sec. 6.8.4); the tracers'
+#: t comes from longer chains (the frusta's recentred quadratic, a triangle's barycentrics, a
+#: march's sample positions). ``tests/test_spawn.py``'s hits lie at most 1.9 u x that sum
+#: (projected on the normal) off the closed-form surface (float32, scales 1e-3..1e3, distances
+#: to 1e5 sizes; 2026-12-02, the mesh's the largest), so 16 leaves a margin of about 8
+SPAWN_GAMMA_N = 16
+
+
+def gamma(n: int, dtype) -> float:
+    """pbrt-v4's gamma(n) = n u / (1 - n u) (Sec. 6.8.1) for ``dtype``'s unit roundoff u =
+    eps / 2: a bound on the relative error of a chain of n floating-point operations."""
+    u = float(np.finfo(dtype).eps) / 2.0
+    return n * u / (1.0 - n * u)
+
+
+def surface_offset(source) -> float:
+    """The part of a spawn offset a representation states about its own surface, in its units:
+    ``Built.secondary_offset`` where it sets one (a cell object's voxel: Nürnberg 2011 Alg. 3.2
+    starts secondary rays one voxel out), else four times ``Built.surface_tolerance`` (how far a
+    hit may lie from the true surface: a marching tracer's last bisection bracket; 0 for
+    analytic intersections). ``source``: a ``Built``, or a number (returned as it is)."""
+    if isinstance(source, Built):
+        off = source.secondary_offset
+        return float(4.0 * source.surface_tolerance if off is None else off)
+    return source
+
+
+def spawn(source, rays: Rays, hit: Hit, directions, t_max=np.inf) -> Rays:
+    """Secondary rays leaving the surface at ``hit`` along ``directions``, one per ray.
+
+    source: the ``Built`` the hit came from (``rep.build(cfg)``), or a number, the surface part
+      of the offset in the rays' units (:func:`surface_offset`).
+    rays: the rays that made ``hit``; hit: what a public intersect returned for them
+      (``frusta.intersect``, ``implicit.intersect_batch``, ``mesh.intersect_batch``,
+      ``interface.intersect``, ...), in the same frame (relative to the object's anchor).
+    directions: (N, 3) the new directions, any non-zero length.
+    t_max: () or (N,) the new rays' far end (a shadow ray's distance to its light).
+
+    Each origin is the hit's position moved along its normal, to the side ``directions`` points
+    to, by ``gamma(SPAWN_GAMMA_N)`` x (|o| + |t d| + |p|) per component projected on |n|, plus
+    :func:`surface_offset`, then rounded one float further (pbrt-v4 Sec. 6.8.6). A ray that leaves
+    a convex piece of surface outward from there cannot meet it again, at any translation or
+    scale, and a surface farther than the offset is still found (``tests/test_spawn.py``).
+    The offset grows with the rays' distance (|o| + |t d|): for rays from 1e5 object sizes
+    away it is about 0.2 of the size in float32 (the positions there are good to ~1e-2 of it). Rays of misses are empty
+    (origin 0, t_min = 0 > t_max = -1) and hit nothing. Pure, jit- and grad-friendly: the origins
+    differentiate as the hit positions do."""
+    return spawn_rays(rays, hit.t, hit.position, hit.normal, jnp.asarray(directions), surface_offset(source), t_max)
+
+
+def spawn_rays(rays: Rays, t, position, normal, directions, surface, t_max=np.inf) -> Rays:
+    """:func:`spawn` from a hit's fields t (N,), position and normal (N, 3); ``surface`` () or
+    (N,) the surface part of the offset in the rays' units (a scene's per-object value)."""
+    dtype = position.dtype
+    hit = jnp.isfinite(t)
+    p = jnp.where(hit[:, None], position, 0.0)
+    tt = jnp.where(hit, t, 0.0)[:, None]
+    o = jnp.where(jnp.isfinite(rays.origins), rays.origins, 0.0)
+    err = gamma(SPAWN_GAMMA_N, dtype) * (jnp.abs(o) + jnp.abs(tt * rays.directions) + jnp.abs(p))
+    off = jnp.sum(jnp.abs(normal) * err, axis=-1) + jnp.asarray(surface, dtype)
+    side = jnp.where(jnp.sum(normal * directions, axis=-1) < 0, -1.0, 1.0).astype(dtype)
+    push = side[:, None] * normal
+    q = p + off[:, None] * push
+    # one float further along the push: the sum above rounds to nearest
+    away = jnp.where(push > 0, jnp.nextafter(q, jnp.asarray(jnp.inf, dtype)),
+                     jnp.where(push < 0, jnp.nextafter(q, jnp.asarray(-jnp.inf, dtype)), q))
+    q = q + jax.lax.stop_gradient(away - q)
+    zero = jnp.zeros_like(tt[:, 0])
+    far = jnp.broadcast_to(jnp.asarray(t_max, dtype), zero.shape)
+    return Rays(jnp.where(hit[:, None], q, 0.0), directions.astype(dtype), zero, jnp.where(hit, far, -1.0))
+
+
+__all__ = ["SPAWN_GAMMA_N", "gamma", "spawn", "spawn_rays", "surface_offset"]

@@ -1,0 +1,229 @@
+"""Spawned secondary rays (``jskel.spawn``, issue 29 class 2): a ray cast outward from a hit
+never meets the surface it leaves, at any translation and scale, while a surface a small
+fraction of the object's size away is still found.
+
+Every registered representation gives one small convex object whose surface is known in closed
+form (float64 NumPy, written here): a frusta cylinder with flat caps, an implicit ball (the
+kernel (1 - r^2/R^2)^2 = T gives the radius R sqrt(1 - sqrt(T))), a mesh box, a cell object
+whose one cell is a box of tile-map voxels. On a convex object, a ray that starts outside the
+supporting plane at the hit and goes outward never meets the object again, so the truth of the
+first test is exact: zero hits. Float32, objects scaled by 1e-3 .. 1e3 and moved by up to 1e5
+of their size, seen by cameras up to 1e5 sizes away (a seeded grid; one compile per
+representation, the same shapes throughout).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jskel
+from jskel import interface, registry
+from jskel.rays import Rays, make_rays
+
+N = 256
+SCALES = (1e-3, 1.0, 1e3)
+SHIFTS = (0.0, 1e5)  # the object's translation and the camera's distance, in object sizes
+BOX = np.array([1.0, 0.6, 0.8])  # the mesh box's extents
+T_ISO = 0.5  # the implicit ball's threshold
+TILE = np.zeros((16, 16, 16), np.int64)
+TILE[4:12, 3:13, 5:11] = 1  # the cell object's one cell: a box of voxels
+
+
+def _raw(name, tmp, s, shift):
+    """The object section of ``name`` at scale ``s`` moved by ``shift`` sizes (world units)."""
+    off = (shift * s * np.array([0.6, -0.8, 0.3])).tolist()
+    if name == "frusta":
+        return {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 1, 0]], "radii": [0.3, 0.3], "parents": [-1, 0],
+                                               "scale": s, "offset": off}}
+    if name == "implicit":
+        return {"type": "implicit", "threshold": T_ISO, "balls": [{"center": off, "radius": s}], "step": 0.02 * s, "eps": 1e-3 * s}
+    if name == "mesh":
+        path = tmp / "box.ply"
+        if not path.exists():
+            import trimesh
+
+            trimesh.creation.box(extents=BOX).export(path)
+        return {"type": "mesh", "path": str(path), "scale": s, "offset": off, "normals": "flat"}
+    np.save(tmp / "tile.npy", TILE)
+    return {"type": "cells", "base": {"type": "sphere", "radius": s, "center": off}, "tiles": 1, "steps_per_tile": 256,
+            "tile_map": {"type": "file", "path": str(tmp / "tile.npy")}, "cache": None}
+
+
+def _box_faces(p, lo, hi):
+    """Outward normal of the box face nearest each point and the box's width along it."""
+    c, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    rel = p - c
+    axis = np.argmin(h - np.abs(rel), axis=1)
+    n = np.zeros_like(p)
+    n[np.arange(len(p)), axis] = np.sign(rel[np.arange(len(p)), axis])
+    return n, 2.0 * h[axis]
+
+
+def _truth(name, built, s, shift):
+    """The object's closed-form surface, float64: ``faces(p)`` (M, 3) world points -> the unit
+    outward normal of a supporting plane there, the object's width along it, p's distance from
+    the surface; ``within(q, n)``: does a ray from q along n meet the surface across the object."""
+    c = shift * s * np.array([0.6, -0.8, 0.3])
+    if name == "frusta":  # cylinder: axis +y from c, length s, radius 0.3 s, flat caps
+        r, L = 0.3 * s, s
+
+        def faces(p):
+            y = p[:, 1] - c[1]
+            rad = p - c
+            rad[:, 1] = 0.0
+            rho = np.linalg.norm(rad, axis=1)
+            lateral = np.abs(rho - r) < np.minimum(np.abs(y), np.abs(y - L))
+            n = np.where(lateral[:, None], rad / np.maximum(rho, 1e-300)[:, None], [0.0, 1.0, 0.0] * np.sign(y - 0.5 * L)[:, None])
+            dist = np.where(lateral, np.abs(rho - r), np.minimum(np.abs(y), np.abs(y - L)))
+            return n, np.where(lateral, 2 * r, L), dist
+
+        def within(q, n):  # a ray from q along n meets the cylinder's lateral side or its cap
+            y = q[:, 1] - c[1]
+            rad = q - c
+            rad[:, 1] = 0.0
+            return np.where(np.abs(n[:, 1]) > 0.5, np.linalg.norm(rad, axis=1) < r, (y > 0) & (y < L))
+    elif name == "implicit":
+        rho = s * np.sqrt(1.0 - np.sqrt(T_ISO))
+
+        def faces(p):
+            v = p - c
+            d = np.linalg.norm(v, axis=1)
+            return v / d[:, None], np.full(len(p), 2 * rho), np.abs(d - rho)
+
+        def within(q, n):  # a ray from near the sphere along its normal there meets it
+            return np.ones(len(q), bool)
+    else:
+        if name == "mesh":
+            lo, hi = c - 0.5 * s * BOX, c + 0.5 * s * BOX
+        else:  # the cell's voxels in the tile frame the object declares (tiles: 1)
+            size = built.info["tile_size"]
+            vox = size / TILE.shape[0]
+            idx = np.argwhere(TILE)
+            lo = np.asarray(built.bounds[0], np.float64) + vox * idx.min(0)
+            hi = np.asarray(built.bounds[0], np.float64) + vox * (idx.max(0) + 1)
+
+        def faces(p):
+            n, w = _box_faces(p, lo, hi)
+            return n, w, np.min(np.abs(np.concatenate([p - lo, hi - p], 1)), axis=1)
+
+        def within(q, n):  # a ray from q along an axis meets the face across it
+            return np.all((np.abs(n) > 0.5) | ((q > lo) & (q < hi)), axis=1)
+    return faces, within
+
+
+_cast = jax.jit(interface.intersect)
+
+
+def _np(h):
+    return jax.tree_util.tree_map(np.asarray, h)
+
+
+class Case:
+    """One object at one scale and shift: camera rays, their hits, the truth at each hit."""
+
+    def __init__(self, name, tmp, s, shift, seed):
+        self.rep = registry.get(name)
+        self.built = self.rep.build(self.rep.Config.model_validate(_raw(name, tmp, s, shift)), np.float32)
+        self.obj = interface.Object.of(self.rep, self.built)
+        self.anchor, self.size = np.asarray(self.built.anchor), s
+        rng = np.random.default_rng(seed)
+        lo, hi = (np.asarray(b, np.float64) for b in self.built.bounds)
+        u = rng.normal(size=(N, 3))
+        cam = 0.5 * (lo + hi) + max(4.0, shift) * s * u / np.linalg.norm(u, axis=1, keepdims=True)
+        aim = lo + (0.1 + 0.8 * rng.uniform(size=(N, 3))) * (hi - lo)
+        d = aim - cam
+        self.rays = make_rays(cam - self.anchor, d / np.linalg.norm(d, axis=1, keepdims=True))
+        self.hit = _np(_cast(self.obj, self.rays))
+        self.got = np.isfinite(self.hit.t)
+        self.faces, self.within = _truth(name, self.built, s, shift)
+        self.rng = rng
+
+    def world(self, p32):
+        return np.asarray(p32, np.float64) + self.anchor
+
+
+def _outward(rng, n_hit, n_true):
+    """Directions in the hemisphere of the hit's normal, a third of them grazing (cos down to
+    1e-4), kept where they also leave the true surface (cos > 0 against its normal)."""
+    m = len(n_hit)
+    t = rng.normal(size=(m, 3))
+    t -= np.sum(t * n_hit, 1, keepdims=True) * n_hit
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    cos = np.where(np.arange(m) % 3 == 0, 10.0 ** rng.uniform(-4, -1, m), rng.uniform(0, 1, m))
+    w = cos[:, None] * n_hit + np.sqrt(1 - cos**2)[:, None] * t
+    return w, (np.sum(w * n_hit, 1) > 0) & (np.sum(w * n_true, 1) > 0)
+
+
+_CASES: dict = {}
+
+
+@pytest.fixture(params=registry.names())
+def name(request):
+    return request.param
+
+
+def _case(name, tmp_path_factory, s, shift):
+    key = (name, s, shift)
+    if key not in _CASES:
+        _CASES[key] = Case(name, tmp_path_factory.mktemp(name), s, shift, seed=len(_CASES))
+    return _CASES[key]
+
+
+@pytest.mark.parametrize("shift", SHIFTS)
+@pytest.mark.parametrize("s", SCALES)
+def test_outward_rays_never_hit_the_surface_they_leave(name, s, shift, tmp_path_factory):
+    c = _case(name, tmp_path_factory, s, shift)
+    assert np.mean(c.got) > 0.3, f"{name}: {np.mean(c.got):.2f} of the camera rays hit"
+    n_true, _, dist = c.faces(c.world(c.hit.position[c.got]))
+    assert np.max(dist) < 0.05 * s, f"{name}: a hit {np.max(dist) / s:.2g} sizes off the closed-form surface"
+    n_hit = np.zeros((N, 3))
+    n_hit[c.got] = c.hit.normal[c.got]
+    n_all = np.zeros((N, 3))
+    n_all[c.got] = n_true
+    w, ok = _outward(c.rng, n_hit, n_all)
+    ok &= c.got
+    w = np.where(ok[:, None], w, np.where(c.got[:, None], n_hit, [1.0, 0.0, 0.0]))
+    assert np.sum(ok) > 0.25 * N
+    spawned = jskel.spawn(c.built, c.rays, jax.tree_util.tree_map(jnp.asarray, c.hit), jnp.asarray(w, jnp.float32))
+    again = _np(_cast(c.obj, spawned))
+    rehit = ok & np.isfinite(again.t)
+    assert not np.any(rehit), (f"{name} at scale {s}, shift {shift}: {np.sum(rehit)} of {np.sum(ok)} outward rays hit "
+                               f"again at t {again.t[rehit][:4]}")
+    # rays of misses are empty and hit nothing
+    assert np.all(~np.isfinite(again.t[~c.got]))
+
+
+@pytest.mark.parametrize("shift", SHIFTS)
+@pytest.mark.parametrize("s", SCALES)
+def test_a_surface_just_beyond_the_offset_is_still_found(name, s, shift, tmp_path_factory):
+    """A copy of the object moved along the true normal so that its surface lies ``g`` ahead of
+    each hit (``W + g`` along it, W the object's width there: the copy's far side comes back to
+    the hit's side; rays whose offset origin passes beside the copy are left out), g = 1e-3 of the size or twice that ray's own offset where that is more (a
+    cell object's offset is one voxel, Nürnberg 2011 Alg. 3.2; at 1e5 sizes float32's spacing
+    is ~1e-2 of the size). The ray spawned along the normal finds the copy at t <= g."""
+    c = _case(name, tmp_path_factory, s, shift)
+    n_true, width, dist = c.faces(c.world(c.hit.position[c.got]))
+    keep = np.sum(n_true * c.hit.normal[c.got], 1) > 0  # the offset goes to the direction's side of the hit's normal
+    assert np.mean(keep) > 0.9
+    w = np.zeros((N, 3))
+    w[:, 0] = 1.0
+    w[c.got] = n_true  # (the shapes of the first test: no compile)
+    spawned = jskel.spawn(c.built, c.rays, jax.tree_util.tree_map(jnp.asarray, c.hit), jnp.asarray(w, jnp.float32))
+    n_true, width, dist = n_true[keep], width[keep], dist[keep]
+    q = np.asarray(spawned.origins, np.float64)[c.got][keep]
+    off = np.linalg.norm(q - c.hit.position[c.got][keep], axis=1)
+    g = np.maximum(1e-3 * s, 2.0 * off)
+    ahead = c.within(c.world(q), n_true)  # the offset moved it sideways past the copy's edge: no surface ahead
+    assert np.mean(ahead) > 0.5
+    moved = make_rays(q - (width + g)[:, None] * n_true, n_true)
+    pad = N - len(g)  # the shapes of the first test: no compile
+    moved = Rays(*(np.concatenate([a, np.repeat(a[:1], pad, 0)]) for a in moved))
+    found = _np(_cast(c.obj, Rays(*(jnp.asarray(a) for a in moved)))).t[: len(g)]
+    tol = dist + 1e-4 * g + 4 * c.built.surface_tolerance + 4 * np.finfo(np.float32).eps * (width + g)
+    late = ahead & ~(found <= g + tol)
+    assert not np.any(late), (f"{name} at scale {s}, shift {shift}: {np.sum(late)} of {len(g)} rays missed a surface "
+                              f"{np.min(g[late]) / s:.2g} sizes ahead (t / g: {(found / g)[late][:4]})")
+    assert np.all(found >= 0)
