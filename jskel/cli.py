@@ -26,7 +26,7 @@ from .measure.bench import run_bench
 from .measure.latency import is_latency_file, run_latency_file
 from .measure.files import X64, load_experiment, read_model
 from .measure.sweep import load_sweep, run_sweep
-from .render import render, write_aovs
+from .render import aov_sheet, render, write_aovs
 
 
 def _frames(spec: str) -> list[float]:
@@ -60,6 +60,8 @@ def cmd_render_frames(args, exp, obj) -> int:
         tag = f"{int(round(f)):04d}" if float(f).is_integer() else f"{f:09.3f}"
         sub = out / f"frame_{tag}"
         write_aovs(sub, res.hits, res.image, exp.camera.width, exp.camera.height, res.run, res.aovs)
+        if args.aov_sheet:
+            aov_sheet(sub)
         images.append(res.image)
         runs.append({"frame": f, "render_s": res.run["render_s"], "compile_s": res.run["compile_s"], "build_s": res.run["build_s"]})
         print(f"jskel: frame {f:g}: {res.run['render_s']:.3f} s (compile {res.run['compile_s']:.2f} s) -> {sub}")
@@ -77,6 +79,8 @@ def cmd_render(args) -> int:
     if jax.process_index() != 0:  # several hosts: process 0 writes the gathered image
         return 0
     paths = write_aovs(args.out, res.hits, res.image, exp.camera.width, exp.camera.height, res.run, res.aovs)
+    if args.aov_sheet:
+        aov_sheet(args.out)  # read back from the files just written: the sheet shows what is on disk
     r = res.run
     print(
         f"jskel: rendered {exp.name} ({r['info'].get('segments', r['info'].get('primitives', '?'))} primitives) "
@@ -154,6 +158,7 @@ def parser() -> argparse.ArgumentParser:
                  "override a config key (repeatable)", "float64 throughout (render.dtype=float64; x64 switched on here)", progress=True)
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--frames", default=None, metavar="A:B[:STEP]", help="render an animation (frames A..B inclusive): frame_NNNN/ folders and animation.gif")
+    r.add_argument("--aov-sheet", action="store_true", help="also write aov_sheet.png: image, depth, normals, uv, ids and flags side by side")
     r.set_defaults(func=cmd_render)
     b = _command(sub, "bench", "time renders (compile apart, median of warm runs), JSON lines out", ("file", dict(help="benchmark YAML")),
                  "override a bench key", "every scene in float64 (render.dtype=float64)")
