@@ -251,15 +251,17 @@ def test_packets_share_short_walks_on_coherent_rays_and_equal_per_ray_walks():
 def test_chunks_per_call_equal_one_chunk_per_call(rng):
     """``map_chunks`` with several chunks per compiled call (a ``lax.map`` over them, the CPU's
     default on big batches) returns what one chunk per call returns, bit for bit: the bins cast
-    of a random tree, 20 chunks of 512 rays run as 3 calls of 7 (the last call padded)."""
+    of a random tree, 20 chunks of 512 rays run as 3 calls of 8 (the last call's 4 padding
+    chunks skipped). Chunks per call are powers of two up to the group: a few programs for
+    every batch size."""
     from conftest import batch_fn, frusta_object
 
     from jskel.rays import make_rays
     from jskel.executor import calls_grouping, map_chunks
 
-    assert [calls_grouping(n, 16) for n in (1, 7, 8, 15, 16, 17, 75, 192)] == [1, 1, 8, 15, 16, 9, 15, 16]
-    assert calls_grouping(96, 64) == 48 and calls_grouping(37, 64) == 37
-    assert calls_grouping(20, 8) == 7 and calls_grouping(100, 1) == 1
+    assert [calls_grouping(n, 16) for n in (1, 7, 8, 9, 15, 16, 17, 75, 192)] == [1, 1, 8, 16, 16, 16, 16, 16, 16]
+    assert [calls_grouping(n, 64) for n in (7, 8, 9, 17, 33, 96)] == [1, 8, 16, 32, 64, 64]
+    assert calls_grouping(20, 8) == 8 and calls_grouping(100, 1) == 1 and calls_grouping(40, 48) == 48
     j, r, p = random_tree(rng, 40)
     built = build_skeleton(j, r, p, accel="bvh", traversal="bins")
     n = 20 * 512 - 100

@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import registry
 from ..config import chunk_of, chunks_per_call_of
-from ..executor import _pad_to, compile_batch_fn, map_chunks, ray_mesh
+from ..executor import _pad_to, batch_bucket, compile_batch_fn, map_chunks, ray_mesh
 from ..interface import Object, cast_t_prim
 from ..rays import Rays
 from ..render import camera_of, devices_of, dtype_of, framed
@@ -59,7 +59,7 @@ def resident_rays(exp, built) -> list:
     rays = camera_of(framed(exp, built.bounds)).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
     mesh = _ray_mesh_of(exp)
     n = rays.size
-    per = min(chunk_of(exp.render), n) * (1 if mesh is None else mesh.size)
+    per = min(chunk_of(exp.render), batch_bucket(n)) * (1 if mesh is None else mesh.size)
     put = jax.devices()[0] if mesh is None else jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("rays"))
     chunks = [Rays(*(jax.device_put(np.ascontiguousarray(_pad_to(a[lo : lo + per], per)), put) for a in rays))
               for lo in range(0, n, per)]
