@@ -34,7 +34,7 @@ class FrustaScene(NamedTuple):
     plain: Group | None
     relief: Group | None
     maps: ReliefMaps | None
-    colors: jnp.ndarray  # (S, 3) linear RGB per segment id
+    colors: jnp.ndarray  # (S, 3) linear RGB per segment id, zero rows up to the next power of two (>= 8)
     texture: jnp.ndarray  # (H, W, 3) linear RGB, (1, 1, 3) when unused
     tex_scale: jnp.ndarray  # (2,) repeats of the texture per unit u and v
 

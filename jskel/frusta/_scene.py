@@ -16,7 +16,7 @@ from ..interface import Built, Object, Preliminary, Representation
 from ..rays import Hit, Rays
 from ..textures import bilinear_wrap, load_texture
 from ._accel import build_bvh, winner_ts
-from ._build import FrustaArrays, piece_bounds
+from ._build import FrustaArrays, _bucket, piece_bounds
 from ._config import FrustaConfig
 from ._dispatch import AUTO_BVH_SEGMENTS, _plain_search, _relief_search, _stats_batch, traversal_of
 from ._edits import host_frusta
@@ -49,6 +49,7 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         relief, relief_block, maps, memory = _relief_group(cfg, arrays, relief_ids, anchor, dtype)
         info = dict(info, memory=memory)
     seg_col = np.broadcast_to(np.asarray(cfg.color, np.float64), (s, 3)) if colors is None else colors[topo.seg_end]
+    seg_col = np.concatenate([seg_col, np.zeros((_bucket(s) - s, 3))])  # rows of a size bucket: one program for similar skeletons
     tex = load_texture(cfg.texture) if cfg.texture is not None else np.ones((1, 1, 3))
     scene = FrustaScene(
         plain=plain,
