@@ -105,3 +105,12 @@ def test_rows_without_provenance_say_what_is_not_recorded(tmp_path):
 def test_cells():
     assert [cell(x) for x in (None, True, 786432, 0.012344, 123456.7, {"object.steps": 32}, "a|b")] == \
         ["", "true", "786,432", "0.01234", "123,457", 'object.steps=32', "a&#124;b"]
+
+
+def test_a_result_files_plots_are_its_own(tmp_path):
+    for name in ("bench_a.jsonl", "bench_a_b.jsonl", "bench_a.png", "bench_a_x.png", "bench_a_b.png", "bench_a_b_y.png", "bench_c.png"):
+        (tmp_path / name).write_text(json.dumps(_row("s", 1.0)) + "\n" if name.endswith(".jsonl") else "")
+    hook = _hook()
+    assert [p.name for p in hook.plots(tmp_path / "bench_a.jsonl")] == ["bench_a.png", "bench_a_x.png"]
+    assert [p.name for p in hook.plots(tmp_path / "bench_a_b.jsonl")] == ["bench_a_b.png", "bench_a_b_y.png"]
+    assert "![bench_a_x.png](bench_a_x.png)" in hook.section(tmp_path / "bench_a.jsonl")

@@ -52,10 +52,21 @@ def anchor(name: str) -> str:
     return slugify(name, "-")
 
 
+def plots(path: Path) -> list[Path]:
+    """The plots the bench wrote beside a result file (``NAME.png``, ``NAME_<scene>.png``), not
+    those of another file whose name starts with this one's."""
+    stems = [p.stem for p in result_files(path.parent)]
+    return [p for p in sorted(path.parent.glob(f"{path.stem}*.png"))
+            if max((s for s in stems if p.stem == s or p.stem.startswith(s + "_")), key=len, default=None) == path.stem]
+
+
 def section(path: Path) -> str:
     run = latest_run(read_rows(path))
     cols, same = varying_keys(run.rows)
     out = [f"## {path.name}", "", f"From {provenance_line(path, run, f'docs/{path.name}')}", ""]
+    pngs = plots(path)
+    if pngs:
+        out += ["Plotted by the same command beside it:", ""] + [f"![{p.name}]({p.name})" for p in pngs] + [""]
     if same:
         out += ["Every row: " + _pairs(same) + ".", ""]
     groups = row_groups(run.rows) if cols else []
