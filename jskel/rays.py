@@ -33,9 +33,47 @@ class Rays(NamedTuple):
         return int(self.origins.shape[0])
 
 
-#: Hit.flags bits shared by every representation that reports diagnostics
+#: Hit.flags bits: every way a tracer can fail to decide a ray gets its own bit, so no ray is
+#: lost silently. Defined here once; ``FLAG_NAMES`` names them for ``run.json``'s counts and
+#: docs/numerics.md's table lists them (``tests/test_lost_rays.py`` checks the two agree).
 FLAG_OVERFLOW = 1  # a static-capacity list (e.g. candidate primitives) overflowed: result not trusted
 FLAG_STEP_CAP = 2  # an iterative search stopped at its step cap before finishing
+FLAG_NO_BRACKET = 4  # no start point inside was found, but a bound says the field may still cross (Rouiller Fig. 7)
+FLAG_FLOAT_SPACING = 8  # the tolerance was below a few ulps of t there: the march stepped by those ulps instead
+FLAG_GRAZE = 16  # the field came within the tolerance of the threshold and left again without crossing
+
+#: the name of every bit, in bit order (``run.json``'s ``flags`` counts are keyed by these)
+FLAG_NAMES = {
+    FLAG_OVERFLOW: "overflow",
+    FLAG_STEP_CAP: "step_cap",
+    FLAG_NO_BRACKET: "no_bracket",
+    FLAG_FLOAT_SPACING: "float_spacing",
+    FLAG_GRAZE: "graze",
+}
+
+
+def flag_counts(flags) -> dict:
+    """{name: number of rays carrying that bit} over an int array of ``Hit.flags`` (host)."""
+    f = np.asarray(flags)
+    return {name: int(np.sum((f & bit) != 0)) for bit, name in FLAG_NAMES.items()}
+
+
+def or_flags_at(flags, index, values):
+    """``flags`` (N,) with ``values`` OR-ed in at ``index`` (out-of-range indices dropped; several
+    values at one index all kept): one scatter-max a bit, since a scatter has no bitwise or and
+    the max of two bit sets loses bits."""
+    values = jnp.broadcast_to(jnp.asarray(values, flags.dtype), jnp.shape(index))
+    for bit in FLAG_NAMES:  # a static loop over the few bits, not over rays
+        flags = flags | jnp.zeros_like(flags).at[index].max(values & bit, mode="drop")
+    return flags
+
+
+def ulp_floor(t, scale):
+    """A few ulps (4 eps) of ``|t| + scale``: the smallest step a march along a ray may take at
+    ``t`` in float type of ``t`` (``scale``: the origin's magnitude in units of t), so that
+    ``t + step > t`` and the sample point moves. Tolerances below it are raised to it and the
+    ray flagged ``FLAG_FLOAT_SPACING``."""
+    return 4 * jnp.finfo(jnp.result_type(t)).eps * (jnp.abs(t) + scale)
 
 
 class Hit(NamedTuple):

@@ -86,10 +86,12 @@ def spawn_rays(rays: Rays, t, position, normal, directions, surface, t_max=np.in
     side = jnp.where(jnp.sum(normal * directions, axis=-1) < 0, -1.0, 1.0).astype(dtype)
     push = side[:, None] * normal
     q = p + off[:, None] * push
-    # one float further along the push: the sum above rounds to nearest
-    away = jnp.where(push > 0, jnp.nextafter(q, jnp.asarray(jnp.inf, dtype)),
-                     jnp.where(push < 0, jnp.nextafter(q, jnp.asarray(-jnp.inf, dtype)), q))
-    q = q + jax.lax.stop_gradient(away - q)
+    # one float further along the push: the sum above rounds to nearest (a constant step for
+    # derivatives: nextafter has none)
+    qs = jax.lax.stop_gradient(q)
+    away = jnp.where(push > 0, jnp.nextafter(qs, jnp.asarray(jnp.inf, dtype)),
+                     jnp.where(push < 0, jnp.nextafter(qs, jnp.asarray(-jnp.inf, dtype)), qs))
+    q = q + (away - qs)
     zero = jnp.zeros_like(tt[:, 0])
     far = jnp.broadcast_to(jnp.asarray(t_max, dtype), zero.shape)
     return Rays(jnp.where(hit[:, None], q, 0.0), directions.astype(dtype), zero, jnp.where(hit, far, -1.0))

@@ -8,7 +8,7 @@ import pytest
 import implicit_reference as iref
 import reference as ref
 from jskel import implicit
-from jskel.rays import make_rays
+from jskel.rays import FLAG_GRAZE, FLAG_NO_BRACKET, make_rays
 from jskel.executor import map_chunks
 from jskel.interface import Object, intersect_each
 
@@ -53,22 +53,31 @@ def random_case():
     return O, D, t_ref, clear, scale
 
 
-@pytest.mark.parametrize("method, kw, min_agree", [
-    ("lipschitz", {"eps": 1e-3, "steps": 4096}, 1.0),
-    ("naive", {"step": 0.01, "steps": 1024}, 0.999),
-    ("bisection", {}, 0.99),
+@pytest.mark.parametrize("method, kw, min_agree, max_flagged", [
+    ("lipschitz", {"eps": 1e-3, "steps": 4096}, 1.0, 0.01),
+    ("naive", {"step": 0.01, "steps": 1024}, 0.999, 0.01),
+    ("bisection", {}, 0.99, 0.05),
 ])
-def test_random_rays_against_reference(random_case, method, kw, min_agree):
-    """Guaranteed method: every well-posed ray agrees. The thesis' heuristics: nearly all."""
+def test_random_rays_against_reference(random_case, method, kw, min_agree, max_flagged):
+    """Guaranteed method: every well-posed ray it decides agrees. The thesis' heuristics: nearly
+    all. The only flags: rays that graze the surface within the tolerance (the marches) and
+    misses that no inside point decided where the field's bound on the ray reaches T
+    (bisection, Fig. 7: among overlapping primitives, a few percent)."""
     O, D, t_ref, clear, scale = random_case
     b = implicit.build(model_cfg(method, **kw))
     hit = cast(b, O, D)
-    assert np.all(hit.flags == 0)
+    undecided = FLAG_NO_BRACKET if method == "bisection" else FLAG_GRAZE
+    assert np.all((hit.flags & ~undecided) == 0)
+    flagged = hit.flags != 0
+    assert flagged.mean() < max_flagged, flagged.mean()
+    if method == "bisection":
+        assert not np.any(np.isfinite(hit.t[flagged]))
     assert not np.any(np.isnan(hit.t)) and np.all(np.isfinite(hit.normal))
     assert clear.mean() > 0.9 and 0.1 < np.isfinite(t_ref).mean() < 0.9
     same = np.isfinite(hit.t) == np.isfinite(t_ref)
     close = same & (~np.isfinite(t_ref) | (np.abs(np.where(np.isfinite(hit.t), hit.t, 0) - np.where(np.isfinite(t_ref), t_ref, 0)) <= 1e-4 * scale))
-    assert close[clear].mean() >= min_agree, (method, close[clear].mean(), same[clear].mean())
+    assert close[clear & ~flagged].mean() >= min_agree, (method, close[clear].mean(), same[clear].mean())
+    assert not np.any(~np.isfinite(hit.t) & np.isfinite(t_ref) & ~flagged & clear) or method != "lipschitz"
 
 
 def _fig7_rays(rng, n=4000):
@@ -95,7 +104,9 @@ def test_figure7_bisection_misses_and_lipschitz_finds():
     bis = cast(implicit.build(implicit.ImplicitConfig.model_validate({**base, "method": "bisection"})), O, D)
     lip = cast(implicit.build(implicit.ImplicitConfig.model_validate({**base, "method": "lipschitz", "eps": 1e-3})), O, D)
     assert np.all(~np.isfinite(bis.t))  # the thesis' method misses every one (Sec. 4.2.2)
-    assert np.all(np.isfinite(lip.t)) and np.all(lip.flags == 0)
+    assert np.all(bis.flags & FLAG_NO_BRACKET)  # and says so: the field's bound on each ray reaches T
+    assert np.all(np.isfinite(lip.t)) and np.all((lip.flags & ~FLAG_GRAZE) == 0)
+    assert np.mean(lip.flags != 0) < 0.01  # a saddle of the field just short of T before the bridge
     np.testing.assert_allclose(lip.t, t_ref, atol=1e-4 * 4)
 
 

@@ -179,26 +179,34 @@ def test_line_distance_is_stable_for_a_far_origin():
     assert np.max(np.abs(naive - dist)) > 0.1  # what the old form gave
 
 
-def test_max_field_estimate_equals_every_pair_summed():
-    """The build's host check of T against max F pairs points with primitives through a k-d
-    tree; summing every (point, primitive) pair in float64 gives the same maximum."""
-    from jskel.implicit._scene import _max_field_estimate
+def test_max_field_bound_pairs_every_overlap_and_bounds_the_field():
+    """The build's host check of T against max F bounds F over each primitive's influence
+    sphere by every primitive's kernel at its distance from that sphere, pairing them through a
+    k-d tree; summing every pair in float64 gives the same bound, and it is above F at the
+    primitives and at random points between them."""
+    from jskel.implicit._scene import _max_field_bound
 
     rng = np.random.default_rng(8)
     n = 400
     a = rng.uniform(-3, 3, size=(n, 3))
     b = np.where(rng.uniform(size=(n, 1)) < 0.5, a, a + rng.normal(scale=0.5, size=(n, 3)))  # balls and tubes
     ra, rb = rng.uniform(0.2, 0.9, n), rng.uniform(0.2, 0.9, n)
-    s = np.linspace(0, 1, 9)
-    ball = np.all(a == b, axis=1)
-    pts = np.concatenate([a[ball], (a[~ball][:, None, :] + s[None, :, None] * (b - a)[~ball][:, None, :]).reshape(-1, 3)])
     ab = b - a
-    ax = pts[:, None, :] - a[None]
-    den = np.sum(ab * ab, -1)
-    t = np.clip(np.sum(ax * ab[None], -1) / np.where(den > 0, den, 1), 0, 1)
-    e = ax - t[..., None] * ab[None]
-    R = ra[None] + (rb - ra)[None] * t
-    q = np.sum(e * e, -1) / (R * R)
+    c = 0.5 * (a + b)
+    reach = 0.5 * np.linalg.norm(ab, axis=1) + np.maximum(ra, rb)
+
+    def seg_dist(x):  # (M,3) -> (M,P) distance to every segment, and R interpolated there
+        ax = x[:, None, :] - a[None]
+        den = np.sum(ab * ab, -1)
+        t = np.clip(np.sum(ax * ab[None], -1) / np.where(den > 0, den, 1), 0, 1)
+        return np.linalg.norm(ax - t[..., None] * ab[None], axis=-1), ra[None] + (rb - ra)[None] * t
+
+    r, _ = seg_dist(c)
+    q = np.maximum(r - reach[:, None], 0) ** 2 / np.maximum(ra, rb)[None] ** 2
     want = np.max(np.sum(np.where(q < 1, (1 - q) ** 2, 0), 1))
-    assert want > 1.0  # overlapping primitives: F sums several
-    np.testing.assert_allclose(_max_field_estimate(a, b, ra, rb), want, rtol=1e-12)
+    got = _max_field_bound(a, b, ra, rb)
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    x = np.concatenate([c, a + rng.normal(scale=0.3, size=(n, 3)), rng.uniform(-3.5, 3.5, size=(4000, 3))])
+    r, R = seg_dist(x)
+    F = np.sum(np.where(r < R, (1 - (r / R) ** 2) ** 2, 0), 1)
+    assert F.max() > 1.0 and got >= F.max()  # overlapping primitives: F sums several, below the bound

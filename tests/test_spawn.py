@@ -18,6 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import jskel
 from jskel import interface, registry
@@ -122,9 +124,10 @@ def _np(h):
 
 
 class Case:
-    """One object at one scale and shift: camera rays, their hits, the truth at each hit."""
+    """One object at scale ``s`` moved by ``shift`` sizes, camera rays from ``distance`` sizes away
+    (by default 4, or ``shift``), their hits, the truth at each hit."""
 
-    def __init__(self, name, tmp, s, shift, seed):
+    def __init__(self, name, tmp, s, shift, seed, distance=None):
         self.rep = registry.get(name)
         self.built = self.rep.build(self.rep.Config.model_validate(_raw(name, tmp, s, shift)), np.float32)
         self.obj = interface.Object.of(self.rep, self.built)
@@ -132,7 +135,8 @@ class Case:
         rng = np.random.default_rng(seed)
         lo, hi = (np.asarray(b, np.float64) for b in self.built.bounds)
         u = rng.normal(size=(N, 3))
-        cam = 0.5 * (lo + hi) + max(4.0, shift) * s * u / np.linalg.norm(u, axis=1, keepdims=True)
+        distance = max(4.0, shift) if distance is None else distance
+        cam = 0.5 * (lo + hi) + distance * s * u / np.linalg.norm(u, axis=1, keepdims=True)
         aim = lo + (0.1 + 0.8 * rng.uniform(size=(N, 3))) * (hi - lo)
         d = aim - cam
         self.rays = make_rays(cam - self.anchor, d / np.linalg.norm(d, axis=1, keepdims=True))
@@ -172,10 +176,9 @@ def _case(name, tmp_path_factory, s, shift):
     return _CASES[key]
 
 
-@pytest.mark.parametrize("shift", SHIFTS)
-@pytest.mark.parametrize("s", SCALES)
-def test_outward_rays_never_hit_the_surface_they_leave(name, s, shift, tmp_path_factory):
-    c = _case(name, tmp_path_factory, s, shift)
+def _check_no_rehit(c: Case, label: str):
+    """Outward rays spawned at every hit of ``c`` meet the object nowhere (it is convex)."""
+    name, s = c.rep.name, c.size
     assert np.mean(c.got) > 0.3, f"{name}: {np.mean(c.got):.2f} of the camera rays hit"
     n_true, _, dist = c.faces(c.world(c.hit.position[c.got]))
     assert np.max(dist) < 0.05 * s, f"{name}: a hit {np.max(dist) / s:.2g} sizes off the closed-form surface"
@@ -190,21 +193,19 @@ def test_outward_rays_never_hit_the_surface_they_leave(name, s, shift, tmp_path_
     spawned = jskel.spawn(c.built, c.rays, jax.tree_util.tree_map(jnp.asarray, c.hit), jnp.asarray(w, jnp.float32))
     again = _np(_cast(c.obj, spawned))
     rehit = ok & np.isfinite(again.t)
-    assert not np.any(rehit), (f"{name} at scale {s}, shift {shift}: {np.sum(rehit)} of {np.sum(ok)} outward rays hit "
+    assert not np.any(rehit), (f"{label}: {np.sum(rehit)} of {np.sum(ok)} outward rays hit "
                                f"again at t {again.t[rehit][:4]}")
     # rays of misses are empty and hit nothing
     assert np.all(~np.isfinite(again.t[~c.got]))
 
 
-@pytest.mark.parametrize("shift", SHIFTS)
-@pytest.mark.parametrize("s", SCALES)
-def test_a_surface_just_beyond_the_offset_is_still_found(name, s, shift, tmp_path_factory):
+def _check_found_beyond(c: Case, label: str):
     """A copy of the object moved along the true normal so that its surface lies ``g`` ahead of
     each hit (``W + g`` along it, W the object's width there: the copy's far side comes back to
     the hit's side; rays whose offset origin passes beside the copy are left out), g = 1e-3 of the size or twice that ray's own offset where that is more (a
     cell object's offset is one voxel, Nürnberg 2011 Alg. 3.2; at 1e5 sizes float32's spacing
     is ~1e-2 of the size). The ray spawned along the normal finds the copy at t <= g."""
-    c = _case(name, tmp_path_factory, s, shift)
+    s = c.size
     n_true, width, dist = c.faces(c.world(c.hit.position[c.got]))
     keep = np.sum(n_true * c.hit.normal[c.got], 1) > 0  # the offset goes to the direction's side of the hit's normal
     assert np.mean(keep) > 0.9
@@ -224,6 +225,55 @@ def test_a_surface_just_beyond_the_offset_is_still_found(name, s, shift, tmp_pat
     found = _np(_cast(c.obj, Rays(*(jnp.asarray(a) for a in moved)))).t[: len(g)]
     tol = dist + 1e-4 * g + 4 * c.built.surface_tolerance + 4 * np.finfo(np.float32).eps * (width + g)
     late = ahead & ~(found <= g + tol)
-    assert not np.any(late), (f"{name} at scale {s}, shift {shift}: {np.sum(late)} of {len(g)} rays missed a surface "
+    assert not np.any(late), (f"{label}: {np.sum(late)} of {len(g)} rays missed a surface "
                               f"{np.min(g[late]) / s:.2g} sizes ahead (t / g: {(found / g)[late][:4]})")
     assert np.all(found >= 0)
+
+
+@pytest.mark.parametrize("shift", SHIFTS)
+@pytest.mark.parametrize("s", SCALES)
+def test_outward_rays_never_hit_the_surface_they_leave(name, s, shift, tmp_path_factory):
+    _check_no_rehit(_case(name, tmp_path_factory, s, shift), f"{name} at scale {s}, shift {shift}")
+
+
+@pytest.mark.parametrize("shift", SHIFTS)
+@pytest.mark.parametrize("s", SCALES)
+def test_a_surface_just_beyond_the_offset_is_still_found(name, s, shift, tmp_path_factory):
+    _check_found_beyond(_case(name, tmp_path_factory, s, shift), f"{name} at scale {s}, shift {shift}")
+
+
+@settings(max_examples=6, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(log_scale=st.floats(-3, 3), log_shift=st.floats(-2, 5), log_distance=st.floats(0.5, 5), seed=st.integers(0, 2**31 - 1))
+def test_fuzzed_scale_shift_and_distance(name, log_scale, log_shift, log_distance, seed, tmp_path_factory):
+    """Both properties at log-uniform scales (1e-3..1e3), translations (1e-2..1e5 sizes) and
+    camera distances (3..1e5 sizes) that hypothesis draws (derandomized: the same examples in CI)."""
+    s, shift = 10.0**log_scale, 10.0**log_shift
+    c = Case(name, tmp_path_factory.mktemp(name), s, shift, seed, distance=10.0**log_distance)
+    label = f"{name} at scale {s:.3g}, shift {shift:.3g}, distance {10.0**log_distance:.3g}"
+    _check_no_rehit(c, label)
+    _check_found_beyond(c, label)
+
+
+def test_spawn_is_jit_friendly_and_differentiates_as_the_position():
+    """Under jit (the surface offset a traced number) it gives the eager rays, and the origins'
+    derivative along the hit position is the identity up to the bound's slope (the last
+    float's rounding is a constant); misses' origins do not move with it."""
+    rays = make_rays(np.zeros((N, 3)), np.tile([0.0, 0.0, 1.0], (N, 1)))
+    pos = jnp.asarray(np.random.default_rng(3).normal(size=(N, 3)), jnp.float32)
+    nrm = jnp.tile(jnp.asarray([0.0, 0.6, 0.8], jnp.float32), (N, 1))
+    t = jnp.where(jnp.arange(N) % 5 == 0, jnp.inf, 2.0).astype(jnp.float32)
+
+    def origins(p, surface):
+        h = jskel.Hit(t, p, nrm, jnp.zeros((N, 2), jnp.float32), jnp.zeros((N,), jnp.int32))
+        return jskel.spawn(surface, rays, h, -nrm).origins
+
+    eager, jitted = origins(pos, 1e-3), jax.jit(origins)(pos, jnp.float32(1e-3))
+    np.testing.assert_array_equal(np.asarray(eager), np.asarray(jitted))
+    hit = np.isfinite(np.asarray(t))
+    moved = np.asarray(eager)[hit] - np.asarray(pos)[hit]
+    # along -n (the direction's side), by more than the surface's 1e-3
+    assert np.all(moved @ np.array([0.0, 0.6, 0.8]) < -1e-3)
+    grad = jax.grad(lambda p: jnp.sum(origins(p, 1e-3)[:, 1]))(pos)
+    # e_y, plus the bound's own slope along |p| (gamma(16) |n_i| n_y, below 1e-6)
+    np.testing.assert_allclose(np.asarray(grad)[hit], np.tile([0.0, 1.0, 0.0], (hit.sum(), 1)), rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(grad)[~hit], 0.0)

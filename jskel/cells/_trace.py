@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from ..numerics import safe_div, safe_normalize, safe_sqrt
+from ..rays import ulp_floor
 from ._membership import INSIDE, lookup
 
 TILE_HAS_INSIDE = 1
@@ -98,6 +99,7 @@ class March(NamedTuple):
     t_out: jnp.ndarray  # the last sample on the starting side
     steps: jnp.ndarray  # samples evaluated (int32)
     found: jnp.ndarray
+    floored: jnp.ndarray  # the step was below a few ulps of t and raised to them (FLAG_FLOAT_SPACING)
 
 
 def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -> March:
@@ -105,8 +107,14 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
     (True: Alg. 3.1 / 3.2, looking for an inside cell; False: Alg. 3.3, leaving one; a Python
     bool or a traced one per ray), then bisection. Tiles with no INSIDE part (looking for one,
     Alg. 3.2 rows 11-16) or with INSIDE parts only (leaving, Alg. 3.3 rows 12-15) are jumped
-    over to the first sample past their exit (bitwise the same samples)."""
-    h = safe_div(p.step * p.size, safe_sqrt(jnp.sum(d * d)), 0.0)  # d = 0: no step, no NaN
+    over to the first sample past their exit (bitwise the same samples). A step below
+    ``rays.ulp_floor`` of the interval's far end (where t + h would round back to t) is raised to
+    it and reported in ``floored``."""
+    dn = safe_sqrt(jnp.sum(d * d))
+    h0 = safe_div(p.step * p.size, dn, 0.0)  # d = 0: no step, no NaN
+    far = jnp.maximum(jnp.abs(t_start), jnp.where(jnp.isfinite(t_end), jnp.abs(t_end), 0.0))
+    floor = ulp_floor(far, safe_div(jnp.max(jnp.abs(o)), dn, 0.0))
+    h = jnp.maximum(h0, floor)
 
     def is_target(t):
         code, tile, ok = membership_at(p, o + t * d)
@@ -143,7 +151,7 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
 
     a, b = jax.lax.fori_loop(0, opt.bisection, bis, (t_prev, t_in)) if opt.bisection else (t_prev, t_in)
     inf = jnp.asarray(jnp.inf, o.dtype)
-    return March(jnp.where(found, b, inf), jnp.where(found, a, inf), evals, found)
+    return March(jnp.where(found, b, inf), jnp.where(found, a, inf), evals, found, floor > h0)
 
 
 def object_interval(p: CellParams, o, d, t_min, t_max):
@@ -169,7 +177,7 @@ def first_hit(p: CellParams, o, d, t_min, t_max, opt: TraceOptions, two_sided: b
     want = ~starts_inside(p, o, d, t_min) if two_sided else True
     m = march(p, o, d, t0, t1, want, opt)
     inf = jnp.asarray(jnp.inf, o.dtype)
-    return m._replace(t=jnp.where(t0 <= t1, m.t, inf), found=m.found & (t0 <= t1))
+    return m._replace(t=jnp.where(t0 <= t1, m.t, inf), found=m.found & (t0 <= t1), floored=m.floored & (t0 <= t1))
 
 
 def normal_at(p: CellParams, x, d):

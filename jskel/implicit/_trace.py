@@ -45,15 +45,19 @@ Methods (``Quality.method``):
   with the plane containing the segment and facing the viewer, keeping the one closest to the
   segment. The nearest candidate point with F > T is the inside end of the bracket and the entry
   into the first sphere of influence the outside end. Fast, but it misses the Figure 7 case and
-  may bracket a later crossing (Sec. 4.2.2).
+  may bracket a later crossing (Sec. 4.2.2); a miss that a bound on the field along the ray
+  cannot confirm (:func:`field_bound` >= T) carries ``NO_BRACKET``.
 * ``lipschitz`` (guaranteed; not in the thesis): |F(x) - F(y)| <= L |x - y| with L the sum over
   the candidates of each kernel's steepest slope (``_field.lipschitz``), which also bounds the
   CSG combinations, and grown for a displacement (``_field.lipschitz_total``). From an outside point
   with F < T no root lies closer than (T - F) / (L |d|) in t, so the march steps by that
-  distance, but at least ``eps``. Guarantee: if the ray has no candidate overflow and does not
-  exhaust ``steps`` (flag ``STEP_CAP``), the first interval of the ray inside the surface that is
-  at least ``eps`` long is the one bracketed, and the returned t is within eps / 2^(k+1) of its
-  start after k bisections.
+  distance, but at least ``eps``. Guarantee: if the ray carries no flag (no candidate overflow,
+  ``steps`` not exhausted, ``eps`` above the float spacing at t), the first interval of the ray
+  inside the surface that is at least ``eps`` long is the one bracketed, and the returned t is
+  within eps / 2^(k+1) of its start after k bisections; where two samples outside lie close
+  enough to T that a crossing between them cannot be excluded, the ray carries ``GRAZE``.
+
+Every flag bit is defined in ``jskel.rays`` and listed in docs/numerics.md.
 """
 
 from __future__ import annotations
@@ -65,8 +69,12 @@ import jax.numpy as jnp
 
 from .. import accel
 from ..numerics import differentiable_root, dot3, line_dist2, safe_div, safe_normalize, safe_sqrt
+from ..rays import FLAG_FLOAT_SPACING as FLOAT_SPACING
+from ..rays import FLAG_GRAZE as GRAZE
+from ..rays import FLAG_NO_BRACKET as NO_BRACKET
 from ..rays import FLAG_OVERFLOW as OVERFLOW
 from ..rays import FLAG_STEP_CAP as STEP_CAP
+from ..rays import ulp_floor
 from ._field import Displace, Prims, Shape, closest, kernel, lipschitz_total, shaped_field
 
 
@@ -243,58 +251,112 @@ def _inside_points(sub: Prims, o, d):
     return jnp.take_along_axis(cands, best[None, :], axis=0)[0]
 
 
+def field_bound(sub: Prims, o, d, shape: Shape, disp: Displace):
+    """An upper bound of the shaped field anywhere on the line o + t d: each candidate's kernel
+    at its smallest distance to the line (segment to line, shortened by a few ulps of the
+    coordinates) with its largest radius, since a kernel falls with distance and grows with R.
+    The sum bounds the CSG tree too (every group field is >= 0, and sum, max, min and
+    min(F_l, 2T - F_r) are each <= the sum of their children), and a displacement multiplies
+    it by 1 + |amp| (Sec. 6.2). Below T, no point of the ray is inside: a certain miss."""
+    dd = dot3(d, d)
+    p = sub.a - o
+    ab = sub.b - sub.a
+    pp = p - safe_div(dot3(p, d), dd, 0.0)[:, None] * d  # the parts across the ray
+    qq = ab - safe_div(dot3(ab, d), dd, 0.0)[:, None] * d
+    s = jnp.clip(safe_div(-dot3(pp, qq), dot3(qq, qq), 0.0), 0.0, 1.0)
+    e = pp + s[:, None] * qq
+    slack = 8 * jnp.finfo(o.dtype).eps * (safe_sqrt(dot3(p, p)) + safe_sqrt(dot3(ab, ab)))
+    r = jnp.maximum(safe_sqrt(dot3(e, e)) - slack, 0.0)
+    bound = jnp.sum(jnp.where(sub.valid, kernel(r * r, jnp.maximum(sub.ra, sub.rb)), 0.0))
+    return bound * (1.0 + jnp.abs(disp.amp)) if shape.displace != "none" else bound
+
+
 def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
-    """(t, flags) of the first hit of one ray over its culled candidates; t = inf on a miss."""
-    inf = jnp.asarray(jnp.inf, o.dtype)
-    sub, t_lo, t_hi, anyc, overflow = cand.sub, cand.t_lo, cand.t_hi, cand.any, cand.overflow
-    T = tune.threshold
+    """(t, flags) of the first hit of one ray over its culled candidates; t = inf on a miss.
+    Flags (``jskel.rays``): OVERFLOW from culling; the tracer's own in :func:`_bisection_method`
+    and :func:`_march`."""
+    sub, T = cand.sub, tune.threshold
 
     def g(t):
         return shaped_field(sub, o + t * d, q.shape, T, tune.disp) - T
 
-    flags = jnp.where(overflow, OVERFLOW, 0)
+    flags = jnp.where(cand.overflow, OVERFLOW, 0)
     if q.method == "bisection":
-        tin = _inside_points(sub, o, d)
-        ok = sub.valid & (tin > t_min) & (tin <= t_max) & (tin >= t_lo) & (tin <= t_hi)
-        inside = ok & (jax.vmap(g)(jnp.where(ok, tin, t_lo)) > 0)
-        t_in = jnp.min(jnp.where(inside, tin, inf))
-        found = anyc & jnp.isfinite(t_in)
-        lo, hi = _bisect(g, t_lo, jnp.where(found, t_in, t_lo), q.bisection)
-        # a miss differentiates at t = 0 (g finite there; t_lo may be inf), and is masked after
-        t = jnp.where(found, differentiable_root(g, jnp.where(found, 0.5 * (lo + hi), 0.0)), inf)
-        return t, flags
-
-    if q.method == "naive":
-        def advance(t, gv):
-            return t + tune.step
-    elif q.method == "lipschitz":
-        L = lipschitz_total(sub, q.shape, tune.disp) * safe_sqrt(dot3(d, d))
-
-        def advance(t, gv):
-            return t + jnp.maximum(safe_div(-gv, L, 0.0), tune.eps)
+        t, own = _bisection_method(cand, g, tune, o, d, t_min, t_max, q)
+    elif q.method in ("naive", "lipschitz"):
+        t, own = _march(cand, g, tune, o, d, q)
     else:  # pragma: no cover - validated in config
         raise ValueError(f"object.method: unknown method {q.method!r}")
+    return t, flags | own
 
-    # march state: (i, t_prev, t, found); the sample at t is tested each iteration
+
+def _bisection_method(cand: Candidates, g, tune: Tuning, o, d, t_min, t_max, q: Quality):
+    """Alg. 2 from the Sec. 4.2.1 inside points: the nearest candidate point with F > T is the
+    inside end of the bracket, the entry into the first sphere of influence the outside end.
+    Where no candidate point is inside, the ray is a miss only if :func:`field_bound` is below
+    T; otherwise the field may still cross (the Fig. 7 case: two primitives that just blend,
+    Sec. 4.2.2) and the miss carries ``NO_BRACKET``."""
+    inf = jnp.asarray(jnp.inf, o.dtype)
+    sub, t_lo, t_hi, anyc = cand.sub, cand.t_lo, cand.t_hi, cand.any
+    tin = _inside_points(sub, o, d)
+    ok = sub.valid & (tin > t_min) & (tin <= t_max) & (tin >= t_lo) & (tin <= t_hi)
+    inside = ok & (jax.vmap(g)(jnp.where(ok, tin, t_lo)) > 0)
+    t_in = jnp.min(jnp.where(inside, tin, inf))
+    found = anyc & jnp.isfinite(t_in)
+    lo, hi = _bisect(g, t_lo, jnp.where(found, t_in, t_lo), q.bisection)
+    # a miss differentiates at t = 0 (g finite there; t_lo may be inf), and is masked after
+    t = jnp.where(found, differentiable_root(g, jnp.where(found, 0.5 * (lo + hi), 0.0)), inf)
+    T = tune.threshold
+    bound = field_bound(sub, o, d, q.shape, tune.disp)
+    undecided = anyc & ~found & (bound > T * (1 - 8 * jnp.finfo(o.dtype).eps))
+    return t, jnp.where(undecided, NO_BRACKET, 0)
+
+
+def _march(cand: Candidates, g, tune: Tuning, o, d, q: Quality):
+    """Alg. 1 (``naive``: steps of ``step``) or the Lipschitz march (steps of (T - F) / L, at
+    least ``eps``) over [t_lo, t_hi], then bisection of the last bracket. Every step is at least
+    :func:`jskel.rays.ulp_floor` of t (a smaller one would not move the sample: the march would
+    stall into the step cap) and a ray whose tolerance that floor raised carries
+    ``FLOAT_SPACING``. Between two samples outside, a crossing needs
+    (T - F_k) + (T - F_k+1) <= L (t_k+1 - t_k) (|grad F| <= L; F = 0 past t_hi closes the last
+    interval). A miss where that held anywhere carries ``GRAZE`` (the bound cannot exclude a
+    crossing shorter than the step: a graze of the surface or a chord stepped over); so does a
+    hit where it held while the field was falling (a graze before the crossing found), but not
+    the steps of an approach, where F rises towards T. The step cap sets ``STEP_CAP``."""
+    inf = jnp.asarray(jnp.inf, o.dtype)
+    sub, t_lo, t_hi, anyc = cand.sub, cand.t_lo, cand.t_hi, cand.any
+    L = lipschitz_total(sub, q.shape, tune.disp) * safe_sqrt(dot3(d, d))
+    scale = safe_div(jnp.max(jnp.abs(o)), safe_sqrt(dot3(d, d)), 0.0)  # the origin, in units of t
+    tol = tune.step if q.method == "naive" else tune.eps
+
+    # march state: (i, t_prev, t, g(t_prev), found, near, grazed, floored); the sample at t is tested each iteration
     def visit(st):
-        i, tp, t, found = st
+        i, tp, t, gp, found, near, grazed, floored = st
         gv = g(t)
         hit = (~found) & (gv > 0) & (t <= t_hi)
-        nt = jnp.where(found | hit, t, advance(t, gv))
-        ntp = jnp.where(found | hit, tp, t)
-        return i + 1, ntp, nt, found | hit
+        live = ~(found | hit)
+        pair = live & (t > tp) & (-gp - gv <= L * (t - tp))
+        near, grazed = near | pair, grazed | (pair & (gv < gp))
+        want = tol if q.method == "naive" else jnp.maximum(safe_div(-gv, L, 0.0), tol)
+        floor = ulp_floor(t, scale)
+        nt = jnp.where(live, t + jnp.maximum(want, floor), t)
+        floored = floored | (live & (floor > want)) | (live & ~(nt > t))  # raised, or no advance at all
+        return i + 1, jnp.where(live, t, tp), nt, jnp.where(live, gv, gp), found | hit, near, grazed, floored
 
-    init = (jnp.int32(0), t_lo, t_lo, jnp.asarray(False))
+    false = jnp.asarray(False)
+    init = (jnp.int32(0), t_lo, t_lo, jnp.zeros((), o.dtype), false, false, false, false)
     if q.early_exit:
         def cond(st):
-            return (st[0] < q.steps) & ~st[3] & (st[2] <= t_hi)
+            return (st[0] < q.steps) & ~st[4] & (st[2] <= t_hi)
 
-        i, tp, t, found = jax.lax.while_loop(cond, visit, init)
+        i, tp, t, gp, found, near, grazed, floored = jax.lax.while_loop(cond, visit, init)
     else:
-        i, tp, t, found = jax.lax.fori_loop(0, q.steps, lambda _, st: visit(st), init)
+        i, tp, t, gp, found, near, grazed, floored = jax.lax.fori_loop(0, q.steps, lambda _, st: visit(st), init)
     found = found & anyc
     capped = (~found) & anyc & (t <= t_hi)  # stopped by the step cap before leaving the interval
-    flags = flags | jnp.where(capped, STEP_CAP, 0)
+    tail = (t > t_hi) & (tp <= t_hi) & (tune.threshold - gp <= L * (t_hi - tp))  # up to T and back to 0 by t_hi
+    grazed = anyc & (grazed | (~found & (near | tail)))
+    flags = jnp.where(capped, STEP_CAP, 0) | jnp.where(grazed, GRAZE, 0) | jnp.where(anyc & floored, FLOAT_SPACING, 0)
     first_sample = tp == t  # inside already at the first sample: nothing to bisect
     lo, hi = _bisect(g, tp, t, q.bisection)
     t_hit = jnp.where(first_sample | (q.bisection == 0), t, 0.5 * (lo + hi))

@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import registry
 from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
-from ..rays import FLAG_OVERFLOW, FLAG_STEP_CAP, Hit, Rays, make_rays
+from ..rays import Hit, Rays, flag_counts, make_rays
 from ..cache import count_programs, program_counts
 from ..camera import Camera, framing, tile_inverse, tile_order
 from ..executor import map_chunks
@@ -213,8 +213,9 @@ def _reports_flags(obj: Object, dtype) -> bool:
 
 
 def _flag_counts(flags) -> dict:
-    f = np.asarray(flags)
-    return {"overflow_rays": int(np.sum((f & FLAG_OVERFLOW) != 0)), "step_cap_rays": int(np.sum((f & FLAG_STEP_CAP) != 0))}
+    """run.json's ``flags``: the number of pixels carrying each bit, by the names of
+    ``rays.FLAG_NAMES`` (the bits docs/numerics.md lists)."""
+    return flag_counts(flags)
 
 
 def _single_run(exp: Experiment, obj, built, build_s: float, res, n: int, hits) -> dict:

@@ -94,7 +94,9 @@ def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live) -> Scene
         fn = functools.partial(_object_hits, rep, st, params.objects[k], x, k, identity=static.single)
         hk = compact_map(fn, need, rays, _miss(n, dtype), static.lanes)
         closer = hk.t < best.t
+        flags = best.flags | hk.flags  # every object's flags: a ray lost by one object is not decided
         best = jax.tree_util.tree_map(lambda a, b: jnp.where(closer.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), hk, best)
+        best = best._replace(flags=flags)
     return best
 
 

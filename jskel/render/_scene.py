@@ -64,7 +64,7 @@ import jax.numpy as jnp
 
 from .. import registry
 from ..numerics import safe_normalize, safe_sqrt
-from ..rays import FLAG_OVERFLOW, Hit, Rays
+from ..rays import FLAG_OVERFLOW, Hit, Rays, or_flags_at
 from ..spawning import spawn_rays
 from ..wavefront import compact_map
 from ..shading import facing, light_at, shade_local
@@ -268,11 +268,10 @@ def scene_batch(static: SceneStatic):
             q, rgb, flags, first_obj, secondary, aov, vis0 = carry
             hits = nearest(params, static, q.rays, q.live)
             rgb, vis, kr, kt = shade_level(params, static, q, rgb, hits, level)
-            live_hit = q.live & jnp.isfinite(hits.t)
             first = level == 0
             if levels == 1:  # the camera rays alone: slot i is pixel i, no scatter, no later level
-                return q, rgb, jnp.maximum(flags, jnp.where(live_hit, hits.flags, 0)), first_obj, secondary, hits, vis
-            flags = flags.at[jnp.where(live_hit, q.pixel, n)].max(hits.flags, mode="drop")
+                return q, rgb, flags | jnp.where(q.live, hits.flags, 0), first_obj, secondary, hits, vis
+            flags = or_flags_at(flags, jnp.where(q.live, q.pixel, n), hits.flags)  # a miss's flags too: a lost ray is one
             aov = jax.tree_util.tree_map(lambda a, b: jnp.where(first, a[:n], b), hits, aov)
             vis0 = jnp.where(first, vis[:n], vis0)
             secondary = secondary.at[jnp.where(q.live & ~first, q.pixel, n)].add(1, mode="drop")
@@ -281,7 +280,7 @@ def scene_batch(static: SceneStatic):
             first_obj = first_obj.at[jnp.where(q.live & (level >= 1), q.pixel, n), col].set(hits.obj, mode="drop")
             if levels > 1:
                 q, pix, dropped = spawn(params, static, q, hits, kr, kt, level)
-                flags = flags.at[jnp.where(dropped, pix, n)].max(FLAG_OVERFLOW, mode="drop")
+                flags = or_flags_at(flags, jnp.where(dropped, pix, n), FLAG_OVERFLOW)
             return q, rgb, flags, first_obj, secondary, aov, vis0
 
         aov = _miss(n, dtype)
