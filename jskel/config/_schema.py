@@ -166,9 +166,9 @@ AUTO_CHUNKS_PER_CALL_CPU = 64
 def chunks_per_call_of(render) -> int:
     """``render.chunks_per_call`` resolved: ``auto`` is 64 on the CPU and 1 on an accelerator,
     whose auto chunk is already a whole frame. Several chunks per call save the host's per-call
-    slicing, transfer and dispatch; on the 2-core CPU a 1024x768 frame runs as two calls of 48
-    chunks per device (``rays.calls_grouping``), measured against 1 and 16 in
-    ``experiments/bench_scale_cpu_paths.yaml`` (docs/performance.md)."""
+    slicing, transfer and dispatch; on the 2-core CPU a 1024x768 frame runs as two calls of 64
+    chunks per device, the second with 32 traced (``executor.calls_grouping``); 64 was measured
+    against 1 and 16 in ``experiments/bench_scale_cpu_paths.yaml`` (docs/performance.md)."""
     import jax
 
     if render.chunks_per_call != "auto":
@@ -185,9 +185,9 @@ class RenderConfig(StrictModel):
     for bit as on one device), ``one`` or a count. ``memory_mb``: a budget (MiB per device) for
     one compiled call; ``chunk`` is then an upper bound, halved until XLA's memory analysis of
     the call (arguments, outputs, temporaries) fits (``jskel.executor.chunk_for_budget``).
-    ``chunks_per_call``: batches of at least that many chunks run that many chunks per compiled
-    call (a ``lax.map``; each chunk computed as alone, the host's per-call work saved); not with
-    ``memory_mb``.
+    ``chunks_per_call``: batches of at least min(that many, 8) chunks run up to that many chunks
+    per compiled call (a power of two of them, padding chunks skipped; each chunk computed as
+    alone, the host's per-call work saved); not with ``memory_mb``.
 
     ``spp`` jittered samples per pixel (the first at the pixel centre; AOVs come from it) from
     ``seed``. Scenes (``objects:``) only: ``bounces`` bounds reflection and refraction depth;
@@ -197,7 +197,7 @@ class RenderConfig(StrictModel):
     chunk: Annotated[int, Field(ge=1, le=1 << 24)] | Literal["auto"] = "auto"
     """Rays per chunk (per device); ``auto``: 4,096 on the CPU, 1,048,576 on an accelerator (``chunk_of``)."""
     chunks_per_call: Annotated[int, Field(ge=1, le=4096)] | Literal["auto"] = "auto"
-    """Chunks in one compiled call (a ``lax.map``) on big batches; ``auto``: 64 on the CPU, 1 on an accelerator."""
+    """Chunks in one compiled call (a loop over them) on big batches; ``auto``: 64 on the CPU, 1 on an accelerator."""
     tile: Annotated[int, Field(ge=1, le=4096)] = 64
     """Edge of the square screen tiles rays are ordered in, pixels."""
     dtype: Literal["float32", "float64"] = "float32"
