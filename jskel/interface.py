@@ -53,7 +53,8 @@ class Built:
       (0 for analytic intersections; a marching tracer's last bisection bracket). A secondary
       ray starts beyond it.
     secondary_offset: how far (object units) a secondary ray's origin moves off the surface
-      along the normal; None: four times ``surface_tolerance``.
+      along the normal, beyond the rounding bound ``jskel.spawn`` adds; None: four times
+      ``surface_tolerance``.
     """
 
     params: Any

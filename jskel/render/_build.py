@@ -40,8 +40,9 @@ class XForm(NamedTuple):
 
 class Materials(NamedTuple):
     """Per object (leading axis K): colour (3), specular, shininess, reflectivity,
-    transparency, ior, ``offset`` (how far a secondary ray starts off its surface, world
-    units), and how a path through the object ends (1 or 0 each; ``interface.OwnMaterial``
+    transparency, ior, ``offset`` (the object's part of how far a secondary ray starts off its
+    surface, world units: ``spawning.surface_offset`` scaled by its placement; the spawn adds a
+    rounding bound), and how a path through the object ends (1 or 0 each; ``interface.OwnMaterial``
     says what each does): ``last_local`` (a cell object's last reflection bounce, Nürnberg
     2011 Alg. 3.2), ``last_env``, ``local_once`` and ``tint`` (its refraction, Alg. 3.3)."""
 
