@@ -119,6 +119,23 @@ def test_flag_bits_are_distinct_named_once_and_counted_by_name():
     assert rays.flag_counts(f) == want and _flag_counts(f) == want
 
 
+def test_flags_scattered_to_pixels_keep_every_bit():
+    """Several rays of one pixel (samples, secondary levels): their flags OR together; a max
+    of the bit sets (what a scatter offers) would keep 4 of 4 | 1 and lose the 1."""
+    import jax.numpy as jnp
+
+    base = np.array([0, 2, 0, 0], np.int32)
+    index = np.array([0, 0, 1, 3, 7])  # 7: out of range, dropped
+    values = np.array([FLAG_NO_BRACKET, FLAG_OVERFLOW, FLAG_GRAZE | FLAG_STEP_CAP, 0, FLAG_GRAZE], np.int32)
+    got = np.asarray(rays.or_flags_at(jnp.asarray(base), jnp.asarray(index), jnp.asarray(values)))
+    want = base.copy()
+    for i, v in zip(index, values):
+        if i < len(want):
+            want[i] |= v
+    np.testing.assert_array_equal(got, want)
+    assert got[0] == FLAG_NO_BRACKET | FLAG_OVERFLOW and got[1] == 2 | FLAG_GRAZE | FLAG_STEP_CAP
+
+
 # ---------------------------------------------------------------- constructed rays
 
 S = 0.68  # two balls of R = 1 that only just blend (Fig. 7)
