@@ -132,9 +132,8 @@ def make_rays(origins, directions, t_min=0.0, t_max=np.inf, dtype=np.float32) ->
             raise ValueError(f"{name}: expected one value or {n} (one a ray), got shape {t.shape}")
     tmin, tmax = np.broadcast_to(tmin.reshape(-1), (n,)), np.broadcast_to(tmax.reshape(-1), (n,))
     checks.raise_all(_bad_rays(o, d, tmin, tmax))
-    return Rays(
-        jnp.asarray(o, dtype), jnp.asarray(d, dtype), jnp.asarray(tmin, dtype), jnp.asarray(tmax, dtype)
-    )
+    # cast on the host: jnp.asarray's own float64 -> float32 conversion compiled a program per batch size
+    return Rays(*(jnp.asarray(np.asarray(a, dtype), dtype) for a in (o, d, tmin, tmax)))
 
 
 def _bad_rays(o: np.ndarray, d: np.ndarray, tmin: np.ndarray, tmax: np.ndarray) -> list[str]:

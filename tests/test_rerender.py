@@ -1,6 +1,6 @@
 """Exploring without recompiling (issue 27): after a first render, a change of a radius, of the
-camera pose, of the image size within a bucket or of the skeleton's segment count within a
-bucket renders with no program handed to XLA (none compiled, none loaded from the persistent
+camera pose, of the image size within a bucket, of the skeleton's segment count within a
+bucket or of the samples per pixel renders with no program handed to XLA (none compiled, none loaded from the persistent
 cache: ``jskel.cache.program_counts``), and every re-render casts the changed experiment, checked
 against the independent float64 reference (``tests/reference.py``, Bhagvat et al. 2009 Sec. 2).
 
@@ -31,13 +31,13 @@ GROWN = (np.vstack([JOINTS, [[0.4, 3.9, 0.3], [1.7, 2.9, 0.2]]]), np.append(RADI
 SMALL, LARGER = (64, 48), (80, 60)
 
 
-def _experiment(joints=JOINTS, radii=RADII, parents=PARENTS, eye=(4.0, 2.5, 6.0), size=SMALL):
+def _experiment(joints=JOINTS, radii=RADII, parents=PARENTS, eye=(4.0, 2.5, 6.0), size=SMALL, spp=1):
     raw = {
         "name": "rerender",
         "object": {"type": "frusta", "accel": "bvh",
                    "skeleton": {"joints": joints.tolist(), "radii": radii.tolist(), "parents": parents.tolist()}},
         "camera": {"eye": list(eye), "target": [0.1, 1.6, -0.1], "up": [0, 1, 0], "fov_deg": 40, "width": size[0], "height": size[1]},
-        "render": {"chunk": 256, "chunks_per_call": 16, "progress": False},
+        "render": {"chunk": 256, "chunks_per_call": 16, "progress": False, "spp": spp},
     }
     return config.validate(raw)
 
@@ -83,6 +83,8 @@ CHANGES = {
     "camera_pose": lambda: (dict(eye=(-3.0, 3.5, 6.5)), (JOINTS, RADII, PARENTS)),
     "image_size": lambda: (dict(size=LARGER), (JOINTS, RADII, PARENTS)),
     "segments": lambda: (dict(joints=GROWN[0], radii=GROWN[1], parents=GROWN[2]), GROWN),
+    # twice the rays (24 chunks, two calls of 16): the first sample's hits are the pixel centres'
+    "samples": lambda: (dict(spp=2), (JOINTS, RADII, PARENTS)),
 }
 
 
