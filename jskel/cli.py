@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -93,9 +94,9 @@ def cmd_render(args) -> int:
 def cmd_bench(args) -> int:
     """``jskel bench FILE``: see ``jskel.measure.bench`` (time to first image: ``jskel.measure.latency``)."""
     if is_latency_file(args.file):
-        run_latency_file(args.file, args.set, args.out)
+        run_latency_file(args.file, args.set, args.out, command=args.command)
     else:
-        run_bench(args.file, args.set, args.runs, args.out, args.x64)
+        run_bench(args.file, args.set, args.runs, args.out, args.x64, command=args.command)
     return 0
 
 
@@ -104,7 +105,8 @@ def cmd_sweep(args) -> int:
     x64 = X64 if args.x64 else []
     sweep, jobs, ref_jobs = load_sweep(args.file, args.set, x64)
     out = Path(args.out)
-    rows = run_sweep(sweep, jobs, ref_jobs, out, progress=args.progress, spec=(str(args.file), list(args.set), x64))
+    rows = run_sweep(sweep, jobs, ref_jobs, out, progress=args.progress, spec=(str(args.file), list(args.set), x64),
+                     command=args.command)
     print(f"jskel: {len(rows)} settings -> {out / 'results.csv'}, {out / 'report.md'}")
     return 0
 
@@ -185,6 +187,7 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    args.command = shlex.join(["python", "-m", "jskel", *(sys.argv[1:] if argv is None else argv)])  # in provenance records
     try:
         use_host_devices()  # before JAX starts: one XLA host device per core (JSKEL_HOST_DEVICES sets the count)
         use_compilation_cache()  # before anything compiles: ~/.cache/jskel/jax (JSKEL_CACHE_DIR moves it, JSKEL_CACHE=off)

@@ -175,6 +175,7 @@ def test_bench_cost_against_size_writes_rows_with_traversal_counts_and_a_plot(tm
     assert cli.main(["bench", str(spec), "--out", str(out)]) == 0
     rows = [json.loads(x) for x in out.read_text().splitlines()]
     assert [r["primitives"] for r in rows] == [30, 480]
+    assert rows[0]["run"]["command"] == f"python -m jskel bench {spec} --out {out}"  # as typed, in every row
     assert out.with_suffix(".png").exists()
     for k, r in zip((1, 4), rows):
         # both rounded (render_s to 1e-4 s, us_per_ray to 1e-4 us)

@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import csv
 import math
+import os
+import re
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -159,6 +162,9 @@ def test_tiny_sweep_writes_every_output_and_resumes(tmp_path, monkeypatch):
     assert (out / "pareto.png").exists()
     report = (out / "report.md").read_text()
     assert "pareto.png" in report and report.count("\n| ") == 2 + 4  # header, rule, 4 rows
+    # the report says what wrote it: the command as typed, the machine, the date and the versions
+    assert f"by `python -m jskel sweep {spec} --out {out}` on {os.cpu_count()}-core " in report
+    assert f"jax {jax.__version__}" in report and re.search(r"Written 20\d\d-\d\d-\d\dT", report)
     # resume: drop two rows, count the settings measured again, keep the others untouched
     with (out / "results.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=want)

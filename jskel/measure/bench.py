@@ -212,15 +212,17 @@ def plot_bench(bench: BenchFile, groups: list[Group], rows_by_group: list[list[d
                            f"{head['scene']} {head['width']}x{head['height']}: time per setting ({head['device']})"))
 
 
-def run_bench(file, overrides: list[str], runs: int | None = None, out=None, x64: bool = False) -> list[dict]:
+def run_bench(file, overrides: list[str], runs: int | None = None, out=None, x64: bool = False,
+              command: str | None = None) -> list[dict]:
     """Run a bench file (``--set`` ``overrides`` of its keys, ``runs`` instead of its own, rows
-    also to ``out``, every scene in float64 with ``x64``). Returns the rows."""
+    also to ``out``, every scene in float64 with ``x64``; ``command``: how it was asked for, in
+    every kept row's provenance). Returns the rows."""
     raw = read_yaml(file)
     if isinstance(raw, dict) and "fit" in raw:
-        return run_fit_bench(read_model(FitBenchFile, file, overrides).fit, JsonLines(out))
+        return run_fit_bench(read_model(FitBenchFile, file, overrides).fit, JsonLines(out, command))
     bench = read_model(BenchFile, file, overrides)
     groups = groups_of(bench, file, X64 if x64 else [])
-    emit = JsonLines(out)
+    emit = JsonLines(out, command)
     rows_by_group = [run_group(bench, g, runs or bench.runs, emit) for g in groups]
     if out is not None:
         plot_bench(bench, groups, rows_by_group, Path(out))

@@ -217,9 +217,10 @@ def rerender_rows(spec: LatencySpec, file, emit: JsonLines) -> list[dict]:
     return rows
 
 
-def run_latency_bench(spec: LatencySpec, file, out=None) -> list[dict]:
-    """The whole benchmark: process rows (in a temporary folder), then the in-process re-renders."""
-    emit = JsonLines(out)
+def run_latency_bench(spec: LatencySpec, file, out=None, command: str | None = None) -> list[dict]:
+    """The whole benchmark: process rows (in a temporary folder), then the in-process re-renders
+    (``command``: how it was asked for, in every kept row's provenance)."""
+    emit = JsonLines(out, command)
     with tempfile.TemporaryDirectory(prefix="jskel_latency_") as tmp:
         rows = process_rows(spec, file, Path(tmp), emit)
     if spec.rerender is not None:
@@ -233,6 +234,6 @@ def is_latency_file(file) -> bool:
     return isinstance(raw, dict) and "latency" in raw
 
 
-def run_latency_file(file, overrides: list[str], out=None) -> list[dict]:
+def run_latency_file(file, overrides: list[str], out=None, command: str | None = None) -> list[dict]:
     """``jskel bench FILE`` for a latency file (``--set latency.KEY=VALUE`` overrides)."""
-    return run_latency_bench(read_model(LatencyFile, file, overrides).latency, file, out)
+    return run_latency_bench(read_model(LatencyFile, file, overrides).latency, file, out, command)

@@ -58,8 +58,9 @@ def cell(v):
     return "" if v is None else v
 
 
-def write_report(sweep, rows: list[dict], keys: list[str], path: Path, plot):
-    """report.md: the sweep's file, environment, a table of every setting and the plot."""
+def write_report(sweep, rows: list[dict], keys: list[str], path: Path, plot, run: dict | None = None):
+    """report.md: the sweep's file, environment (``run``: ``files.provenance``, the command,
+    machine, date, commit and versions), a table of every setting and the plot."""
     cols = keys + ["time_median_s", "time_min_s", "time_max_s", "compile_s"] + list(sweep.metrics)
     lines = [f"# Sweep of {sweep.base}", "",
              f"Varied: {', '.join(keys)}. Reference: {', '.join(sweep.reference) if sweep.reference else 'none'}. "
@@ -67,6 +68,9 @@ def write_report(sweep, rows: list[dict], keys: list[str], path: Path, plot):
              + (f"; {sweep.parallel} worker processes shared the machine." if sweep.parallel > 1 else "."),
              f"Device: {rows[0].get('device', '?') if rows else '?'}; jax {jax.__version__}; Python {platform.python_version()}; "
              f"{platform.machine()}.", ""]
+    if run is not None:
+        lines[-1:-1] = [f"Written {run['date']} at commit {run.get('commit') or '(not recorded)'} by `{run['command']}` on "
+                        f"{run['machine']}; " + ", ".join(f"{k} {v}" for k, v in run["versions"].items()) + "."]
     if plot is not None:
         lines += [f"![{sweep.metrics[0]} against time]({Path(plot).name})", ""]
     if sweep.peer is not None:

@@ -30,7 +30,7 @@ from ..config import ConfigError, StrictModel
 from ..peers.mesh_studies import embree_mesh
 from ..peers.study import StudyOptions
 from ..render import render
-from .files import beside, load_experiment, read_model
+from .files import beside, load_experiment, provenance, read_model
 from .grid import Range, expand, keys_of, overrides_of, setting_key
 from .metrics import compare, depth_in_pixels, ssim
 from .plots import plot_sweep_file
@@ -253,7 +253,8 @@ def _append(path: Path, cols: list[str], rows_iter, total: int, initial: int, pr
             bar.update(1)
 
 
-def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress: bool | None = None, spec=None) -> list[dict]:
+def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress: bool | None = None, spec=None,
+              command: str | None = None) -> list[dict]:
     """Measure every job ``(setting, (exp, obj))`` not already in ``out/results.csv`` against its
     reference job (``ref_jobs[i]``: ``(key, (exp, obj))`` or None; renders shared by key),
     appending rows as they finish; then write the plot and the report. Returns every row.
@@ -266,7 +267,8 @@ def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress:
 
     Several hosts (the ``JSKEL_*`` variables of ``jskel.distributed``): every process measures
     every setting, each render spread over the hosts as ``jskel render`` does, in the order of
-    process 0's list of settings still to do; process 0 alone reads and writes ``out``."""
+    process 0's list of settings still to do; process 0 alone reads and writes ``out``.
+    ``command`` (how the sweep was asked for) goes into the report's provenance line."""
     writer = jax.process_index() == 0
     path = out / "results.csv"
     keys = keys_of([s for s, _ in jobs])
@@ -290,5 +292,5 @@ def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress:
             _append(path, cols, peer_rows(sweep, ref_jobs[-1], {}, levels), len(levels), 0, False)
     rows = list(read_done(path).values())
     plot = plot_sweep_file(rows, keys, sweep.metrics[0], out / "pareto.png")
-    write_report(sweep, rows, keys, out / "report.md", plot)
+    write_report(sweep, rows, keys, out / "report.md", plot, provenance(command))
     return rows
