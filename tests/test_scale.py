@@ -250,7 +250,7 @@ def test_packets_share_short_walks_on_coherent_rays_and_equal_per_ray_walks():
 
 
 def test_chunks_per_call_equal_one_chunk_per_call(rng):
-    """``map_chunks`` with several chunks per compiled call (a ``lax.map`` over them, the CPU's
+    """``map_chunks`` with several chunks per compiled call (a loop over them, the CPU's
     default on big batches) returns what one chunk per call returns, bit for bit: the bins cast
     of a random tree, 20 chunks of 512 rays run as 3 calls of 8 (the last call's 4 padding
     chunks skipped). Chunks per call are powers of two up to the group: a few programs for
