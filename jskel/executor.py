@@ -1,8 +1,9 @@
 """The executor: a batch function over a ray batch of any size, chunked and compiled once.
 
 :func:`map_chunks` evaluates ``batch_fn(params, rays_chunk)`` in fixed-size chunks so memory
-stays bounded and only one shape is ever compiled (ahead of time, its seconds reported apart
-from the run); it chooses the chunk for a memory budget, groups chunks per call, and shards the
+stays bounded and only a few shapes are ever compiled, the same for every batch size in a bucket
+(:func:`batch_bucket`, :func:`calls_grouping`; ahead of time, the seconds reported apart from
+the run); it chooses the chunk for a memory budget, groups chunks per call, and shards the
 rays over devices. It knows nothing of representations: any batch function of (params, Rays)
 will do.
 """
