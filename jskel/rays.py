@@ -84,8 +84,8 @@ class Hit(NamedTuple):
     normal: (3,) unit shading normal, zero on a miss.
     uv: (2,) surface parametrization, zero on a miss.
     prim: () int32 primitive id (segment id for frusta), -1 on a miss.
-    flags: () int32 bit set of diagnostics (representation-specific, e.g. the implicit tracer's
-      candidate overflow and step cap), or None where a representation has none.
+    flags: () int32 bit set of the ``FLAG_*`` bits above (how a tracer could not decide the ray:
+      on a miss as on a hit), or None where a representation has none.
     """
 
     t: jnp.ndarray
