@@ -3,7 +3,7 @@ each representation with render.devices=one and =all and report whether every ou
 bit for bit (one JSON line).
 
 Both sides run the same chunks per call: a chunk run alone and a chunk run inside a call's
-lax.map are two XLA programs, whose shading may round the last bit of a colour apart (seen on
+loop are two XLA programs, whose shading may round the last bit of a colour apart (seen on
 the implicit blobs: 53 of 3,600 channels, 6e-8). Here 40 x 30 rays in chunks of 150 are 8
 chunks on one device and 2 per device on four, so ``auto`` would group one side only."""
 
@@ -19,7 +19,7 @@ from jskel.render import render
 cases = {
     "frusta_bvh": ("experiments/aloe.yaml", []),
     # 2 chunks per call on both sides (16 chunks of 75 on one device, 4 per device on four): with
-    # 4 devices each call's chunks are dealt out in turn (rays._interleave)
+    # 4 devices each call's chunks are dealt out in turn (executor._interleave)
     "frusta_bvh_grouped": ("experiments/aloe.yaml", ["render.chunk=75", "render.chunks_per_call=2"]),
     "frusta_blocks": ("experiments/well.yaml", []),
     "implicit_blocks": ("experiments/blobs_5000.yaml", []),
