@@ -195,6 +195,29 @@ def test_tangent_ray_is_flagged_graze_and_a_dipping_one_hits(method):
     assert np.isfinite(hit.t[1]) and hit.flags[1] == 0 and abs(hit.t[1] - t_exact) < 1e-3
 
 
+@pytest.mark.parametrize("method", ["lipschitz", "naive", "bisection"])
+def test_rays_near_tangent_hit_the_reference_or_carry_a_flag(method):
+    """Rays tangent to a ball's threshold sphere, offset by 1e-7 .. 1e-1 (log-uniform, either
+    side, seeded): each hits within tolerance of the float64 march or carries a flag."""
+    rng = np.random.default_rng(5)
+    u = rng.normal(size=(CHUNK, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    w = rng.normal(size=(CHUNK, 3))
+    w -= np.sum(w * u, 1, keepdims=True) * u
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    delta = 10.0 ** rng.uniform(-7, -1, CHUNK) * rng.choice([-1.0, 1.0], CHUNK)
+    O = w * (RHO + delta)[:, None] - 3.0 * u
+    built = implicit_model([((0, 0, 0), 1.0)], method=method, step=0.05)
+    hit, Of, Df = cast(built, O, u)
+    t_ref = np_first_root(Of - built.anchor, Df, *arrays([(-built.anchor, 1.0)]), n=32768, batch=4)
+    assert 0.2 < np.mean(np.isfinite(t_ref)) < 0.8
+    both = np.isfinite(hit.t) & np.isfinite(t_ref)
+    ok = (~np.isfinite(hit.t) & ~np.isfinite(t_ref)) | (both & (np.abs(np.where(both, hit.t, 0) - np.where(both, t_ref, 0)) <= 2e-3))
+    flag = hit.flags != 0
+    assert not np.any(~ok & ~flag), (delta[~ok & ~flag], hit.t[~ok & ~flag], t_ref[~ok & ~flag])
+    assert np.any(flag) and np.any(ok & ~flag)
+
+
 def test_step_cap_and_overflow_are_flagged():
     O, D = np.array([[0.0, 0.3, -3.0]]), np.array([[0.0, 0.0, 1.0]])
     capped, _, _ = cast(implicit_model([((0, 0, 0), 1.0)], steps=2), O, D)
