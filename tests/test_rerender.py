@@ -133,3 +133,23 @@ def test_batch_sizes_in_a_bucket_share_one_program_and_every_ray_is_computed(chu
         np.testing.assert_allclose(out["v"], want, rtol=1e-5, atol=1e-4)
         np.testing.assert_array_equal(out["i"], o[:, 0].astype(np.int32))
     assert compiled[1:] == [0] * (len(sizes) - 1), compiled
+
+
+def test_grouped_calls_over_four_devices_skip_each_devices_padding_chunks():
+    """Over four devices each grouped call's chunks are dealt out in turn and every device skips
+    its own padding chunks (some run none): the outputs equal NumPy's (a subprocess: the device
+    count is fixed at JAX's start)."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    p = subprocess.run([sys.executable, str(root / "tests" / "scripts" / "grouped_sharded.py")], cwd=root, env=env,
+                       capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    assert out["devices"] == 4 and len(out["cases"]) == 4
+    assert all(c["equal"] for c in out["cases"]), out["cases"]
