@@ -33,6 +33,15 @@ def _implicit(balls: str = "[]", tubes: str = "[]", more: str = "") -> str:
     return f"{{type: implicit, balls: {balls}, tubes: {tubes}{more}}}"
 
 
+def _zigzag(n: int, bend_deg: float = 179.5) -> str:
+    """n segments of length 2 in the x-y plane, each turning by ``bend_deg`` from the one
+    before (the k-th along (sin k*bend, cos k*bend)): n - 1 fold-backs of exactly that angle."""
+    a = np.radians(bend_deg) * np.arange(n)
+    steps = 2.0 * np.stack([np.sin(a), np.cos(a), np.zeros(n)], 1)
+    return str(np.concatenate([np.zeros((1, 3)), np.cumsum(steps, 0)]).tolist())
+
+
+JOINTS6 = "[[0,0,0],[0,1,0],[0,2,0],[0,3,0],[0,4,0],[0,5,0]]"
 BALL = "[{center: [0, 0, 0], radius: 1}]"
 BAD_OBJ = "v 0 0 0\nv nan 0 0\nv 0 1 0\nv 1 0 0\nf 1 2 3\nf 1 3 4\n"
 
@@ -72,7 +81,21 @@ TABLE = [
      ["camera.up[1]: Input should be a finite number (got nan)"]),
     ("light_direction_zero", _body(extra="lights: [{direction: [0, 0, 0]}]\n"),
      ["lights[0].direction: direction is the zero vector (got [0, 0, 0])"]),
+    ("frusta_parents_every_bad_index", _body(_skeleton(JOINTS6, "[0.1, 0.1, 0.1, 0.1, 0.1, 0.1]", "[-1, 9, 1, -5, 4, 4]")),
+     ["object.skeleton.parents: 2 joints: index out of range [-1, 5] (indices 1: 9, 3: -5)",
+      "object.skeleton.parents[4]: is the joint itself (got 4)"]),
+    ("frusta_parents_every_cycle", _body(_skeleton(JOINTS6, "[0.1, 0.1, 0.1, 0.1, 0.1, 0.1]", "[2, 0, 1, 4, 5, 3]")),
+     ["object.skeleton.parents: 2 cycles: parents make a cycle (indices 0: 0 -> 2 -> 1 -> 0, 3: 3 -> 4 -> 5 -> 3)"]),
+    ("frusta_parents_one_cycle_beside_a_tree", _body(_skeleton(JOINTS6, "[0.1, 0.1, 0.1, 0.1, 0.1, 0.1]", "[-1, 0, 1, 5, 3, 4]")),
+     ["object.skeleton.parents[3]: parents make a cycle (got 3 -> 5 -> 4 -> 3)"]),
+    ("frusta_fold_back", _body(_skeleton(_zigzag(2), "[0.2, 0.2, 0.2]", "[-1, 0, 1]")),
+     ["object.skeleton.joints[1]: folds back by more than 179 degrees (got 179.5 degrees from segment 0 to segment 1)"]),
     # several problems, all in one error: field errors and the checks between fields together
+    ("several_fold_backs", _body(_skeleton(_zigzag(3), "[0.2, -0.2, 0.2, 0.2]", "[-1, 0, 1, 2]"), camera="{fov_deg: 0, width: 16, height: 16}"),
+     ["camera.fov_deg: Input should be greater than 0 (got 0)",
+      "object.skeleton.radii[1]: Input should be greater than or equal to 0 (got -0.2)",
+      "object.skeleton.joints: 2 joints: folds back by more than 179 degrees "
+      "(indices 1: 179.5 degrees from segment 0 to segment 1, 2: 179.5 degrees from segment 1 to segment 2)"]),
     ("several_frusta", _body(_skeleton("[[0,0,0],[0,1,0],[0,1,0],[.nan,3,0]]", "[0.3, -0.2, 0.1, 0.1]", "[-1, 0, 1, 2]"),
                              camera="{fov_deg: 0, width: 16, height: 16}", extra="lights: [{direction: [0, 0, 0]}]\n"),
      ["camera.fov_deg: Input should be greater than 0 (got 0)",
@@ -183,3 +206,23 @@ def test_a_cell_colour_map_names_every_bad_texel(tmp_path):
     with pytest.raises(ConfigError) as e:
         cells.precompute(cfg)
     assert e.value.lines == ["object.color_map: 2 texels: not finite (indices (0, 0, 0): [nan, 0.5, 0.5], (1, 2, 3): [0.5, inf, 0.5])"]
+
+
+def test_validate_skeleton_every_value_parent_and_cycle_at_once():
+    from jskel import frusta
+
+    joints = [[0, 0, 0], [np.nan, 1, 0], [0, 2, 0], [0, 3, 0], [0, 4, 0], [0, 5, 0]]
+    with pytest.raises(ConfigError) as e:
+        frusta.validate_skeleton(joints, [0.1, 0.1, -0.1, 0.1, 0.1, 0.1], [-1, 0, 7, 4, 3, 5])
+    assert e.value.lines == [
+        "object.skeleton.joints[1]: not finite (got [nan, 1, 0])",
+        "object.skeleton.radii[2]: negative radius (got -0.1)",
+        "object.skeleton.parents[2]: index out of range [-1, 5] (got 7)",
+        "object.skeleton.parents[5]: is the joint itself (got 5)",
+    ]
+    with pytest.raises(ConfigError) as e:  # the indices fine: every cycle, the NaN joint still named
+        frusta.validate_skeleton(joints, [0.1] * 6, [-1, 0, 1, 4, 3, 0])
+    assert e.value.lines == [
+        "object.skeleton.joints[1]: not finite (got [nan, 1, 0])",
+        "object.skeleton.parents[3]: parents make a cycle (got 3 -> 4 -> 3)",
+    ]

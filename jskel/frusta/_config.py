@@ -10,6 +10,7 @@ from pydantic import Field, field_validator, model_validator
 from .. import checks
 from ..config import RGB, StrictModel, Vec3
 from ..skeletons import RepairPolicy
+from ._skeleton import topology_problems
 
 Radius = Annotated[float, Field(ge=0.0)]
 
@@ -96,8 +97,9 @@ class SkeletonConfig(StrictModel):
 
 def explicit_problems(data: dict) -> list[str]:
     """Explicit joints' problems between fields, all of them (NaN, inf and negative radii are
-    the fields' own): counts that differ from the joints', segments of zero length (ends within
-    1e-9 of the skeleton's extent, the build's bound) and segments of radius 0 at both ends."""
+    the fields' own): counts that differ from the joints', parents out of range, cycles and
+    fold-backs (``topology_problems``), segments of zero length (ends within 1e-9 of the
+    skeleton's extent, the build's bound) and segments of radius 0 at both ends."""
     j, r, c = checks.floats(data.get("joints"), 3), checks.floats(data.get("radii")), checks.floats(data.get("colors"), 3)
     p = checks.floats(data.get("parents"))
     if j is None:
@@ -106,8 +108,11 @@ def explicit_problems(data: dict) -> list[str]:
     lines = [] if r is None else checks.count_mismatch("radii", r.size, n, "joints")
     lines += [] if p is None else checks.count_mismatch("parents", p.size, n, "joints")
     lines += [] if c is None else checks.count_mismatch("colors", c.shape[0], n, "joints")
-    if lines or r is None or p is None or r.ndim != 1 or p.ndim != 1 or not np.all((p == np.round(p)) & (p >= -1) & (p < n)):
-        return lines  # parents out of range or shapes off: the segments are not known (the build names the parent)
+    if lines or r is None or p is None or r.ndim != 1 or p.ndim != 1 or not np.all(p == np.round(p)):
+        return lines  # shapes off or a parent not an integer (the field's own error): the segments are not known
+    lines += topology_problems(j, p)  # every bad parent index, cycle and fold-back
+    if not np.all((p >= -1) & (p < n)):
+        return lines
     p = p.astype(np.int64)
     kids = np.nonzero((p >= 0) & (p != np.arange(n)))[0]
     fin = np.all(np.isfinite(j), axis=1)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import checks, skeletons
+from ..config import ConfigError
 from ._build import build_frusta
 from ._config import FrustaConfig, SkeletonConfig, array_problems
 from ._skeleton import topology, validate_skeleton
@@ -35,8 +36,9 @@ def file_arrays(sk: SkeletonConfig):
     try:  # what repair leaves for the build to reject, named by the file's node ids and lines
         j, _, p = validate_skeleton(s.joints, s.radii, s.parents, "object.skeleton")
         topology(j, p, "object.skeleton")
-    except ValueError as e:
-        raise ValueError(skeletons.name_nodes(str(e), s, "object.skeleton", _FILE_PATH)) from None
+    except ValueError as e:  # each problem (a ConfigError's lines) named on its own
+        lines = [skeletons.name_nodes(x, s, "object.skeleton", _FILE_PATH) for x in getattr(e, "lines", [str(e)])]
+        raise ConfigError(lines) from None
     colors = None
     if sk.colors is not None:
         colors = np.asarray(sk.colors, np.float64)
