@@ -24,6 +24,7 @@ from ..executor import map_chunks
 from ..interface import Object
 from ._aov import write_aovs as write_aovs
 from ._sheet import aov_sheet as aov_sheet
+from ._sheet import panels_of as panels_of
 from ..shading import Lights as Lights
 from ..shading import Shading as Shading
 from ..shading import encode_png as encode_png
@@ -321,4 +322,4 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
         run["memory_budget"] = fr.res.memory
     return RenderResult(hits, fr.rgb.astype(np.float32), fr.image, run, aovs)
 
-__all__ = ["aov_sheet", "Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "framed", "lights_from_config", "output_transform", "peak_rss_mb", "camera_rays", "render", "render_scene", "shade_one", "shading_from_config", "write_aovs"]
+__all__ = ["aov_sheet", "Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "framed", "lights_from_config", "output_transform", "panels_of", "peak_rss_mb", "camera_rays", "render", "render_scene", "shade_one", "shading_from_config", "write_aovs"]

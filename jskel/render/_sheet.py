@@ -59,27 +59,35 @@ def depth_panel(depth: np.ndarray) -> np.ndarray:
     return out
 
 
-def panels(folder) -> dict:
-    """The six panels (H, W, 3) uint8 of the AOV files in ``folder``."""
-    import imageio.v3 as iio
-
-    f = Path(folder)
-    image = np.asarray(iio.imread(f / "image.png"))[..., :3]
-    depth = np.load(f / "depth.npy")
+def panels_of(image, depth, normal, uv, prim, flags=None) -> dict:
+    """The six panels (H, W, 3) uint8 of one render's outputs: ``image`` (H, W, 3) uint8,
+    ``depth`` (H, W) (+inf on a miss), ``normal`` (H, W, 3), ``uv`` (H, W, 2), ``prim`` (H, W)
+    (-1 on a miss), ``flags`` (H, W) or None (none recorded: every pixel grey)."""
+    depth = np.asarray(depth)
     hit = np.isfinite(depth)[..., None]
-    normal = np.load(f / "normal.npy").astype(np.float64)
-    uv = np.load(f / "uv.npy").astype(np.float64)
-    prim = np.load(f / "prim.npy")
-    flags = np.load(f / "flags.npy") if (f / "flags.npy").exists() else np.zeros(depth.shape, np.int32)
+    normal = np.asarray(normal, np.float64)
+    uv = np.asarray(uv, np.float64)
+    prim = np.asarray(prim)
+    flags = np.zeros(depth.shape, np.int32) if flags is None else np.asarray(flags)
     uv_rgb = np.concatenate([uv - np.floor(uv), np.zeros(uv.shape[:-1] + (1,))], axis=-1)
     return {
-        "image": image,
+        "image": np.asarray(image)[..., :3],
         "depth": depth_panel(depth),
         "normals": np.where(hit, np.round(np.clip(normal * 0.5 + 0.5, 0, 1) * 255), 0).astype(np.uint8),
         "uv": np.where(hit, np.round(np.clip(uv_rgb, 0, 1) * 255), 0).astype(np.uint8),
         "ids": np.where((prim >= 0)[..., None], hash_colors(np.maximum(prim, 0)), 0).astype(np.uint8),
         "flags": np.where((flags != 0)[..., None], hash_colors(flags), NO_FLAGS).astype(np.uint8),
     }
+
+
+def panels(folder) -> dict:
+    """The six panels (H, W, 3) uint8 of the AOV files in ``folder``."""
+    import imageio.v3 as iio
+
+    f = Path(folder)
+    flags = np.load(f / "flags.npy") if (f / "flags.npy").exists() else None
+    return panels_of(iio.imread(f / "image.png"), np.load(f / "depth.npy"), np.load(f / "normal.npy"), np.load(f / "uv.npy"),
+                     np.load(f / "prim.npy"), flags)
 
 
 def aov_sheet(folder, name: str = "aov_sheet.png") -> Path:
