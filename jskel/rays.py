@@ -41,6 +41,7 @@ FLAG_STEP_CAP = 2  # an iterative search stopped at its step cap before finishin
 FLAG_NO_BRACKET = 4  # no start point inside was found, but a bound says the field may still cross (Rouiller Fig. 7)
 FLAG_FLOAT_SPACING = 8  # the tolerance was below a few ulps of t there: the march stepped by those ulps instead
 FLAG_GRAZE = 16  # the field came within the tolerance of the threshold and left again without crossing
+FLAG_TIR = 32  # not a lost ray: the refracted ray underwent total internal reflection (jskel.optics.refract), set by the integrator
 
 #: the name of every bit, in bit order (``run.json``'s ``flags`` counts are keyed by these)
 FLAG_NAMES = {
@@ -49,6 +50,7 @@ FLAG_NAMES = {
     FLAG_NO_BRACKET: "no_bracket",
     FLAG_FLOAT_SPACING: "float_spacing",
     FLAG_GRAZE: "graze",
+    FLAG_TIR: "tir",
 }
 
 

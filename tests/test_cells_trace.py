@@ -11,7 +11,8 @@ import pytest
 import reference as ref
 from jskel import cells, cli, executor
 from jskel.cells._membership import INSIDE, unpack
-from jskel.cells._trace import first_hit, reflect, refract
+from jskel.cells._trace import first_hit
+from jskel.optics import reflect, refract
 from jskel.rays import make_rays
 from jskel.executor import map_chunks
 

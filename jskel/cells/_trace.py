@@ -18,7 +18,8 @@ bitwise those of the march without skipping; only fewer are evaluated. Refractio
 inside the object (Alg. 3.3) and skips tiles whose parts are all INSIDE the same way.
 
 Normals come from the normal map (Alg. 4.8) at the hit's voxel; reflection and refraction follow
-the law of reflection and Snell's law, with total internal reflection where sin > 1.
+the law of reflection and Snell's law, with total internal reflection where sin > 1
+(``jskel.optics``, which the integrator traces a cell object's modes with).
 """
 
 from __future__ import annotations
@@ -208,18 +209,3 @@ def cell_id(p: CellParams, x):
     cells = (p.split_cell.shape[0] - 1) // 8
     key = ((owner[0] * m + owner[1]) * m + owner[2]) * (cells + 1) + p.split_cell[s]
     return jnp.where(ok & (s > 0), key, -1).astype(jnp.int32)
-
-
-def reflect(d, n):
-    """Mirror direction of d about the unit normal n (law of reflection)."""
-    return d - 2.0 * jnp.sum(d * n) * n
-
-
-def refract(d, n, eta):
-    """Snell's law for unit d and unit n facing against d (n . d < 0), eta = n1 / n2; total
-    internal reflection returns the mirror direction. (direction, total internal reflection)."""
-    cos_i = -jnp.sum(d * n)
-    k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
-    tir = k < 0
-    t = eta * d + (eta * cos_i - safe_sqrt(k)) * n
-    return jnp.where(tir, reflect(d, n), t), tir

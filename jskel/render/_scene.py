@@ -38,7 +38,8 @@ and flags their pixels with ``FLAG_OVERFLOW`` (counted in ``run.json``, never si
 
 Shading (Whitted 1980): a hit's colour is ``(1 - kr - kt) * local + kr * L(reflected) + kt *
 L(refracted)``, where ``local`` is ambient + Lambert + Blinn-Phong with each light's
-visibility; total internal reflection turns the refracted ray into a reflected one; rays beyond
+visibility; total internal reflection turns the refracted ray into a reflected one (``jskel.optics``;
+the pixel gains the ``FLAG_TIR`` bit); rays beyond
 ``render.bounces`` contribute nothing; rays that escape take the environment's colour. Secondary
 rays (shadow, reflection, refraction) are spawned as ``jskel.spawn`` spawns them
 (``spawning.spawn_rays``): offset along the normal, to the side of their direction, by a float
@@ -63,8 +64,9 @@ import jax
 import jax.numpy as jnp
 
 from .. import registry
-from ..numerics import safe_normalize, safe_sqrt
-from ..rays import FLAG_OVERFLOW, Hit, Rays, or_flags_at
+from ..numerics import safe_normalize
+from ..optics import reflect, refract_surface
+from ..rays import FLAG_OVERFLOW, FLAG_TIR, Hit, Rays, or_flags_at
 from ..spawning import spawn_rays
 from ..wavefront import compact_map
 from ..shading import facing, light_at, shade_local
@@ -124,22 +126,11 @@ def _visibility(params: SceneParams, static: SceneStatic, hit: SceneHit, q_rays:
     return jnp.where(blocked.reshape(n, nl), 0.0, 1.0).astype(p0.dtype)
 
 
-def _reflect(d, n):
-    return d - 2.0 * jnp.sum(d * n, axis=-1, keepdims=True) * n
-
-
-def _refract(d, n_out, ior):
-    """Refracted direction through a surface of outward normal ``n_out`` (Snell's law); where
-    total internal reflection happens, the mirrored direction instead. Returns (dir, tir)."""
-    d = safe_normalize(d)
-    entering = jnp.sum(d * n_out, axis=-1) < 0
-    nf = jnp.where(entering[:, None], n_out, -n_out)
-    eta = jnp.where(entering, 1.0 / ior, ior)
-    cosi = -jnp.sum(d * nf, axis=-1)
-    k = 1.0 - eta * eta * (1.0 - cosi * cosi)
-    tir = k < 0
-    t = eta[:, None] * d + (eta * cosi - safe_sqrt(k))[:, None] * nf
-    return jnp.where(tir[:, None], _reflect(d, nf), safe_normalize(t)), tir
+def _tir(params: SceneParams, q, hits: SceneHit, kt):
+    """Which live rays of a level are refracted at their hit (``kt > 0``) beyond the critical
+    angle: ``jskel.optics.refract_surface``'s mask, for the pixels' ``FLAG_TIR`` bit."""
+    _, tir = refract_surface(q.rays.directions, hits.normal, params.mat.ior[jnp.maximum(hits.obj, 0)])
+    return q.live & (kt > 0) & tir
 
 
 class Queue(NamedTuple):
@@ -171,7 +162,7 @@ def _transmitted(m: Materials, hits: SceneHit, d, kd):
     whether it is one, and the colour factor of a ``tint`` material where the ray enters:
     0.5 + 0.5 x the colour there (Nürnberg 2011, Sec. 3.2.4), 1 elsewhere."""
     k = jnp.maximum(hits.obj, 0)
-    t, tir = _refract(d, hits.normal, m.ior[k])
+    t, tir = refract_surface(d, hits.normal, m.ior[k])
     entering = (jnp.sum(d * hits.normal, axis=-1) < 0) & ~tir
     factor = jnp.where(((m.tint[k] > 0) & entering)[:, None], 0.5 + 0.5 * kd, 1.0)
     return t, tir, factor
@@ -225,7 +216,7 @@ def spawn(params: SceneParams, static: SceneStatic, q: Queue, hits: SceneHit, kr
     cands = []
     if eff.reflection:
         with jax.named_scope("reflection_rays"):
-            r = _reflect(d, nf)
+            r = reflect(d, nf)
             kind = jnp.where(level == 0, 1, q.kind).astype(jnp.int32)
             cands.append(Queue(spawned(q.rays, hits, params.mat, r), q.weight * kr[:, None], q.pixel, kind, q.live & (kr > 0)))
     if eff.refraction:
@@ -269,6 +260,9 @@ def scene_batch(static: SceneStatic):
             hits = nearest(params, static, q.rays, q.live)
             rgb, vis, kr, kt = shade_level(params, static, q, rgb, hits, level)
             first = level == 0
+            if static.effects.refraction:  # the pixels whose refracted ray turned back (total internal reflection)
+                tir = jnp.where(_tir(params, q, hits, kt), q.pixel, n)
+                flags = flags | jnp.zeros_like(flags).at[tir].max(FLAG_TIR, mode="drop")  # one bit: a max is its or
             if levels == 1:  # the camera rays alone: slot i is pixel i, no scatter, no later level
                 return q, rgb, flags | jnp.where(q.live, hits.flags, 0), first_obj, secondary, hits, vis
             flags = or_flags_at(flags, jnp.where(q.live, q.pixel, n), hits.flags)  # a miss's flags too: a lost ray is one
