@@ -17,6 +17,8 @@ formatter places each line under the model's path (``object.tubes[0].b: ...``).
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from .config import ConfigError, _format
@@ -119,3 +121,44 @@ def validate_with(data, handler, problems):
         raise ConfigError(_format(e) + lines) from None
     raise_all(lines)
     return model
+
+
+# ---------------------------------------------------------------------- under jit: checkify
+
+#: what :func:`traced` checks of a field's entries, and the word for a failure
+KINDS = {"finite": (), "nonnegative": ("negative",), "positive": ("not positive",)}
+
+
+def traced(field: str, a, kind: str = "finite", valid=None, ids=None) -> None:
+    """Inside a function under ``jax.experimental.checkify.checkify``: check that every entry
+    (row of an (N, ...) array) of traced ``a`` is finite, and for ``kind`` ``nonnegative`` or
+    ``positive`` at least or above 0, where ``valid`` (N,) (padding rows skipped). A failure
+    names the field, the first bad entry's index (``ids[i]`` where given: the user's index of
+    a packed row) and its value, and how many are bad, in this module's form:
+    ``radii[3]: not finite (got nan); 1 of 8 entries``. Only functions that ``checkify``
+    wraps call this (the checked entry points), so unchecked programs hold none of it."""
+    import jax.numpy as jnp
+    from jax.experimental import checkify
+
+    rows = jnp.reshape(a, (a.shape[0] if a.ndim else 1, -1))
+    n, k = rows.shape
+    live = jnp.ones((n,), bool) if valid is None else jnp.asarray(valid, bool)
+    tests = [("not finite", jnp.all(jnp.isfinite(rows), axis=1))]
+    if kind != "finite":
+        tests.append((KINDS[kind][0], jnp.all(rows >= 0 if kind == "nonnegative" else rows > 0, axis=1)))
+    shown = min(k, 4)
+    got = ", ".join(f"{{v{c}:.6g}}" for c in range(shown)) + (", ..." if k > shown else "")
+    got = f"[{got}]" if k > 1 else got
+    for what, good in tests:
+        bad = live & ~good
+        i = jnp.argmax(bad)
+        checkify.check(~jnp.any(bad), f"{field}[{{i}}]: {what} (got {got}); {{count}} of {n} entries",
+                       i=i if ids is None else jnp.asarray(ids)[i], count=jnp.sum(bad), **{f"v{c}": rows[i, c] for c in range(shown)})
+
+
+def raise_checked(err) -> None:
+    """Raise a ``checkify`` error as one :class:`ConfigError` line (without checkify's
+    ``(check failed at ...)`` suffix); nothing when no check failed."""
+    msg = err.get()
+    if msg:
+        raise ConfigError([re.sub(r" \((`check` failed|check failed at).*$", "", msg.splitlines()[0])])

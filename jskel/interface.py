@@ -107,7 +107,7 @@ class Preliminary(NamedTuple):
 #: the members a representation may give as module-level functions of its folder, picked up by
 #: ``Representation.__init_subclass__(module=...)``
 FUNCTION_MEMBERS = ("build", "intersect_one", "intersect_batch", "cast", "surface", "occluded", "albedo", "inside",
-                    "traversal_stats")
+                    "traversal_stats", "traced_fields")
 
 
 class Representation:
@@ -205,6 +205,12 @@ class Representation:
         """Deterministic work counts per ray (nodes, leaves) for the benchmarks; {} if none."""
         return {}
 
+    def traced_fields(self, params) -> dict:
+        """The params' entries :func:`checked_intersect` verifies under jit: ``{field: (array
+        (N, ...), kind, valid (N,) or None, ids (N,) or None)}`` as ``jskel.checks.traced``
+        takes them (kind ``finite``, ``nonnegative`` or ``positive``); {} by default."""
+        return {}
+
     def __repr__(self) -> str:
         return f"<representation {self.name!r}>"
 
@@ -283,3 +289,39 @@ def surface(obj: Object, rays: Rays, pre: Preliminary) -> Hit:
 def occluded(obj: Object, rays: Rays):
     """(N,) bool any-hit of a batch (shadow rays): :meth:`Representation.occluded` of ``obj``."""
     return obj.representation.occluded(obj.params, obj.static, rays)
+
+
+def _checks(obj: Object, rays: Rays) -> None:
+    """``jskel.checks.traced`` on the rays' origins and directions and on every entry of the
+    representation's :meth:`Representation.traced_fields`."""
+    from . import checks
+
+    checks.traced("rays.origins", rays.origins)
+    checks.traced("rays.directions", rays.directions)
+    for name, (a, kind, valid, ids) in obj.representation.traced_fields(obj.params).items():
+        checks.traced(name, a, kind, valid, ids)
+
+
+@jax.jit
+def _checked_jit(obj: Object, rays: Rays):
+    """(checkify error, :func:`intersect`) in one program: only the checks are checkified
+    (checkify does not enter a vmap of a while loop, which every marching tracer is)."""
+    from jax.experimental import checkify
+
+    err, _ = checkify.checkify(_checks)(obj, rays)
+    return err, intersect(obj, rays)
+
+
+def checked_intersect(obj: Object, rays: Rays) -> Hit:
+    """:func:`intersect` with its traced inputs checked inside the compiled function
+    (``jax.experimental.checkify``): values that turn bad under jit (a NaN ray, a radius an
+    optimiser drove negative, a NaN centre) raise one ValueError (``ConfigError``) naming the
+    field, the index and the value, e.g. ``rays.origins[5]: not finite (got [nan, 0.0, 1.0]);
+    1 of 64 entries``, instead of returning silent misses. One module-level jit (cached per
+    representation and static options, as :func:`intersect`); :func:`intersect` itself holds
+    no check."""
+    from . import checks
+
+    err, hit = _checked_jit(obj, rays)
+    checks.raise_checked(err)
+    return hit

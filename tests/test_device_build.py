@@ -72,6 +72,20 @@ def test_device_rebuild_on_random_skeletons_and_bad_joints():
         bad[5] = bad[p[5]]
         with pytest.raises(ValueError, match=r"joints\[5\]"):
             rb(bad, r)
+        # the device part for JAX values, checked under jit (checkify): the same fields as the
+        # host-validated rebuild; a NaN radius and two joints that met, each named with its index
+        got = rb.checked(jnp.asarray(j2, jnp.float32), jnp.asarray(r, jnp.float32)).plain.frusta
+        v = np.asarray(dev.params.plain.frusta.valid)
+        for name in ("c1", "h", "r1", "r2"):
+            np.testing.assert_allclose(np.asarray(getattr(got, name))[v], np.asarray(getattr(dev.params.plain.frusta, name))[v], rtol=1e-5, atol=1e-6)
+        r_nan = r.copy()
+        r_nan[3] = np.nan
+        with pytest.raises(ValueError) as e:
+            rb.checked(jnp.asarray(j2, jnp.float32), jnp.asarray(r_nan, jnp.float32))
+        assert e.value.lines == [f"object.skeleton.radii[3]: not finite (got nan); 1 of {n} entries"]
+        with pytest.raises(ValueError) as e:
+            rb.checked(jnp.asarray(bad, jnp.float32), jnp.asarray(r, jnp.float32))
+        assert e.value.lines == [f"object.skeleton.segment_length[5]: not positive (got 0); 1 of {int(np.sum(p >= 0))} entries"]
 
 
 def test_t_is_differentiable_in_the_joints_through_planes_and_frames():

@@ -281,6 +281,13 @@ def environment(env: jnp.ndarray, d):
     return env[i, j]
 
 
+def traced_fields(p: CellParams) -> dict:
+    """What ``interface.checked_intersect`` verifies of a traced cell object's placement: its
+    corner ``lo`` finite, its tile edge ``size`` and search ``step`` positive."""
+    return {"lo": (jnp.reshape(p.lo, (1, 3)), "finite", None, None), "size": (jnp.reshape(p.size, (1,)), "positive", None, None),
+            "step": (jnp.reshape(p.step, (1,)), "positive", None, None)}
+
+
 @final
 class _Cells(Representation, module=__name__):
     """The cells representation as the registry hands it to the renderer."""

@@ -56,7 +56,10 @@ def rebuilder(cfg, dtype=np.float32):
     skeleton of ``cfg`` (same parents): the first call's host build is the template (its
     topology, anchor, colours, padding and static options); every call after rebuilds the plain
     segments' fields and BVH on the device (:func:`frusta_fields`, one jitted function). The
-    joints are validated on the host (NaN, negative radii, zero-length segments: ValueError)."""
+    joints are validated on the host (NaN, negative radii, zero-length segments: ValueError).
+    For joints and radii that are JAX values (traced, or kept on the device), ``fn.params``
+    rebuilds the params alone, unchecked, and ``fn.checked`` the same with ``checkify``
+    checks naming a bad joint, radius or segment (:func:`_traced_rebuild`)."""
     from ._config import array_problems
     from ._edits import host_frusta
     from ._pack import Group
@@ -86,4 +89,45 @@ def rebuilder(cfg, dtype=np.float32):
         scene = tpl.params._replace(plain=Group(params, g.block_c, g.block_r, bvh))
         return dataclasses.replace(tpl, params=scene, bounds=(np.min(j - rmax, 0), np.max(j + rmax, 0)))
 
+    fn.params, fn.checked = _traced_rebuild(tpl, topo, dtopo, twist, levels)
     return fn
+
+
+def _traced_rebuild(tpl, topo, dtopo, twist, levels):
+    """The rebuild's device part for traced joints and radii, unchecked and checked:
+
+    * ``params(joints, radii) -> FrustaScene``: world joints (J, 3) and radii (J,) as JAX
+      values (under ``jit``, ``grad``, an optimiser's loop), the anchor subtracted in the
+      working dtype; nothing is validated (a NaN gives NaN fields);
+    * ``checked(joints, radii) -> FrustaScene``: the same compiled with ``checkify`` checks
+      (joints finite, radii finite and not negative, every segment longer than 0, by its end
+      joint): a ValueError naming the field, the index and the value, e.g.
+      ``object.skeleton.radii[3]: not finite (got nan); 1 of 12 entries``."""
+    from jax.experimental import checkify
+
+    from ._pack import Group
+
+    g, dtype = tpl.params.plain, tpl.params.plain.frusta.h.dtype
+    anchor = jnp.asarray(tpl.anchor, dtype)
+
+    def params(joints, radii):
+        p, bvh = _core(jnp.asarray(joints, dtype) - anchor, jnp.asarray(radii, dtype), twist, dtopo, g.frusta, tpl.static.leaf, levels)
+        return tpl.params._replace(plain=Group(p, g.block_c, g.block_r, bvh))
+
+    def _checks(joints, radii):
+        checks.traced("object.skeleton.joints", joints)
+        checks.traced("object.skeleton.radii", radii, "nonnegative")
+        length = jnp.sqrt(jnp.sum((joints[topo.seg_end] - joints[topo.seg_start]) ** 2, axis=1))
+        checks.traced("object.skeleton.segment_length", length, "positive", ids=topo.seg_end)
+
+    @jax.jit
+    def compiled(joints, radii):
+        err, _ = checkify.checkify(_checks)(joints, radii)
+        return err, params(joints, radii)
+
+    def checked(joints, radii):
+        err, out = compiled(jnp.asarray(joints, dtype), jnp.asarray(radii, dtype))
+        checks.raise_checked(err)
+        return out
+
+    return params, checked

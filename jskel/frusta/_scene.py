@@ -258,6 +258,19 @@ def inside(scene: FrustaScene, static: Static, point):
     return jnp.any(jnp.stack([_inside_one(f, point) for f in groups]))
 
 
+def traced_fields(scene: FrustaScene) -> dict:
+    """What ``interface.checked_intersect`` verifies of traced frusta params, each segment by its
+    skeleton segment id (``sid``; padding skipped): its base centre ``c1`` finite, its length
+    ``h`` positive (joints that met), its radii at base and top ``r1``, ``r2`` not negative."""
+    out = {}
+    for prefix, g in (("segments", scene.plain), ("relief_segments", scene.relief)):
+        if g is not None:
+            f = g.frusta
+            for name, kind in (("c1", "finite"), ("h", "positive"), ("r1", "nonnegative"), ("r2", "nonnegative")):
+                out[f"{prefix}.{name}"] = (getattr(f, name), kind, f.valid, f.sid)
+    return out
+
+
 @final
 class _Frusta(Representation, module=__name__):
     """The frusta representation as the registry hands it to the renderer."""

@@ -229,6 +229,16 @@ def inside(scene: ImplicitScene, static: Static, point):
     return shaped_field(scene.prims, point, static.quality.shape, tn.threshold, tn.disp) > tn.threshold
 
 
+def traced_fields(scene: ImplicitScene) -> dict:
+    """What ``interface.checked_intersect`` verifies of traced implicit params, each primitive by
+    its index in the config (balls, tubes, then bones' tubes; padding skipped): its ends ``a``, ``b`` finite,
+    its radii ``ra``, ``rb`` not negative, and the threshold positive."""
+    p = scene.prims
+    ids = scene.prim_id[: p.a.shape[0]]
+    out = {f"primitives.{n}": (getattr(p, n), k, p.valid, ids) for n, k in (("a", "finite"), ("b", "finite"), ("ra", "nonnegative"), ("rb", "nonnegative"))}
+    return {**out, "threshold": (jnp.reshape(scene.tune.threshold, (1,)), "positive", None, None)}
+
+
 @final
 class _Implicit(Representation, module=__name__):
     """The implicit representation as the registry hands it to the renderer."""

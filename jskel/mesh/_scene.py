@@ -250,6 +250,12 @@ def inside(p: MeshParams, static: Static, point):
     return (votes[0] + votes[1] + votes[2]) >= 2
 
 
+def traced_fields(params: MeshParams) -> dict:
+    """What ``interface.checked_intersect`` verifies of a traced mesh: every triangle's three
+    vertices finite, by triangle index."""
+    return {f"triangles.v{k}": (getattr(params, f"v{k}"), "finite", None, None) for k in range(3)}
+
+
 @final
 class _Mesh(Representation, module=__name__):
     """The mesh representation as the registry hands it to the renderer."""
