@@ -15,7 +15,7 @@ import pytest
 import test_conformance as conformance
 from jskel import registry
 from jskel.config import ConfigError
-from jskel.interface import Object, checked_intersect, intersect
+from jskel.interface import Object, _checked_jit, checked_intersect, intersect
 
 N = conformance.N
 
@@ -61,6 +61,7 @@ def _bad_params(name, params):
 def test_checked_intersect_names_the_bad_traced_value(case):
     obj = Object.of(case.rep, case.built)
     hit = checked_intersect(obj, case.rays)  # good values: the hits, nothing raised
+    compiled = _checked_jit._cache_size()
     np.testing.assert_array_equal(np.isfinite(np.asarray(hit.t)), np.isfinite(case.batch.t))
     np.testing.assert_allclose(np.asarray(hit.t)[np.isfinite(case.batch.t)], case.batch.t[np.isfinite(case.batch.t)], rtol=1e-5)
     o = np.asarray(case.rays.origins).copy()
@@ -72,6 +73,7 @@ def test_checked_intersect_names_the_bad_traced_value(case):
     with pytest.raises(ValueError) as e:
         checked_intersect(Object(params, case.built.static, case.name), case.rays)
     assert e.value.lines == [line]
+    assert _checked_jit._cache_size() == compiled  # new values, the same program
 
 
 def test_the_unchecked_intersect_is_the_representations_batch_alone(case):
