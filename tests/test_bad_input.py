@@ -67,6 +67,12 @@ TABLE = [
      ["object.balls[0].center[0]: Input should be a finite number (got inf)"]),
     ("implicit_bone_no_length", _body(_implicit(more=", bones: [{name: arm, head: [0, 1, 0], tail: [0, 1, 0], tube: [0.2, 0.1]}]")),
      ["object.bones[0].tail: equals its head; a bone needs a length (got [0, 1, 0])"]),
+    ("implicit_bones_every_unknown_parent_and_cycle", _body(_implicit(BALL, more=", bones: [" + ", ".join(
+        f"{{name: {n}, parent: {p}, head: [0, {k}, 0], tail: [0, {k + 1}, 0]}}"
+        for k, (n, p) in enumerate((("a", "b"), ("b", "a"), ("c", "ghost"), ("d", "e"), ("e", "f"), ("f", "d")))) + "]")),
+     ["object.bones[2].parent: unknown bone 'ghost'",
+      "object.bones[0].parent: bone parents make a cycle (a -> b -> a)",
+      "object.bones[3].parent: bone parents make a cycle (d -> e -> f -> d)"]),
     ("implicit_projector_axis_zero", _body(_implicit(BALL, more=", texture: brick, projector: {axis: [0, 0, 0]}")),
      ["object.projector.axis: is the zero vector (got [0, 0, 0])"]),
     ("cells_base_radius_negative", _body("{type: cells, base: {type: sphere, radius: -1}}"),

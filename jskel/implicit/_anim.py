@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import checks
 from ..numerics import euler_xyz as euler_xyz
 
 
@@ -34,31 +35,30 @@ def key_angles(keys, frame: float) -> np.ndarray:
 
 
 def bone_order(names: list[str], parents: list[str | None], path: str = "object.bones") -> list[int]:
-    """Topological order of bones; ValueError naming an unknown parent or a cycle."""
-    index = {n: i for i, n in enumerate(names)}
-    if len(index) != len(names):
-        dup = next(n for n in names if names.count(n) > 1)
-        raise ValueError(f"{path}: bone name {dup!r} is used twice")
-    par = []
-    for i, p in enumerate(parents):
-        if p is not None and p not in index:
-            raise ValueError(f"{path}[{i}].parent: unknown bone {p!r}")
-        par.append(-1 if p is None else index[p])
-    order, state = [], [0] * len(names)
-
-    def visit(i, stack):
-        if state[i] == 2:
-            return
-        if state[i] == 1:
-            raise ValueError(f"{path}[{i}].parent: bone parents make a cycle ({' -> '.join(names[j] for j in stack + [i])})")
-        state[i] = 1
-        if par[i] >= 0:
-            visit(par[i], stack + [i])
-        state[i] = 2
-        order.append(i)
-
-    for i in range(len(names)):
-        visit(i, [])
+    """Topological order of bones (every bone after its parent); one ValueError
+    (``jskel.config.ConfigError``) naming every name used twice, every unknown parent and every
+    cycle of the parents (each by its bones, from its lowest index)."""
+    index: dict[str, int] = {}
+    for i, n in enumerate(names):
+        index.setdefault(n, i)
+    lines = [f"{path}: bone name {n!r} is used twice" for n in index if names.count(n) > 1]
+    lines += [f"{path}[{i}].parent: unknown bone {p!r}" for i, p in enumerate(parents) if p is not None and p not in index]
+    par = [index.get(p, -1) if p is not None else -1 for p in parents]  # an unknown parent: named above, a root here
+    order, cycles, state = [], [], [0] * len(names)  # state: 0 unseen, 1 on this walk, 2 placed
+    for s in range(len(names)):  # host loop over bones (tens): walk up to a placed bone or a root
+        walk, k = [], s
+        while k >= 0 and state[k] == 0:
+            state[k] = 1
+            walk.append(k)
+            k = par[k]
+        if k >= 0 and state[k] == 1:  # the walk met itself
+            cyc = walk[walk.index(k):]
+            low = cyc.index(min(cyc))
+            cycles.append(cyc[low:] + cyc[:low])
+        for j in reversed(walk):
+            state[j] = 2
+            order.append(j)
+    checks.raise_all(lines + [f"{path}[{c[0]}].parent: bone parents make a cycle ({' -> '.join(names[j] for j in c + c[:1])})" for c in cycles])
     return order
 
 
