@@ -344,7 +344,11 @@ class View:
         """The widget in a live notebook, and the current image as a PNG where widgets are not
         drawn (a notebook's stored outputs, the documentation's pages)."""
         bundle = self.widget._repr_mimebundle_(**kwargs) or {}
-        return {**bundle, "image/png": base64.b64encode(png_bytes(self.image)).decode("ascii")}
+        return {**bundle, "image/png": base64.b64encode(png_bytes(self.image)).decode("ascii"), "text/plain": repr(self)}
+
+    def __repr__(self) -> str:
+        h, w = self.image.shape[:2]
+        return f"<jskel view of {self.base.get('name', 'experiment')!r}: {w}x{h}, AOV {self.state.aov}>"
 
 
 def view(experiment, controls: dict[str, Control] | None = None, knobs: dict[str, Control] | None = None,

@@ -6,7 +6,7 @@
 # (Sec. 2.1-2.2, Eq. 3-5) and ray cast analytically (Sec. 2.4-2.5). This notebook builds a small
 # skeleton, draws its cutting planes, renders it with the (u, v) parametrisation of Eq. 6-7 and
 # the normals of Eq. 8 as images, then changes a radius and renders again (no recompilation:
-# radii are traced values).
+# radii are traced values), and ends with `jskel.view`: the render with controls.
 
 # %%
 import os
@@ -90,3 +90,21 @@ for a in axs:
     a.axis("off")
 plt.show()
 assert res2.run["compile_s"] == 0.0
+
+# %% [markdown]
+# ## Explore with controls
+# `jskel.view` shows the render with ipywidgets controls: orbit and zoom, the AOV shown (image,
+# depth, normals, uv, ids, flags), the representation's quality knobs and the object's traced
+# parameters (here a scale of every radius and an offset of the last joint). Moving a control
+# renders again with the programs already compiled; the status line counts the programs each
+# render handed to XLA. Here two controls are set from code, as moving them does; a page of
+# the documentation shows the image as it was left.
+
+# %%
+import jskel
+
+v = jskel.view(raw, width=W, height=H)
+v.sliders["radius scale"].value = 1.25
+v.sliders["azimuth"].value = 40.0
+assert v.programs == 0, "a traced change compiled a program"
+v

@@ -22,6 +22,7 @@ SMALL = os.environ.get("JSKEL_NOTEBOOK_SMALL") == "1"  # CI runs every notebook 
 ROOT = next(p for p in [Path.cwd(), *Path.cwd().parents] if (p / "experiments").is_dir())
 S = 64 if SMALL else 256
 STEPS = [2, 8, 32] if SMALL else [2, 4, 8, 16, 32, 64]
+plt.rcParams["figure.dpi"] = 60  # the stored close-ups stay small
 
 
 def run(steps):

@@ -1,14 +1,18 @@
 """Pair each notebook script ``NN_name.py`` (jupytext "percent" format: cells start at ``# %%``,
 markdown cells at ``# %% [markdown]`` with ``# `` prefixed lines) with ``NN_name.ipynb``, stored
-without outputs. ``python notebooks/pair.py`` rewrites every .ipynb from its script; the tests
-check that each stored notebook equals its script's conversion and carries no outputs, then run
-the scripts' cells (which is what executing the notebooks runs).
+with the outputs of one run top to bottom (the documentation shows them as pages).
+``python notebooks/pair.py`` rewrites every .ipynb from its script, without outputs;
+``python notebooks/pair.py --execute [NN_name ...]`` also runs each (or those named) once in place (``jupyter nbconvert
+--execute --inplace``, the [dev] extra installs it) at its full size. The tests check that each
+stored notebook's cells are its script's and were run in order, then run the scripts' cells at
+a reduced size (which is what executing the notebooks runs).
 
-Written by hand (a few lines of nbformat v4 JSON) so that no notebook tooling is a dependency."""
+The conversion is written by hand (a few lines of nbformat v4 JSON)."""
 
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 from pathlib import Path
 
@@ -35,9 +39,9 @@ def cells_of(text: str) -> list[tuple[str, str]]:
 
 def notebook(text: str) -> dict:
     out = []
-    for kind, src in cells_of(text):
+    for i, (kind, src) in enumerate(cells_of(text)):
         lines = src.splitlines(keepends=True)
-        cell = {"cell_type": kind, "metadata": {}, "source": lines}
+        cell = {"cell_type": kind, "id": f"cell-{i:02d}", "metadata": {}, "source": lines}  # ids: stable across runs
         if kind == "code":
             cell.update({"execution_count": None, "outputs": []})
         out.append(cell)
@@ -49,13 +53,33 @@ def scripts() -> list[Path]:
     return sorted(p for p in HERE.glob("[0-9][0-9]_*.py"))
 
 
-def main() -> int:
+def same_cells(stored: dict, text: str) -> bool:
+    """Are the cells of the notebook ``stored`` (outputs and all) those of the script ``text``?"""
+    want = [(c["cell_type"], "".join(c["source"])) for c in notebook(text)["cells"]]
+    return [(c["cell_type"], "".join(c["source"])) for c in stored["cells"]] == want
+
+
+def execute(nb: Path) -> None:
+    """Run ``nb`` top to bottom in a fresh kernel and store its outputs in it (no widget state:
+    a stored view shows its image)."""
+    subprocess.run([sys.executable, "-m", "jupyter", "nbconvert", "--to", "notebook", "--execute", "--inplace",
+                    "--ExecutePreprocessor.timeout=1200", "--ExecutePreprocessor.store_widget_state=False", str(nb)],
+                   check=True, cwd=HERE)
+
+
+def main(argv: list[str]) -> int:
+    names = [a for a in argv if not a.startswith("--")]  # e.g. 04_cells: only those
     for py in scripts():
+        if names and py.stem not in names:
+            continue
         nb = py.with_suffix(".ipynb")
         nb.write_text(json.dumps(notebook(py.read_text()), indent=1, ensure_ascii=False) + "\n")
         print(f"{py.name} -> {nb.name}")
+        if "--execute" in argv:
+            execute(nb)
+            print(f"  ran {nb.name}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(sys.argv[1:]))

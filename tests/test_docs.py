@@ -53,8 +53,8 @@ def test_every_public_name_has_a_docstring(name):
 
 
 def test_docs_site_builds_strict(tmp_path):
-    if importlib.util.find_spec("mkdocs") is None or importlib.util.find_spec("mkdocstrings") is None:
-        pytest.skip("mkdocs and mkdocstrings are not installed (pip install -e '.[dev]' installs them)")
+    if any(importlib.util.find_spec(m) is None for m in ("mkdocs", "mkdocstrings", "mkdocs_jupyter")):
+        pytest.skip("mkdocs, mkdocstrings and mkdocs-jupyter are not all installed (pip install -e '.[dev]' installs them)")
     env = dict(os.environ, NO_MKDOCS_2_WARNING="1")
     proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
@@ -71,6 +71,12 @@ def test_docs_site_builds_strict(tmp_path):
     results = (tmp_path / "site" / "results" / "index.html").read_text(encoding="utf-8")
     files = sorted(p.name for p in (ROOT / "docs").glob("*.jsonl"))
     assert files and not [f for f in files if f"<h2 id=\"{f.replace('.', '')}\">" not in results], "a result file has no section"
+    # every notebook is a page showing the figures stored in it (the build does not run them)
+    notebooks = sorted(p.stem for p in (ROOT / "notebooks").glob("[0-9][0-9]_*.ipynb"))
+    assert notebooks == sorted(p.stem for p in (ROOT / "docs" / "notebooks").glob("*.ipynb")), "docs/notebooks/ lacks a notebook"
+    for name in notebooks:
+        page = (tmp_path / "site" / "notebooks" / name / "index.html").read_text(encoding="utf-8")
+        assert "jp-RenderedImage" in page and "data:image/png;base64," in page, f"notebooks/{name}: no stored figure shown"
 
 
 # --- the configuration reference: every key of every file the project reads has a description ---
