@@ -311,18 +311,6 @@ def _binned(batch: _Batch, list1, n1, lin, best):
     return t.reshape(n_pad)[:batch.n], idx.reshape(n_pad)[:batch.n], tested
 
 
-def _order(x):
-    """``jnp.argsort(x, stable=True)`` of a short vector without a sort: each entry's rank is
-    the entries before it in the order (smaller, or equal and earlier; NaN as +inf). A sort in
-    the block loop compiled to an XLA:CPU sort thunk that cannot be serialized, so neither
-    JAX's persistent cache nor jskel's stored executables could keep the render's program."""
-    x = jnp.where(jnp.isnan(x), jnp.inf, x)
-    i = jnp.arange(x.shape[0])
-    before = (x[None, :] < x[:, None]) | ((x[None, :] == x[:, None]) & (i[None, :] < i[:, None]))
-    rank = jnp.sum(before, axis=1, dtype=jnp.int32)
-    return jnp.sum(jnp.where(rank[None, :] == i[:, None], i[None, :], 0), axis=1, dtype=jnp.int32)
-
-
 def _block(batch: _Batch, list1, n1, lin, bounds, j, best, tested):
     """(best, tested) after block ``j`` of the list: its boxes sorted nearest the batch first,
     every packet tested against them, then the (packet, primitive) pairs that pass, ``q`` per
@@ -332,7 +320,7 @@ def _block(batch: _Batch, list1, n1, lin, bounds, j, best, tested):
     live = j * k + jnp.arange(k) < n1
     # the block's boxes nearest the batch first (where the batch enters each box)
     e1 = jnp.where(live, packet_entry(*batch.whole, batch.lo[ids], batch.hi[ids])[1], jnp.inf)
-    perm = _order(e1)
+    perm = jnp.argsort(e1)
     ids, live = ids[perm], live[perm]
     m2, e2 = fenced(n1 >= 0, lambda: _meets_per_packet(*bounds, batch.lo[ids], batch.hi[ids]))
     m2 = (m2 & live[None, :]).T  # (K, P): candidate-major, nearest candidates first
