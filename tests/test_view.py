@@ -21,7 +21,7 @@ from jskel.render import render
 pytest.importorskip("ipywidgets", reason="jskel.view needs ipywidgets (the [notebook] and [dev] extras install it)")
 
 import jskel  # noqa: E402
-from jskel.view import Control, State, apply, base_of, default_controls, default_knobs, full_of  # noqa: E402
+from jskel.view import Control, State, aov_image, apply, base_of, default_controls, default_knobs, full_of  # noqa: E402
 
 # test_rerender's branching skeleton and image size (64x48 in chunks of 256, 16 per call)
 JOINTS = np.array([[0, 0, 0], [0, 1.5, 0], [0.2, 3.0, 0.1], [1.0, 2.4, 0.0], [-0.8, 2.3, -0.5]], float)
@@ -149,3 +149,16 @@ def test_knobs_are_the_objects_quality_keys_and_set_its_config():
         "relief.steps": ("object.relief.steps", 32), "relief.bisection": ("object.relief.bisection", 6)}
     scaled = apply(_raw(), State(values={"k": 2.0}), {"k": Control("object.skeleton.radii", "scale", 0.5, 2.0, 1.0)})
     np.testing.assert_array_equal(scaled["object"]["skeleton"]["radii"], RADII * 2.0)
+
+
+def test_a_value_the_experiment_rejects_is_shown_and_the_image_stays():
+    w = jskel.view(_raw(), controls={"fov": Control("camera.fov_deg", "set", 10.0, 200.0, 40.0)}, knobs={})
+    image, result = w.image.copy(), w.result
+    w.sliders["fov"].value = 190.0
+    assert w.result is result and np.array_equal(w.image, image)
+    assert "camera.fov_deg" in w._status.value and "190" in w._status.value
+    w.sliders["fov"].value = 30.0  # a value it accepts renders again, with the programs it has
+    assert w.result is not result and w.programs == 0
+    np.testing.assert_array_equal(w.image, _direct({**_raw(), "camera": {**_raw()["camera"], "fov_deg": 30.0}}).image)
+    with pytest.raises(ValueError, match="aov: 'albedo' is not one of image, depth"):
+        aov_image(result, "albedo", 64, 48)
