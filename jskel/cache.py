@@ -65,9 +65,13 @@ def count_programs() -> None:
 
 def program_counts() -> dict:
     """Programs handed to XLA in this process since counting started: ``compiled`` (by XLA)
-    and ``loaded`` (from the persistent cache), and the cache directory JAX uses (or None)."""
+    and ``loaded`` (from the persistent cache), the cache directory JAX uses (or None), and
+    the executor's ``executables`` (``jskel.executables.counts``: loaded from disk, neither
+    traced nor handed to XLA, or compiled and stored)."""
+    from . import executables
+
     return {"compiled": _counts["requests"] - _counts["loaded"], "loaded": _counts["loaded"],
-            "cache_dir": jax.config.jax_compilation_cache_dir}
+            "cache_dir": jax.config.jax_compilation_cache_dir, "executables": executables.counts()}
 
 
 def default_cache_dir(env=None) -> Path | None:
@@ -135,4 +139,7 @@ def use_compilation_cache(path=None) -> Path | None:
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)
+    from . import executables  # the executor's own programs, stored whole (no tracing when warm)
+
+    executables.use_dir(None if executables.switched_off() else path / "executables")
     return path

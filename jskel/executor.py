@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import executables
 from .rays import Rays
 
 
@@ -113,7 +114,8 @@ def compile_batch_fn(batch_fn: Callable, example_args, mesh=None) -> tuple[Calla
         # shard_map: every device runs batch_fn itself on its (chunk,) share, the very program
         # an unsharded run compiles for one chunk, so the results are equal bit for bit
         fn = jax.jit(jax.shard_map(batch_fn, mesh=mesh, in_specs=(P(), P("rays")), out_specs=P("rays"), check_vma=False))
-    compiled = fn.lower(*example_args).compile()
+    # from disk when a previous process stored it (no trace, no compile), else traced, compiled and stored
+    compiled = executables.compiled_for(batch_fn, example_args, mesh, lambda: fn.lower(*example_args).compile())
     _COMPILED[key] = compiled
     while len(_COMPILED) > COMPILED_KEEP:
         _COMPILED.popitem(last=False)

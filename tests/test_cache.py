@@ -65,22 +65,36 @@ def _render(out: Path, env: dict) -> dict:
            "--set", "camera.width=16", "--set", "camera.height=12", "--set", "render.progress=false"]
     p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr[-2000:]
+    assert "warning" not in p.stderr, p.stderr
     return json.loads((out / "run.json").read_text())["programs"]
 
 
 def test_a_second_process_loads_what_the_first_compiled(tmp_path):
     """Two CLI renders with the same fresh cache directory (``JSKEL_CACHE_DIR``, JAX's own
-    variable unset): the first compiles and loads nothing, the second loads programs and
-    compiles fewer; the directory is created private and holds entries."""
-    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    variable unset): the first compiles and loads nothing and stores the render's program as
+    an executable (``jskel.executables``); the second traces and compiles none of them: it
+    loads that executable and every other program from JAX's cache. The directories are
+    created private, and the two images and AOVs are equal bit for bit."""
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "JSKEL_EXECUTABLES")}
     env["JSKEL_CACHE_DIR"] = str(tmp_path / "cache")
     first = _render(tmp_path / "o1", env)
     assert first["loaded"] == 0 and first["compiled"] > 0 and first["cache_dir"] == env["JSKEL_CACHE_DIR"]
-    assert stat.S_IMODE((tmp_path / "cache").stat().st_mode) == 0o700
-    assert len(list((tmp_path / "cache").iterdir())) >= first["compiled"] // 2
+    ex = first["executables"]
+    assert ex["dir"] == str(tmp_path / "cache" / "executables") and ex["loaded"] == 0, ex
+    assert ex["compiled"] >= 1 and ex["stored"] == ex["compiled"] and ex["unstorable"] == 0, ex
+    for d in (tmp_path / "cache", tmp_path / "cache" / "executables"):
+        assert stat.S_IMODE(d.stat().st_mode) == 0o700
+    assert len(list((tmp_path / "cache" / "executables").glob("*.jx"))) == ex["stored"]
+    assert len(list((tmp_path / "cache").glob("*-cache"))) >= first["compiled"] // 2
     second = _render(tmp_path / "o2", env)
-    assert second["loaded"] > 0 and second["compiled"] < first["compiled"], (first, second)
-    assert second["loaded"] + second["compiled"] == first["compiled"]  # the same programs, from the cache
+    assert second["executables"]["loaded"] == ex["stored"] and second["executables"]["compiled"] == 0, second
+    assert second["compiled"] == 0 and second["loaded"] > 0, (first, second)
+    # the same programs: the executor's from stored executables, every other one from JAX's cache
+    assert second["loaded"] + second["executables"]["loaded"] == first["compiled"]
+    names = sorted(p.name for p in (tmp_path / "o1").iterdir() if p.name != "run.json")
+    assert "image.png" in names and names == sorted(p.name for p in (tmp_path / "o2").iterdir() if p.name != "run.json")
+    for name in names:
+        assert (tmp_path / "o1" / name).read_bytes() == (tmp_path / "o2" / name).read_bytes(), name
 
 
 def test_the_cli_warns_once_and_runs_on_without_an_open_cache(tmp_path):

@@ -1,0 +1,204 @@
+"""Compiled executables kept on disk, so a warm process neither traces nor compiles them.
+
+JAX's persistent compilation cache (``jskel.cache``) skips XLA's compile but not tracing: a
+fresh process still traces the render's one big program (the chunk map over the bins traversal)
+before it can look the compiled program up. Here the executor (``executor.compile_batch_fn``)
+looks for the executable itself first: on a miss of its in-process cache it loads a file keyed
+by a hash of everything the program depends on (:func:`entry_key`: jskel's own source files,
+the JAX and jaxlib versions, the backend, device kind and count, the batch function's qualified
+name, the arguments' tree structure with its static aux data, their shapes and dtypes, x64 and
+``XLA_FLAGS``) and deserializes it (``jax.experimental.serialize_executable``); only without one
+does it trace and compile, then stores the result.
+
+Entries are pickles, that is code, so they are loaded only from a directory this user owns and
+no one else may write (one warning line otherwise, and everything compiles as usual), and only
+from files this user owns; each file carries the SHA-256 of its body, so a truncated or
+corrupt entry is found before anything is unpickled, compiled again and replaced (one warning
+line). Files are written to a temporary name and renamed, so a reader never sees half a file.
+
+:func:`jskel.use_compilation_cache` (the CLI's first call) turns this on in the ``executables``
+folder of jskel's cache directory (``~/.cache/jskel/jax/executables``, or under
+``JSKEL_CACHE_DIR``); ``JSKEL_EXECUTABLES=off`` leaves only JAX's cache on, ``JSKEL_CACHE=off``
+turns both off, and with ``JAX_COMPILATION_CACHE_DIR`` set no executables are stored.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import pickle
+import stat
+import sys
+import tempfile
+from functools import lru_cache
+from pathlib import Path
+from typing import Callable
+
+import jax
+import jaxlib
+import numpy as np
+
+from .cache import _warn, unsafe_reason
+
+MAGIC = b"jskel-executable-1 "
+_state: dict = {"dir": None}
+_counts = {"loaded": 0, "compiled": 0, "stored": 0, "unstorable": 0}
+
+
+def switched_off(env=None) -> bool:
+    """Whether ``JSKEL_EXECUTABLES`` asks for no stored executables (off/0/false); another
+    value than on/off is a ``ValueError``."""
+    env = os.environ if env is None else env
+    v = env.get("JSKEL_EXECUTABLES", "on").strip().lower()
+    if v not in ("on", "off", "1", "0", "true", "false", ""):
+        raise ValueError(f"JSKEL_EXECUTABLES: {env['JSKEL_EXECUTABLES']!r} is not on or off")
+    return v in ("off", "0", "false")
+
+
+def use_dir(path) -> Path | None:
+    """Load and store executables in ``path`` (created with mode 0700), or none for None.
+    A directory that cannot be made, is another user's or that group or others may write is
+    refused with one warning line; returns the directory in use or None."""
+    _state["dir"] = None
+    if path is None:
+        return None
+    path = Path(path)
+    try:
+        path.mkdir(mode=0o700, parents=True, exist_ok=True)
+        why = unsafe_reason(path)
+    except OSError as e:
+        why = f"cannot be used ({e.strerror or e})"
+    if why is not None:
+        _warn(f"stored executables {path} {why}; compiling instead of loading")
+        return None
+    _state["dir"] = path
+    return path
+
+
+def counts() -> dict:
+    """This process's executables: ``loaded`` from disk, ``compiled`` (traced and compiled by
+    the executor), ``stored``, ``unstorable`` (XLA cannot serialize them), and the directory."""
+    d = _state["dir"]
+    return dict(_counts, dir=None if d is None else str(d))
+
+
+@lru_cache(maxsize=1)
+def source_hash() -> str:
+    """SHA-256 of jskel's own Python files (paths and contents): any edit changes every key."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*.py")):
+        h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def fn_name(fn) -> str | None:
+    """A name for ``fn`` that is the same in every process: module and qualified name for a
+    module-level function, the executor's ``Grouped(fn, group)`` by its parts; None for a
+    closure, a lambda or anything else (such programs are not stored)."""
+    inner = getattr(fn, "batch_fn", None)
+    if inner is not None and hasattr(fn, "group"):
+        name = fn_name(inner)
+        return None if name is None else f"{type(fn).__module__}.{type(fn).__qualname__}({name}, {fn.group})"
+    qual, mod = getattr(fn, "__qualname__", None), getattr(fn, "__module__", None)
+    if not isinstance(qual, str) or not isinstance(mod, str) or "<" in qual:
+        return None
+    return f"{mod}.{qual}"
+
+
+def entry_key(fn, args, mesh=None) -> str | None:
+    """The hex key of ``fn`` compiled for ``args`` (and ``mesh``): None when a part of it has
+    no stable text (a closure, or aux data whose repr is an object's address)."""
+    name = fn_name(fn)
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    tree_text = str(tree)
+    if name is None or " at 0x" in tree_text:
+        return None
+    dev = jax.devices()
+    parts = (
+        source_hash(), jax.__version__, jaxlib.__version__, sys.version_info[:2],
+        dev[0].platform, dev[0].device_kind, len(dev),
+        None if mesh is None else tuple(d.id for d in mesh.devices.flat),
+        name, tree_text, tuple((tuple(np.shape(x)), str(jax.numpy.result_type(x))) for x in leaves),
+        bool(jax.config.jax_enable_x64), str(jax.config.jax_default_matmul_precision), os.environ.get("XLA_FLAGS", ""),
+    )
+    return hashlib.sha256(repr(parts).encode()).hexdigest()
+
+
+def _read(path: Path) -> bytes | None:
+    """The body of the entry at ``path`` (None when absent); ValueError when it is not this
+    user's, is writable by others, or its digest does not match (truncated or corrupt)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+    except FileNotFoundError:
+        return None
+    with os.fdopen(fd, "rb") as f:
+        st = os.fstat(f.fileno())
+        if (os.name == "posix" and st.st_uid != os.getuid()) or st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+            raise ValueError("is not this user's own private file")
+        data = f.read()
+    head, _, body = data.partition(b"\n")
+    if not head.startswith(MAGIC) or head[len(MAGIC):] != hashlib.sha256(body).hexdigest().encode():
+        raise ValueError("is truncated or corrupt")
+    return body
+
+
+def _load(path: Path, key: str, args, mesh):
+    """The executable stored at ``path``, or None (absent, or unusable: one warning line)."""
+    from jax.experimental.serialize_executable import deserialize_and_load
+
+    try:
+        body = _read(path)
+        if body is None:
+            return None
+        stored_key, payload, out_tree = pickle.loads(body)
+        if stored_key != key:
+            raise ValueError("holds another program")
+        in_tree = jax.tree_util.tree_structure((tuple(args), {}))
+        devices = None if mesh is None else list(mesh.devices.flat)
+        return deserialize_and_load(payload, in_tree, out_tree, execution_devices=devices)
+    except Exception as e:  # noqa: BLE001 - whatever is wrong with an entry, compile instead
+        _warn(f"stored executable {path} {e if isinstance(e, ValueError) else type(e).__name__}; compiling it again")
+        return None
+
+
+def _store(path: Path, key: str, compiled) -> None:
+    """Write ``compiled`` to ``path`` atomically (a temporary file in the folder, renamed);
+    one XLA cannot serialize is counted as unstorable and not written."""
+    from jax.experimental.serialize_executable import serialize
+
+    try:
+        payload, _, out_tree = serialize(compiled)
+        body = pickle.dumps((key, payload, out_tree), protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception:  # noqa: BLE001 - e.g. an XLA:CPU thunk without serialization
+        _counts["unstorable"] += 1
+        return
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(MAGIC + hashlib.sha256(body).hexdigest().encode() + b"\n" + body)
+        os.replace(tmp, path)
+        _counts["stored"] += 1
+    except OSError as e:
+        _warn(f"stored executables {path.parent}: cannot write ({e.strerror or e})")
+        Path(tmp).unlink(missing_ok=True)
+
+
+def compiled_for(fn, args, mesh, compile_: Callable):
+    """``fn``'s executable for ``args``: loaded from the directory in use when an entry for
+    its key is there, else ``compile_()`` (trace and compile), stored for the next process."""
+    d = _state["dir"]
+    key = None if d is None else entry_key(fn, args, mesh)
+    path = None if key is None else d / f"{key}.jx"
+    if path is not None:
+        got = _load(path, key, args, mesh)
+        if got is not None:
+            _counts["loaded"] += 1
+            return got
+    compiled = compile_()
+    _counts["compiled"] += 1
+    if path is not None:
+        # before its first run: once run, XLA:CPU's sort thunks hold a function pointer to their
+        # comparator and the executable no longer serializes (`LessThan` is not serializable)
+        _store(path, key, compiled)
+    return compiled

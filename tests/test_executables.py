@@ -1,0 +1,109 @@
+"""Stored executables (``jskel.executables``): loaded instead of traced, keyed on what the
+program depends on, refused from an open directory or file, recompiled and replaced when an
+entry is truncated or corrupt. One tiny program; the CLI's two-process check is in
+tests/test_cache.py."""
+
+from __future__ import annotations
+
+import os
+import stat
+
+import jax
+import numpy as np
+import pytest
+
+from jskel import executables
+
+ARGS = (np.float32(3.0), np.arange(8, dtype=np.float32))
+TRUTH = 3.0 * np.arange(8, dtype=np.float64) + 1.0  # exact in float32
+
+
+def _affine(a, x):
+    return a * x + 1.0
+
+
+def _compile():
+    return jax.jit(_affine).lower(*ARGS).compile()
+
+
+@pytest.fixture
+def store(tmp_path):
+    """A fresh private directory in use for the test, the previous one restored after."""
+    before = executables._state["dir"]
+    d = executables.use_dir(tmp_path / "x")
+    yield d
+    executables._state["dir"] = before
+
+
+def _get():
+    """(output, loaded?, compiled?) of one request for ``_affine``."""
+    n0 = dict(executables._counts)
+    out = executables.compiled_for(_affine, ARGS, None, _compile)(*ARGS)
+    n1 = executables._counts
+    return np.asarray(out), n1["loaded"] - n0["loaded"], n1["compiled"] - n0["compiled"]
+
+
+def test_a_stored_executable_is_loaded_and_computes_the_same(store, capsys):
+    assert stat.S_IMODE(store.stat().st_mode) == 0o700
+    out, loaded, compiled = _get()
+    assert (loaded, compiled) == (0, 1) and len(list(store.glob("*.jx"))) == 1
+    out2, loaded, compiled = _get()
+    assert (loaded, compiled) == (1, 0)
+    np.testing.assert_array_equal(out, TRUTH)
+    np.testing.assert_array_equal(out2, TRUTH)
+    assert capsys.readouterr().err == ""
+
+
+def test_a_change_of_source_or_versions_misses(store, monkeypatch):
+    key = executables.entry_key(_affine, ARGS)
+    _get()
+    monkeypatch.setattr(executables, "source_hash", lambda: "an edited jskel")
+    assert executables.entry_key(_affine, ARGS) != key
+    assert _get()[1:] == (0, 1)
+    monkeypatch.undo()
+    monkeypatch.setattr(executables.jax, "__version__", "0.0.1")
+    assert executables.entry_key(_affine, ARGS) != key
+    assert _get()[1:] == (0, 1)
+    monkeypatch.undo()
+    assert _get()[1:] == (1, 0)  # the first entry is still there for the original key
+    assert executables.entry_key(_affine, (ARGS[0], ARGS[1][:4])) != key  # shapes are part of the key
+    assert executables.entry_key(lambda a, x: a, ARGS) is None  # a lambda has no stable name: not stored
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip"])
+def test_a_damaged_entry_is_compiled_again_and_replaced(store, capsys, damage):
+    _get()
+    (path,) = store.glob("*.jx")
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2] if damage == "truncate" else data[:-100] + bytes([data[-100] ^ 1]) + data[-99:])
+    out, loaded, compiled = _get()
+    assert (loaded, compiled) == (0, 1)
+    np.testing.assert_array_equal(out, TRUTH)
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "truncated or corrupt" in err[0] and "compiling it again" in err[0], err
+    assert path.read_bytes() != b"" and _get()[1:] == (1, 0)  # replaced by a whole entry
+
+
+def test_an_open_directory_or_file_is_refused(tmp_path, store, capsys):
+    _get()
+    (path,) = store.glob("*.jx")
+    os.chmod(path, 0o666)
+    assert _get()[1:] == (0, 1)
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "private" in err[0], err
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    os.chmod(shared, 0o775)
+    assert executables.use_dir(shared) is None
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and str(shared) in err[0] and f"chmod 700 {shared}" in err[0], err
+    out, loaded, compiled = _get()  # everything compiles as usual, nothing is written
+    assert (loaded, compiled) == (0, 1) and list(shared.iterdir()) == []
+    np.testing.assert_array_equal(out, TRUTH)
+
+
+def test_the_switch_reads_on_and_off():
+    assert not executables.switched_off({}) and not executables.switched_off({"JSKEL_EXECUTABLES": "on"})
+    assert executables.switched_off({"JSKEL_EXECUTABLES": "OFF"}) and executables.switched_off({"JSKEL_EXECUTABLES": "0"})
+    with pytest.raises(ValueError, match=r"^JSKEL_EXECUTABLES: 'later' is not on or off$"):
+        executables.switched_off({"JSKEL_EXECUTABLES": "later"})
