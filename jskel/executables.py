@@ -40,7 +40,7 @@ import numpy as np
 
 from .cache import _warn, unsafe_reason
 
-MAGIC = b"jskel-executable-1 "
+MAGIC = b"jskel-executable-2 "
 _state: dict = {"dir": None}
 _counts = {"loaded": 0, "compiled": 0, "stored": 0, "unstorable": 0}
 
@@ -151,37 +151,55 @@ def _load(path: Path, key: str, args, mesh):
         body = _read(path)
         if body is None:
             return None
-        stored_key, payload, out_tree = pickle.loads(body)
+        stored_key, payload, out_tree, ids = pickle.loads(body)
         if stored_key != key:
             raise ValueError("holds another program")
+        by_id = {d.id: d for d in jax.devices()}
+        if not all(i in by_id for i in ids):
+            raise ValueError(f"was compiled for devices {ids}, not all of this process's")
         in_tree = jax.tree_util.tree_structure((tuple(args), {}))
-        devices = None if mesh is None else list(mesh.devices.flat)
-        return deserialize_and_load(payload, in_tree, out_tree, execution_devices=devices)
+        return deserialize_and_load(payload, in_tree, out_tree, execution_devices=[by_id[i] for i in ids])
     except Exception as e:  # noqa: BLE001 - whatever is wrong with an entry, compile instead
         _warn(f"stored executable {path} {e if isinstance(e, ValueError) else type(e).__name__}; compiling it again")
         return None
 
 
-def _store(path: Path, key: str, compiled) -> None:
+def _devices(compiled, mesh) -> list[int] | None:
+    """Ids of the devices ``compiled`` runs on, in order: the mesh's, or the one device of an
+    unsharded program (None when its arguments' shardings name several)."""
+    if mesh is not None:
+        return [d.id for d in mesh.devices.flat]
+    devs = set()
+    for sh in jax.tree_util.tree_leaves(compiled.input_shardings):
+        devs |= set(sh.device_set)
+    return [devs.pop().id] if len(devs) == 1 else None
+
+
+def _store(path: Path, key: str, compiled, mesh) -> None:
     """Write ``compiled`` to ``path`` atomically (a temporary file in the folder, renamed);
     one XLA cannot serialize is counted as unstorable and not written."""
     from jax.experimental.serialize_executable import serialize
 
     try:
+        ids = _devices(compiled, mesh)
+        if ids is None:
+            raise ValueError("devices unknown")
         payload, _, out_tree = serialize(compiled)
-        body = pickle.dumps((key, payload, out_tree), protocol=pickle.HIGHEST_PROTOCOL)
+        body = pickle.dumps((key, payload, out_tree, ids), protocol=pickle.HIGHEST_PROTOCOL)
     except Exception:  # noqa: BLE001 - e.g. an XLA:CPU thunk without serialization
         _counts["unstorable"] += 1
         return
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
+    tmp = None
     try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
         with os.fdopen(fd, "wb") as f:
             f.write(MAGIC + hashlib.sha256(body).hexdigest().encode() + b"\n" + body)
         os.replace(tmp, path)
         _counts["stored"] += 1
     except OSError as e:
         _warn(f"stored executables {path.parent}: cannot write ({e.strerror or e})")
-        Path(tmp).unlink(missing_ok=True)
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
 
 
 def compiled_for(fn, args, mesh, compile_: Callable):
@@ -200,5 +218,5 @@ def compiled_for(fn, args, mesh, compile_: Callable):
     if path is not None:
         # before its first run: once run, XLA:CPU's sort thunks hold a function pointer to their
         # comparator and the executable no longer serializes (`LessThan` is not serializable)
-        _store(path, key, compiled)
+        _store(path, key, compiled, mesh)
     return compiled

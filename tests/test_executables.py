@@ -5,8 +5,11 @@ tests/test_cache.py."""
 
 from __future__ import annotations
 
+import json
 import os
 import stat
+import subprocess
+import sys
 
 import jax
 import numpy as np
@@ -100,6 +103,22 @@ def test_an_open_directory_or_file_is_refused(tmp_path, store, capsys):
     out, loaded, compiled = _get()  # everything compiles as usual, nothing is written
     assert (loaded, compiled) == (0, 1) and list(shared.iterdir()) == []
     np.testing.assert_array_equal(out, TRUTH)
+
+
+def test_an_unsharded_program_is_loaded_onto_its_one_device_of_two(tmp_path):
+    """Two processes with two host devices: the second loads the first's one-device program
+    (deserialized onto the device it was compiled for, not onto every device) and computes 3 x."""
+    code = ("import json, operator, numpy as np, jax; from jskel import executables as ex; "
+            f"ex.use_dir({str(tmp_path / 'x')!r}); a = (np.float32(3), np.arange(8, dtype=np.float32)); "
+            "c = ex.compiled_for(operator.mul, a, None, lambda: jax.jit(operator.mul).lower(*a).compile()); "
+            "print(json.dumps([np.asarray(c(*a)).tolist(), ex.counts()['loaded'], len(jax.devices())]))")
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    for loaded in (0, 1):
+        p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+        assert p.returncode == 0 and "warning" not in p.stderr, p.stderr[-2000:]
+        out, n_loaded, n_devices = json.loads(p.stdout)
+        assert (n_loaded, n_devices) == (loaded, 2), p.stdout
+        np.testing.assert_array_equal(out, 3.0 * np.arange(8))
 
 
 def test_the_switch_reads_on_and_off():
