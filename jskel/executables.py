@@ -24,6 +24,7 @@ turns both off, and with ``JAX_COMPILATION_CACHE_DIR`` set no executables are st
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import pickle
@@ -94,12 +95,14 @@ def source_hash() -> str:
 
 def fn_name(fn) -> str | None:
     """A name for ``fn`` that is the same in every process: module and qualified name for a
-    module-level function, the executor's ``Grouped(fn, group)`` by its parts; None for a
-    closure, a lambda or anything else (such programs are not stored)."""
-    inner = getattr(fn, "batch_fn", None)
-    if inner is not None and hasattr(fn, "group"):
-        name = fn_name(inner)
-        return None if name is None else f"{type(fn).__module__}.{type(fn).__qualname__}({name}, {fn.group})"
+    module-level function; a frozen dataclass of such functions and plain values (the
+    executor's ``Grouped(fn, group)``) by its type and fields; None for a closure, a lambda or
+    anything else (such programs are not stored)."""
+    if dataclasses.is_dataclass(fn) and not isinstance(fn, type):
+        parts = [fn_name(v) if callable(v) else repr(v) for v in (getattr(fn, f.name) for f in dataclasses.fields(fn))]
+        if any(x is None for x in parts):
+            return None
+        return f"{type(fn).__module__}.{type(fn).__qualname__}({', '.join(parts)})"
     qual, mod = getattr(fn, "__qualname__", None), getattr(fn, "__module__", None)
     if not isinstance(qual, str) or not isinstance(mod, str) or "<" in qual:
         return None
