@@ -21,7 +21,7 @@ from ._base import base_inside as base_inside
 from ._config import CellsConfig as CellsConfig
 from ._membership import INSIDE, memory_table, membership, unpack, words_for
 from ._tiles import OFFSETS, SplitCells, part_links, part_offsets, sphere_tile, split_cells, validate_tile_map, voronoi_tile
-from ._trace import TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, TraceOptions, cell_id, color_at, first_hit, membership_at, normal_at
+from ._trace import TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, TraceOptions, cell_id, color_at, first_hit, membership_at, normal_at, starts_inside
 
 CACHE_VERSION = 1
 REFRACTED = 0.85  # the refraction mode's weight of the refracted light (0.15 local)
@@ -216,7 +216,10 @@ def intersect_one(p: CellParams, static: Static, origin, direction, t_min, t_max
     those of the cell it leaves (looked up at the last sample inside)."""
     m = first_hit(p, origin, direction, t_min, t_max, static.options, static.two_sided)
     x0 = origin + jnp.where(jnp.isfinite(m.t), m.t, 0.0) * direction
-    leaving = (jnp.isfinite(m.t) & (membership_at(p, x0)[0] != INSIDE)) if static.two_sided else jnp.asarray(False)
+    # leaving: the ray started in an inside cell and searched for its exit (the search's own
+    # choice, Alg. 3.3 row 3), not the membership at the hit, which lies on a cell boundary and
+    # flipped there under rounding (1.3 % of a torus' cell ids changed with a translation)
+    leaving = (jnp.isfinite(m.t) & starts_inside(p, origin, direction, t_min)) if static.two_sided else jnp.asarray(False)
     x_cell = jnp.where(leaving, origin + jnp.where(jnp.isfinite(m.t_out), m.t_out, 0.0) * direction, x0)
     # Alg. 4.8's normal, turned outward at the crossing: where a ray enters an inside cell, to
     # the side where half a voxel along it is outside while half a voxel against it is inside
