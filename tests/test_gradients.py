@@ -1,9 +1,12 @@
-"""Derivatives of hit distances (issue 9): the implicit tracers' and the relief march's t
+"""Derivatives of hit distances (issues 9 and 29) through each representation's batch
+intersection, the path renders and fits take: the implicit tracers' and the relief march's t
 differentiate through the implicit-function theorem (a bisection loop alone gives exactly zero),
-the closed-form frusta t as it is, and a BVH traversal's t through its winning segment's closed
-form (in the skeleton, through the device rebuild); all checked against finite differences in float64 by
-``jax.test_util.check_grads`` (forward and reverse mode) in a process of their own, since the
-test workers stay in float32."""
+the closed-form frusta t as it is, a BVH traversal's t through its winning segment's closed form
+(in the skeleton, through the device rebuild), a cell object's through the voxel face it
+crosses, a mesh's through its winning triangle; every mode of every representation (and the
+fitting's distance) checked against finite differences in float64, forward and reverse mode
+(``jax.test_util.check_jvp`` / ``check_vjp``, what ``check_grads`` runs), in a process of its
+own, since the test workers stay in float32."""
 
 from __future__ import annotations
 
@@ -26,8 +29,10 @@ def test_hit_distances_have_the_derivatives_finite_differences_give():
                        capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr[-3000:]
     checked = json.loads(p.stdout.strip().splitlines()[-1])["checked"]
-    assert checked == {"implicit_lipschitz": 2, "implicit_bisection": 2, "implicit_naive": 2, "relief": 3, "frusta": 2,
-                       "fit_distance_random": 6, "fit_distance_hard": 4, "cells": 2, "frusta_bins": 6}
+    batch = {f"frusta_{m}": 8 for m in ("blocks", "bins", "packets", "walks", "skeleton")} | {"relief_fixed": 8, "relief_early": 8}
+    batch |= {f"implicit_{m}": 8 for m in ("lipschitz", "bisection", "naive")} | {"cells_first_hit": 8, "cells_refraction": 8}
+    batch |= {"mesh_packets": 8, "mesh_walks": 8}
+    assert checked == batch | {"fit_distance_random": 6, "fit_distance_hard": 4}
 
 
 def test_differentiable_root_keeps_the_value_and_gives_the_implicit_derivative():
@@ -50,3 +55,27 @@ def test_differentiable_root_keeps_the_value_and_gives_the_implicit_derivative()
     assert root(p) == bisect(p)
     np.testing.assert_allclose(float(jax.grad(root)(p)), 1.0 / (2.0 * np.sqrt(2.0)), rtol=1e-5)
     np.testing.assert_allclose(float(jax.jvp(root, (p,), (jnp.float32(1.0),))[1]), 1.0 / (2.0 * np.sqrt(2.0)), rtol=1e-5)
+
+
+def test_compact_map_differentiates_in_both_modes():
+    """``wavefront.compact_map`` (a ``while_loop`` over sub-batches, as many as there are needed
+    rows: a trip count JAX cannot reverse) under ``jax.grad`` and ``jax.jvp``: out = sin(w x) where
+    needed (three sub-batches of 4), else the base cos(x); the derivatives against their closed
+    forms in float64 NumPy, the value against the masked formula."""
+    from jskel.wavefront import compact_map
+
+    x = np.linspace(-1.0, 2.0, 19)
+    need = np.sin(7 * x) > -0.3
+    c = np.cos(3 * x) + 2.0
+
+    def loss(w, xs):
+        out = compact_map(lambda r: jnp.sin(w * r), jnp.asarray(need), xs, jnp.cos(xs), 4)
+        return jnp.sum(out * c), out
+
+    w = 1.3
+    (value, out), (gw, gx) = jax.jit(jax.value_and_grad(loss, argnums=(0, 1), has_aux=True))(jnp.float32(w), jnp.asarray(x, jnp.float32))
+    np.testing.assert_allclose(out, np.where(need, np.sin(w * x), np.cos(x)), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(gw, np.sum(np.where(need, c * x * np.cos(w * x), 0.0)), rtol=1e-5)
+    np.testing.assert_allclose(gx, np.where(need, c * w * np.cos(w * x), -c * np.sin(x)), rtol=1e-5, atol=1e-6)
+    _, dw = jax.jvp(lambda ww: loss(ww, jnp.asarray(x, jnp.float32))[0], (jnp.float32(w),), (jnp.float32(1.0),))
+    np.testing.assert_allclose(dw, gw, rtol=1e-5)

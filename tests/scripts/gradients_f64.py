@@ -1,23 +1,39 @@
-"""Run in its own process (float64 is switched on here, never in the pytest workers): check the
-derivatives of hit distances against finite differences with ``jax.test_util.check_grads``
-(forward and reverse mode) and print one JSON line of what was checked.
+"""Run in its own process (float64 is switched on here, never in the pytest workers): check
+derivatives against central differences with ``jax.test_util``'s ``check_jvp`` and
+``check_vjp`` (what ``check_grads(order=1, modes=["fwd", "rev"])`` runs: forward mode, and
+reverse mode as ``jax.grad`` runs it) and print one JSON line of what was checked.
 
-* implicit surfaces, all three tracers (march + bisection): t against the primitives' centres,
-  their radii, the threshold and the ray origin (the implicit-function theorem of
-  ``numerics.differentiable_root``; a bisection loop alone would give exactly zero);
-* relief frusta (march + bisection in the shell): t against the shell thickness, the radii and
-  the ray origin, for rays whose hit is on the relief surface itself;
-* plain frusta (closed form): t against the radii, the base joint and the ray origin;
-* frusta through a BVH traversal (``accel.nearest_tangent``: the walk gives the value, the
-  winning segment's closed form the derivative): t against the joints and radii of a branching
-  tree, through the device rebuild that makes both the segments and the BVH from them (the
-  packed BVH rows are a cache of the segments, so a derivative is one of the skeleton). The
-  CPU's default traversal (``bins``) by default; ``--traversals bins,packets,walks`` checks more.
+Hit distances through each representation's *batch* intersection (``interface.intersect``, the
+path renders and fits take), one check per (representation, mode) on 8 rays that hit, in the
+object's parameters and the ray origins at once (one random direction through all of them):
+
+* frusta: the block scan (``accel: blocks``) in every float field of the segments; the BVH's
+  bins, packets and per-ray walks in every float field of the segments with the BVH built again
+  from them (its packed rows are a cache of those fields); bins again in the joints and radii
+  through the device rebuild (``frusta._device``) that makes both. Relief in both marches (a
+  fixed ``fori_loop``, and the ``while_loop`` that stops at the batch's last bracket). Loops of
+  data-dependent length are never differentiated: ``accel.nearest_tangent`` differentiates the
+  winner's closed form, or the relief's implicit-function derivative at the marched root
+  (``numerics.differentiable_root``);
+* implicit, each of the three methods, culled through blocks (the tree and the block spheres)
+  with room for two blocks per ray, so that rays along a row of balls overflow and are retraced
+  by ``wavefront.compact_map``, whose loop over sub-batches has a data-dependent trip count
+  (this path raised in reverse mode); in the primitives' centres and radii, and the threshold;
+* cells, first hit (the reflection mode's cast too) and the two-sided cast of the refraction
+  mode, in every float leaf: membership is discrete, so t moves only with the face of the voxel
+  the ray crosses, i.e. with the origin, the object's corner ``lo`` and its tile edge ``size``;
+  the other floats (normals, colours, environment, step, ior) leave t unchanged, and the check
+  holds their derivative to the 0 that finite differences give;
+* mesh, packets and per-ray walks, in every float leaf (t moves with the vertices of the winning
+  triangle only).
+
+And the fitting's signed point-to-frusta distance (issue 10) against joints, radii and the point.
 """
 
-import argparse
-
 import json
+import sys
+import tempfile
+from pathlib import Path
 
 import jax
 
@@ -25,209 +41,262 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from jax.test_util import check_grads  # noqa: E402
+from jax.test_util import check_jvp, check_vjp  # noqa: E402
 
-from jskel import frusta, implicit  # noqa: E402
-from jskel.frusta._intersect import _segment_t, nearest_one  # noqa: E402
-from jskel.frusta._relief import RELIEF, make_relief_t  # noqa: E402
-from jskel.implicit._trace import cull, trace_one  # noqa: E402
+from jskel import registry  # noqa: E402
+from jskel.interface import Object, intersect  # noqa: E402
+from jskel.rays import FLAG_OVERFLOW, make_rays  # noqa: E402
 
+TMP = Path(tempfile.mkdtemp())
 checked = {}
 
 
-def each_arg(f, args, eps=1e-6):
-    """check_grads of f in all its arguments at once (random joint directions), both modes."""
-    check_grads(jax.jit(f), args, order=1, modes=["fwd", "rev"], eps=eps)
+def checker(g):
+    """``(run, program)``: ``run(args, rows=None, only=None)`` is ``check_jvp`` and ``check_vjp``
+    of ``g(*args)`` (of its entries ``rows``; in its argument ``only`` alone), all through one
+    compiled ``program(args, v, u) -> (g, J v, J^T u)``: g's value, its linearisation and that
+    one's transpose (``check_grads`` of a jitted function compiles the value, the JVP and the
+    two halves of the VJP apart)."""
+
+    @jax.jit
+    def both(a, v, u):
+        y, lin = jax.linearize(g, *a)
+        return y, lin(*v), jax.linear_transpose(lin, *a)(u)
+
+    def run(args, rows=None, name="", only=None):
+        zero = jax.tree_util.tree_map(jnp.zeros_like, args)
+        shape = jax.eval_shape(g, *args)
+        nothing = jnp.zeros(shape.shape, shape.dtype)
+        pick = (lambda y: y) if rows is None else (lambda y: y[rows])
+
+        def put(u):  # (an array of the program's own type: a NumPy scalar would compile again)
+            u = jnp.asarray(u, shape.dtype)
+            return u.reshape(shape.shape) if rows is None else nothing.at[rows].set(u)
+
+        def whole(a):  # ``only``: the other arguments stay at args, with tangents 0
+            return a if only is None else args[:only] + tuple(a) + args[only + 1:]
+
+        def f(*a):
+            return pick(both(whole(a), zero, nothing)[0])
+
+        def f_jvp(a, v):
+            y, jv, _ = both(whole(a), v if only is None else zero[:only] + tuple(v) + zero[only + 1:], nothing)
+            return pick(y), pick(jv)
+
+        def f_vjp(*a):
+            def vjp(u):
+                ct = both(whole(a), zero, put(u))[2]
+                return ct if only is None else (ct[only],)
+
+            return f(*a), vjp
+
+        mine = args if only is None else (args[only],)
+        check_jvp(f, f_jvp, mine, eps=1e-6, err_msg=name)
+        check_vjp(f, f_vjp, mine, eps=1e-6, err_msg=name)
+
+    return run, both
 
 
-# implicit: two balls and a tapering tube
-for method in ("lipschitz", "bisection", "naive"):
-    cfg = implicit.ImplicitConfig.model_validate({
-        "type": "implicit", "threshold": 0.5,
-        "balls": [{"center": [0, 0, 0], "radius": 1.0}, {"center": [0.8, 0.3, 0], "radius": 0.8}],
-        "tubes": [{"a": [-1, -0.5, 0.2], "b": [0.5, 1.0, 0.1], "radius_a": 0.5, "radius_b": 0.3}],
-        "method": method, "eps": 1e-3, "step": 0.01, "bisection": 40, "capacity": 8, "block_size": 0})
-    b = implicit.build(cfg, np.float64)
-    sc, q = b.params, b.static.quality
-    d = jnp.array([0.05, -0.02, -1.0])
+def float_leaves(params):
+    """Every float leaf of ``params``, each free: (theta, theta -> params)."""
+    leaves, tree = jax.tree_util.tree_flatten(params)
+    floats = [i for i, a in enumerate(leaves) if jnp.issubdtype(a.dtype, jnp.floating)]
 
-    def t_of(shift, rscale, T, o):
-        p = sc.prims
-        prims = p._replace(a=p.a + shift, b=p.b + shift, ra=p.ra * rscale, rb=p.rb * rscale)
-        cand = cull(prims, o, d, 0.0, jnp.inf, q.capacity, q.block, q.block_capacity)
-        return trace_one(cand, sc.tune._replace(threshold=T), o, d, 0.0, jnp.inf, q)[0]
+    def params_of(values):
+        mixed = list(leaves)
+        for i, v in zip(floats, values):
+            mixed[i] = v
+        return tree.unflatten(mixed)
 
-    n = 0
-    for xy in ([0.1, 0.2], [-0.3, -0.2]):
-        o = jnp.array([xy[0], xy[1], 5.0]) - b.anchor
-        args = (jnp.zeros_like(sc.prims.a), jnp.ones_like(sc.prims.ra), sc.tune.threshold, o)
-        t = t_of(*args)
-        assert np.isfinite(t), (method, xy)
-        grads = jax.grad(t_of, argnums=(0, 1, 2, 3))(*args)
-        assert all(np.all(np.isfinite(g)) for g in grads)
-        assert abs(float(grads[2])) > 1e-3  # the threshold moves the surface: not the zero of a bare loop
-        each_arg(t_of, args)
-        n += 1
-    checked[f"implicit_{method}"] = n
-
-# relief: one cylinder with a brick height field in a shell
-cfg = frusta.FrustaConfig.model_validate({
-    "type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 1.5, 0]], "radii": [0.5, 0.45], "parents": [-1, 0]},
-    "relief": {"map": "brick", "thickness": 0.1, "scale": [2.0, 1.0], "steps": 256, "bisection": 40, "uv": "exact"}})
-b = frusta.build(cfg, np.float64)
-scene, static = b.params, b.static
-seg0 = jax.tree_util.tree_map(lambda a: a[0], scene.relief.frusta)
-relief_t = make_relief_t(scene.maps, static.relief)
+    return [leaves[i] for i in floats], params_of
 
 
-def rt(shell, rscale, o, d):
-    seg = seg0._replace(shell=shell, r1=seg0.r1 * rscale, r2=seg0.r2 * rscale)
-    return relief_t(seg, o, d, 0.0, jnp.inf)
+def check_batch(name, raw, origins, directions, free=lambda b, cfg: float_leaves(b.params), n=8):
+    """Forward and reverse mode of the first ``n`` hit rays' t through the batch intersection,
+    in the parameters ``free(built, cfg)`` makes free and the ray origins. Returns (built, rays)."""
+    rep = registry.get(raw["type"])
+    cfg = rep.Config.model_validate(raw)
+    b = rep.build(cfg, np.float64)
+    d = np.asarray(directions, float)
+    rays = make_rays(np.asarray(origins) - b.anchor, d / np.linalg.norm(d, axis=1, keepdims=True), dtype=np.float64)
+    theta, params_of = free(b, cfg)
+
+    def t_all(th, o):
+        return intersect(Object(params_of(th), b.static, rep.name), rays._replace(origins=o)).t
+
+    run, both = checker(t_all)
+    args = (theta, rays.origins)
+    t = np.asarray(both(args, *jax.tree_util.tree_map(jnp.zeros_like, (args, rays.t_min)))[0])
+    rows = np.nonzero(np.isfinite(t))[0][:n]
+    assert rows.size == n, (name, rows.size)
+    run(args, rows, name)
+    checked[name] = n
+    return b, rays
 
 
-def rt0(sh, rs, oo):
-    return rt(sh, rs, oo, D_RELIEF)[0]
+def down(n, lo, hi, z, rng, tilt=(0.03, -0.02)):
+    """n rays from the plane at height z, (nearly) straight down, over [lo, hi] in x and y."""
+    o = np.stack([rng.uniform(lo[0], hi[0], n), rng.uniform(lo[1], hi[1], n), np.full(n, z)], 1)
+    return o, np.tile([tilt[0], tilt[1], -1.0], (n, 1))
 
 
-D_RELIEF = jnp.array([0.03, -0.05, -1.0])
-rng = np.random.default_rng(3)
-n = 0
-for _ in range(200):
-    if n == 3:
-        break
-    o = jnp.array([rng.uniform(-0.2, 0.2), rng.uniform(0.3, 1.2), 3.0]) - b.anchor
-    t, _, code = rt(seg0.shell, 1.0, o, D_RELIEF)
-    if not (np.isfinite(t) and int(code) == RELIEF):
-        continue
-    each_arg(rt0, (seg0.shell, jnp.asarray(1.0), o))
-    n += 1
-assert n == 3, n
-checked["relief"] = n
+def segment_free(b, cfg):
+    """Every float field of the plain segments, the BVH built again from them (``build_bvh``:
+    its packed rows are a cache of the fields, its boxes bound them)."""
+    from jskel.frusta._accel import build_bvh
 
-# plain frusta: a bent chain, closed form
-cfg = frusta.FrustaConfig.model_validate({
-    "type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 1, 0], [0.4, 1.8, 0.1]], "radii": [0.3, 0.25, 0.12],
-                                   "parents": [-1, 0, 1]}})
-b = frusta.build(cfg, np.float64)
-f = b.params.plain.frusta
+    leaves, params_of_leaves = float_leaves(b.params.plain.frusta)
+    grp = b.params.plain
+
+    def params_of(values):
+        f = params_of_leaves(values)
+        return b.params._replace(plain=grp._replace(frusta=f, bvh=build_bvh(f, b.static.leaf)))
+
+    return leaves, params_of
 
 
-def ft(r1s, c1, o, d):
-    g = f._replace(r1=f.r1 * r1s, c1=c1)
-    return nearest_one(g, _segment_t, o, d, 0.0, jnp.inf, f.h.shape[0])[0]
+def skeleton_free(b, cfg):
+    """The joints and radii, through the device rebuild that makes the segments and the BVH."""
+    from jskel.frusta import Group, host_frusta
+    from jskel.frusta._device import _core_jit
+    from jskel.frusta._geometry import padded_topology
 
-
-D_FRUSTA = jnp.array([0.02, 0.01, -1.0])
-
-
-def ft0(a, c, oo):
-    return ft(a, c, oo, D_FRUSTA)
-
-
-n = 0
-for xy in ([0.05, 0.4], [0.3, 1.5]):
-    o = jnp.array([xy[0], xy[1], 3.0]) - b.anchor
-    assert np.isfinite(ft(1.0, f.c1, o, D_FRUSTA))
-    each_arg(ft0, (jnp.asarray(1.0), f.c1, o))
-    n += 1
-checked["frusta"] = n
-
-# frusta through a traversal of the BVH, differentiated in the skeleton through the device rebuild
-from jskel.frusta import Group, host_frusta  # noqa: E402
-from jskel.frusta._device import _core_jit  # noqa: E402
-from jskel.frusta._geometry import padded_topology  # noqa: E402
-from jskel.interface import Object, intersect  # noqa: E402
-from jskel.rays import Rays  # noqa: E402
-
-ap = argparse.ArgumentParser()
-ap.add_argument("--traversals", default="bins")
-TJ = np.array([[0, 0, 0], [0, 1, 0], [0.3, 2, 0.1], [-0.4, 1.8, 0.2], [0.5, 3, 0.3], [0.1, 2.9, -0.3]])
-TR = np.array([0.3, 0.25, 0.2, 0.15, 0.1, 0.08])
-TP = [-1, 0, 1, 1, 2, 2]
-for trav in ap.parse_args().traversals.split(","):
-    tcfg = frusta.FrustaConfig.model_validate({"type": "frusta", "skeleton": {"joints": TJ.tolist(), "radii": TR.tolist(), "parents": TP},
-                                               "accel": "bvh", "traversal": trav})
-    tpl = frusta.build(tcfg, np.float64)
-    assert tpl.static.traversal == trav, tpl.static.traversal
-    _, topo, _, _, _, _ = host_frusta(tcfg)
-    grp = tpl.params.plain
+    _, topo, _, joints, radii, _ = host_frusta(cfg)
+    grp = b.params.plain
     dtopo = padded_topology(topo, grp.frusta.h.shape[0])
-    rng = np.random.default_rng(0)
-    TO = np.stack([rng.uniform(-0.5, 0.6, 64), rng.uniform(0.0, 3.2, 64), np.full(64, 4.0)], 1) - tpl.anchor
-    TD = np.tile([0.01, 0.02, -1.0], (64, 1))
 
-    def t_tree(joints, radii):
-        seg, bvh = _core_jit(joints, radii, 0.0, dtopo, grp.frusta, tpl.static.leaf, int(topo.depth.max()) + 1)
-        scene = tpl.params._replace(plain=Group(seg, grp.block_c, grp.block_r, bvh))
-        rays = Rays(jnp.asarray(TO), jnp.asarray(TD), jnp.zeros(64), jnp.full(64, jnp.inf))
-        return intersect(Object(scene, tpl.static, "frusta"), rays).t
+    def params_of(th):
+        seg, bvh = _core_jit(th[0], th[1], 0.0, dtopo, grp.frusta, b.static.leaf, int(topo.depth.max()) + 1)
+        return b.params._replace(plain=Group(seg, grp.block_c, grp.block_r, bvh))
 
-    args = (jnp.asarray(TJ - tpl.anchor), jnp.asarray(TR))
-    hit = np.nonzero(np.isfinite(np.asarray(t_tree(*args))))[0]
-    assert hit.size >= 6, hit.size
-    check_grads(jax.jit(lambda j, r: t_tree(j, r)[hit[:6]]), args, order=1, modes=["fwd", "rev"], eps=1e-6)
-    checked[f"frusta_{trav}"] = 6
+    return (jnp.asarray(joints - b.anchor), jnp.asarray(radii)), params_of
+
+
+def implicit_free(b, cfg):
+    """A ball is a segment of length 0, whose field is not differentiable in its two ends apart:
+    each primitive moves as a whole (one shift of both ends), its radii scale together, and the
+    threshold moves."""
+    sc = b.params
+    p = sc.prims
+
+    def params_of(th):
+        shift, rscale, T = th
+        prims = p._replace(a=p.a + shift, b=p.b + shift, ra=p.ra * rscale, rb=p.rb * rscale)
+        return sc._replace(prims=prims, tune=sc.tune._replace(threshold=T))
+
+    return (jnp.zeros_like(p.a), jnp.ones_like(p.ra), sc.tune.threshold), params_of
+
+
+rng = np.random.default_rng(0)
+which = set(sys.argv[1].split(",")) if len(sys.argv) > 1 else None  # a subset of the checks, by name
+
+
+def wanted(name):
+    return which is None or name in which
+
+
+# frusta: a branching tree of 6 segments
+TREE = {"joints": [[0, 0, 0], [0, 1, 0], [0.3, 2, 0.1], [-0.4, 1.8, 0.2], [0.5, 3, 0.3], [0.1, 2.9, -0.3]],
+        "radii": [0.3, 0.25, 0.2, 0.15, 0.1, 0.08], "parents": [-1, 0, 1, 1, 2, 2]}
+for name, accel, trav, free in (("blocks", "blocks", "auto", None), ("bins", "bvh", "bins", segment_free),
+                                ("packets", "bvh", "packets", segment_free), ("walks", "bvh", "walks", segment_free),
+                                ("skeleton", "bvh", "bins", skeleton_free)):
+    if wanted(f"frusta_{name}"):
+        o, d = down(48, (-0.3, 0.0), (0.3, 2.9), 4.0, rng)
+        check_batch(f"frusta_{name}", {"type": "frusta", "skeleton": TREE, "accel": accel, "traversal": trav, "packet": 4, "group": 8},
+                    o, d, **({"free": free} if free else {}))
+
+# relief: a cylinder with a brick height field in a shell, both marches
+for early in (False, True):
+    if wanted(f"relief_{'early' if early else 'fixed'}"):
+        o, d = down(32, (-0.2, 0.3), (0.2, 1.2), 3.0, rng, (0.03, -0.05))
+        check_batch(f"relief_{'early' if early else 'fixed'}",
+                    {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 1.5, 0]], "radii": [0.5, 0.45], "parents": [-1, 0]},
+                     "relief": {"map": "brick", "thickness": 0.1, "scale": [2.0, 1.0], "steps": 64, "bisection": 40, "uv": "exact",
+                                "early_exit": early}}, o, d)
+
+# implicit: a 6 x 4 grid of balls in blocks of 4, two blocks kept per ray: rays along the rows
+# meet more and are retraced with flat culling through wavefront.compact_map
+BALLS = [{"center": [0.9 * i, 0.9 * j, 0.0], "radius": 0.6} for i in range(6) for j in range(4)]
+for method, cull in (("lipschitz", "tree"), ("bisection", "blocks"), ("naive", "tree")):
+    name = f"implicit_{method}"
+    if not wanted(name):
+        continue
+    o1, d1 = down(4, (-0.2, -0.2), (0.2, 0.2), 3.0, rng)
+    o1[:, :2] += 0.9 * rng.integers(0, [6, 4], (4, 2))  # near a ball's centre
+    o2 = np.stack([np.full(4, -2.0), 0.9 * np.arange(4) + 0.05, np.full(4, 0.02)], 1)
+    d2 = np.tile([1.0, 0.01, 0.005], (4, 1))
+    raw = {"type": "implicit", "threshold": 0.5, "balls": BALLS, "method": method, "cull": cull, "step": 0.01, "eps": 1e-3,
+           "bisection": 40, "block_size": 4, "block_capacity": 2, "capacity": 24}
+    b, rays = check_batch(name, raw, np.vstack([o1, o2]), np.vstack([d1, d2]), free=implicit_free)
+    rep = registry.get("implicit")
+    first = jax.vmap(lambda o, d, a, c: rep.intersect_one(b.params, b.static, o, d, a, c))(*rays)
+    assert np.sum((np.asarray(first.flags) & FLAG_OVERFLOW) != 0) >= 2, "no ray went through the compacted retrace"
+
+# cells: a torus of Voronoi cells, first hit and the two-sided cast of the refraction mode, rays
+# aimed at the tube
+for mode in ("first_hit", "refraction"):
+    if wanted(f"cells_{mode}"):
+        ang = rng.uniform(0, 2 * np.pi, 16)
+        ring = np.stack([np.cos(ang), np.zeros(16), np.sin(ang)], 1)  # the torus' centre line (y up)
+        o = 3.0 * ring + [0.1, 2.0, 0.3]
+        d = ring - o  # from outside and above, aimed at the tube
+        check_batch(f"cells_{mode}", {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45}, "tiles": 6,
+                                      "bisection": 40, "mode": mode, "cache": str(TMP / "cells"),
+                                      "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}}, o, d)
+
+# mesh: an icosphere, packets and walks
+sphere = TMP / "sphere.ply"
+import trimesh  # noqa: E402
+
+trimesh.creation.icosphere(subdivisions=2, radius=1.0).export(sphere)
+for trav in ("packets", "walks"):
+    if wanted(f"mesh_{trav}"):
+        o, d = down(16, (-0.7, -0.7), (0.7, 0.7), 3.0, rng)
+        check_batch(f"mesh_{trav}", {"type": "mesh", "path": str(sphere), "traversal": trav}, o, d)
 
 # fitting (issue 10): the signed point-to-frusta distance against joints, radii and the point,
 # at random points and at hard ones where the distance is smooth in the argument checked
 from jskel.fit import distances, segments_of  # noqa: E402
 
-FJ = np.array([[0, 0, 0], [0, 1, 0], [0.4, 2, 0.1], [0.6, 3, 0.5], [0.5, 4, 1.0]], float)
-FR = np.array([0.5, 0.5, 0.4, 0.3, 0.0])  # r1 == r2 on the first segment, a closed tip at the end
-FP = [-1, 0, 1, 2, 3]
-fseg = segments_of(FJ, FR, FP)
 
+def fit_checks():
+    """Random points, and hard ones: on the axis of a cylinder (smooth in the radii only), near a
+    closed tip's apex, either side of a shared cutting plane."""
+    FJ = np.array([[0, 0, 0], [0, 1, 0], [0.4, 2, 0.1], [0.6, 3, 0.5], [0.5, 4, 1.0]], float)
+    FR = np.array([0.5, 0.5, 0.4, 0.3, 0.0])  # r1 == r2 on the first segment, a closed tip at the end
+    FP = [-1, 0, 1, 2, 3]
+    fseg = segments_of(FJ, FR, FP)
 
-def dist(j, r, x):
-    return distances(j, r, fseg, x[None, :])[0]
+    def dist(j, r, x):
+        return distances(j, r, fseg, x[None, :])[0]
 
-
-rng = np.random.default_rng(0)
-n = 0
-for x in rng.uniform([-0.8, -0.3, -0.8], [1.2, 4.3, 1.6], (6, 3)):
-    each_arg(dist, (jnp.asarray(FJ), jnp.asarray(FR), jnp.asarray(x)))
+    check_dist, dist_both = checker(dist)  # one program for every point
+    n = 0
+    for x in np.random.default_rng(0).uniform([-0.8, -0.3, -0.8], [1.2, 4.3, 1.6], (6, 3)):
+        check_dist((jnp.asarray(FJ), jnp.asarray(FR), jnp.asarray(x)))
+        n += 1
+    checked["fit_distance_random"] = n
+    # hard points: on the axis of the cylinder (smooth in the radii only: |radial| has a kink), near
+    # the apex of the closed tip, just inside the shared cutting plane and beyond it (smooth in all)
+    n = 0
+    on_axis = jnp.array([0.0, 0.5, 0.0])
+    args = (jnp.asarray(FJ), jnp.asarray(FR), on_axis)
+    check_dist(args, only=1)  # in the radii alone
+    g = dist_both(args, jax.tree_util.tree_map(jnp.zeros_like, args), jnp.ones((), args[1].dtype))[2]  # the gradient in all three
+    assert all(np.all(np.isfinite(v)) for v in g)
     n += 1
-checked["fit_distance_random"] = n
-# hard points: on the axis of the cylinder (smooth in the radii only: |radial| has a kink), near
-# the apex of the closed tip, just inside the shared cutting plane and beyond it (smooth in all)
-n = 0
-on_axis = jnp.array([0.0, 0.5, 0.0])
-check_grads(jax.jit(lambda r: dist(jnp.asarray(FJ), r, on_axis)), (jnp.asarray(FR),), order=1, modes=["fwd", "rev"], eps=1e-6)
-g = jax.grad(dist, argnums=(0, 1, 2))(jnp.asarray(FJ), jnp.asarray(FR), on_axis)
-assert all(np.all(np.isfinite(v)) for v in g)
-n += 1
-tip = FJ[4] + np.array([0.05, -0.2, 0.03])
-each_arg(dist, (jnp.asarray(FJ), jnp.asarray(FR), jnp.asarray(tip)))
-n += 1
-for side in (-1e-3, 1e-3):  # either side of the plane shared at joint 1, near the surface
-    x = FJ[1] + np.array([0.47, side, 0.0])
-    each_arg(dist, (jnp.asarray(FJ), jnp.asarray(FR), jnp.asarray(x)))
+    tip = FJ[4] + np.array([0.05, -0.2, 0.03])
+    check_dist((jnp.asarray(FJ), jnp.asarray(FR), jnp.asarray(tip)))
     n += 1
-checked["fit_distance_hard"] = n
-
-# cells (binary search in the tile map): t against the ray origin and the object's placement
-import tempfile  # noqa: E402
-
-from jskel import cells  # noqa: E402
-
-ccfg = cells.CellsConfig.model_validate({
-    "type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45}, "tiles": 6, "bisection": 40,
-    "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "cache": tempfile.mkdtemp()})
-cb = cells.build(ccfg, np.float64)
+    for side in (-1e-3, 1e-3):  # either side of the plane shared at joint 1, near the surface
+        x = FJ[1] + np.array([0.47, side, 0.0])
+        check_dist((jnp.asarray(FJ), jnp.asarray(FR), jnp.asarray(x)))
+        n += 1
+    checked["fit_distance_hard"] = n
 
 
-def t_cells(o, lo, size, d):
-    p = cb.params._replace(lo=lo, size=size)
-    return cells.intersect_one(p, cb.static, o, d, 0.0, jnp.inf).t
+if wanted("fit"):
+    fit_checks()
 
-
-n = 0
-for o_w, aim in (([2.5, 1.5, 2.0], [1.0, 0.05, 0.02]), ([-2.5, 0.4, 0.3], [-1.0, 0.02, -0.03])):
-    d_w = np.subtract(aim, o_w)  # aimed at the torus' tube
-    d = jnp.asarray(d_w) / np.linalg.norm(d_w)
-    o = jnp.asarray(o_w) - cb.anchor
-    assert np.isfinite(t_cells(o, cb.params.lo, cb.params.size, d)), o_w
-    each_arg(lambda oo, lo, sz: t_cells(oo, lo, sz, d), (o, cb.params.lo, cb.params.size))
-    n += 1
-checked["cells"] = n
 print(json.dumps({"checked": checked}))
