@@ -230,6 +230,20 @@ def spawn(params: SceneParams, static: SceneStatic, q: Queue, hits: SceneHit, kr
     return nq, allc.pixel, dropped
 
 
+def _camera_queue(rays: Rays, cap: int) -> Queue:
+    """The first level's queue of ``cap`` slots: the camera rays (slot i is pixel i, weight 1,
+    kind 0), then dead padding slots for the rays later levels spawn."""
+    n, dtype = rays.size, rays.origins.dtype
+    pad = cap - n
+
+    def padded(a, fill):
+        return jnp.concatenate([a, jnp.full((pad,) + a.shape[1:], fill, a.dtype)], axis=0) if pad else a
+
+    return Queue(Rays(padded(rays.origins, 0.0), padded(rays.directions, 1.0), padded(rays.t_min, 0.0), padded(rays.t_max, 0.0)),
+                 jnp.ones((cap, 3), dtype), jnp.arange(cap, dtype=jnp.int32) % n, jnp.zeros((cap,), jnp.int32),
+                 jnp.arange(cap) < n)
+
+
 def scene_batch(static: SceneStatic):
     """The per-chunk function ``(params, rays) -> dict of per-ray outputs`` for a scene."""
     eff = static.effects
@@ -238,15 +252,7 @@ def scene_batch(static: SceneStatic):
 
     def batch(params: SceneParams, rays: Rays):
         n, dtype = rays.size, rays.origins.dtype
-        cap = cap_factor * n
-        pad = cap - n
-
-        def padded(a, fill):
-            return jnp.concatenate([a, jnp.full((pad,) + a.shape[1:], fill, a.dtype)], axis=0) if pad else a
-
-        q = Queue(Rays(padded(rays.origins, 0.0), padded(rays.directions, 1.0), padded(rays.t_min, 0.0), padded(rays.t_max, 0.0)),
-                  jnp.ones((cap, 3), dtype), jnp.arange(cap, dtype=jnp.int32) % n, jnp.zeros((cap,), jnp.int32),
-                  jnp.arange(cap) < n)
+        q = _camera_queue(rays, cap_factor * n)
         rgb = jnp.zeros((n, 3), dtype)
         flags = jnp.zeros((n,), jnp.int32)
         first_obj = jnp.full((n, 2), -1, jnp.int32)  # where the reflection / refraction path ends
