@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..progress import bar as progress_bar
 from ._tiles import SplitCells
 
 OUTSIDE, INSIDE, INTERSECTED, UNSET = 0, 1, 2, 3
@@ -150,10 +151,24 @@ def _part_min_max(flags, split, slots):
     return mn, mx
 
 
+def _measure_batch(act, i: int, batch: int, lo, size: float, res: int, inside: Callable, split_flat, slot_ids, mins, maxs):
+    """Voxel-level min / max membership of the active tiles ``act[i : i + batch]`` (padded to
+    ``batch`` by repeating the last, so one program serves every batch), into ``mins``/``maxs``."""
+    idx = act[i : i + batch]
+    pad = batch - len(idx)
+    pts = tile_points(lo, size, np.concatenate([idx, np.repeat(idx[-1:], pad, 0)]), res)
+    flags = np.asarray(inside(pts.reshape(-1, 3))).reshape(batch, -1)
+    mn, mx = _part_min_max(jnp.asarray(flags), split_flat, slot_ids)
+    mins[i : i + len(idx)] = np.asarray(mn)[: len(idx)]
+    maxs[i : i + len(idx)] = np.asarray(mx)[: len(idx)]
+
+
 def membership(sc: SplitCells, offsets: np.ndarray, inside: Callable, lo, size: float, n: int,
                coarse: int = 2, batch: int = 64, progress=None) -> Membership:
     """The packed membership map (Sec. 4.4-4.5) of the split cells ``sc`` tiled N^3 times from
-    world corner ``lo`` with tile edge ``size``; ``inside(points (M,3) float64) -> (M,) bool``."""
+    world corner ``lo`` with tile edge ``size``; ``inside(points (M,3) float64) -> (M,) bool``.
+    The active tiles' voxel work (the long part) shows a progress bar on a terminal or in a
+    notebook (``jskel.progress``), and calls ``progress(tiles_done)`` after each batch if given."""
     res = sc.tile.shape[0]
     slots = len(sc.split_cell) - 1  # split indices 1..S
     present = np.zeros(slots, bool)
@@ -173,16 +188,12 @@ def membership(sc: SplitCells, offsets: np.ndarray, inside: Callable, lo, size: 
     slot_ids = jnp.arange(slots)
     mins = np.empty((len(act), slots), np.int32)
     maxs = np.empty((len(act), slots), np.int32)
-    for i in range(0, len(act), batch):
-        idx = act[i : i + batch]
-        pad = batch - len(idx)
-        pts = tile_points(lo, size, np.concatenate([idx, np.repeat(idx[-1:], pad, 0)]), res)
-        flags = np.asarray(inside(pts.reshape(-1, 3))).reshape(batch, -1)
-        mn, mx = _part_min_max(jnp.asarray(flags), split_flat, slot_ids)
-        mins[i : i + len(idx)] = np.asarray(mn)[: len(idx)]
-        maxs[i : i + len(idx)] = np.asarray(mx)[: len(idx)]
-        if progress is not None:
-            progress(len(idx))
+    with progress_bar(len(act), "cell membership", "tile") as bar:
+        for i in range(0, len(act), batch):
+            _measure_batch(act, i, batch, lo, size, res, inside, split_flat, slot_ids, mins, maxs)
+            bar.update(min(batch, len(act) - i))
+            if progress is not None:
+                progress(min(batch, len(act) - i))
     # the merge set: active tiles (measured) and their ring (uniform values)
     ring = np.argwhere(work & ~active)
     ring_val = uni[tuple(ring.T)]

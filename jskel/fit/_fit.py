@@ -4,7 +4,6 @@ The problem itself (residuals, loss, normalisation) is ``_problem``'s."""
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from functools import partial
@@ -14,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import checks
+from .. import checks, progress
 from . import _solvers
 from ._config import SolverConfig
 from ._distance import segments_of
@@ -230,18 +229,11 @@ def _best_start(pr: Problem, key: SolverKey, s: SolverConfig, nz, start, pts, se
     return xb[best], [float(v) for v in ls], jax.tree_util.tree_map(lambda a: a[best], ends), compile_s
 
 
-def _quiet() -> bool:
-    """Progress only on a terminal, as a render's (``executor.map_chunks``), and never in CI."""
-    return not sys.stderr.isatty() or bool(os.environ.get("CI"))
-
-
 def _stepped(pr: Problem, key: SolverKey, s: SolverConfig, x0, pts):
     """The stepping loop: one compiled update per iteration on the host, the loss recorded after
     each, stopped by the solver's criterion, ``patience`` iterations of stalled loss or
     ``max_seconds``. Returns (x, state, loss history, iterations, converged, compile seconds)."""
-    from tqdm.auto import tqdm
-
-    quiet = _quiet()
+    quiet = progress.quiet()
     if not quiet:
         print(f"jskel: compiling the {s.name} solver ...", file=sys.stderr, flush=True)
     step = stepper(pr, key)
@@ -256,7 +248,7 @@ def _stepped(pr: Problem, key: SolverKey, s: SolverConfig, x0, pts):
     it = 0
     stalled = 0
     t_loop = time.perf_counter()
-    bar = tqdm(total=s.maxiter, desc=f"fit ({s.name})", unit="it", disable=quiet, leave=False)  # elapsed time is tqdm's own
+    bar = progress.bar(s.maxiter, f"fit ({s.name})", "it")
     for it in range(1, s.maxiter + 1):  # host loop over iterations: one compiled update each
         x, st = upd(x, st, pts)
         history.append(float(lossf(x, pts)))

@@ -1,0 +1,49 @@
+"""Progress bars for long host work (``jskel.progress``): shown on a terminal, hidden in CI and
+when standard error is not a terminal; the cell membership precompute reports every active tile."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from jskel import progress
+from jskel.cells._membership import membership
+from jskel.cells._tiles import part_links, part_offsets, split_cells, sphere_tile
+
+
+class _Tty:
+    def isatty(self):
+        return True
+
+    def write(self, s):
+        return len(s)
+
+    def flush(self):
+        pass
+
+
+def test_bars_show_on_a_terminal_and_hide_in_ci(monkeypatch):
+    monkeypatch.setattr(sys, "stderr", _Tty())
+    monkeypatch.delenv("CI", raising=False)
+    assert not progress.quiet() and not progress.bar(3, "x", "it").disable
+    monkeypatch.setenv("CI", "true")
+    assert progress.quiet() and progress.bar(3, "x", "it").disable
+
+
+def test_membership_reports_its_tiles_as_it_measures_them():
+    """A ball of radius 0.3 tiled 4^3 times over [-1, 1]^3: every tile the sphere's surface
+    crosses must be measured voxel by voxel, so the progress callbacks add up to at least their
+    number (counted here in NumPy: a tile is crossed where its nearest point is inside the ball
+    and its farthest is not) and at most every tile."""
+    tile = sphere_tile(8, 4, 0.3)
+    sc = split_cells(tile)
+    offsets = part_offsets(sc, part_links(sc), "t")
+    done = []
+    n, lo, size = 4, np.array([-1.0, -1.0, -1.0]), 0.5
+    membership(sc, offsets, lambda p: np.linalg.norm(p, axis=-1) < 0.3, lo, size, n, progress=done.append)
+    c = lo + size * np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1)  # tile corners
+    near = np.linalg.norm(np.clip(0.0, c, c + size), axis=-1)
+    far = np.linalg.norm(np.maximum(np.abs(c), np.abs(c + size)), axis=-1)
+    crossed = int(np.sum((near < 0.3) & (far >= 0.3)))
+    assert crossed > 0 and sum(done) >= crossed and sum(done) <= n ** 3
