@@ -132,6 +132,24 @@ def test_grazing_rays_naive_misses_lipschitz_finds():
     np.testing.assert_allclose(lip.t, t_exact, atol=1e-4 * 4)
 
 
+@pytest.mark.parametrize("method, kw", [("lipschitz", {"eps": 1e-3}), ("naive", {"step": 0.01})])
+def test_a_direction_of_any_length_finds_the_same_surface(method, kw):
+    """Rays may have directions of any non-zero length (``jskel.rays.Rays``): the march's step
+    and tolerance are lengths in space, so the hit o + t d is the same for |d| = 1e-3, 1 and
+    4000 (at 4000 the step once advanced 4,000 times too far and stepped over the ball)."""
+    rho = np.sqrt(1 - np.sqrt(T))  # one ball's surface radius: (1 - rho^2)^2 = T
+    xy = np.random.default_rng(5).uniform(-0.4, 0.4, (8, 2)) * rho
+    O = np.concatenate([xy, np.full((8, 1), 5.0)], 1)
+    z_exact = np.sqrt(rho**2 - np.sum(xy**2, 1))  # where the ray meets the sphere, from above
+    base = {"type": "implicit", "threshold": T, "balls": [{"center": [0, 0, 0], "radius": 1.0}], "method": method, **kw}
+    built = implicit.build(implicit.ImplicitConfig.model_validate(base))
+    lengths = np.repeat([1e-3, 1.0, 4000.0], 8)
+    hits = cast(built, np.tile(O, (3, 1)), lengths[:, None] * np.array([0.0, 0.0, -1.0]))
+    assert np.all(hits.flags == 0)
+    np.testing.assert_allclose(hits.position[:, 2], np.tile(z_exact, 3), atol=4e-4)
+    np.testing.assert_allclose(hits.t * lengths, 5.0 - np.tile(z_exact, 3), atol=4e-4)
+
+
 def test_gradient_normals_match_the_analytic_kernel_gradient():
     import jax
 

@@ -327,7 +327,8 @@ def _march(cand: Candidates, g, tune: Tuning, o, d, q: Quality):
     sub, t_lo, t_hi, anyc = cand.sub, cand.t_lo, cand.t_hi, cand.any
     L = lipschitz_total(sub, q.shape, tune.disp) * safe_sqrt(dot3(d, d))
     scale = safe_div(jnp.max(jnp.abs(o)), safe_sqrt(dot3(d, d)), 0.0)  # the origin, in units of t
-    tol = tune.step if q.method == "naive" else tune.eps
+    # the step and the tolerance are lengths in space; t counts lengths of d (any non-zero length)
+    tol = safe_div(tune.step if q.method == "naive" else tune.eps, safe_sqrt(dot3(d, d)), 0.0)
 
     # march state: (i, t_prev, t, g(t_prev), found, near, grazed, floored); the sample at t is tested each iteration
     def visit(st):
