@@ -61,13 +61,13 @@ def _icosphere():
     return np.asarray(m.vertices, np.float64), np.asarray(m.faces)
 
 
-def _raw(name, tmp, s, off):
+def _raw(name, tmp, s, off, method="lipschitz"):
     if name == "frusta":
         return {"type": "frusta", "skeleton": {"joints": JOINTS.tolist(), "radii": RADII.tolist(), "parents": PARENTS,
                                                "scale": s, "offset": off.tolist()}}
     if name == "implicit":
         return {"type": "implicit", "threshold": T_ISO, "balls": [{"center": off.tolist(), "radius": s}],
-                "step": 0.02 * s, "eps": 1e-3 * s}
+                "step": 0.02 * s, "eps": 1e-3 * s, "method": method}
     if name == "mesh":
         import trimesh
 
@@ -163,11 +163,11 @@ def _sideways(D):
     return (a, -a, b, -b)
 
 
-def _check(name, tmp, log_scale, log_shift, seed):
+def _check(name, tmp, log_scale, log_shift, seed, method="lipschitz"):
     s = 10.0**log_scale
     off = s * 10.0**log_shift * np.array([0.6, -0.8, 0.3])
     rep = registry.get(name)
-    built = rep.build(rep.Config.model_validate(_raw(name, tmp, s, off)), np.float32)
+    built = rep.build(rep.Config.model_validate(_raw(name, tmp, s, off, method)), np.float32)
     anchor = np.asarray(built.anchor, np.float64)
     lo, hi = (np.asarray(b, np.float64) for b in built.bounds)
     O, D = _rays(np.random.default_rng(seed), lo, hi, s)
@@ -196,7 +196,7 @@ def _check(name, tmp, log_scale, log_shift, seed):
               "max_dt_sizes": float(np.max(np.abs(hit.t[both] - t_ref[both]), initial=0.0) / s),
               "silent_miss": int(np.sum(silent)), "wrong_hit": int(np.sum(wrong)), "ref_hits": int(np.sum(np.isfinite(t_ref))),
               "by_flag": {n: int(np.sum((flags & b) != 0)) for b, n in FLAG_NAMES.items() if np.any(flags & b)}}
-    label = f"{name} at scale {s:.3g}, shift {10.0**log_shift:.3g} sizes, seed {seed}: {counts}"
+    label = f"{name} ({method}) at scale {s:.3g}, shift {10.0**log_shift:.3g} sizes, seed {seed}: {counts}"
     print(label)
     assert not np.any(silent | wrong), (label, Ow[silent | wrong][:3], Dr[silent | wrong][:3], hit.t[silent | wrong][:3],
                                         t_ref[silent | wrong][:3])
@@ -220,3 +220,12 @@ def test_every_ray_is_a_hit_within_tolerance_or_flagged(name, log_scale, log_shi
 def test_the_extremes_of_scale_at_the_farthest_shift(name, log_scale, tmp_path_factory):
     """The corners hypothesis may not draw: 1e-10 and 1e10 with the object 1e5 sizes away."""
     _check(name, tmp_path_factory.mktemp(name), log_scale, 5.0, 7)
+
+
+@pytest.mark.parametrize("method", ["naive", "bisection"])
+@settings(max_examples=6, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(log_scale=st.floats(-10, 10), log_shift=st.floats(-2, 5), seed=st.integers(0, 2**31 - 1))
+def test_implicit_methods_hit_within_tolerance_or_flag(method, log_scale, log_shift, seed, tmp_path_factory):
+    """The implicit ball with the other two tracers: the fixed-step march and the thesis'
+    bisection (Rouiller 2011, Sec. 4.2), whose start point inside is the ball's centre."""
+    _check("implicit", tmp_path_factory.mktemp(method), log_scale, log_shift, seed, method)
