@@ -39,7 +39,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from .cache import count_programs, program_counts
-from .config import read_yaml, resolved, validate
+from .config import read_yaml, resolved, set_path, validate
 
 AOVS = ("image", "depth", "normals", "uv", "ids", "flags")
 """The AOVs a view shows, drawn as ``jskel render --aov-sheet`` draws them (render/_sheet.py)."""
@@ -139,14 +139,6 @@ def get_path(raw: dict, path: str):
     return cur
 
 
-def _set_path(raw: dict, path: str, value) -> None:
-    parts = _parts(path)
-    cur = raw
-    for p in parts[:-1]:
-        cur = cur[p] if isinstance(cur, list) else cur.setdefault(p, {})
-    cur[parts[-1]] = value
-
-
 def _changed(value, mode: str, x: float):
     if isinstance(value, list):
         return [_changed(v, mode, x) for v in value]
@@ -172,7 +164,7 @@ def apply(base: dict, state: State, controls: dict[str, Control], full: dict | N
                 new = _changed(copy.deepcopy(get_path(raw, c.path)), c.mode, x)
             except (KeyError, IndexError):
                 new = _changed(copy.deepcopy(get_path(full, c.path)), c.mode, x)
-        _set_path(raw, c.path, new)
+        set_path(raw, c.path, new)
     return raw
 
 

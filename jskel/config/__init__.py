@@ -22,6 +22,7 @@ from ._errors import ConfigError as ConfigError
 from ._errors import _format as _format
 from ._load import DEFAULT_EXPERIMENT as DEFAULT_EXPERIMENT
 from ._load import apply_overrides as apply_overrides
+from ._load import set_path as set_path
 from ._load import load as load
 from ._load import read_yaml as read_yaml
 from ._load import resolved as resolved
@@ -52,4 +53,4 @@ from ._reference import reference_rows as reference_rows
 from ._reference import undocumented as undocumented
 
 # (_format: the error lines of a pydantic ValidationError, for loaders of other files)
-__all__ = ["apply_overrides", "AUTO_CHUNK_ACCELERATOR", "AUTO_CHUNK_CPU", "AUTO_CHUNKS_PER_CALL_CPU", "CameraConfig", "chunk_of", "chunks_per_call_of", "config_files", "ConfigError", "ConfigFile", "DEFAULT_EXPERIMENT", "EnvironmentConfig", "Experiment", "_format", "LightConfig", "load", "MaterialConfig", "MotionConfig", "read_yaml", "reference_rows", "RenderConfig", "resolved", "RGB", "Row", "SceneObjectConfig", "ShadingConfig", "StrictModel", "TransformConfig", "undocumented", "Unit", "validate", "Vec3"]
+__all__ = ["apply_overrides", "AUTO_CHUNK_ACCELERATOR", "AUTO_CHUNK_CPU", "AUTO_CHUNKS_PER_CALL_CPU", "CameraConfig", "chunk_of", "chunks_per_call_of", "config_files", "ConfigError", "ConfigFile", "DEFAULT_EXPERIMENT", "EnvironmentConfig", "Experiment", "_format", "LightConfig", "load", "MaterialConfig", "MotionConfig", "read_yaml", "reference_rows", "RenderConfig", "resolved", "RGB", "set_path", "Row", "SceneObjectConfig", "ShadingConfig", "StrictModel", "TransformConfig", "undocumented", "Unit", "validate", "Vec3"]

@@ -62,7 +62,9 @@ def validate(raw: dict) -> tuple[Experiment, Any]:
     return exp, obj
 
 
-def _set_path(d: dict, path: str, value):
+def set_path(d: dict, path: str, value):
+    """Set the value at a dotted ``path`` of the raw experiment ``d`` in place (list indices
+    allowed; missing mappings created): what a ``--set`` override and ``jskel.view`` write."""
     parts = path.split(".")
     cur = d
     for i, p in enumerate(parts[:-1]):
@@ -94,7 +96,7 @@ def apply_overrides(raw: dict, overrides: list[str]) -> dict:
         except yaml.YAMLError as e:
             raise ConfigError([f"--set {key}: value is not valid YAML (got {val!r}): {e}"]) from None
         try:
-            _set_path(out, key, parsed)
+            set_path(out, key, parsed)
         except (ValueError, IndexError, TypeError):
             raise ConfigError([f"--set {key}: no such list index in the experiment"]) from None
     return out
