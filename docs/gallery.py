@@ -1,6 +1,9 @@
 """Render README's gallery: every listed experiment through ``python -m jskel render`` (the
 command a user runs), at 320x240, copied to ``docs/gallery/<name>.png``, with
-``docs/gallery/gallery.md`` (the Markdown table README includes) and each run's seconds.
+``docs/gallery/gallery.md`` (the Markdown table README includes). Each run's seconds are
+printed, not written into the table: a render time belongs in a result file with its provenance,
+and ``experiments/bench_latency.yaml`` times these same experiments
+(``docs/bench_latency_cpu.jsonl``).
 
     python docs/gallery.py            # from the repository root
 """
@@ -42,14 +45,14 @@ def main() -> int:
             subprocess.run(cmd, check=True, cwd=ROOT)
             shutil.copy(out / "image.png", OUT / f"{name}.png")
             run = json.loads((out / "run.json").read_text())
-            rows.append((name, caption, run["render_s"], run["compile_s"]))
+            rows.append((name, caption))
             print(f"{name}: {run['render_s']:.2f} s (compile {run['compile_s']:.1f} s)")
     lines = ["| | | | |", "| --- | --- | --- | --- |"]
     for i in range(0, len(rows), 4):
         group = rows[i:i + 4]
         pad = [""] * (4 - len(group))
-        lines.append("| " + " | ".join([f"![{n}](docs/gallery/{n}.png)" for n, _, _, _ in group] + pad) + " |")
-        lines.append("| " + " | ".join([f"{c} ({r:.2f} s)" for _, c, r, _ in group] + pad) + " |")
+        lines.append("| " + " | ".join([f"![{n}](docs/gallery/{n}.png)" for n, _ in group] + pad) + " |")
+        lines.append("| " + " | ".join([c for _, c in group] + pad) + " |")
     (OUT / "gallery.md").write_text("\n".join(lines) + "\n")
     return 0
 
