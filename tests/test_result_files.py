@@ -102,6 +102,39 @@ def test_rows_without_provenance_say_what_is_not_recorded(tmp_path):
     assert "not committed" in text  # a file git does not hold has no date to show
 
 
+def test_rows_without_provenance_say_what_git_history_tells(tmp_path):
+    (tmp_path / "bench_y_cpu.jsonl").write_text(json.dumps(_row("a", 1.0)) + "\n")
+    entry = {"commit": "abc1234", "date": "2026-11-24", "machine": "2-core Test CPU", "command": "python -m jskel bench y.yaml", "note": "in parts"}
+    (tmp_path / "result_files_history.json").write_text(json.dumps({"files": {"bench_y_cpu.jsonl": entry}}))
+    where = _hook().marked_table("bench_y_cpu.jsonl scene", tmp_path, "page.md").splitlines()[-1]
+    for part in ("not recorded in the file", "run 2026-11-24 on the code of commit `abc1234`", "on 2-core Test CPU",
+                 "by `python -m jskel bench y.yaml` (in parts)"):
+        assert part in where, part
+
+
+def _git(*args):
+    out = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True)
+    return out.returncode, out.stdout.strip()
+
+
+def test_every_result_file_without_provenance_has_its_history():
+    if _git("rev-parse", "--git-dir")[0] != 0:
+        pytest.skip("not a git checkout: the history's commits cannot be checked")
+    history = json.loads((ROOT / "docs" / "result_files_history.json").read_text())["files"]
+    bare = sorted(p.name for p in (ROOT / "docs").glob("*.jsonl") if latest_run(read_rows(p)).provenance is None)
+    assert sorted(history) == bare, "docs/result_files_history.json: entries differ from the files whose rows carry no run"
+    wrong = []
+    for name, h in history.items():
+        last = _git("log", "-1", "--format=%H", "--", f"docs/{name}")[1]
+        code, date = _git("show", "-s", "--format=%cs", h["commit"])
+        # the rows cannot come from code later than the commit that wrote the file, and the date is that code's
+        if code != 0 or date != h["date"] or _git("merge-base", "--is-ancestor", h["commit"], last)[0] != 0:
+            wrong.append(f"{name}: commit {h['commit']} date {h['date']} (git: {date or 'no such commit'})")
+        if not h["machine"] or not h["command"]:
+            wrong.append(f"{name}: machine or command empty")
+    assert not wrong, "; ".join(wrong)
+
+
 def test_cells():
     assert [cell(x) for x in (None, True, 786432, 0.012344, 123456.7, {"object.steps": 32}, "a|b")] == \
         ["", "true", "786,432", "0.01234", "123,457", 'object.steps=32', "a&#124;b"]

@@ -37,7 +37,8 @@ Every benchmark result file under `docs/`, generated from the files when this si
 docs/NAME.jsonl` wrote it, with the command, machine, date, commit and versions that identify it.
 The history of a file is its git log, not this page. A run records its provenance in every row
 (`run`); rows written before they carried it are identified by the commit that last changed the
-file and their own `device`, `jax` and `jskel` keys. Keys with one value in every row are listed
+file, their own `device`, `jax` and `jskel` keys and what git history tells of them
+(`docs/result_files_history.json`: the commit whose code ran them, date, machine, command). Keys with one value in every row are listed
 above each table; the table holds the rest. [Performance](performance.md) explains the figures.
 """
 

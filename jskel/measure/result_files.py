@@ -4,8 +4,9 @@
 the file first, so a file holds one run; every row it keeps carries that run's
 ``files.provenance`` as ``run`` (date, commit, machine, devices, command, versions). Rows
 written before rows carried it are identified by the commit that last changed the file (its
-date and hash, from git) and their own ``device``, ``jax`` and ``jskel`` keys; what the file does
-not record is said to be not recorded, never guessed. :func:`latest_run` picks a file's latest
+date and hash, from git) and their own ``device``, ``jax`` and ``jskel`` keys, and by what git
+history tells of them (:data:`HISTORY`: the commit whose code ran them, date, machine, command);
+what neither records is said to be not recorded, never guessed. :func:`latest_run` picks a file's latest
 run (should several runs have been appended to one file), :func:`markdown_table` renders rows,
 :func:`provenance_line` says where a table comes from. docs/hooks/bench_results.py renders
 them into docs/results.md and into the tables docs/performance.md marks.
@@ -20,6 +21,9 @@ from typing import NamedTuple
 
 #: keys that identify a measurement rather than vary within one (shown in its provenance)
 PROVENANCE_KEYS = ("run", "device", "jax", "jskel")
+
+#: beside the result files: where rows written before they carried ``run`` came from (git history)
+HISTORY = "result_files_history.json"
 
 
 class Run(NamedTuple):
@@ -89,8 +93,22 @@ def provenance_line(path, run: Run, name: str | None = None) -> str:
     when = f"committed {c[0]} in `{c[1]}`" if c else "not committed"
     versions = ", ".join(f"{k} {', '.join(json.loads(v) for v in _values(run.rows, k))}" for k in ("jax", "jskel")
                          if _values(run.rows, k))
+    h = history(path)
+    told = "" if h is None else (
+        f" From git history ({HISTORY}): run {h['date']} on the code of commit `{h['commit']}`, on {h['machine']}, "
+        f"by `{h['command']}`" + (f" ({h['note']})" if h.get("note") else "") + ".")
     return (f"`{name}`, {when}; command and machine not recorded in the file (device "
-            f"{', '.join(d for d in devices if d) or 'not recorded'}); {versions or 'versions not recorded'}.")
+            f"{', '.join(d for d in devices if d) or 'not recorded'}); {versions or 'versions not recorded'}.{told}")
+
+
+def history(path) -> dict | None:
+    """What git history says of a result file whose rows carry no ``run``: its entry (``commit``
+    whose code ran the rows, ``date``, ``machine``, ``command``, optional ``note``) in
+    :data:`HISTORY` beside it; None where there is none."""
+    f = Path(path).parent / HISTORY
+    if not f.is_file():
+        return None
+    return json.loads(f.read_text(encoding="utf-8"))["files"].get(Path(path).name)
 
 
 def cell(value) -> str:
