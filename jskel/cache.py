@@ -40,6 +40,7 @@ MIN_COMPILE_S = 0.0
 _COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 _HIT_EVENT = "/jax/compilation_cache/cache_hits"
 _counts = {"requests": 0, "loaded": 0}
+_by_name: dict = {}  # program name -> [programs handed to XLA, their seconds]
 _listening = False
 
 
@@ -51,6 +52,9 @@ def _on_event(event: str, **kwargs) -> None:
 def _on_duration(event: str, duration: float, **kwargs) -> None:
     if event == _COMPILE_EVENT:
         _counts["requests"] += 1
+        got = _by_name.setdefault(str(kwargs.get("fun_name", "?")), [0, 0.0])
+        got[0] += 1
+        got[1] += duration
 
 
 def count_programs() -> None:
@@ -65,12 +69,15 @@ def count_programs() -> None:
 
 def program_counts() -> dict:
     """Programs handed to XLA in this process since counting started: ``compiled`` (by XLA)
-    and ``loaded`` (from the persistent cache), the cache directory JAX uses (or None), and
-    the executor's ``executables`` (``jskel.executables.counts``: loaded from disk, neither
-    traced nor handed to XLA, or compiled and stored)."""
+    and ``loaded`` (from the persistent cache), ``by_name`` (each program name, e.g.
+    ``jit(frusta_fields)``: how many were handed to XLA, compiled or loaded, and their seconds),
+    the cache directory JAX uses (or None), and the executor's ``executables``
+    (``jskel.executables.counts``: loaded from disk, neither traced nor handed to XLA, or
+    compiled and stored)."""
     from . import executables
 
     return {"compiled": _counts["requests"] - _counts["loaded"], "loaded": _counts["loaded"],
+            "by_name": {k: [n, round(s, 4)] for k, (n, s) in sorted(_by_name.items())},
             "cache_dir": jax.config.jax_compilation_cache_dir, "executables": executables.counts()}
 
 

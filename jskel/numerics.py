@@ -123,3 +123,12 @@ def euler_xyz(deg) -> np.ndarray:
     rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
     return rz @ ry @ rx
 
+
+
+def on_device(x, dtype=None) -> jax.Array:
+    """Host data as a device array of ``dtype`` (default: its own, 64-bit types narrowed as JAX
+    narrows them without x64), cast by NumPy on the host and copied with ``jax.device_put``.
+    ``jnp.asarray(x, dtype)`` on host data hands XLA a small program per shape and dtype (a
+    ``convert_element_type`` or copy): a render's build made thirteen of them, each compiled in
+    a cold process and loaded from the cache in a warm one."""
+    return jax.device_put(np.asarray(x) if dtype is None else np.asarray(x, dtype))

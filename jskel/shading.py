@@ -8,7 +8,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from .numerics import dot3, safe_div, safe_sqrt
+from .numerics import dot3, on_device, safe_div, safe_sqrt
 from .rays import Hit
 
 
@@ -36,16 +36,16 @@ def lights_from_config(lights, dtype, origin=None) -> Lights:
     """Device arrays of the ``lights`` section; point-light positions are expressed relative to
     ``origin`` (the rays' frame: the anchor, or the eye for scenes) in float64 first."""
     if not lights:
-        return Lights(jnp.zeros((1, 3), dtype), jnp.zeros((1, 3), dtype))
+        return Lights(on_device(np.zeros((1, 3)), dtype), on_device(np.zeros((1, 3)), dtype))
     d = np.array([l.direction for l in lights], np.float64)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     rad = np.array([np.asarray(l.color) * l.intensity for l in lights], np.float64)
     point = np.array([l.type == "point" for l in lights])
     if not point.any():
-        return Lights(jnp.asarray(d, dtype), jnp.asarray(rad, dtype))
+        return Lights(on_device(d, dtype), on_device(rad, dtype))
     o = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
     pos = np.array([np.asarray(l.position, np.float64) - o if l.type == "point" else np.zeros(3) for l in lights])
-    return Lights(jnp.asarray(d, dtype), jnp.asarray(rad, dtype), jnp.asarray(pos, dtype), jnp.asarray(point))
+    return Lights(on_device(d, dtype), on_device(rad, dtype), on_device(pos, dtype), on_device(point))
 
 
 def light_at(lights: Lights, p):
@@ -66,10 +66,10 @@ def light_at(lights: Lights, p):
 def shading_from_config(sh, dtype) -> Shading:
     """Device arrays of the ``shading`` section (traced: changing them never recompiles)."""
     return Shading(
-        jnp.asarray(sh.ambient, dtype),
-        jnp.asarray(sh.specular, dtype),
-        jnp.asarray(sh.shininess, dtype),
-        jnp.asarray(sh.background, dtype),
+        on_device(sh.ambient, dtype),
+        on_device(sh.specular, dtype),
+        on_device(sh.shininess, dtype),
+        on_device(sh.background, dtype),
     )
 
 

@@ -9,6 +9,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from ..numerics import on_device
 from ._build import FrustaArrays
 from ._intersect import FrustaParams, Quality
 from ._relief import ReliefMaps, ReliefQuality
@@ -76,9 +77,9 @@ def to_params(arr: FrustaArrays, anchor: np.ndarray, block: int, dtype=np.float3
     for k, v in fields.items():
         fill = {"m": (0.0, 1.0, 0.0), "u": (1.0, 0.0, 0.0), "w": (0.0, 0.0, 1.0), "h": 1.0, "nb": (0.0, 1.0, 0.0), "nt": (0.0, 1.0, 0.0), "dt": 1.0}.get(k, 0)
         v = _pad(np.asarray(v), n, fill)
-        out[k] = jnp.asarray(v, dtype=jnp.bool_ if v.dtype == bool else dtype)
-    out["valid"] = jnp.asarray(np.arange(n) < s)
-    out["sid"] = jnp.asarray(_pad(ids.astype(np.int32), n, -1))
+        out[k] = on_device(v, bool if v.dtype == bool else dtype)
+    out["valid"] = on_device(np.arange(n) < s)
+    out["sid"] = on_device(_pad(ids.astype(np.int32), n, -1))
     return FrustaParams(**out)
 
 
@@ -101,7 +102,7 @@ def make_group(arr: FrustaArrays, ids, anchor, cfg_block: int, dtype, shell=None
     bc, br = block_spheres(sub, anchor, block) if spheres else (np.zeros((0, 3)), np.zeros(0))
     if bc.shape[0] == 0:
         bc, br = np.zeros((1, 3)), np.full(1, -1.0)
-    return Group(params, jnp.asarray(bc, dtype), jnp.asarray(br, dtype)), block
+    return Group(params, on_device(bc, dtype), on_device(br, dtype)), block
 
 
 def rim_points(arr: FrustaArrays, n_ang: int = 64) -> np.ndarray:

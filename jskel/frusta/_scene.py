@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..accel import nearest_tangent
+from ..numerics import on_device
 from ..interface import Built, Object, Preliminary, Representation
 from ..rays import Hit, Rays
 from ..textures import bilinear_wrap, load_texture
@@ -55,9 +56,9 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         plain=plain,
         relief=relief,
         maps=maps,
-        colors=jnp.asarray(seg_col, dtype),
-        texture=jnp.asarray(tex, dtype),
-        tex_scale=jnp.asarray(cfg.texture_scale, dtype),
+        colors=on_device(seg_col, dtype),
+        texture=on_device(tex, dtype),
+        tex_scale=on_device(cfg.texture_scale, dtype),
     )
     if rel is not None:
         rq = _relief_quality(rel, arrays, relief_ids)
@@ -103,7 +104,7 @@ def _relief_group(cfg: FrustaConfig, arrays: FrustaArrays, ids, anchor, dtype):
     shell[ids] = rel.thickness
     relief, block = make_group(arrays, ids, anchor, cfg.block, dtype, shell)
     height = load_height_map(rel.map)
-    maps = ReliefMaps(jnp.asarray(height), jnp.asarray(rel.scale, dtype))
+    maps = ReliefMaps(on_device(height), on_device(rel.scale, dtype))
     return relief, block, maps, relief_memory(arrays, height, rel.scale, ids)
 
 

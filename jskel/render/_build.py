@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import registry
-from ..numerics import euler_xyz
+from ..numerics import euler_xyz, on_device
 from ..shading import Lights, lights_from_config
 
 
@@ -168,7 +168,7 @@ def _xform(p: Placed, origin: np.ndarray, dtype) -> XForm:
     g = s * (r @ a) + t - origin
     w = _world_corners(p) - origin
     pad = 1e-5 * (np.max(np.abs(w)) + np.max(w.max(0) - w.min(0)))  # float32 rounding of the box test
-    return XForm(*(jnp.asarray(v, dtype) for v in (r.T, r, s, c, g, w.min(0) - pad, w.max(0) + pad)))
+    return XForm(*(on_device(v, dtype) for v in (r.T, r, s, c, g, w.min(0) - pad, w.max(0) + pad)))
 
 
 def _offset(p: Placed) -> float:
@@ -189,14 +189,14 @@ def assemble(exp, placed: list[Placed], origin, dtype, single: bool = False, own
     shin = [sh.shininess if m.shininess is None else m.shininess for m in mats]
     off = [_offset(p) for p in placed]
     ends = [[float(own is not None and getattr(own, f))] * len(placed) for f in ("last_local", "last_env", "local_once", "tint")]
-    mat = Materials(*(jnp.asarray(np.asarray(v, np.float64), dtype) for v in (
+    mat = Materials(*(on_device(np.asarray(v, np.float64), dtype) for v in (
         cols, spec, shin, [m.reflectivity for m in mats], [m.transparency for m in mats], [m.ior for m in mats], off, *ends)))
     bg = np.asarray(sh.background, np.float64)
     ev = exp.environment
     env = np.array([bg if v is None else v for v in (ev.zenith, ev.horizon, ev.ground)], np.float64)
     lights = lights_from_config(exp.lights, dtype, origin=origin)
     params = SceneParams(tuple(p.built.params for p in placed), tuple(_xform(p, origin, dtype) for p in placed), mat, lights,
-                         jnp.asarray(shadow_lights(exp, single)), jnp.asarray(sh.ambient, dtype), jnp.asarray(env, dtype))
+                         on_device(shadow_lights(exp, single)), on_device(sh.ambient, dtype), on_device(env, dtype))
     static = SceneStatic(tuple(p.rep.name for p in placed), tuple(p.built.static for p in placed), effects_of(exp, single, own),
                          int(exp.render.lanes), bool(exp.render.compaction), single, single and placed[0].rep.own_environment)
     info = [{"name": p.name, "type": p.rep.name, "primitives": p.built.primitives, **p.built.info} for p in placed]
