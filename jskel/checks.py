@@ -13,12 +13,20 @@ the model's field errors (NaN, inf, out of range: pydantic's own, one per entry)
 checks between its fields (a tube's two ends coinciding, a segment of zero length) come in one
 error, so a NaN in one field does not hide a degenerate pair in another. The config error
 formatter places each line under the model's path (``object.tubes[0].b: ...``).
+
+Under jit, :func:`traced` checks traced arrays and :func:`checked` makes the checked variant of a
+jitted entry point: every failing check comes back from the program as a :class:`Found` (its
+count, first indices and values), so all are raised at once, as the host checks raise them.
 """
 
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
+from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .config import ConfigError, _format
@@ -37,15 +45,16 @@ def value_str(v) -> str:
     return "[" + ", ".join(f"{x:.6g}" for x in a) + "]"
 
 
-def at(field: str, what: str, index, values, noun: str = "entries") -> list[str]:
+def at(field: str, what: str, index, values, noun: str = "entries", count: int | None = None) -> list[str]:
     """The problem ``what`` at ``index`` ((k,) ints, or (k, d) for an entry of a d-dimensional
     grid) with ``values`` (one each, or the first SHOW): [] for none, one
-    ``field[i]: what (got v)`` line for one, else one line with the count and the first SHOW."""
+    ``field[i]: what (got v)`` line for one, else one line with the count and the first SHOW.
+    ``count``: how many entries have it, where ``index`` holds only the first few."""
     index = np.asarray(index, np.int64)
     if index.size == 0:
         return []
     names = [", ".join(str(int(x)) for x in row) for row in index.reshape(index.shape[0] if index.ndim else 1, -1)[:SHOW]]
-    n = index.shape[0] if index.ndim else 1
+    n = (index.shape[0] if index.ndim else 1) if count is None else count
     if n == 1:
         return [f"{field}[{names[0]}]: {what} (got {value_str(values[0])})"]
     shown = ", ".join(f"{'(' + i + ')' if ',' in i else i}: {value_str(v)}" for i, v in zip(names, values[:SHOW]))
@@ -125,40 +134,96 @@ def validate_with(data, handler, problems):
 
 # ---------------------------------------------------------------------- under jit: checkify
 
-#: what :func:`traced` checks of a field's entries, and the word for a failure
-KINDS = {"finite": (), "nonnegative": ("negative",), "positive": ("not positive",)}
+#: what :func:`traced` checks of a field's entries besides being finite, and the word for a failure
+KINDS = {"finite": None, "nonnegative": "negative", "positive": "not positive", "nonzero": "is the zero vector"}
 
 
-def traced(field: str, a, kind: str = "finite", valid=None, ids=None) -> None:
+@jax.tree_util.register_pytree_node_class
+@dataclass(frozen=True)
+class Found:
+    """What one check of :func:`traced` found, as a compiled program returns it: ``count`` ()
+    entries failed it, the first SHOW of them at ``index`` (SHOW,) (the user's index) with
+    ``values`` (SHOW, k); the field, the problem's words and the entries' number are static
+    (the pytree's aux data), so a program returns them without a host callback."""
+
+    field: str
+    what: str
+    entries: int
+    count: Any
+    index: Any
+    values: Any
+
+    def tree_flatten(self):
+        return (self.count, self.index, self.values), (self.field, self.what, self.entries)
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        return cls(*aux, *children)
+
+    def lines(self) -> list[str]:
+        """Host: the line of :func:`at` with the count of all entries: ``radii[3]: not finite
+        (got nan); 1 of 8 entries`` or ``rays.origins: 6 entries: not finite (indices 0: [nan,
+        0, 0], ...); 6 of 64 entries``; [] where no entry failed."""
+        n = int(self.count)
+        k = min(n, SHOW)
+        lines = at(self.field, self.what, np.asarray(self.index)[:k], np.asarray(self.values)[:k], count=n)
+        return [f"{line}; {n} of {self.entries} entries" for line in lines]
+
+
+def traced(field: str, a, kind: str = "finite", valid=None, ids=None) -> list[Found]:
     """Inside a function under ``jax.experimental.checkify.checkify``: check that every entry
-    (row of an (N, ...) array) of traced ``a`` is finite, and for ``kind`` ``nonnegative`` or
-    ``positive`` at least or above 0, where ``valid`` (N,) (padding rows skipped). A failure
-    names the field, the first bad entry's index (``ids[i]`` where given: the user's index of
-    a packed row) and its value, and how many are bad, in this module's form:
-    ``radii[3]: not finite (got nan); 1 of 8 entries``. Only functions that ``checkify``
-    wraps call this (the checked entry points), so unchecked programs hold none of it."""
-    import jax.numpy as jnp
+    (row of an (N, ...) array) of traced ``a`` is finite, and for ``kind`` ``nonnegative``,
+    ``positive`` or ``nonzero`` at least 0, above 0 or not the zero vector, where ``valid`` (N,)
+    (padding rows skipped). Returns a :class:`Found` per check (every failing entry counted,
+    the first SHOW named by ``ids[i]`` where given: the user's index of a packed row), which
+    :func:`checked` turns into one line each; the ``checkify`` check each also makes names the
+    first bad entry, for a caller that checkifies its own function. Only checked programs
+    call this, so unchecked programs hold none of it."""
     from jax.experimental import checkify
 
     rows = jnp.reshape(a, (a.shape[0] if a.ndim else 1, -1))
     n, k = rows.shape
     live = jnp.ones((n,), bool) if valid is None else jnp.asarray(valid, bool)
-    tests = [("not finite", jnp.all(jnp.isfinite(rows), axis=1))]
-    if kind != "finite":
-        tests.append((KINDS[kind][0], jnp.all(rows >= 0 if kind == "nonnegative" else rows > 0, axis=1)))
-    shown = min(k, 4)
-    got = ", ".join(f"{{v{c}:.6g}}" for c in range(shown)) + (", ..." if k > shown else "")
-    got = f"[{got}]" if k > 1 else got
-    for what, good in tests:
-        bad = live & ~good
-        i = jnp.argmax(bad)
-        checkify.check(~jnp.any(bad), f"{field}[{{i}}]: {what} (got {got}); {{count}} of {n} entries",
-                       i=i if ids is None else jnp.asarray(ids)[i], count=jnp.sum(bad), **{f"v{c}": rows[i, c] for c in range(shown)})
+    good = {"finite": None, "nonnegative": lambda: rows >= 0, "positive": lambda: rows > 0, "nonzero": lambda: jnp.any(rows != 0, axis=1, keepdims=True)}
+    finite = jnp.all(jnp.isfinite(rows), axis=1)
+    tests = [("not finite", finite)]
+    if KINDS[kind] is not None:  # of the finite entries (a NaN is named once, as not finite)
+        tests.append((KINDS[kind], jnp.all(good[kind](), axis=1) | ~finite))
+    found = []
+    for what, ok in tests:
+        bad = live & ~ok
+        count = jnp.sum(bad).astype(jnp.int32)
+        (pos,) = jnp.nonzero(bad, size=SHOW, fill_value=0)
+        index = pos if ids is None else jnp.asarray(ids)[pos]
+        checkify.check(count == 0, f"{field}[{{i}}]: {what}; {{count}} of {n} entries", i=index[0], count=count)
+        found.append(Found(field, what, n, count, index, rows[pos]))
+    return found
 
 
-def raise_checked(err) -> None:
-    """Raise a ``checkify`` error as one :class:`ConfigError` line (without checkify's
-    ``(check failed at ...)`` suffix); nothing when no check failed."""
-    msg = err.get()
-    if msg:
-        raise ConfigError([re.sub(r" \((`check` failed|check failed at).*$", "", msg.splitlines()[0])])
+def checked(fn, problems, static_argnums=()):
+    """``fn`` with its traced inputs checked inside one compiled program: ``problems(*args)``
+    returns the :class:`Found` of :func:`traced` calls on the arguments, and the checked
+    function raises every failing check as one line of one :class:`ConfigError` (a
+    ``ValueError``), e.g. ``rays.origins[5]: not finite (got [0, nan, 1]); 1 of 64 entries``,
+    instead of returning silent misses. ``checkify`` reports only a program's first failing
+    check; the counts and first indices travel as outputs instead, so every field's problem
+    is named at once. The program (``.program``, one ``jax.jit``) is cached by JAX as ``fn``
+    would be: new values of the same shapes compile nothing. Only the checks are checkified:
+    ``checkify`` does not enter a vmap of a while loop, which every marching tracer is."""
+    from jax.experimental import checkify
+
+    def both(*args):
+        err, found = checkify.checkify(problems)(*args)
+        return err, found, fn(*args)
+
+    program = jax.jit(both, static_argnums=static_argnums)
+
+    def run(*args):
+        err, found, out = program(*args)
+        lines = [line for f in found for line in f.lines()]
+        raise_all(lines or ([re.sub(r" \((`check` failed|check failed at).*$", "", err.get().splitlines()[0])] if err.get() else []))
+        return out
+
+    run.program = program
+    run.__doc__ = f"``{fn.__name__}`` checked under jit (``jskel.checks.checked``)."
+    return run

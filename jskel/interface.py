@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from pydantic import BaseModel
 
+from . import checks
 from .rays import Hit, Rays
 
 
@@ -291,37 +292,23 @@ def occluded(obj: Object, rays: Rays):
     return obj.representation.occluded(obj.params, obj.static, rays)
 
 
-def _checks(obj: Object, rays: Rays) -> None:
-    """``jskel.checks.traced`` on the rays' origins and directions and on every entry of the
-    representation's :meth:`Representation.traced_fields`."""
-    from . import checks
-
-    checks.traced("rays.origins", rays.origins)
-    checks.traced("rays.directions", rays.directions)
+def _problems(obj: Object, rays: Rays, *_):
+    """``jskel.checks.traced`` on the rays' origins and directions (finite, not zero) and on every
+    entry of the representation's :meth:`Representation.traced_fields`."""
+    found = checks.traced("rays.origins", rays.origins) + checks.traced("rays.directions", rays.directions, "nonzero")
     for name, (a, kind, valid, ids) in obj.representation.traced_fields(obj.params).items():
-        checks.traced(name, a, kind, valid, ids)
+        found += checks.traced(name, a, kind, valid, ids)
+    return found
 
 
-@jax.jit
-def _checked_jit(obj: Object, rays: Rays):
-    """(checkify error, :func:`intersect`) in one program: only the checks are checkified
-    (checkify does not enter a vmap of a while loop, which every marching tracer is)."""
-    from jax.experimental import checkify
-
-    err, _ = checkify.checkify(_checks)(obj, rays)
-    return err, intersect(obj, rays)
-
-
-def checked_intersect(obj: Object, rays: Rays) -> Hit:
-    """:func:`intersect` with its traced inputs checked inside the compiled function
-    (``jax.experimental.checkify``): values that turn bad under jit (a NaN ray, a radius an
-    optimiser drove negative, a NaN centre) raise one ValueError (``ConfigError``) naming the
-    field, the index and the value, e.g. ``rays.origins[5]: not finite (got [nan, 0.0, 1.0]);
-    1 of 64 entries``, instead of returning silent misses. One module-level jit (cached per
-    representation and static options, as :func:`intersect`); :func:`intersect` itself holds
-    no check."""
-    from . import checks
-
-    err, hit = _checked_jit(obj, rays)
-    checks.raise_checked(err)
-    return hit
+#: :func:`intersect`, :func:`occluded`, :func:`cast` and :func:`surface` with their traced inputs
+#: checked inside the compiled function (``jskel.checks.checked``): values that turn bad under
+#: jit (a NaN ray, a radius an optimiser drove negative, a NaN centre) raise one ValueError
+#: (``ConfigError``) with a line per failing field naming the index and the value, e.g.
+#: ``rays.origins[5]: not finite (got [nan, 0.0, 1.0]); 1 of 64 entries``, instead of silent
+#: misses. Each is one module-level jit (``.program``), cached per representation and static
+#: options as the unchecked function is; the unchecked functions hold no check.
+checked_intersect = checks.checked(intersect, _problems)
+checked_occluded = checks.checked(occluded, _problems)
+checked_cast = checks.checked(cast, _problems)
+checked_surface = checks.checked(surface, _problems)

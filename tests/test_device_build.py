@@ -86,6 +86,11 @@ def test_device_rebuild_on_random_skeletons_and_bad_joints():
         with pytest.raises(ValueError) as e:
             rb.checked(jnp.asarray(bad, jnp.float32), jnp.asarray(r, jnp.float32))
         assert e.value.lines == [f"object.skeleton.segment_length[5]: not positive (got 0); 1 of {int(np.sum(p >= 0))} entries"]
+        with pytest.raises(ValueError) as e:  # both at once (checkify alone names the first)
+            rb.checked(jnp.asarray(bad, jnp.float32), jnp.asarray(r_nan, jnp.float32))
+        assert e.value.lines == [f"object.skeleton.radii[3]: not finite (got nan); 1 of {n} entries",
+                                 f"object.skeleton.segment_length[5]: not positive (got 0); 1 of {int(np.sum(p >= 0))} entries"]
+        assert rb.checked.program._cache_size() == 1  # new values, the same program
 
 
 def test_t_is_differentiable_in_the_joints_through_planes_and_frames():

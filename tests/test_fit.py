@@ -278,7 +278,8 @@ def test_bad_fit_input_is_one_line_and_exit_2(tmp_path, capsys):
 
 def test_bad_values_inside_jit_raise_naming_the_index():
     """checkify: a radius driven negative, joints that met, a NaN point, all only known under
-    jit (traced values), raise a ValueError with the index and value, never a silent NaN."""
+    jit (traced values), raise a ValueError with the index and value, never a silent NaN;
+    several at once give a line each."""
     from jskel.fit import checked_distances
 
     J = np.array([[0, 0, 0], [0, 1, 0], [0.3, 2, 0]], np.float32)
@@ -286,12 +287,20 @@ def test_bad_values_inside_jit_raise_naming_the_index():
     seg = segments_of(J, R, [-1, 0, 1])
     x = np.array([[0.5, 0.5, 0.0], [0.0, 1.5, 0.4]], np.float32)
     np.testing.assert_allclose(checked_distances(J, R, seg, x), d32(J, R, [-1, 0, 1], x), atol=1e-7)
-    with pytest.raises(ValueError, match=r"radii\[1\]: negative radius -0\.5"):
+    compiled = checked_distances.program._cache_size()
+    with pytest.raises(ValueError) as e:
         checked_distances(J, np.array([0.3, -0.5, 0.2], np.float32), seg, x)
-    with pytest.raises(ValueError, match=r"joints\[2\]: zero-length segment 1"):
+    assert e.value.lines == ["radii[1]: negative (got -0.5); 1 of 3 entries"]
+    with pytest.raises(ValueError) as e:
         checked_distances(np.array([[0, 0, 0], [0, 1, 0], [0, 1, 0]], np.float32), R, seg, x)
-    with pytest.raises(ValueError, match=r"points\[1\]: not finite"):
-        checked_distances(J, R, seg, np.array([[0.5, 0.5, 0.0], [np.nan, 0, 0]], np.float32))
+    assert e.value.lines == ["segment_length[2]: not positive (got 0); 1 of 2 entries"]
+    # every failing field at once, each with every bad entry counted (checkify alone stops at the first)
+    with pytest.raises(ValueError) as e:
+        checked_distances(J, np.array([np.nan, -0.5, -0.2], np.float32), seg, np.array([[0.5, 0.5, 0.0], [np.nan, 0, 0]], np.float32))
+    assert e.value.lines == ["radii[0]: not finite (got nan); 1 of 3 entries",
+                             "radii: 2 entries: negative (indices 1: -0.5, 2: -0.2); 2 of 3 entries",
+                             "points[1]: not finite (got [nan, 0, 0]); 1 of 2 entries"]
+    assert checked_distances.program._cache_size() == compiled  # new values, the same program
 
 
 def test_a_diverging_solver_is_an_error_not_a_result(noisy_branch):

@@ -23,13 +23,13 @@ segment continues which) is static and comes from ``jskel.frusta.topology`` on t
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import checks
 from ..frusta import FrustaParams, cone_sin, cutting_planes, joint_planes, segment_axes, topology, validate_skeleton
 from ..numerics import dot3, norm3
 from ..numerics import safe_div, safe_norm, safe_sqrt
@@ -300,40 +300,21 @@ def culling_exact(joints, radii, seg: Segments, points, candidates: int):
     return jnp.where(d >= 0, nxt >= d, nxt > 0)
 
 
-def _checks(joints, radii, seg: Segments, points):
-    from jax.experimental import checkify
-
-    checkify.check(jnp.all(jnp.isfinite(joints)), "joints[{i}]: not finite", i=jnp.argmax(~jnp.all(jnp.isfinite(joints), axis=1)))
-    checkify.check(jnp.all(radii >= 0), "radii[{i}]: negative radius {r}", i=jnp.argmin(radii), r=jnp.min(radii))
+def _problems(joints, radii, seg: Segments, points):
+    """``jskel.checks.traced`` of :func:`distances`' inputs: joints and points finite, radii not
+    negative, every segment longer than 0 (by its end joint)."""
     h = safe_norm(joints[seg.end] - joints[seg.start])
-    checkify.check(jnp.all(h > 0), "joints[{i}]: zero-length segment {s}", i=jnp.asarray(seg.end)[jnp.argmin(h)], s=jnp.argmin(h))
-    checkify.check(jnp.all(jnp.isfinite(points)), "points[{i}]: not finite", i=jnp.argmax(~jnp.all(jnp.isfinite(points), axis=1)))
+    return (checks.traced("joints", joints) + checks.traced("radii", radii, "nonnegative")
+            + checks.traced("segment_length", h, "positive", ids=np.asarray(seg.end)) + checks.traced("points", points))
 
 
-@functools.partial(jax.jit, static_argnums=2)
-def _checked(joints, radii, seg: Segments, points):
-    """``checkify`` of :func:`distances` with :func:`_checks`, one module-level jit: the
-    topology ``seg`` (hashable) is a static argument, so JAX's cache holds one executable per
-    topology without a cache of closures here."""
-    from jax.experimental import checkify
-
-    def f(j, r, x):
-        _checks(j, r, seg, x)
-        return distances(j, r, seg, x)
-
-    return checkify.checkify(f)(joints, radii, points)
-
-
-def checked_distances(joints, radii, seg: Segments, points):
-    """:func:`distances` with its inputs checked inside the compiled function (``checkify``):
-    values that only become bad under jit, a radius an optimiser drove negative, two joints
-    that met, a NaN point, raise a ValueError naming the index and the value instead of
-    returning silent garbage. One executable per topology; the checks cost a few reductions."""
-    err, out = _checked(joints, radii, seg, points)
-    msg = err.get()
-    if msg:
-        raise ValueError(msg.splitlines()[0].split(" (check failed at")[0])
-    return out
+#: :func:`distances` with its inputs checked inside the compiled function (``jskel.checks.checked``):
+#: values that only become bad under jit, a radius an optimiser drove negative, two joints that
+#: met, a NaN point, raise one ValueError with a line per failing field naming the index and
+#: the value (``radii[1]: negative (got -0.5); 1 of 3 entries``) instead of returning silent
+#: garbage. One module-level jit with the topology ``seg`` (hashable) static: one executable
+#: per topology; the checks cost a few reductions.
+checked_distances = checks.checked(distances, _problems, static_argnums=2)
 
 
 __all__ = ["Geometry", "Segments", "caps_of", "checked_distances", "culling_exact", "cutting_planes", "distances", "distances_of", "geometry", "margins_of", "plane_margins",

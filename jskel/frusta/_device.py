@@ -101,10 +101,8 @@ def _traced_rebuild(tpl, topo, dtopo, twist, levels):
       working dtype; nothing is validated (a NaN gives NaN fields);
     * ``checked(joints, radii) -> FrustaScene``: the same compiled with ``checkify`` checks
       (joints finite, radii finite and not negative, every segment longer than 0, by its end
-      joint): a ValueError naming the field, the index and the value, e.g.
-      ``object.skeleton.radii[3]: not finite (got nan); 1 of 12 entries``."""
-    from jax.experimental import checkify
-
+      joint): one ValueError with a line per failing field naming the index and the value, e.g.
+      ``object.skeleton.radii[3]: not finite (got nan); 1 of 12 entries`` (``jskel.checks.checked``)."""
     from ._pack import Group
 
     g, dtype = tpl.params.plain, tpl.params.plain.frusta.h.dtype
@@ -114,20 +112,15 @@ def _traced_rebuild(tpl, topo, dtopo, twist, levels):
         p, bvh = _core(jnp.asarray(joints, dtype) - anchor, jnp.asarray(radii, dtype), twist, dtopo, g.frusta, tpl.static.leaf, levels)
         return tpl.params._replace(plain=Group(p, g.block_c, g.block_r, bvh))
 
-    def _checks(joints, radii):
-        checks.traced("object.skeleton.joints", joints)
-        checks.traced("object.skeleton.radii", radii, "nonnegative")
+    def _problems(joints, radii):
         length = jnp.sqrt(jnp.sum((joints[topo.seg_end] - joints[topo.seg_start]) ** 2, axis=1))
-        checks.traced("object.skeleton.segment_length", length, "positive", ids=topo.seg_end)
+        return (checks.traced("object.skeleton.joints", joints) + checks.traced("object.skeleton.radii", radii, "nonnegative")
+                + checks.traced("object.skeleton.segment_length", length, "positive", ids=topo.seg_end))
 
-    @jax.jit
-    def compiled(joints, radii):
-        err, _ = checkify.checkify(_checks)(joints, radii)
-        return err, params(joints, radii)
+    compiled = checks.checked(params, _problems)
 
     def checked(joints, radii):
-        err, out = compiled(jnp.asarray(joints, dtype), jnp.asarray(radii, dtype))
-        checks.raise_checked(err)
-        return out
+        return compiled(jnp.asarray(joints, dtype), jnp.asarray(radii, dtype))
 
+    checked.program = compiled.program
     return params, checked

@@ -63,7 +63,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .. import registry
+from .. import checks, registry
 from ..numerics import safe_normalize
 from ..optics import reflect, refract_surface
 from ..rays import FLAG_OVERFLOW, FLAG_TIR, Hit, Rays, or_flags_at
@@ -325,6 +325,31 @@ def scene_call(scene: Scene, rays: Rays) -> dict:
     return scene_batch(scene.static)(scene.params, rays)
 
 
+def _scene_problems(scene: Scene, rays: Rays):
+    """``jskel.checks.traced`` on the camera rays, every object's ``traced_fields`` (under
+    ``object.`` for a single object, ``objects[i].`` in a scene), its placement (``xform``: scale
+    positive, rotation and offsets finite) and the lights' directions and radiance (finite)."""
+    found = checks.traced("rays.origins", rays.origins) + checks.traced("rays.directions", rays.directions, "nonzero")
+    p, single = scene.params, scene.static.single
+    for i, (rep, obj, x) in enumerate(zip(scene.static.reps, p.objects, p.xforms)):
+        at = "object." if single else f"objects[{i}]."
+        for name, (a, kind, valid, ids) in registry.get(rep).traced_fields(obj).items():
+            found += checks.traced(at + name, a, kind, valid, ids)
+        if not single:  # its placement (``SceneParams.xforms[i]``), by the field's name
+            found += checks.traced(at + "xform.s", jnp.reshape(x.s, (1,)), "positive")
+            for name in ("r", "c", "g"):
+                found += checks.traced(f"{at}xform.{name}", jnp.reshape(getattr(x, name), (1, -1)))
+    return found + checks.traced("lights.direction", p.lights.direction) + checks.traced("lights.radiance", p.lights.radiance)
+
+
+#: :func:`scene_call` with its traced inputs checked inside the compiled function
+#: (``jskel.checks.checked``): a ray, an object's params (a device rebuild's, an optimiser's),
+#: a placement or a light that turned bad raises one ValueError with a line per failing field
+#: (``objects[1].segments.r1[3]: not finite (got nan); 1 of 12 entries``) instead of a silent
+#: image. One module-level jit, cached per static key as :func:`scene_call` is.
+checked_scene_call = checks.checked(scene_call, _scene_problems)
+
+
 __all__ = ["Effects", "Queue", "Scene", "SceneHit", "build_scene", "build_single", "effects_of", "nearest", "occluded",
-           "scene_batch", "scene_call", "shade_level", "spawn", "spawned"]
+           "checked_scene_call", "scene_batch", "scene_call", "shade_level", "spawn", "spawned"]
 
