@@ -79,6 +79,26 @@ def _signature(args):
     return tree, tuple((tuple(np.shape(x)), str(jnp.result_type(x))) for x in leaves)
 
 
+def program_name(batch_fn: Callable) -> str:
+    """The name of ``batch_fn``'s program (``jit(NAME)`` in JAX's logs and ``program_counts``):
+    its own, with ``_xG`` for :class:`Grouped` calls of G chunks."""
+    if isinstance(batch_fn, Grouped):
+        return f"{program_name(batch_fn.batch_fn)}_x{batch_fn.group}"
+    return getattr(batch_fn, "__name__", type(batch_fn).__name__)
+
+
+def _named(batch_fn: Callable, fn: Callable | None = None) -> Callable:
+    """``fn`` (default ``batch_fn``) under :func:`program_name`'s name, for ``jax.jit`` (a
+    ``shard_map`` or a :class:`Grouped` would otherwise be an unnamed function)."""
+    fn = batch_fn if fn is None else fn
+
+    def call(*args):
+        return fn(*args)
+
+    call.__name__ = call.__qualname__ = program_name(batch_fn)
+    return call
+
+
 def ray_mesh(devices=None):
     """A 1-D ``jax.sharding.Mesh`` named ``rays`` over ``devices`` (default: every local
     device), or None for a single device."""
@@ -107,13 +127,13 @@ def compile_batch_fn(batch_fn: Callable, example_args, mesh=None) -> tuple[Calla
         return hit, 0.0
     t0 = time.perf_counter()
     if mesh is None:
-        fn = jax.jit(batch_fn)
+        fn = jax.jit(_named(batch_fn))
     else:
         from jax.sharding import PartitionSpec as P
 
         # shard_map: every device runs batch_fn itself on its (chunk,) share, the very program
         # an unsharded run compiles for one chunk, so the results are equal bit for bit
-        fn = jax.jit(jax.shard_map(batch_fn, mesh=mesh, in_specs=(P(), P("rays")), out_specs=P("rays"), check_vma=False))
+        fn = jax.jit(_named(batch_fn, jax.shard_map(batch_fn, mesh=mesh, in_specs=(P(), P("rays")), out_specs=P("rays"), check_vma=False)))
     # from disk when a previous process stored it (no trace, no compile), else traced, compiled and stored
     compiled = executables.compiled_for(batch_fn, example_args, mesh, lambda: fn.lower(*example_args).compile())
     _COMPILED[key] = compiled

@@ -13,13 +13,13 @@ recomputing the cutting planes (``_geometry.cutting_planes``) each time.
 
 from __future__ import annotations
 
-from functools import partial
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..executables import StoredJit
 from ._geometry import PLANE_KINDS, PLANE_SPLIT, cutting_planes, frusta_fields, medial_normal, padded_topology, plane_reach, segment_axes
 from ._skeleton import Topology
 
@@ -77,11 +77,12 @@ def _bucket(n: int) -> int:
 # expensive passes halves the compile (2.0 s instead of 4.8 s for the cutting planes alone,
 # measured 2026-12-02 at 305e234 on the 2-core AMD EPYC (AVX2) under load).
 _HOST_OPTS = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
-_fields_jit = jax.jit(frusta_fields, compiler_options=_HOST_OPTS)  # levels traced: a while loop, no compile key
+# levels traced: a while loop, no compile key; stored executables (a warm process loads them
+# instead of tracing them again, ``jskel.executables``)
+_fields_jit = StoredJit(frusta_fields, compiler_options=_HOST_OPTS)
 
 
-@partial(jax.jit, compiler_options=_HOST_OPTS)
-def _axes_and_planes(joints, radii, topo, r1):
+def _axes_and_planes_of(joints, radii, topo, r1):
     """The axes and every row's cutting plane with the row it continues (placeholders on rows
     that continue nothing), with base radii ``r1`` (N,): ``(c1, m, h, r2, n, p, nm, kind)``."""
     c1, m, h, _, r2 = segment_axes(joints, radii, topo.start, topo.end, topo.valid)
@@ -89,6 +90,9 @@ def _axes_and_planes(joints, radii, topo, r1):
     a = jnp.maximum(topo.parent, 0)
     n, p, kind = cutting_planes(c1, m[a], c1[a], r1[a], r2[a], h[a], m, r1, r2, h)
     return c1, m, h, r2, n, p, medial_normal(m[a], m)[0], kind
+
+
+_axes_and_planes = StoredJit(_axes_and_planes_of, compiler_options=_HOST_OPTS)
 
 
 def _match_minor_axes(joints, radii, ptopo, topo: Topology, info: dict, tol: float, iters: int):

@@ -12,12 +12,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..accel import nearest_tangent
+from ..executables import StoredJit
 from ..numerics import on_device
 from ..interface import Built, Object, Preliminary, Representation
 from ..rays import Hit, Rays
 from ..textures import bilinear_wrap, load_texture
 from ._accel import build_bvh, winner_ts
-from ._build import FrustaArrays, _bucket, piece_bounds
+from ._build import _HOST_OPTS, FrustaArrays, _bucket, piece_bounds
 from ._config import FrustaConfig
 from ._dispatch import AUTO_BVH_SEGMENTS, _plain_search, _relief_search, _stats_batch, traversal_of
 from ._edits import host_frusta
@@ -92,7 +93,8 @@ def _plain_group(cfg: FrustaConfig, arrays: FrustaArrays, ids, anchor, dtype):
     accel = cfg.accel if cfg.accel != "auto" else ("bvh" if ids.size >= AUTO_BVH_SEGMENTS else "blocks")
     plain, block = make_group(arrays, ids, anchor, cfg.block, dtype, spheres=accel != "bvh")
     if accel == "bvh":
-        plain = plain._replace(bvh=_build_bvh_jit(plain.frusta, cfg.leaf))
+        build_fn = _build_small_bvh_jit if plain.frusta.h.shape[0] <= SMALL_BVH else _build_bvh_jit
+        plain = plain._replace(bvh=build_fn(plain.frusta, cfg.leaf))
     return plain, block
 
 
@@ -119,7 +121,13 @@ def _relief_quality(rel, arrays: FrustaArrays, ids) -> ReliefQuality:
     return ReliefQuality(rel.steps, rel.bisection, uv, rel.early_exit, rel.v_mode)
 
 
-_build_bvh_jit = jax.jit(build_bvh, static_argnums=1)
+# stored: a warm process loads them untraced. Up to SMALL_BVH rows the tree is built by a
+# program compiled without XLA's backend optimisation (as the host geometry is): it compiles in
+# about two thirds of the time and runs in milliseconds there, while on tens of thousands of rows
+# it runs several times longer than the optimised program, which larger trees keep
+SMALL_BVH = 1024
+_build_bvh_jit = StoredJit(build_bvh, static_argnums=(1,))
+_build_small_bvh_jit = StoredJit(build_bvh, static_argnums=(1,), compiler_options=_HOST_OPTS)
 
 
 def _nearest_hit(a: Hit, b: Hit) -> Hit:
