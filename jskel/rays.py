@@ -42,6 +42,7 @@ FLAG_NO_BRACKET = 4  # no start point inside was found, but a bound says the fie
 FLAG_FLOAT_SPACING = 8  # the tolerance was below a few ulps of t there: the march stepped by those ulps instead
 FLAG_GRAZE = 16  # the field came within the tolerance of the threshold and left again without crossing
 FLAG_TIR = 32  # not a lost ray: the refracted ray underwent total internal reflection (jskel.optics.refract), set by the integrator
+FLAG_BAD_DIRECTION = 64  # a secondary ray asked for a zero or non-finite direction: spawned empty (jskel.spawning.spawn_flags)
 
 #: the name of every bit, in bit order (``run.json``'s ``flags`` counts are keyed by these)
 FLAG_NAMES = {
@@ -51,6 +52,7 @@ FLAG_NAMES = {
     FLAG_FLOAT_SPACING: "float_spacing",
     FLAG_GRAZE: "graze",
     FLAG_TIR: "tir",
+    FLAG_BAD_DIRECTION: "bad_direction",
 }
 
 

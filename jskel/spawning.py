@@ -19,8 +19,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import checks
 from .interface import Built
-from .rays import Hit, Rays
+from .rays import FLAG_BAD_DIRECTION, Hit, Rays
 
 #: the n of gamma(n) bounding a hit position's error per unit of |o| + |t d| + |p|, per
 #: component. pbrt-v4 bounds ``o + t d`` by gamma(3) for an exact t (Sec. 6.8.4); the tracers'
@@ -67,17 +68,32 @@ def spawn(source, rays: Rays, hit: Hit, directions, t_max=np.inf) -> Rays:
     a convex piece of surface outward from there cannot meet it again, at any translation or
     scale, and a surface farther than the offset is still found (``tests/test_spawn.py``).
     The offset grows with the rays' distance (|o| + |t d|): for rays from 1e5 object sizes
-    away it is about 0.2 of the size in float32 (the positions there are good to ~1e-2 of it). Rays of misses are empty
-    (origin 0, t_min = 0 > t_max = -1) and hit nothing. Pure, jit- and grad-friendly: the origins
-    differentiate as the hit positions do."""
+    away it is about 0.2 of the size in float32 (the positions there are good to ~1e-2 of it).
+    Rays of misses are empty (origin 0, t_min = 0 > t_max = -1) and hit nothing; so are rays
+    whose direction is zero or not finite (direction +z instead), which :func:`spawn_flags`
+    marks with ``FLAG_BAD_DIRECTION`` and :func:`checked_spawn` reports. Pure, jit- and
+    grad-friendly: the origins differentiate as the hit positions do."""
     return spawn_rays(rays, hit.t, hit.position, hit.normal, jnp.asarray(directions), surface_offset(source), t_max)
+
+
+def bad_directions(directions):
+    """(N,) bool: the directions (N, 3) no ray can follow, zero or with a NaN or an infinity."""
+    return ~jnp.all(jnp.isfinite(directions), axis=-1) | jnp.all(directions == 0, axis=-1)
+
+
+def spawn_flags(directions):
+    """(N,) int32 ``Hit.flags`` bits of the rays :func:`spawn` makes along ``directions``:
+    ``FLAG_BAD_DIRECTION`` where the direction is zero or not finite (that ray is empty: a
+    lost ray, never a silent one), 0 elsewhere. OR it into the flags of what the rays hit."""
+    return jnp.where(bad_directions(directions), FLAG_BAD_DIRECTION, 0).astype(jnp.int32)
 
 
 def spawn_rays(rays: Rays, t, position, normal, directions, surface, t_max=np.inf) -> Rays:
     """:func:`spawn` from a hit's fields t (N,), position and normal (N, 3); ``surface`` () or
     (N,) the surface part of the offset in the rays' units (a scene's per-object value)."""
     dtype = position.dtype
-    hit = jnp.isfinite(t)
+    bad = bad_directions(directions)
+    hit = jnp.isfinite(t) & ~bad
     p = jnp.where(hit[:, None], position, 0.0)
     tt = jnp.where(hit, t, 0.0)[:, None]
     o = jnp.where(jnp.isfinite(rays.origins), rays.origins, 0.0)
@@ -94,7 +110,24 @@ def spawn_rays(rays: Rays, t, position, normal, directions, surface, t_max=np.in
     q = q + (away - qs)
     zero = jnp.zeros_like(tt[:, 0])
     far = jnp.broadcast_to(jnp.asarray(t_max, dtype), zero.shape)
-    return Rays(jnp.where(hit[:, None], q, 0.0), directions.astype(dtype), zero, jnp.where(hit, far, -1.0))
+    d = jnp.where(bad[:, None], jnp.asarray([0.0, 0.0, 1.0], dtype), directions.astype(dtype))
+    return Rays(jnp.where(hit[:, None], q, 0.0), d, zero, jnp.where(hit, far, -1.0))
 
 
-__all__ = ["SPAWN_GAMMA_N", "gamma", "spawn", "spawn_rays", "surface_offset"]
+def _spawn_problems(rays, t, position, normal, directions, *_):
+    return checks.traced("directions", directions, "nonzero")
+
+
+_checked_spawn_rays = checks.checked(spawn_rays, _spawn_problems)
+
+
+def checked_spawn(source, rays: Rays, hit: Hit, directions, t_max=np.inf) -> Rays:
+    """:func:`spawn` with its directions checked inside the compiled function
+    (``jskel.checks.checked``): zero or non-finite directions raise one ValueError naming every
+    such ray by index and value (``directions[5]: is the zero vector (got [0, 0, 0]); 1 of 64
+    entries``) instead of coming back as empty rays. One module-level jit: new values of the
+    same shapes compile nothing."""
+    return _checked_spawn_rays(rays, hit.t, hit.position, hit.normal, jnp.asarray(directions), surface_offset(source), t_max)
+
+
+__all__ = ["SPAWN_GAMMA_N", "bad_directions", "checked_spawn", "gamma", "spawn", "spawn_flags", "spawn_rays", "surface_offset"]

@@ -277,3 +277,42 @@ def test_spawn_is_jit_friendly_and_differentiates_as_the_position():
     # e_y, plus the bound's own slope along |p| (gamma(16) |n_i| n_y, below 1e-6)
     np.testing.assert_allclose(np.asarray(grad)[hit], np.tile([0.0, 1.0, 0.0], (hit.sum(), 1)), rtol=0, atol=1e-6)
     np.testing.assert_array_equal(np.asarray(grad)[~hit], 0.0)
+
+
+def test_zero_and_nonfinite_directions_give_flagged_empty_rays_and_a_checked_error():
+    """A direction no ray can follow (zero, NaN, inf) gives an empty ray (origin 0, direction
+    +z, t_min 0 > t_max -1: no tracer sees the bad value) marked ``bad_direction`` by
+    ``spawn_flags``, under jit as eagerly; the other rays are spawned as before. ``checked_spawn``
+    raises one error naming each bad ray by index and value, and compiles nothing for it."""
+    from jskel.rays import FLAG_BAD_DIRECTION
+    from jskel.spawning import checked_spawn, spawn_flags
+
+    rng = np.random.default_rng(5)
+    rays = make_rays(np.zeros((N, 3)), np.tile([0.0, 0.0, 1.0], (N, 1)))
+    pos = jnp.asarray(rng.normal(size=(N, 3)), jnp.float32)
+    nrm = jnp.tile(jnp.asarray([0.0, 0.6, 0.8], jnp.float32), (N, 1))
+    h = jskel.Hit(jnp.full((N,), 2.0, jnp.float32), pos, nrm, jnp.zeros((N, 2), jnp.float32), jnp.zeros((N,), jnp.int32))
+    w = np.tile([0.0, 0.6, 0.8], (N, 1))
+    w_good = jnp.asarray(w, jnp.float32)
+    assert np.all(np.isfinite(np.asarray(checked_spawn(1e-3, rays, h, jnp.asarray(w, jnp.float32)).origins)))
+    compiled = jskel.spawning._checked_spawn_rays.program._cache_size()
+    w[3] = [np.nan, 0.0, 1.0]
+    w[5] = 0.0
+    w[7] = [np.inf, 0.0, 0.0]
+    bad = np.zeros(N, bool)
+    bad[[3, 5, 7]] = True
+    eager = lambda d: jskel.spawn(1e-3, rays, h, d)  # noqa: E731
+    for fn in (eager, jax.jit(eager)):
+        out, good = fn(jnp.asarray(w, jnp.float32)), fn(w_good)
+        o, d, a, b = (np.asarray(x) for x in out)
+        np.testing.assert_array_equal(o[bad], 0.0)
+        np.testing.assert_array_equal(d[bad], np.tile([0.0, 0.0, 1.0], (3, 1)))
+        assert np.all(a[bad] > b[bad]) and np.all(a[~bad] < b[~bad])
+        for x, y in zip(out, good):  # the others as with good directions everywhere
+            np.testing.assert_array_equal(np.asarray(x)[~bad], np.asarray(y)[~bad])
+    np.testing.assert_array_equal(np.asarray(spawn_flags(jnp.asarray(w, jnp.float32))), np.where(bad, FLAG_BAD_DIRECTION, 0))
+    with pytest.raises(ValueError) as e:
+        checked_spawn(1e-3, rays, h, jnp.asarray(w, jnp.float32))
+    assert e.value.lines == [f"directions: 2 entries: not finite (indices 3: [nan, 0, 1], 7: [inf, 0, 0]); 2 of {N} entries",
+                             f"directions[5]: is the zero vector (got [0, 0, 0]); 1 of {N} entries"]
+    assert jskel.spawning._checked_spawn_rays.program._cache_size() == compiled

@@ -66,8 +66,8 @@ import jax.numpy as jnp
 from .. import checks, registry
 from ..numerics import safe_normalize
 from ..optics import reflect, refract_surface
-from ..rays import FLAG_OVERFLOW, FLAG_TIR, Hit, Rays, or_flags_at
-from ..spawning import spawn_rays
+from ..rays import FLAG_BAD_DIRECTION, FLAG_OVERFLOW, FLAG_TIR, Hit, Rays, or_flags_at
+from ..spawning import bad_directions, spawn_rays
 from ..wavefront import compact_map
 from ..shading import facing, light_at, shade_local
 from ._build import Effects as Effects
@@ -209,25 +209,28 @@ def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: S
 
 def spawn(params: SceneParams, static: SceneStatic, q: Queue, hits: SceneHit, kr, kt, level: int):
     """Reflection and refraction rays of a level, compacted into the next level's queue.
-    Returns (queue, the candidates' pixels, which candidates were dropped)."""
+    Returns (queue, the candidates' pixels, which candidates were dropped, which asked for a
+    zero or non-finite direction: spawned empty, ``spawning.bad_directions``)."""
     eff = static.effects
     d = safe_normalize(q.rays.directions)
     nf = jax.vmap(facing)(hits.normal, d)
-    cands = []
+    cands, dirs = [], []
     if eff.reflection:
         with jax.named_scope("reflection_rays"):
             r = reflect(d, nf)
             kind = jnp.where(level == 0, 1, q.kind).astype(jnp.int32)
             cands.append(Queue(spawned(q.rays, hits, params.mat, r), q.weight * kr[:, None], q.pixel, kind, q.live & (kr > 0)))
+            dirs.append(r)
     if eff.refraction:
         with jax.named_scope("refraction_rays"):
             kd = hits.base * params.mat.color[jnp.maximum(hits.obj, 0)]
             t, _, factor = _transmitted(params.mat, hits, d, kd)  # t: through the surface, or back on the near side under TIR
             kind = jnp.where(level == 0, 2, q.kind).astype(jnp.int32)
             cands.append(Queue(spawned(q.rays, hits, params.mat, t), q.weight * kt[:, None] * factor, q.pixel, kind, q.live & (kt > 0)))
+            dirs.append(t)
     allc = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *cands)
     nq, dropped = _compact_queue(allc, q.live.shape[0])
-    return nq, allc.pixel, dropped
+    return nq, allc.pixel, dropped, allc.live & bad_directions(jnp.concatenate(dirs, axis=0))
 
 
 def _camera_queue(rays: Rays, cap: int) -> Queue:
@@ -279,8 +282,9 @@ def scene_batch(static: SceneStatic):
             # where the path of the first reflection / refraction ray ends: later levels overwrite
             first_obj = first_obj.at[jnp.where(q.live & (level >= 1), q.pixel, n), col].set(hits.obj, mode="drop")
             if levels > 1:
-                q, pix, dropped = spawn(params, static, q, hits, kr, kt, level)
-                flags = or_flags_at(flags, jnp.where(dropped, pix, n), FLAG_OVERFLOW)
+                q, pix, dropped, bad = spawn(params, static, q, hits, kr, kt, level)
+                lost = jnp.where(dropped, FLAG_OVERFLOW, 0) | jnp.where(bad, FLAG_BAD_DIRECTION, 0)
+                flags = or_flags_at(flags, jnp.where(lost != 0, pix, n), lost)
             return q, rgb, flags, first_obj, secondary, aov, vis0
 
         aov = _miss(n, dtype)
