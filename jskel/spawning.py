@@ -69,6 +69,9 @@ def spawn(source, rays: Rays, hit: Hit, directions, t_max=np.inf) -> Rays:
     scale, and a surface farther than the offset is still found (``tests/test_spawn.py``).
     The offset grows with the rays' distance (|o| + |t d|): for rays from 1e5 object sizes
     away it is about 0.2 of the size in float32 (the positions there are good to ~1e-2 of it).
+    pbrt's own term, gamma(n) |p|, bounds a point recomputed on the surface; ``o + t d``'s
+    error follows |o| + |t d|, and such hits lie far beyond gamma(16) |p| off the surface
+    (docs/numerics.md, ``tests/test_spawn.py``), so the term stays.
     Rays of misses are empty (origin 0, t_min = 0 > t_max = -1) and hit nothing; so are rays
     whose direction is zero or not finite (direction +z instead), which :func:`spawn_flags`
     marks with ``FLAG_BAD_DIRECTION`` and :func:`checked_spawn` reports. Pure, jit- and
