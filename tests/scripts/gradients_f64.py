@@ -28,6 +28,10 @@ object's parameters and the ray origins at once (one random direction through al
   triangle only).
 
 And the fitting's signed point-to-frusta distance (issue 10) against joints, radii and the point.
+
+Run only when named (``OPT_IN``; ``python tests/scripts/gradients_f64.py render_implicit``): a
+whole render, camera to image, the single-object integrator's colours of a 6 x 6 image of two
+blended balls in the eye's position and the balls' parameters, at every pixel that hits.
 """
 
 import json
@@ -189,6 +193,11 @@ def implicit_free(b, cfg):
 
 
 which = set(sys.argv[1].split(",")) if len(sys.argv) > 1 else None  # a subset of the checks, by name
+#: checks run only when named: a whole render's derivative program (the integrator linearised
+#: and transposed in float64) took ~18 s of CPU to compile (one-off, /usr/bin/time of the command
+#: in the docstring less the script's start, 2-core AMD EPYC, 2026-12-02, at 9907a66),
+#: more than the suite's budget leaves for one check
+OPT_IN = {"render_implicit"}
 
 
 def wanted(name):
@@ -196,7 +205,7 @@ def wanted(name):
     subset draws the same rays as the whole run."""
     global rng
     rng = np.random.default_rng(zlib.crc32(name.encode()))
-    return which is None or name in which
+    return name not in OPT_IN if which is None else name in which
 
 
 # frusta: a branching tree of 6 segments
@@ -258,6 +267,34 @@ for trav in ("packets", "walks"):
     if wanted(f"mesh_{trav}"):
         o, d = down(16, (-0.7, -0.7), (0.7, 0.7), 3.0, rng)
         check_batch(f"mesh_{trav}", {"type": "mesh", "path": str(sphere), "traversal": trav}, o, d)
+
+# a whole render (camera -> image): the integrator's colours of a 6 x 6 image of two blended
+# balls (the single-object program jskel render runs: camera rays, march, normal, albedo,
+# Blinn-Phong under one light) in the eye's position and the balls' centres, radii and
+# threshold, at the pixels whose ray hits (away from the silhouette a colour is smooth)
+if wanted("render_implicit"):
+    from jskel.config import validate  # noqa: E402
+    from jskel.render import camera_of, camera_rays  # noqa: E402
+    from jskel.render._scene import Scene, build_single, scene_call  # noqa: E402
+
+    exp, obj = validate({"object": {"type": "implicit", "threshold": 0.5, "method": "lipschitz", "step": 0.01, "eps": 1e-3, "bisection": 40,
+                                    "balls": [{"center": [0, 0, 0], "radius": 1.0}, {"center": [0.5, 0.3, 0.1], "radius": 0.8}]},
+                         "camera": {"eye": [0.4, 0.5, 3.0], "target": [0.2, 0.1, 0], "up": [0, 1, 0], "fov_deg": 25, "width": 6, "height": 6},
+                         "lights": [{"direction": [0.3, 0.5, 1.0]}]})
+    params, static, b = build_single(exp, obj, np.float64)
+    rays = jax.tree_util.tree_map(jnp.asarray, camera_rays(exp, camera_of(exp), b.anchor, np.float64))  # (as device arrays: constants of a custom root)
+    theta, params_of = implicit_free(b, None)
+
+    def image(th, eye):
+        return scene_call(Scene(params._replace(objects=(params_of(th),)), static), rays._replace(origins=jnp.broadcast_to(eye, rays.origins.shape)))["rgb"]
+
+    run, both = checker(image)
+    args = (theta, rays.origins[0])
+    t = np.asarray(scene_call(Scene(params, static), rays)["hit"].t)
+    rows = np.nonzero(np.isfinite(t))[0]
+    assert 8 <= rows.size < t.size, rows.size  # hits and misses: the balls inside the image
+    run(args, rows, "render_implicit")
+    checked["render_implicit"] = int(rows.size)
 
 # fitting (issue 10): the signed point-to-frusta distance against joints, radii and the point,
 # at random points and at hard ones where the distance is smooth in the argument checked
