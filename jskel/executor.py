@@ -21,16 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import executables
+from .call_layout import Layout, call_rays, output_buffers, write_call
+from .call_layout import pad_to as _pad_to
 from .rays import Rays
-
-
-def _pad_to(x, n: int):
-    pad = n - x.shape[0]
-    if pad == 0:
-        return x
-    xp = np if isinstance(x, np.ndarray) else jnp
-    filler = xp.broadcast_to(x[-1:], (pad,) + x.shape[1:])
-    return xp.concatenate([x, filler], axis=0)
 
 
 def _on_host(rays) -> bool:
@@ -42,20 +35,6 @@ def _on_host(rays) -> bool:
         elif not isinstance(a, np.ndarray):
             return False
     return True
-
-
-def _interleave(tree, a: int, b: int):
-    """Leading axis (a * b * c,) viewed as (a, b, c) and transposed to (b, a, c), for NumPy
-    arrays. With a call's rays as (chunks, devices, chunk) this gives device d the chunks d,
-    d + D, d + 2 D, ... instead of one contiguous run of the image: in screen-tile order a run
-    may be mostly sky on one device and mostly scene on the other, and the call waits for the
-    slower (``(devices, chunks)`` back again undoes it)."""
-
-    def one(x):
-        c = x.shape[0] // (a * b)
-        return np.swapaxes(x.reshape((a, b, c) + x.shape[1:]), 0, 1).reshape(x.shape)
-
-    return jax.tree_util.tree_map(one, tree)
 
 
 class ChunkedResult(NamedTuple):
@@ -240,6 +219,19 @@ def batch_bucket(n: int) -> int:
     return -(-n // (1 << k)) * (1 << k)
 
 
+def size_bucket(n: int, multiple: int = 1) -> int:
+    """The rows a model's table of ``n`` entries (segments, primitives, triangles) is padded
+    to, so that a model of similar size shares every program: the next power of two up to 64
+    (at least 8), then :func:`batch_bucket`'s sizes (80, 96, 112, 128, 160, ...: a quarter of
+    the power of two below, so under a fifth of the rows are padding and the memory grows by
+    at most 1.25x, not 2x); rounded up to a multiple of ``multiple`` (a block size). Every
+    representation pads its size-dependent tables with this one function; its padding rows
+    are inert (never hit, never counted)."""
+    n, multiple = int(n), max(1, int(multiple))
+    b = max(8, 1 << (max(n, 1) - 1).bit_length()) if n <= 64 else batch_bucket(n)
+    return -(-b // multiple) * multiple
+
+
 def map_chunks(
     batch_fn: Callable,
     params,
@@ -268,7 +260,8 @@ def map_chunks(
 
     ``group`` > 1: up to that many chunks per compiled call (:func:`grouped`, a loop over
     them), where the batch holds at least ``min(group, 8)`` chunks and no memory budget is set;
-    the chunks per call are a power of two (:func:`calls_grouping`), the padding chunks skipped.
+    the chunks per call are a power of two (:func:`calls_grouping`), the padding chunks skipped,
+    neither copied in nor copied back (``call_layout``).
     Each chunk is still computed by ``batch_fn`` alone; what is saved is the host's per-call
     work (slicing, transfers, dispatch): on the 2-core CPU the cacti's bins cast at 1024x768
     took 0.103 s with 16 chunks of 4,096 rays per call against 0.125 s with one, on one device
@@ -278,10 +271,8 @@ def map_chunks(
     if n == 0:
         raise ValueError("rays: the batch is empty")
     plan = _plan(batch_fn, params, rays, chunk, devices, memory_budget, group)
-    mesh, chunk, per_call = plan.mesh, plan.chunk, plan.per_call
-    n_chunks = -(-n // chunk)
-
-    slice_rays, spread, host_s = _slicer(rays, plan)
+    mesh = plan.mesh
+    slice_rays, lay, host_s = _slicer(rays, plan)
     first = slice_rays(0)
     compiled, compile_s = compile_batch_fn(plan.batch_fn, (params, first), mesh)
     if plan.memory is not None:
@@ -292,10 +283,8 @@ def map_chunks(
         # replicated once per call of map_chunks, not once per compiled call: parameters living
         # on one device were copied to the others at every call (300,000 segments: 36 MB a call)
         params = jax.device_put(params, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
-    unspread = (lambda got: _interleave(got, mesh.size, per_call)) if spread else (lambda got: got)
-    outs = _dispatch(compiled, params, first, slice_rays, n_chunks, unspread, desc, disable)
+    out = _dispatch(compiled, params, first, slice_rays, lay, desc, disable)
     run_s = time.perf_counter() - t0 + host_s
-    out = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=0)[:n], *outs)
     return ChunkedResult(out, compile_s, run_s, plan.memory)
 
 
@@ -333,43 +322,40 @@ def _plan(batch_fn: Callable, params, rays: Rays, chunk: int, devices, memory_bu
     return _Plan(mesh, chunk, per_call, batch_fn, memory)
 
 
-def _slicer(rays: Rays, plan: _Plan) -> tuple[Callable, bool, float]:
-    """(slice_rays, spread, seconds): ``slice_rays(i)``, the i-th call's rays padded to the
-    plan's chunk by repeating the last ray (a :class:`Live` batch when chunks are grouped;
-    interleaved over the devices when ``spread``: several chunks per call on several devices,
-    :func:`_interleave`), and the seconds taken to view host rays as NumPy."""
-    chunk, per_call, mesh = plan.chunk, plan.per_call, plan.mesh
+def _slicer(rays: Rays, plan: _Plan) -> tuple[Callable, Layout, float]:
+    """(slice_rays, layout, seconds): ``slice_rays(i)``, the i-th call's rays laid out for its
+    devices (``call_layout.call_rays``: padded to the plan's chunk; a :class:`Live` batch when
+    chunks are grouped), the calls' :class:`~jskel.call_layout.Layout`, and the seconds taken
+    to view host rays as NumPy."""
     t_host = time.perf_counter()
     if _on_host(rays):  # slicing NumPy costs nothing; slicing a CPU jax array dispatches ops
         rays = Rays(*(np.asarray(a) for a in rays))
     host_s = time.perf_counter() - t_host
-    spread = mesh is not None and mesh.size > 1 and per_call > 1
-    pieces = per_call * (1 if mesh is None else mesh.size)  # chunks of one call, over every device
+    lay = Layout(rays.size, plan.chunk, plan.per_call, 1 if plan.mesh is None else plan.mesh.size)
 
     def slice_rays(i):
-        lo = i * chunk
-        r = Rays(*(_pad_to(a[lo : lo + chunk], chunk) for a in rays))
-        if per_call > 1:  # which chunks hold rays: the grouped program skips the others
-            r = Live(r, np.arange(pieces) * (chunk // pieces) < rays.size - lo)
-        return _interleave(r, per_call, mesh.size) if spread else r
+        r = Rays(*(call_rays(a, lay, i) for a in rays))
+        # which chunks hold rays: the grouped program skips the others
+        return Live(r, lay.live_flags(i)) if lay.per_call > 1 else r
 
-    return slice_rays, spread, host_s
+    return slice_rays, lay, host_s
 
 
-def _dispatch(compiled, params, first, slice_rays: Callable, n_chunks: int, unspread: Callable, desc: str, disable: bool) -> list:
-    """Host outputs of ``compiled`` on each of ``n_chunks`` chunks (``slice_rays(i)``, the
-    first given), each call dispatched one ahead of the host copy of the previous one so the
-    device is not idle while the host gathers results; ``unspread`` restores each output's
-    ray order. A tqdm bar unless ``disable``."""
+def _dispatch(compiled, params, first, slice_rays: Callable, lay: Layout, desc: str, disable: bool):
+    """Host outputs (ray order, leading axis ``lay.n``) of ``compiled`` on each of the
+    layout's calls (``slice_rays(i)``, the first given), each call dispatched one ahead of the
+    host copy of the previous one so the device is not idle while the host gathers results;
+    only the chunks holding rays are copied (``call_layout.write_call``). A tqdm bar unless
+    ``disable``."""
     from tqdm.auto import tqdm
 
-    outs = []
-    with tqdm(total=n_chunks, desc=desc, unit="chunk", disable=disable, leave=False) as bar:
+    bufs = None
+    with tqdm(total=lay.calls, desc=desc, unit="chunk", disable=disable, leave=False) as bar:
         pending = compiled(params, first)
-        for i in range(1, n_chunks + 1):
-            nxt = compiled(params, slice_rays(i)) if i < n_chunks else None
-            got = jax.tree_util.tree_map(np.asarray, pending)
-            outs.append(unspread(got))
+        for i in range(lay.calls):
+            nxt = compiled(params, slice_rays(i + 1)) if i + 1 < lay.calls else None
+            bufs = output_buffers(pending, lay) if bufs is None else bufs
+            write_call(bufs, pending, lay, i)
             bar.update(1)
             pending = nxt
-    return outs
+    return jax.tree_util.tree_map(lambda b: b[: lay.n], bufs)

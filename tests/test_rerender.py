@@ -7,6 +7,10 @@ against the independent float64 reference (``tests/reference.py``, Bhagvat et al
 The executor's buckets themselves are checked on a batch function of a few operations (nothing
 of a render compiles there): batches smaller than one chunk padded to a few sizes, grouped
 calls of a power of two chunks whose padding chunks are skipped, against NumPy.
+
+A mesh of 72 and of 76 triangles and an implicit model of 5 and of 6 balls each share one
+size bucket (``executor.size_bucket``): the second renders with no program, its hits checked
+against a float64 reference written here (ray-triangle and ray-sphere).
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ import pytest
 import reference as ref
 from jskel import config
 from jskel.cache import count_programs, program_counts
-from jskel.executor import batch_bucket, calls_grouping, map_chunks
+from jskel.executor import batch_bucket, calls_grouping, map_chunks, size_bucket
 from jskel.rays import make_rays
 from jskel.render import camera_of, render
 
@@ -153,3 +157,121 @@ def test_grouped_calls_over_four_devices_skip_each_devices_padding_chunks():
     out = json.loads(p.stdout.strip().splitlines()[-1])
     assert out["devices"] == 4 and len(out["cases"]) == 4
     assert all(c["equal"] for c in out["cases"]), out["cases"]
+
+
+def test_size_buckets_double_to_64_then_grow_by_at_most_a_quarter():
+    """Model tables pad to powers of two up to 64 (at least 8), then by under 1.25x, rounded
+    up to a block size."""
+    n = np.arange(1, 5000)
+    b = np.array([size_bucket(int(k)) for k in n])
+    assert np.all(b >= n) and np.all(np.diff(b) >= 0)
+    assert sorted(set(b[n <= 64].tolist())) == [8, 16, 32, 64]
+    assert np.all(b[n > 64] < 1.25 * n[n > 64])
+    assert [size_bucket(k, 64) for k in (1, 65, 129, 513)] == [64, 128, 192, 640]
+
+
+# a model in one bucket before and after a change of its size: 72 and 76 triangles (80 rows),
+# 5 and 6 balls (8 rows); small images in one call of the one-chunk program
+MODEL_CAMERA = {"eye": [0.5, 3.0, 4.0], "target": [0.0, 0.0, 0.0], "up": [0, 1, 0], "fov_deg": 50, "width": 40, "height": 30}
+
+
+def _model_experiment(obj):
+    raw = {"name": "rerender_model", "object": obj, "camera": MODEL_CAMERA, "render": {"chunk": 2048, "progress": False}}
+    return config.validate(raw)
+
+
+def _terrain(extra: int) -> np.ndarray:
+    """(F, 3, 3) triangles of a 6 x 6 height field over [-2, 2]^2 (72), and ``extra`` / 2 quads
+    floating above it."""
+    g = np.linspace(-2.0, 2.0, 7)
+    x, z = np.meshgrid(g, g, indexing="ij")
+    p = np.stack([x, 0.3 * np.sin(1.3 * x) * np.cos(0.9 * z), z], -1)
+    a, b, c, d = p[:-1, :-1], p[1:, :-1], p[1:, 1:], p[:-1, 1:]
+    tri = np.concatenate([np.stack([a, b, c], -2).reshape(-1, 3, 3), np.stack([a, c, d], -2).reshape(-1, 3, 3)])
+    for k in range(extra // 2):
+        q = np.array([[-0.4, 1.0, -0.4], [0.4, 1.0, -0.4], [0.4, 1.1, 0.4], [-0.4, 1.1, 0.4]]) + [1.2 * k - 0.6, 0.2 * k, 0.0]
+        tri = np.concatenate([tri, [q[[0, 1, 2]], q[[0, 2, 3]]]])
+    return tri
+
+
+def _mesh_object(tmp, tri):
+    path = tmp / f"terrain_{len(tri)}.obj"
+    lines = [f"v {x:.17g} {y:.17g} {z:.17g}" for x, y, z in tri.reshape(-1, 3)] + [f"f {3 * i + 1} {3 * i + 2} {3 * i + 3}" for i in range(len(tri))]
+    path.write_text("\n".join(lines) + "\n")
+    return {"type": "mesh", "path": str(path), "leaf": 4}
+
+
+def _triangles_f64(tri, O, D):
+    """(t, ambiguous) of every ray against every triangle, float64 Moller-Trumbore: the nearest
+    t > 0 (inf: none), and whether some triangle's barycentric margin is within 1e-4 of an edge."""
+    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    o, d = O[:, None, :], D[:, None, :]
+    p = np.cross(d, e2)
+    det = np.sum(e1 * p, -1)
+    inv = 1.0 / np.where(det == 0, 1.0, det)
+    s = o - v0
+    u = np.sum(s * p, -1) * inv
+    q = np.cross(s, e1)
+    v = np.sum(d * q, -1) * inv
+    t = np.sum(e2 * q, -1) * inv
+    margin = np.minimum(np.minimum(u, v), 1 - u - v)
+    t_hit = np.where((det != 0) & (margin >= 0) & (t > 0), t, np.inf)
+    return t_hit.min(1), np.any((det != 0) & (np.abs(margin) < 1e-4) & (t > 0), axis=1)
+
+
+def _balls(count: int):
+    """``count`` balls of radius 0.6 on a circle, 1.4 apart or more (no two blend), and their
+    surface radius for threshold 0.5: (1 - rho^2 / R^2)^2 = T."""
+    ang = 2 * np.pi * np.arange(count) / 7
+    c = np.stack([1.6 * np.cos(ang), 0.2 * np.arange(count) - 0.5, 1.6 * np.sin(ang)], 1)
+    return c, 0.6 * np.sqrt(1 - np.sqrt(0.5))
+
+
+def _spheres_f64(c, rho, O, D):
+    """(t, ambiguous) of unit rays against spheres (centres c, radius rho), float64 closed form;
+    ambiguous: passing within 2 % of rho of a silhouette."""
+    oc = c[None] - O[:, None]
+    tc = np.sum(oc * D[:, None], -1)
+    d2 = np.sum(oc * oc, -1) - tc * tc
+    t = np.where(d2 < rho**2, tc - np.sqrt(np.maximum(rho**2 - d2, 0)), np.inf)
+    return t.min(1), np.any(np.abs(np.sqrt(np.maximum(d2, 0)) - rho) < 0.02 * rho, axis=1)
+
+
+def _assert_model_hits(res, exp, t_ref, ambiguous, tol):
+    O, D = camera_of(exp).ray_arrays()
+    n = np.linalg.norm(np.asarray(D, np.float64), axis=1)
+    t = np.asarray(res.hits.t, np.float64) * n  # a distance along the unit ray, as the reference's
+    ok = ~ambiguous
+    assert 0.05 < np.isfinite(t_ref).mean() < 0.95 and ok.mean() > 0.8
+    np.testing.assert_array_equal(np.isfinite(t)[ok], np.isfinite(t_ref)[ok])
+    both = ok & np.isfinite(t_ref)
+    assert np.max(np.abs(t[both] - t_ref[both])) <= tol
+
+
+def _unit_rays(exp):
+    O, D = (np.asarray(x, np.float64) for x in camera_of(exp).ray_arrays())
+    return O, D / np.linalg.norm(D, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("kind, sizes", [("mesh", (0, 4)), ("implicit", (5, 6))])
+def test_a_model_grown_within_its_bucket_renders_without_a_program(tmp_path, kind, sizes):
+    """The terrain's 72 triangles, then 76 (two more quads: 80 rows both, where 84 triangles
+    would take 96 and new programs); 5 balls, then 6 (16 rows, one block of the default size):
+    the second renders with no program handed to XLA, and both casts agree with float64."""
+    programs = []
+    for size in sizes:
+        if kind == "mesh":
+            tri = _terrain(size)
+            exp, obj = _model_experiment(_mesh_object(tmp_path, tri))
+            t_ref, amb = _triangles_f64(tri, *_unit_rays(exp))
+            tol = 1e-4
+        else:
+            c, rho = _balls(size)
+            exp, obj = _model_experiment({"type": "implicit", "threshold": 0.5, "method": "lipschitz", "eps": 1e-3,
+                                          "balls": [{"center": x.tolist(), "radius": 0.6} for x in c]})
+            t_ref, amb = _spheres_f64(c, rho, *_unit_rays(exp))
+            tol = 2e-3
+        res, got = _programs(exp, obj)
+        programs.append(got)
+        _assert_model_hits(res, exp, t_ref, amb, tol)
+    assert programs[1] == 0, f"{kind}: {programs[1]} programs compiled or loaded for the grown model"

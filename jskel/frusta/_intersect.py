@@ -257,12 +257,13 @@ def nearest_one(params: FrustaParams, seg_fn, origin, direction, t_min, t_max, b
 
 
 def _rays_touch_sphere(origins, directions, dd, t_min, t_max, c, r):
-    """(N,) whether each ray's (t_min, t_max] passes within r of c (a bounding-sphere test)."""
+    """(N,) whether each ray's (t_min, t_max] passes within r of c (a bounding-sphere test); a
+    padding block's sphere (r < 0) is met by none (r * r alone would let rays within 1 of c in)."""
     oc = c[None, :] - origins
     tc = safe_div(dot3(oc, directions), dd, 0.0)
     dist2 = line_dist2(oc, directions, tc)
     rt = safe_div(r, safe_sqrt(dd), 0.0)  # d = 0: no NaN
-    return (dist2 <= r * r) & (tc + rt > t_min) & (tc - rt <= t_max)
+    return (dist2 <= r * r) & (tc + rt > t_min) & (tc - rt <= t_max) & (r >= 0)
 
 
 def _no_hits(n: int, dtype):

@@ -9,6 +9,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from ..executor import size_bucket
 from ..numerics import on_device
 from ._build import FrustaArrays
 from ._intersect import FrustaParams, Quality
@@ -66,10 +67,12 @@ def _pad(a: np.ndarray, n: int, fill) -> np.ndarray:
 
 
 def to_params(arr: FrustaArrays, anchor: np.ndarray, block: int, dtype=np.float32, ids=None, shell=None) -> FrustaParams:
-    """Cast host arrays (the rows ``ids``) to a padded device ``FrustaParams`` relative to ``anchor``."""
+    """Cast host arrays (the rows ``ids``) to a padded device ``FrustaParams`` relative to
+    ``anchor``: rows of a size bucket (``executor.size_bucket``, a multiple of ``block``), so a
+    skeleton of similar size shares every program; padding rows are invalid (never hit)."""
     ids = np.arange(arr.h.shape[0]) if ids is None else np.asarray(ids)
     s = ids.shape[0]
-    n = max(-(-s // block) * block, block)
+    n = size_bucket(s, block)
     fields = {k: np.asarray(v)[ids] for k, v in arr._asdict().items()}
     fields["c1"] = fields["c1"] - anchor[None, :]
     fields["shell"] = np.zeros(s) if shell is None else np.asarray(shell, np.float64)[ids]
@@ -102,6 +105,9 @@ def make_group(arr: FrustaArrays, ids, anchor, cfg_block: int, dtype, shell=None
     bc, br = block_spheres(sub, anchor, block) if spheres else (np.zeros((0, 3)), np.zeros(0))
     if bc.shape[0] == 0:
         bc, br = np.zeros((1, 3)), np.full(1, -1.0)
+    if spheres:  # a sphere per block of the padded rows: the padding blocks' radius -1, met by no ray
+        nb = params.h.shape[0] // block
+        bc, br = _pad(bc, nb, 0.0), _pad(br, nb, -1.0)
     return Group(params, on_device(bc, dtype), on_device(br, dtype)), block
 
 

@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..executor import size_bucket
 from ..interface import Built, Representation
 from ..numerics import dot3
 from ..rays import Hit, Rays, masked_hit
@@ -96,8 +97,9 @@ def morton_order(points: np.ndarray) -> np.ndarray:
 
 
 def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
-    """Validate, pose at ``cfg.frame``, pad to a power of two (>= 8) so similar models share a
-    compile, cast. Every frame of an animation has the same shapes: one compile."""
+    """Validate, pose at ``cfg.frame``, pad to a size bucket (``executor.size_bucket``, a
+    multiple of the block size; padding rows invalid: no field, no hit, no id) so similar
+    models share a compile, cast. Every frame of an animation has the same shapes: one compile."""
     cfg = expand(cfg)
     a, b, ra, rb, rig, groups = primitives(cfg)
     shape, gid = csg_shape(cfg, groups)
@@ -105,9 +107,7 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     p = a.shape[0]
     order = morton_order(0.5 * (a + b))
     a, b, ra, rb, gid = a[order], b[order], ra[order], rb[order], gid[order]
-    n = max(8, 1 << int(np.ceil(np.log2(p))))
-    if cfg.block_size:
-        n = -(-n // cfg.block_size) * cfg.block_size
+    n = size_bucket(p, cfg.block_size or 1)
     rmax = np.maximum(ra, rb)[:, None]
     lo = np.min(np.minimum(a, b) - rmax, 0)
     hi = np.max(np.maximum(a, b) + rmax, 0)

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import accel
+from ..executor import size_bucket
 from ..interface import Built, Preliminary, Representation
 from ..numerics import dot3, safe_div, safe_normalize
 from ..rays import Hit, Rays, masked_hit
@@ -30,16 +31,20 @@ from ._triangle import cross3, triangle_t
 class MeshParams(NamedTuple):
     """Device pytree: triangles' vertices relative to the anchor (kept as vertices: the
     watertight test needs shared vertices bit-equal), unit face normals, corner normals (smooth
-    shading; (1, 3, 3) zeros when flat), colour, the BVH."""
+    shading; (1, 3, 3) zeros when flat), colour, the BVH, and which rows are triangles. The
+    rows are those of a size bucket (``executor.size_bucket``, at least the F triangles), so a
+    mesh of similar size shares every program; a padding row is a point at the anchor that no
+    ray meets and no winding number counts (``valid`` False, out of the BVH)."""
 
-    v0: jnp.ndarray  # (F, 3)
-    v1: jnp.ndarray  # (F, 3)
-    v2: jnp.ndarray  # (F, 3)
-    ids: jnp.ndarray  # (F, 3) int32 vertex indices (the watertight test's canonical edge order)
-    normal: jnp.ndarray  # (F, 3)
-    corner: jnp.ndarray  # (F, 3, 3) or (1, 3, 3)
+    v0: jnp.ndarray  # (F', 3) F' = size_bucket(F)
+    v1: jnp.ndarray  # (F', 3)
+    v2: jnp.ndarray  # (F', 3)
+    ids: jnp.ndarray  # (F', 3) int32 vertex indices (the watertight test's canonical edge order)
+    normal: jnp.ndarray  # (F', 3)
+    corner: jnp.ndarray  # (F', 3, 3) or (1, 3, 3)
     color: jnp.ndarray  # (3,)
     bvh: accel.BVH
+    valid: jnp.ndarray  # (F',) bool: a triangle of the mesh (False: padding)
 
 
 class Static(NamedTuple):
@@ -115,15 +120,22 @@ def build(cfg: MeshConfig, dtype=np.float32) -> Built:
     # boxes widened by float32 rounding of the vertices, so the tree never culls a ray the
     # triangle test would accept
     pad = 4.0 * np.finfo(dtype).eps * (np.abs(tri).max() + 1.0)
-    box_lo = jnp.asarray(tri.min(1) - pad, dtype)
-    box_hi = jnp.asarray(tri.max(1) + pad, dtype)
-    bvh = _build_bvh(box_lo, box_hi, jnp.ones(f.shape[0], bool), cfg.leaf)
+    rows = size_bucket(f.shape[0])
+    tri, ids, n = _padded(tri, rows), _padded(f.astype(np.int32), rows), _padded(n, rows)
+    vn = vn if vn.shape[0] == 1 else _padded(vn, rows)
+    valid = np.arange(rows) < f.shape[0]
+    bvh = _build_bvh(jnp.asarray(tri.min(1) - pad, dtype), jnp.asarray(tri.max(1) + pad, dtype), jnp.asarray(valid), cfg.leaf)
     v0, v1, v2 = (jnp.asarray(tri[:, k], dtype) for k in range(3))
-    params = MeshParams(v0, v1, v2, jnp.asarray(f.astype(np.int32)), jnp.asarray(n, dtype), jnp.asarray(vn, dtype),
-                        jnp.asarray(np.asarray(cfg.color, np.float64), dtype), bvh)
+    params = MeshParams(v0, v1, v2, jnp.asarray(ids), jnp.asarray(n, dtype), jnp.asarray(vn, dtype),
+                        jnp.asarray(np.asarray(cfg.color, np.float64), dtype), bvh, jnp.asarray(valid))
     info = {"triangles": int(f.shape[0]), "vertices": int(v.shape[0]), "watertight": bool(m.is_watertight), "closed": closed,
             "degenerate_triangles": int(np.sum(area2 == 0))}
     return Built(params, Static(cfg.leaf, cfg.group, cfg.normals == "smooth", closed, cfg.packet if cfg.traversal == "packets" else 0), anchor, (lo, hi), info, primitives=int(f.shape[0]))
+
+
+def _padded(x: np.ndarray, rows: int) -> np.ndarray:
+    """``x`` with zero rows appended up to ``rows``."""
+    return np.concatenate([x, np.zeros((rows - x.shape[0],) + x.shape[1:], x.dtype)])
 
 
 def _leaf_best(p: MeshParams, slots, o, d, t_min, t_hi):
@@ -202,6 +214,7 @@ def surface(p: MeshParams, static: Static, rays: Rays, pre: Preliminary) -> Hit:
 def intersect_one(p: MeshParams, static: Static, origin, direction, t_min, t_max) -> Hit:
     """Nearest hit of one ray by brute force over every triangle (the reference the BVH must equal)."""
     t, _, _ = triangle_t(p.v0, p.v1, p.v2, origin, direction, t_min, t_max, p.ids)
+    t = jnp.where(p.valid, t, jnp.inf)  # padding rows (a point: rounding could let one through)
     k = jnp.argmin(t)
     return _surface_one(p, static, origin, direction, t[k], jnp.where(jnp.isfinite(t[k]), k, -1).astype(jnp.int32))
 
@@ -223,7 +236,7 @@ def winding_number(p: MeshParams, point):
     la, lb, lc = (jnp.sqrt(dot3(x, x)) for x in (a, b, c))
     num = dot3(a, cross3(b, c))
     den = la * lb * lc + dot3(a, b) * lc + dot3(b, c) * la + dot3(c, a) * lb
-    return jnp.sum(jnp.arctan2(num, den)) / (2.0 * jnp.pi)
+    return jnp.sum(jnp.where(p.valid, jnp.arctan2(num, den), 0.0)) / (2.0 * jnp.pi)
 
 
 # generic directions (no axis, no face of a regular mesh lies along them) for the facing test
@@ -252,8 +265,8 @@ def inside(p: MeshParams, static: Static, point):
 
 def traced_fields(params: MeshParams) -> dict:
     """What ``interface.checked_intersect`` verifies of a traced mesh: every triangle's three
-    vertices finite, by triangle index."""
-    return {f"triangles.v{k}": (getattr(params, f"v{k}"), "finite", None, None) for k in range(3)}
+    vertices finite, by triangle index (padding rows skipped)."""
+    return {f"triangles.v{k}": (getattr(params, f"v{k}"), "finite", params.valid, None) for k in range(3)}
 
 
 @final
