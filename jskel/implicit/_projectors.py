@@ -9,6 +9,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from ..executor import size_bucket
 from ..numerics import dot3, safe_div, safe_sqrt
 from ._config import ImplicitConfig
 from ._field import Displace, kernel
@@ -95,7 +96,9 @@ def projector_arrays(cfg: ImplicitConfig, anchor, dtype):
         cols = {"origin": [np.zeros(3)], "axis": [[0, 1.0, 0]], "up": [[0, 0, 1.0]], "scale": [[1.0, 1]], "rc": [np.zeros(3)], "rr": [0.0]}
         images = [None]
     images = [np.ones((1, 1, 3)) if im is None else im for im in images]
-    hmax, wmax = max(im.shape[0] for im in images), max(im.shape[1] for im in images)
+    # padded to size buckets (``executor.size_bucket``): a texture of similar size shares every
+    # program; ``sizes`` keeps each one's own, so the padding texels are never sampled
+    hmax, wmax = (size_bucket(max(im.shape[k] for im in images)) for k in (0, 1))
     stack = np.zeros((len(images), hmax, wmax, 3))
     for k, im in enumerate(images):
         stack[k, : im.shape[0], : im.shape[1]] = im

@@ -155,11 +155,17 @@ def _checked_field_max(cfg: ImplicitConfig, a, b, ra, rb) -> float:
 
 def skin_of(rig, anchor, dtype) -> Skin:
     """Device skinning inputs of a rig (posed heads, tails, influence, M posed-from-rest), or of
-    one static "bone" with the identity map when there is none; relative to the anchor."""
+    one static "bone" with the identity map when there is none; relative to the anchor. The
+    bones are padded to a size bucket (``executor.size_bucket``: a rig of similar size shares
+    every program) with copies of the last bone of influence 0: no weight, and never the
+    nearest bone (``rest_position``'s argmin takes the first of equals, a real bone)."""
     if rig is None:  # one static "bone" with the identity map
         heads, tails, infl, M = np.zeros((1, 3)) + anchor, np.zeros((1, 3)) + anchor + [0, 1, 0], np.ones(1), np.eye(4)[None]
     else:
         heads, tails, infl, M = rig
+    b, rows = len(infl), size_bucket(len(infl))
+    heads, tails, M = (np.concatenate([x, np.repeat(x[-1:], rows - b, axis=0)]) for x in (heads, tails, M))
+    infl = np.concatenate([np.asarray(infl, np.float64), np.zeros(rows - b)])
     # posed -> rest for points relative to the anchor: x_rest - anchor = Minv (x + anchor) - anchor
     Minv = np.linalg.inv(M)
     to_rest = Minv[:, :3, :].copy()
