@@ -67,6 +67,12 @@ def minor_semi_axis(c1, m, r1, k, n, p, nm):
     return np.sqrt(np.maximum((r1 + k * y) ** 2 - dperp2, 0.0))
 
 
+# The host geometry's fewest rows: every skeleton up to 32 segments shares one executable (a
+# scene's one-segment floor, column and rod and a 30-segment saguaro compiled two before),
+# the padding rows costing nothing to run
+GEOMETRY_ROWS = 32
+
+
 def _bucket(n: int) -> int:
     """The next power of two from ``n`` (at least 8): padded shapes that many skeletons share."""
     return max(8, 1 << (int(n) - 1).bit_length())
@@ -130,9 +136,10 @@ def build_frusta(
     """Build every segment's frustum; returns (arrays, info) with info on minor-axis matching
     and the joints' plane choices (:func:`plane_counts`)."""
     s, nj = topo.seg_start.shape[0], joints.shape[0]
-    n = _bucket(s)
-    j = np.concatenate([np.asarray(joints, np.float64), np.zeros((_bucket(nj) - nj, 3))])
-    r = np.concatenate([np.asarray(radii, np.float64), np.zeros(_bucket(nj) - nj)])
+    n = max(GEOMETRY_ROWS, _bucket(s))
+    jn = max(GEOMETRY_ROWS, _bucket(nj))
+    j = np.concatenate([np.asarray(joints, np.float64), np.zeros((jn - nj, 3))])
+    r = np.concatenate([np.asarray(radii, np.float64), np.zeros(jn - nj)])
     ptopo = padded_topology(topo, n, np)
     levels = np.int32(topo.depth.max() + 1)
     info = {"minor_axis_iterations": 0, "minor_axis_mismatch": 0.0}

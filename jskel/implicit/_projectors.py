@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..executor import size_bucket
-from ..numerics import dot3, safe_div, safe_sqrt
+from ..numerics import dot3, on_device, safe_div, safe_sqrt
 from ._config import ImplicitConfig
 from ._field import Displace, kernel
 
@@ -53,8 +53,8 @@ def displace_params(cfg: ImplicitConfig, anchor, dtype) -> Displace:
     z3 = np.zeros(3)
     if dc is None or dc.type == "noise":
         amp, freq = (0.0, 1.0) if dc is None else (dc.amplitude, dc.frequency)
-        return Displace(jnp.asarray(amp, dtype), jnp.asarray(freq, dtype), jnp.zeros((1, 1), dtype), jnp.asarray(z3, dtype),
-                        jnp.asarray([1.0, 0, 0], dtype), jnp.asarray([0, 1.0, 0], dtype), jnp.ones(2, dtype), jnp.asarray(0.0, dtype))
+        return Displace(on_device(amp, dtype), on_device(freq, dtype), on_device(np.zeros((1, 1)), dtype), on_device(z3, dtype),
+                        on_device([1.0, 0, 0], dtype), on_device([0, 1.0, 0], dtype), on_device(np.ones(2), dtype), on_device(0.0, dtype))
     from ..frusta import load_height_map
 
     try:
@@ -68,9 +68,9 @@ def displace_params(cfg: ImplicitConfig, anchor, dtype) -> Displace:
     hh, ww = hmap.shape
     gu = np.max(np.abs(np.diff(hmap, axis=1, append=hmap[:, :1]))) * ww * pc.scale[0]
     gv = np.max(np.abs(np.diff(hmap, axis=0, append=hmap[:1, :]))) * hh * pc.scale[1]
-    return Displace(jnp.asarray(dc.amplitude, dtype), jnp.asarray(1.0, dtype), jnp.asarray(hmap, dtype),
-                    jnp.asarray(np.asarray(pc.origin) - anchor, dtype), jnp.asarray(side, dtype), jnp.asarray(up, dtype),
-                    jnp.asarray(pc.scale, dtype), jnp.asarray(float(np.hypot(gu, gv)), dtype))
+    return Displace(on_device(dc.amplitude, dtype), on_device(1.0, dtype), on_device(hmap, dtype),
+                    on_device(np.asarray(pc.origin) - anchor, dtype), on_device(side, dtype), on_device(up, dtype),
+                    on_device(pc.scale, dtype), on_device(float(np.hypot(gu, gv)), dtype))
 
 
 def projector_arrays(cfg: ImplicitConfig, anchor, dtype):
@@ -103,8 +103,8 @@ def projector_arrays(cfg: ImplicitConfig, anchor, dtype):
     for k, im in enumerate(images):
         stack[k, : im.shape[0], : im.shape[1]] = im
     sizes = np.array([im.shape[:2] for im in images], np.int32)
-    proj = Projector(*(jnp.asarray(np.asarray(cols[k], np.float64), dtype) for k in cols))
-    return proj, (jnp.asarray(stack, dtype), jnp.asarray(sizes)), kinds, textured
+    proj = Projector(*(on_device(np.asarray(cols[k], np.float64), dtype) for k in cols))
+    return proj, (on_device(stack, dtype), on_device(sizes)), kinds, textured
 
 
 def rest_position(skin: Skin, x):

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..executor import size_bucket
 from ..interface import Built, Representation
-from ..numerics import dot3
+from ..numerics import dot3, on_device
 from ..rays import Hit, Rays, masked_hit
 from ..wavefront import compact_map
 from ._config import ImplicitConfig
@@ -116,17 +116,17 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     # after the cast kept float32's rounding of the world position (the float32/float64 fuzzer
     # found t off by 0.4 % of the model's size at 1e5 from the origin)
     prims = Prims(
-        jnp.asarray(_pad(a - anchor, n), dtype), jnp.asarray(_pad(b - anchor, n), dtype),
-        jnp.asarray(_pad(ra, n), dtype), jnp.asarray(_pad(rb, n), dtype),
-        jnp.asarray(np.arange(n) < p),
-        jnp.asarray(_pad(gid, n, 0)),
+        on_device(_pad(a - anchor, n), dtype), on_device(_pad(b - anchor, n), dtype),
+        on_device(_pad(ra, n), dtype), on_device(_pad(rb, n), dtype),
+        on_device(np.arange(n) < p),
+        on_device(_pad(gid, n, 0)),
     )
-    tune = Tuning(jnp.asarray(cfg.threshold, dtype), jnp.asarray(cfg.step, dtype), jnp.asarray(cfg.eps, dtype),
+    tune = Tuning(on_device(cfg.threshold, dtype), on_device(cfg.step, dtype), on_device(cfg.eps, dtype),
                   displace_params(cfg, anchor, dtype))
     projs, tex, kinds, textured = projector_arrays(cfg, anchor, dtype)
     prim_id = np.full(n + 1, -1, np.int32)
     prim_id[:p] = order
-    scene = ImplicitScene(prims, tune, jnp.asarray(cfg.color, dtype), skin_of(rig, anchor, dtype), projs, *tex, jnp.asarray(prim_id))
+    scene = ImplicitScene(prims, tune, on_device(cfg.color, dtype), skin_of(rig, anchor, dtype), projs, *tex, on_device(prim_id))
     q = Quality(cfg.method, cfg.steps, cfg.bisection, cfg.capacity, early_exit=cfg.early_exit, shape=shape,
                 block=cfg.block_size, block_capacity=cfg.block_capacity or (16 if cfg.cull == "tree" else 32), cull=cfg.cull)
     static = Static(q, kinds, textured)
@@ -170,7 +170,7 @@ def skin_of(rig, anchor, dtype) -> Skin:
     Minv = np.linalg.inv(M)
     to_rest = Minv[:, :3, :].copy()
     to_rest[:, :, 3] = to_rest[:, :, 3] + np.einsum("bij,j->bi", Minv[:, :3, :3], anchor) - anchor
-    return Skin(jnp.asarray(heads - anchor, dtype), jnp.asarray(tails - anchor, dtype), jnp.asarray(infl, dtype), jnp.asarray(to_rest, dtype))
+    return Skin(on_device(heads - anchor, dtype), on_device(tails - anchor, dtype), on_device(infl, dtype), on_device(to_rest, dtype))
 
 
 def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min, t_max) -> Hit:
