@@ -20,6 +20,10 @@ line). Files are written to a temporary name and renamed, so a reader never sees
 folder of jskel's cache directory (``~/.cache/jskel/jax/executables``, or under
 ``JSKEL_CACHE_DIR``); ``JSKEL_EXECUTABLES=off`` leaves only JAX's cache on, ``JSKEL_CACHE=off``
 turns both off, and with ``JAX_COMPILATION_CACHE_DIR`` set no executables are stored.
+
+The folder is capped at ``JSKEL_EXECUTABLES_MAX_MB`` MiB (default :data:`MAX_MB`): after a
+store, the least recently used entries (by modification time, which a load renews) are
+removed until the rest fit; the entry just stored is kept even when it alone is larger.
 """
 
 from __future__ import annotations
@@ -43,7 +47,8 @@ import numpy as np
 from .cache import _warn, unsafe_reason
 
 MAGIC = b"jskel-executable-2 "
-_state: dict = {"dir": None}
+MAX_MB = 2048.0  # the folder's default cap in MiB (``JSKEL_EXECUTABLES_MAX_MB``)
+_state: dict = {"dir": None, "max_bytes": int(MAX_MB * 2**20)}
 _counts = {"loaded": 0, "compiled": 0, "stored": 0, "unstorable": 0}
 
 
@@ -57,6 +62,57 @@ def switched_off(env=None) -> bool:
     return v in ("off", "0", "false")
 
 
+def max_bytes(env=None) -> int:
+    """The folder's cap in bytes from ``JSKEL_EXECUTABLES_MAX_MB`` (MiB, default
+    :data:`MAX_MB`); anything but a positive number is a ``ValueError`` naming it."""
+    env = os.environ if env is None else env
+    raw = env.get("JSKEL_EXECUTABLES_MAX_MB", "").strip()
+    if not raw:
+        return int(MAX_MB * 2**20)
+    try:
+        mb = float(raw)
+    except ValueError:
+        mb = float("nan")
+    if not mb > 0 or mb == float("inf"):
+        raise ValueError(f"JSKEL_EXECUTABLES_MAX_MB: {raw!r} is not a positive number of MiB")
+    return int(mb * 2**20)
+
+
+def evict(folder: Path, limit: int, keep: Path | None = None) -> list[Path]:
+    """Remove the least recently used entries (oldest modification time first) of ``folder``
+    until its entries take at most ``limit`` bytes; ``keep`` is never removed. Returns the
+    entries removed (an entry another process removed first is skipped)."""
+    entries = []
+    for p in folder.glob("*.jx"):
+        try:
+            st = p.stat()
+        except FileNotFoundError:
+            continue
+        entries.append((st.st_mtime_ns, p.name, st.st_size, p))
+    total = sum(e[2] for e in entries)
+    removed = []
+    for _, _, size, p in sorted(entries):
+        if total <= limit:
+            break
+        if keep is not None and p == keep:
+            continue
+        try:
+            p.unlink()
+        except FileNotFoundError:
+            pass
+        total -= size
+        removed.append(p)
+    return removed
+
+
+def _touch(path: Path) -> None:
+    """Mark ``path`` as used now (its modification time: what :func:`evict` orders by)."""
+    try:
+        os.utime(path)
+    except OSError:
+        pass
+
+
 def use_dir(path) -> Path | None:
     """Load and store executables in ``path`` (created with mode 0700), or none for None.
     A directory that cannot be made, is another user's or that group or others may write is
@@ -64,6 +120,7 @@ def use_dir(path) -> Path | None:
     _state["dir"] = None
     if path is None:
         return None
+    _state["max_bytes"] = max_bytes()
     path = Path(path)
     try:
         path.mkdir(mode=0o700, parents=True, exist_ok=True)
@@ -204,6 +261,11 @@ def _store(path: Path, key: str, compiled, mesh) -> None:
         _warn(f"stored executables {path.parent}: cannot write ({e.strerror or e})")
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
+        return
+    try:
+        evict(path.parent, _state["max_bytes"], keep=path)
+    except OSError as e:
+        _warn(f"stored executables {path.parent}: cannot remove old entries ({e.strerror or e})")
 
 
 def compiled_for(fn, args, mesh, compile_: Callable):
@@ -216,6 +278,7 @@ def compiled_for(fn, args, mesh, compile_: Callable):
         got = _load(path, key, args, mesh)
         if got is not None:
             _counts["loaded"] += 1
+            _touch(path)
             return got
     compiled = compile_()
     _counts["compiled"] += 1

@@ -126,3 +126,54 @@ def test_the_switch_reads_on_and_off():
     assert executables.switched_off({"JSKEL_EXECUTABLES": "OFF"}) and executables.switched_off({"JSKEL_EXECUTABLES": "0"})
     with pytest.raises(ValueError, match=r"^JSKEL_EXECUTABLES: 'later' is not on or off$"):
         executables.switched_off({"JSKEL_EXECUTABLES": "later"})
+
+
+def _entry_for(n: int):
+    """(output, the entry's path) of ``_affine`` on ``n`` values: one entry per size."""
+    args = (np.float32(3.0), np.arange(n, dtype=np.float32))
+    before = set(executables._state["dir"].glob("*.jx"))
+    out = executables.compiled_for(_affine, args, None, lambda: jax.jit(_affine).lower(*args).compile())(*args)
+    np.testing.assert_array_equal(out, 3.0 * np.arange(n) + 1.0)
+    new = set(executables._state["dir"].glob("*.jx")) - before
+    return new.pop() if new else None
+
+
+def test_the_folder_keeps_under_its_cap_removing_the_least_recently_used(store, monkeypatch):
+    """Three entries (4, 8 and 16 values) stored in that order, then the first loaded again:
+    with a cap that holds three of them, the fourth's store removes the second (the least
+    recently used), not the first (used last) nor the fourth (just stored)."""
+    monkeypatch.setitem(executables._state, "max_bytes", 2**40)
+    a, b, c = (_entry_for(n) for n in (4, 8, 16))
+    for k, p in enumerate((a, b, c)):  # distinct times whatever the clock's resolution
+        os.utime(p, (1e9 + k, 1e9 + k))
+    loaded = executables._counts["loaded"]
+    assert _entry_for(4) is None and executables._counts["loaded"] == loaded + 1
+    assert a.stat().st_mtime > 1e9 + 2  # loaded: marked as used now
+    sizes = [p.stat().st_size for p in (a, b, c)]
+    monkeypatch.setitem(executables._state, "max_bytes", sum(sizes) + min(sizes) // 2)
+    d = _entry_for(32)
+    assert sorted(store.glob("*.jx")) == sorted([a, c, d])
+
+
+def test_eviction_orders_by_time_and_keeps_the_new_entry(tmp_path):
+    """Files of 100 bytes at times 1, 2, 3 (a, b, c): a cap of 250 removes a; a cap of 150
+    with a kept removes b and c, oldest first."""
+    paths = []
+    for k, name in enumerate("abc"):
+        p = tmp_path / f"{name}.jx"
+        p.write_bytes(b"x" * 100)
+        os.utime(p, (k + 1, k + 1))
+        paths.append(p)
+    assert executables.evict(tmp_path, 250) == [paths[0]]
+    paths[0].write_bytes(b"x" * 100)
+    os.utime(paths[0], (1, 1))
+    assert executables.evict(tmp_path, 150, keep=paths[0]) == [paths[1], paths[2]]
+    assert sorted(tmp_path.iterdir()) == [paths[0]]
+
+
+def test_the_cap_reads_positive_mib_only():
+    assert executables.max_bytes({}) == int(executables.MAX_MB * 2**20)
+    assert executables.max_bytes({"JSKEL_EXECUTABLES_MAX_MB": "0.5"}) == 2**19
+    for bad in ("0", "-3", "lots", "inf", "nan"):
+        with pytest.raises(ValueError, match=rf"^JSKEL_EXECUTABLES_MAX_MB: '{bad}' is not a positive number of MiB$"):
+            executables.max_bytes({"JSKEL_EXECUTABLES_MAX_MB": bad})
