@@ -37,8 +37,9 @@ class FrustaScene(NamedTuple):
     relief: Group | None
     maps: ReliefMaps | None
     colors: jnp.ndarray  # (S, 3) linear RGB per segment id, zero rows up to the next power of two (>= 8)
-    texture: jnp.ndarray  # (H, W, 3) linear RGB, (1, 1, 3) when unused
+    texture: jnp.ndarray  # (H', W', 3) linear RGB padded to size buckets, (8, 8, 3) when unused
     tex_scale: jnp.ndarray  # (2,) repeats of the texture per unit u and v
+    tex_size: jnp.ndarray  # (2,) int32 the texture's own (H, W): its top-left texels, the rest padding
 
 
 class Static(NamedTuple):

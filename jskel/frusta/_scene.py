@@ -13,6 +13,7 @@ import numpy as np
 
 from ..accel import nearest_tangent
 from ..executables import StoredJit
+from ..executor import size_bucket
 from ..numerics import on_device
 from ..interface import Built, Object, Preliminary, Representation
 from ..rays import Hit, Rays
@@ -53,6 +54,9 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
     seg_col = np.broadcast_to(np.asarray(cfg.color, np.float64), (s, 3)) if colors is None else colors[topo.seg_end]
     seg_col = np.concatenate([seg_col, np.zeros((_bucket(s) - s, 3))])  # rows of a size bucket: one program for similar skeletons
     tex = load_texture(cfg.texture) if cfg.texture is not None else np.ones((1, 1, 3))
+    tex_size = np.array(tex.shape[:2], np.int32)
+    # height and width padded to size buckets: a texture of similar size shares every program
+    tex = np.pad(tex, ((0, size_bucket(tex.shape[0]) - tex.shape[0]), (0, size_bucket(tex.shape[1]) - tex.shape[1]), (0, 0)))
     scene = FrustaScene(
         plain=plain,
         relief=relief,
@@ -60,6 +64,7 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         colors=on_device(seg_col, dtype),
         texture=on_device(tex, dtype),
         tex_scale=on_device(cfg.texture_scale, dtype),
+        tex_size=on_device(tex_size),
     )
     if rel is not None:
         rq = _relief_quality(rel, arrays, relief_ids)
@@ -255,7 +260,7 @@ def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
 def albedo(scene: FrustaScene, static: Static, hit: Hit):
     """Base colour at one hit: the texture through (u, v) (wrapping), else the segment colour."""
     if static.has_texture:
-        return bilinear_wrap(scene.texture, hit.uv * scene.tex_scale)
+        return bilinear_wrap(scene.texture, hit.uv * scene.tex_scale, scene.tex_size)
     return scene.colors[jnp.maximum(hit.prim, 0)]
 
 
