@@ -338,3 +338,34 @@ def test_the_bound_follows_the_rays_distance_not_the_hit_points_magnitude(analyt
     dist = c.faces(c.world(c.hit.position[g]))[2]
     by_p, by_all = dist / (u * np.sum(n * p, 1)), dist / (u * np.sum(n * (o + td + p), 1))
     assert np.max(by_p) > 100 * SPAWN_GAMMA_N and np.max(by_all) < SPAWN_GAMMA_N / 4, (np.max(by_p), np.max(by_all))
+
+
+def test_the_integrator_marks_a_reflection_ray_of_no_direction():
+    """The integrator's reflection rays: at a hit whose normal is NaN the mirrored direction is
+    NaN, so that candidate is reported as bad (the integrator ORs ``bad_direction`` into its
+    pixel) and left out of the next level's queue (an empty ray would see the environment);
+    the other candidates keep their mirrored directions (d - 2 (d.n) n, n = +z here)."""
+    from jskel.render._build import Effects, Materials, SceneParams, SceneStatic
+    from jskel.render._hits import SceneHit
+    from jskel.render._scene import Queue, spawn
+
+    n, f32 = 4, jnp.float32
+    one = jnp.ones((1,), f32)
+    mat = Materials(jnp.ones((1, 3), f32), *(one for _ in range(10)))
+    params = SceneParams((), (), mat, None, None, None, None)
+    static = SceneStatic((), (), Effects(False, True, False, 1), 64)
+    d = jnp.asarray(np.tile([0.3, 0.0, -1.0], (n, 1)) / np.hypot(0.3, 1.0), f32)
+    q = Queue(Rays(jnp.zeros((n, 3), f32), d, jnp.zeros((n,), f32), jnp.full((n,), jnp.inf, f32)),
+              jnp.ones((n, 3), f32), jnp.arange(n, dtype=jnp.int32), jnp.zeros((n,), jnp.int32), jnp.ones((n,), bool))
+    normal = np.tile([0.0, 0.0, 1.0], (n, 1))
+    normal[1, 0] = np.nan
+    hits = SceneHit(jnp.full((n,), 2.0, f32), 2.0 * d, jnp.asarray(normal, f32), jnp.zeros((n, 2), f32), jnp.zeros((n,), jnp.int32),
+                    jnp.zeros((n,), jnp.int32), jnp.ones((n, 3), f32), jnp.zeros((n,), jnp.int32))
+    nq, pix, dropped, bad = jax.jit(lambda q, h: spawn(params, static, q, h, jnp.full((n,), 0.5, f32), jnp.zeros((n,), f32), 1))(q, hits)
+    np.testing.assert_array_equal(np.asarray(bad), [False, True, False, False])
+    np.testing.assert_array_equal(np.asarray(pix), np.arange(n))
+    assert not np.any(np.asarray(dropped))
+    np.testing.assert_array_equal(np.asarray(nq.live), [True, True, True, False])
+    np.testing.assert_array_equal(np.asarray(nq.pixel)[:3], [0, 2, 3])
+    want = np.asarray(d, np.float64)[[0, 2, 3]] * [1.0, 1.0, -1.0]
+    np.testing.assert_allclose(np.asarray(nq.rays.directions)[:3], want, rtol=1e-6)

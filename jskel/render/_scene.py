@@ -210,7 +210,7 @@ def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: S
 def spawn(params: SceneParams, static: SceneStatic, q: Queue, hits: SceneHit, kr, kt, level: int):
     """Reflection and refraction rays of a level, compacted into the next level's queue.
     Returns (queue, the candidates' pixels, which candidates were dropped, which asked for a
-    zero or non-finite direction: spawned empty, ``spawning.bad_directions``)."""
+    zero or non-finite direction, ``spawning.bad_directions``: left out of the queue)."""
     eff = static.effects
     d = safe_normalize(q.rays.directions)
     nf = jax.vmap(facing)(hits.normal, d)
@@ -229,8 +229,9 @@ def spawn(params: SceneParams, static: SceneStatic, q: Queue, hits: SceneHit, kr
             cands.append(Queue(spawned(q.rays, hits, params.mat, t), q.weight * kt[:, None] * factor, q.pixel, kind, q.live & (kt > 0)))
             dirs.append(t)
     allc = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *cands)
-    nq, dropped = _compact_queue(allc, q.live.shape[0])
-    return nq, allc.pixel, dropped, allc.live & bad_directions(jnp.concatenate(dirs, axis=0))
+    bad = allc.live & bad_directions(jnp.concatenate(dirs, axis=0))  # (a ray spawned empty: it would see the environment)
+    nq, dropped = _compact_queue(allc._replace(live=allc.live & ~bad), q.live.shape[0])
+    return nq, allc.pixel, dropped, bad
 
 
 def _camera_queue(rays: Rays, cap: int) -> Queue:
