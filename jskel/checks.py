@@ -220,7 +220,7 @@ def checked(fn, problems, static_argnums=()):
 
     def run(*args):
         err, found, out = program(*args)
-        lines = [line for f in found for line in f.lines()]
+        lines = [line for f in jax.device_get(found) for line in f.lines()]  # (one transfer for all)
         raise_all(lines or ([re.sub(r" \((`check` failed|check failed at).*$", "", err.get().splitlines()[0])] if err.get() else []))
         return out
 
