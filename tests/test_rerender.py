@@ -171,11 +171,12 @@ def test_size_buckets_double_to_64_then_grow_by_at_most_a_quarter():
 
 
 # a model in one bucket before and after a change of its size: 72 and 76 triangles (80 rows),
-# 5 and 6 balls (8 rows); small images in one call of the one-chunk program
+# 5 and 6 balls (16 rows, one block); small images in one call of the one-chunk program
 MODEL_CAMERA = {"eye": [0.5, 3.0, 4.0], "target": [0.0, 0.0, 0.0], "up": [0, 1, 0], "fov_deg": 50, "width": 40, "height": 30}
 
 
 def _model_experiment(obj):
+    """(experiment, object) of ``obj`` seen by :data:`MODEL_CAMERA`."""
     raw = {"name": "rerender_model", "object": obj, "camera": MODEL_CAMERA, "render": {"chunk": 2048, "progress": False}}
     return config.validate(raw)
 
@@ -195,6 +196,7 @@ def _terrain(extra: int) -> np.ndarray:
 
 
 def _mesh_object(tmp, tri):
+    """The ``object`` section of triangles ``tri`` written to an OBJ file in ``tmp``."""
     path = tmp / f"terrain_{len(tri)}.obj"
     lines = [f"v {x:.17g} {y:.17g} {z:.17g}" for x, y, z in tri.reshape(-1, 3)] + [f"f {3 * i + 1} {3 * i + 2} {3 * i + 3}" for i in range(len(tri))]
     path.write_text("\n".join(lines) + "\n")
@@ -219,12 +221,15 @@ def _triangles_f64(tri, O, D):
     return t_hit.min(1), np.any((det != 0) & (np.abs(margin) < 1e-4) & (t > 0), axis=1)
 
 
+BALL_T = 0.1  # the balls' threshold
+
+
 def _balls(count: int):
-    """``count`` balls of radius 0.6 on a circle, 1.4 apart or more (no two blend), and their
-    surface radius for threshold 0.5: (1 - rho^2 / R^2)^2 = T."""
+    """``count`` balls of radius 0.6 on a circle, 1.39 apart or more (influences of radius 0.6:
+    no two blend), and their surface radius: (1 - rho^2 / R^2)^2 = T."""
     ang = 2 * np.pi * np.arange(count) / 7
     c = np.stack([1.6 * np.cos(ang), 0.2 * np.arange(count) - 0.5, 1.6 * np.sin(ang)], 1)
-    return c, 0.6 * np.sqrt(1 - np.sqrt(0.5))
+    return c, 0.6 * np.sqrt(1 - np.sqrt(BALL_T))
 
 
 def _spheres_f64(c, rho, O, D):
@@ -238,6 +243,8 @@ def _spheres_f64(c, rho, O, D):
 
 
 def _assert_model_hits(res, exp, t_ref, ambiguous, tol):
+    """The render's first hits are the reference's (``t_ref`` along unit rays): the same hit or
+    miss and t within ``tol`` wherever the reference is not ``ambiguous``."""
     O, D = camera_of(exp).ray_arrays()
     n = np.linalg.norm(np.asarray(D, np.float64), axis=1)
     t = np.asarray(res.hits.t, np.float64) * n  # a distance along the unit ray, as the reference's
@@ -249,6 +256,7 @@ def _assert_model_hits(res, exp, t_ref, ambiguous, tol):
 
 
 def _unit_rays(exp):
+    """The experiment's camera rays in float64, directions of length 1."""
     O, D = (np.asarray(x, np.float64) for x in camera_of(exp).ray_arrays())
     return O, D / np.linalg.norm(D, axis=1, keepdims=True)
 
@@ -267,7 +275,7 @@ def test_a_model_grown_within_its_bucket_renders_without_a_program(tmp_path, kin
             tol = 1e-4
         else:
             c, rho = _balls(size)
-            exp, obj = _model_experiment({"type": "implicit", "threshold": 0.5, "method": "lipschitz", "eps": 1e-3,
+            exp, obj = _model_experiment({"type": "implicit", "threshold": BALL_T, "method": "lipschitz", "eps": 1e-3,
                                           "balls": [{"center": x.tolist(), "radius": 0.6} for x in c]})
             t_ref, amb = _spheres_f64(c, rho, *_unit_rays(exp))
             tol = 2e-3
