@@ -56,22 +56,24 @@ def random_case():
 @pytest.mark.parametrize("method, kw, min_agree, max_flagged", [
     ("lipschitz", {"eps": 1e-3, "steps": 4096}, 1.0, 0.01),
     ("naive", {"step": 0.01, "steps": 1024}, 0.999, 0.01),
-    ("bisection", {}, 0.99, 0.05),
+    ("bisection", {}, 0.99, 0.07),  # about 2.8 % NO_BRACKET misses, 2.2 % GRAZE hits (bounds, not crossings)
 ])
 def test_random_rays_against_reference(random_case, method, kw, min_agree, max_flagged):
     """Guaranteed method: every well-posed ray it decides agrees. The thesis' heuristics: nearly
-    all. The only flags: rays that graze the surface within the tolerance (the marches) and
-    misses that no inside point decided where the field's bound on the ray reaches T
-    (bisection, Fig. 7: among overlapping primitives, a few percent)."""
+    all. The only flags: rays that graze the surface within the tolerance (the marches), and
+    for the bisection misses that no inside point decided where the field's bound on the ray
+    reaches T (Fig. 7: among overlapping primitives, a few percent) and hits whose bracket a
+    bound cannot clear of an earlier crossing (Sec. 4.2.2)."""
     O, D, t_ref, clear, scale = random_case
     b = implicit.build(model_cfg(method, **kw))
     hit = cast(b, O, D)
-    undecided = FLAG_NO_BRACKET if method == "bisection" else FLAG_GRAZE
+    undecided = FLAG_NO_BRACKET | FLAG_GRAZE if method == "bisection" else FLAG_GRAZE
     assert np.all((hit.flags & ~undecided) == 0)
     flagged = hit.flags != 0
     assert flagged.mean() < max_flagged, flagged.mean()
-    if method == "bisection":
-        assert not np.any(np.isfinite(hit.t[flagged]))
+    if method == "bisection":  # NO_BRACKET on misses only, GRAZE on hits only
+        assert not np.any(np.isfinite(hit.t[(hit.flags & FLAG_NO_BRACKET) != 0]))
+        assert np.all(np.isfinite(hit.t[(hit.flags & FLAG_GRAZE) != 0]))
     assert not np.any(np.isnan(hit.t)) and np.all(np.isfinite(hit.normal))
     assert clear.mean() > 0.9 and 0.1 < np.isfinite(t_ref).mean() < 0.9
     same = np.isfinite(hit.t) == np.isfinite(t_ref)

@@ -46,7 +46,8 @@ Methods (``Quality.method``):
   segment. The nearest candidate point with F > T is the inside end of the bracket and the entry
   into the first sphere of influence the outside end. Fast, but it misses the Figure 7 case and
   may bracket a later crossing (Sec. 4.2.2); a miss that a bound on the field along the ray
-  cannot confirm (:func:`field_bound` >= T) carries ``NO_BRACKET``.
+  cannot confirm (:func:`field_bound` >= T) carries ``NO_BRACKET``, a hit whose bracket a
+  bound cannot clear of an earlier crossing (:func:`._bounds.watched_bisect`) ``GRAZE``.
 * ``lipschitz`` (guaranteed; not in the thesis): |F(x) - F(y)| <= L |x - y| with L the sum over
   the candidates of each kernel's steepest slope (``_field.lipschitz``), which also bounds the
   CSG combinations, and grown for a displacement (``_field.lipschitz_total``). From an outside point
@@ -75,6 +76,7 @@ from ..rays import FLAG_NO_BRACKET as NO_BRACKET
 from ..rays import FLAG_OVERFLOW as OVERFLOW
 from ..rays import FLAG_STEP_CAP as STEP_CAP
 from ..rays import ulp_floor
+from ._bounds import field_bound, watched_bisect
 from ._field import Displace, Prims, Shape, closest, kernel, lipschitz_total, shaped_field
 
 
@@ -251,26 +253,6 @@ def _inside_points(sub: Prims, o, d):
     return jnp.take_along_axis(cands, best[None, :], axis=0)[0]
 
 
-def field_bound(sub: Prims, o, d, shape: Shape, disp: Displace):
-    """An upper bound of the shaped field anywhere on the line o + t d: each candidate's kernel
-    at its smallest distance to the line (segment to line, shortened by a few ulps of the
-    coordinates) with its largest radius, since a kernel falls with distance and grows with R.
-    The sum bounds the CSG tree too (every group field is >= 0, and sum, max, min and
-    min(F_l, 2T - F_r) are each <= the sum of their children), and a displacement multiplies
-    it by 1 + |amp| (Sec. 6.2). Below T, no point of the ray is inside: a certain miss."""
-    dd = dot3(d, d)
-    p = sub.a - o
-    ab = sub.b - sub.a
-    pp = p - safe_div(dot3(p, d), dd, 0.0)[:, None] * d  # the parts across the ray
-    qq = ab - safe_div(dot3(ab, d), dd, 0.0)[:, None] * d
-    s = jnp.clip(safe_div(-dot3(pp, qq), dot3(qq, qq), 0.0), 0.0, 1.0)
-    e = pp + s[:, None] * qq
-    slack = 8 * jnp.finfo(o.dtype).eps * (safe_sqrt(dot3(p, p)) + safe_sqrt(dot3(ab, ab)))
-    r = jnp.maximum(safe_sqrt(dot3(e, e)) - slack, 0.0)
-    bound = jnp.sum(jnp.where(sub.valid, kernel(r * r, jnp.maximum(sub.ra, sub.rb)), 0.0))
-    return bound * (1.0 + jnp.abs(disp.amp)) if shape.displace != "none" else bound
-
-
 def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
     """(t, flags) of the first hit of one ray over its culled candidates; t = inf on a miss.
     Flags (``jskel.rays``): OVERFLOW from culling; the tracer's own in :func:`_bisection_method`
@@ -295,7 +277,9 @@ def _bisection_method(cand: Candidates, g, tune: Tuning, o, d, t_min, t_max, q: 
     inside end of the bracket, the entry into the first sphere of influence the outside end.
     Where no candidate point is inside, the ray is a miss only if :func:`field_bound` is below
     T; otherwise the field may still cross (the Fig. 7 case: two primitives that just blend,
-    Sec. 4.2.2) and the miss carries ``NO_BRACKET``."""
+    Sec. 4.2.2) and the miss carries ``NO_BRACKET``. A hit whose bracket may hold an earlier
+    crossing than the one bisected (Sec. 4.2.2: the bracket can straddle a later one) carries
+    ``GRAZE`` (:func:`._bounds.watched_bisect`)."""
     inf = jnp.asarray(jnp.inf, o.dtype)
     sub, t_lo, t_hi, anyc = cand.sub, cand.t_lo, cand.t_hi, cand.any
     tin = _inside_points(sub, o, d)
@@ -303,13 +287,15 @@ def _bisection_method(cand: Candidates, g, tune: Tuning, o, d, t_min, t_max, q: 
     inside = ok & (jax.vmap(g)(jnp.where(ok, tin, t_lo)) > 0)
     t_in = jnp.min(jnp.where(inside, tin, inf))
     found = anyc & jnp.isfinite(t_in)
-    lo, hi = _bisect(g, t_lo, jnp.where(found, t_in, t_lo), q.bisection)
+    start = jnp.where(found, t_lo, 0.0)  # a miss bisects [0, 0]: finite, masked after
+    lo, hi, earlier = watched_bisect(sub, g, tune.threshold, tune.eps, q.shape, tune.disp, o, d, start,
+                                    jnp.where(found, t_in, 0.0), q.bisection)
     # a miss differentiates at t = 0 (g finite there; t_lo may be inf), and is masked after
     t = jnp.where(found, differentiable_root(g, jnp.where(found, 0.5 * (lo + hi), 0.0)), inf)
     T = tune.threshold
     bound = field_bound(sub, o, d, q.shape, tune.disp)
     undecided = anyc & ~found & (bound > T * (1 - 8 * jnp.finfo(o.dtype).eps))
-    return t, jnp.where(undecided, NO_BRACKET, 0)
+    return t, jnp.where(undecided, NO_BRACKET, 0) | jnp.where(found & earlier, GRAZE, 0)
 
 
 def _march(cand: Candidates, g, tune: Tuning, o, d, q: Quality):
