@@ -19,7 +19,7 @@ from jskel.render import render
 cases = {
     "frusta_bvh": ("experiments/aloe.yaml", []),
     # 2 chunks per call on both sides (16 chunks of 75 on one device, 4 per device on four): with
-    # 4 devices each call's chunks are dealt out in turn (executor._interleave)
+    # 4 devices each call's chunks are dealt out in turn (call_layout.call_rays)
     "frusta_bvh_grouped": ("experiments/aloe.yaml", ["render.chunk=75", "render.chunks_per_call=2"]),
     "frusta_blocks": ("experiments/well.yaml", []),
     "implicit_blocks": ("experiments/blobs_5000.yaml", []),
