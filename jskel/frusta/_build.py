@@ -67,10 +67,12 @@ def minor_semi_axis(c1, m, r1, k, n, p, nm):
     return np.sqrt(np.maximum((r1 + k * y) ** 2 - dperp2, 0.0))
 
 
-# The host geometry's fewest rows: every skeleton up to 32 segments shares one executable (a
-# scene's one-segment floor, column and rod and a 30-segment saguaro compiled two before),
-# the padding rows costing nothing to run
+# The host geometry's fewest rows and depth levels: every skeleton up to 32 segments and 16
+# levels shares one executable (a scene's one-segment floor, column and rod and a 30-segment
+# saguaro compiled two before); padding rows cost nothing to run and padding levels are never
+# visited (the loop runs the skeleton's own depth)
 GEOMETRY_ROWS = 32
+GEOMETRY_LEVELS = 16
 
 
 def _bucket(n: int) -> int:
@@ -141,6 +143,9 @@ def build_frusta(
     j = np.concatenate([np.asarray(joints, np.float64), np.zeros((jn - nj, 3))])
     r = np.concatenate([np.asarray(radii, np.float64), np.zeros(jn - nj)])
     ptopo = padded_topology(topo, n, np)
+    bl = ptopo.by_level
+    if bl.shape[0] < GEOMETRY_LEVELS:  # levels of rows out of range (n), never visited
+        ptopo = ptopo._replace(by_level=np.concatenate([bl, np.full((GEOMETRY_LEVELS - bl.shape[0], bl.shape[1]), n, np.int32)]))
     levels = np.int32(topo.depth.max() + 1)
     info = {"minor_axis_iterations": 0, "minor_axis_mismatch": 0.0}
     with jax.enable_x64(True):
