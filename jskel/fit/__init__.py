@@ -6,8 +6,8 @@ Public API:
   skeleton's frusta (``_distance``), with :func:`segments_of` for the static topology, each
   point against its ``candidates`` nearest segments (:func:`culling_exact` certifies it);
   :func:`plane_margins`: how far each shared cutting plane is from leaving a piece unbounded;
-* :func:`fit_points`: fit joints and radii of a fixed topology (jaxopt LM / Gauss-Newton /
-  L-BFGS or optax Adam through the adapter in ``_solvers``; for large problems LM and
+* :func:`fit_points`: fit joints and radii of a fixed topology (jaxopt LM / Gauss-Newton, the
+  project's L-BFGS (``_lbfgs``) or optax Adam through the adapter in ``_solvers``; for large problems LM and
   Gauss-Newton on normal equations assembled from the problem's sparsity, ``_normal``);
 * :func:`pca_chain`, :func:`mst_skeleton`: starting skeletons estimated from points (``_starts``);
   :func:`read_points`, :func:`load_points`: the cloud (``_points``); the least-squares problem

@@ -90,7 +90,7 @@ class InitConfig(StrictModel):
 
 
 class SolverConfig(StrictModel):
-    """``name``: lm (Levenberg-Marquardt), gauss_newton, lbfgs (jaxopt) or adam (optax).
+    """``name``: lm (Levenberg-Marquardt), gauss_newton (both jaxopt, or the sparse form), lbfgs (``_lbfgs``) or adam (optax).
     ``loss``: l2, huber, cauchy or geman_mcclure (bounded), with ``scale`` a fraction of the cloud's extent.
     ``smoothness``: weight of the joints' second differences along chains. ``restarts``: fits
     from that many perturbed starts in one call (``_fit.over_batch``), the best kept. ``validity``: weight of the
@@ -105,7 +105,7 @@ class SolverConfig(StrictModel):
     unknowns, 131,072: about 5,000 points on a 5-segment chain), where it is as fast or faster."""
 
     name: Literal["lm", "gauss_newton", "lbfgs", "adam"] = "lm"
-    """The solver: Levenberg-Marquardt, Gauss-Newton, L-BFGS (jaxopt) or Adam (optax)."""
+    """The solver: Levenberg-Marquardt, Gauss-Newton, L-BFGS (strong Wolfe line search) or Adam (optax)."""
     loss: Literal["l2", "huber", "cauchy", "geman_mcclure"] = "huber"
     """Robust loss on the point distances."""
     scale: Annotated[float, Field(gt=0.0, le=1.0)] = 0.01

@@ -139,7 +139,8 @@ def run_to_end(pr: Problem, key: SolverKey, x0, points) -> RunEnd:
     recording the loss after each iteration; ``vmap`` of it fits many problems in one call."""
     step = stepper(pr, key)
     st0 = _typed_state(step, x0, (points,))
-    l0 = loss(x0, points, pr)
+    # the loss the state holds (every solver but adam's): no further copy of the loss in the loop
+    l0 = step.value(st0) if step.value else loss(x0, points, pr)
     hist0 = jnp.full((key.maxiter + 1,), jnp.nan, l0.dtype).at[0].set(l0)
 
     def cond(c):
@@ -149,7 +150,7 @@ def run_to_end(pr: Problem, key: SolverKey, x0, points) -> RunEnd:
     def body(c):
         x, st, it, prev, stalled, hist = c
         x, st = step.update(x, st, points)
-        cur = loss(x, points, pr)
+        cur = step.value(st) if step.value else loss(x, points, pr)
         stalled = jnp.where(prev - cur <= key.ftol * jnp.abs(prev), stalled + 1, 0)
         return x, st, it + 1, cur, stalled, hist.at[it + 1].set(cur)
 
@@ -240,10 +241,14 @@ def _stepped(pr: Problem, key: SolverKey, s: SolverConfig, x0, pts):
     t0 = time.perf_counter()  # compile seconds: the initial state's and the update's programs (none when cached)
     st0 = _initial(x0, pts, pr, key)
     upd = _update.lower(x0, st0, pts, pr, key).compile()
-    lossf = _loss.lower(x0, pts, pr).compile()
+    if step.value is None:  # the loss recorded after each iteration: the state's own where it holds one
+        lossf = _loss.lower(x0, pts, pr).compile()
+        value = lambda x, st: float(lossf(x, pts))  # noqa: E731
+    else:
+        value = lambda x, st: float(step.value(st))  # noqa: E731
     compile_s = time.perf_counter() - t0
     x, st = x0, st0
-    history = [float(lossf(x, pts))]
+    history = [value(x, st)]
     converged = False
     it = 0
     stalled = 0
@@ -251,7 +256,7 @@ def _stepped(pr: Problem, key: SolverKey, s: SolverConfig, x0, pts):
     bar = progress.bar(s.maxiter, f"fit ({s.name})", "it")
     for it in range(1, s.maxiter + 1):  # host loop over iterations: one compiled update each
         x, st = upd(x, st, pts)
-        history.append(float(lossf(x, pts)))
+        history.append(value(x, st))
         bar.update(1)
         bar.set_postfix(loss=f"{history[-1]:.4g}", refresh=False)
         if s.max_seconds is not None and time.perf_counter() - t_loop > s.max_seconds:

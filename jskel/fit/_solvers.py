@@ -1,13 +1,15 @@
 """The solver adapter: one small interface over jaxopt and optax (issue 10).
 
-jaxopt is no longer maintained upstream; it is used here for what it does best (Levenberg-
-Marquardt and Gauss-Newton on residuals, L-BFGS with a line search) behind :func:`make`, so
-another library can replace it by adding an entry. Every solver is driven the same way:
+jaxopt is no longer maintained upstream; it is used here for Levenberg-Marquardt and
+Gauss-Newton on residuals behind :func:`make`, so another library can replace it by adding an
+entry. L-BFGS is the project's own (``_lbfgs``: jaxopt's, with its zoom line search, wrote the
+loss into its program about eight times). Every solver is driven the same way:
 
     step = make(name, residuals, loss, maxiter, tol)   # a Stepper; residuals(x, *args), loss(x, *args)
     state = step.init(x0, *args)
     x, state = step.update(x, state, *args)            # one iteration (the caller jits it)
     step.error(state)                                  # the solver's own stopping measure
+    step.value(state)                                  # the loss at the state's point (None: not held)
 
 which lets the caller record the loss after every iteration (the fit's loss curve) and stop on
 the solver's criterion or its own; ``jskel.fit._fit.run_to_end`` wraps the same update in one
@@ -24,6 +26,8 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+
+from . import _lbfgs
 
 
 def robust_residuals(r, kind: str, scale):
@@ -56,6 +60,7 @@ class Stepper(NamedTuple):
     init: Callable  # (x0, *args) -> state
     update: Callable  # (x, state, *args) -> (x, state)
     error: Callable  # state -> the solver's stopping measure
+    value: Callable | None = None  # state -> the loss at the state's point, where the state holds it
 
 
 SOLVERS = ("lm", "gauss_newton", "lbfgs", "adam")
@@ -125,7 +130,7 @@ def normal_solver(system: Callable, loss: Callable, damped: bool = True, tau: fl
 
         return jax.lax.cond(ok, accept, reject, None)
 
-    return Stepper(init, update, lambda st: st.error)
+    return Stepper(init, update, lambda st: st.error, lambda st: st.value)
 
 
 def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: float, learning_rate: float = 0.01,
@@ -140,7 +145,10 @@ def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: floa
     chain the matrix-free form took 35 s to compile against 11 s dense (CPU, development run)."""
     if normal is not None and name in ("lm", "gauss_newton"):
         return normal_solver(normal, loss, damped=name == "lm")
-    if name in ("lm", "gauss_newton", "lbfgs"):
+    if name == "lbfgs":
+        init, update = _lbfgs.lbfgs(loss)
+        return Stepper(init, update, lambda st: st.error, lambda st: st.value)
+    if name in ("lm", "gauss_newton"):
         import warnings
 
         with warnings.catch_warnings():  # "JAXopt is no longer maintained": known, hence this adapter
@@ -150,12 +158,9 @@ def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: floa
         if name == "lm":
             kw = {"materialize_jac": True, "solver": "cholesky"} if dense else {}
             s = jaxopt.LevenbergMarquardt(residual_fun=residuals, maxiter=maxiter, tol=tol, xtol=tol, gtol=tol, jit=True, **kw)
-        elif name == "gauss_newton":
-            s = jaxopt.GaussNewton(residual_fun=residuals, maxiter=maxiter, tol=tol, jit=True)
         else:
-            s = jaxopt.LBFGS(fun=loss, maxiter=maxiter, tol=tol, jit=True)
-
-        return Stepper(s.init_state, s.update, lambda st: st.error)
+            s = jaxopt.GaussNewton(residual_fun=residuals, maxiter=maxiter, tol=tol, jit=True)
+        return Stepper(s.init_state, s.update, lambda st: st.error, lambda st: st.value)
     if name == "adam":
         import optax
 
