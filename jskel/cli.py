@@ -22,11 +22,7 @@ from .cache import use_compilation_cache
 from .config import ConfigError
 from .devices import use_host_devices
 from .distributed import init_from_env
-from .fit import FitFile, run_fit
-from .measure.bench import run_bench
-from .measure.latency import is_latency_file, run_latency_file
 from .measure.files import X64, load_experiment, read_model
-from .measure.sweep import load_sweep, run_sweep
 from .render import aov_sheet, render, write_aovs
 
 
@@ -93,6 +89,9 @@ def cmd_render(args) -> int:
 
 def cmd_bench(args) -> int:
     """``jskel bench FILE``: see ``jskel.measure.bench`` (time to first image: ``jskel.measure.latency``)."""
+    from .measure.bench import run_bench  # imported by the command that needs it: a render's start skips them
+    from .measure.latency import is_latency_file, run_latency_file
+
     if is_latency_file(args.file):
         run_latency_file(args.file, args.set, args.out, command=args.command)
     else:
@@ -102,6 +101,8 @@ def cmd_bench(args) -> int:
 
 def cmd_sweep(args) -> int:
     """``jskel sweep FILE --out DIR``: see ``jskel.measure.sweep``."""
+    from .measure.sweep import load_sweep, run_sweep
+
     x64 = X64 if args.x64 else []
     sweep, jobs, ref_jobs = load_sweep(args.file, args.set, x64)
     out = Path(args.out)
@@ -113,6 +114,8 @@ def cmd_sweep(args) -> int:
 
 def cmd_fit(args) -> int:
     """``jskel fit FILE --out DIR``: see ``jskel.fit``."""
+    from .fit import FitFile, run_fit
+
     cfg = read_model(FitFile, args.file, args.set)
     if args.x64 or cfg.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
