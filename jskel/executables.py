@@ -49,7 +49,7 @@ from .cache import _warn, unsafe_reason
 MAGIC = b"jskel-executable-2 "
 MAX_MB = 2048.0  # the folder's default cap in MiB (``JSKEL_EXECUTABLES_MAX_MB``)
 _state: dict = {"dir": None, "max_bytes": int(MAX_MB * 2**20)}
-_counts = {"loaded": 0, "compiled": 0, "stored": 0, "unstorable": 0}
+_counts = {"loaded": 0, "compiled": 0, "stored": 0, "unstorable": 0, "from_jax_cache": 0}
 
 
 def switched_off(env=None) -> bool:
@@ -136,7 +136,8 @@ def use_dir(path) -> Path | None:
 
 def counts() -> dict:
     """This process's executables: ``loaded`` from disk, ``compiled`` (traced and compiled by
-    the executor), ``stored``, ``unstorable`` (XLA cannot serialize them), and the directory."""
+    the executor), ``stored``, ``unstorable`` (XLA cannot serialize them), ``from_jax_cache``
+    (loaded from JAX's persistent cache while compiling: not stored), and the directory."""
     d = _state["dir"]
     return dict(_counts, dir=None if d is None else str(d))
 
@@ -280,8 +281,18 @@ def compiled_for(fn, args, mesh, compile_: Callable):
             _counts["loaded"] += 1
             _touch(path)
             return got
+    from . import cache
+
+    cache.count_programs()  # JAX's cache hits are counted from here on
+    hits = cache._counts["loaded"]
     compiled = compile_()
     _counts["compiled"] += 1
+    if path is not None and cache._counts["loaded"] > hits:
+        # served by JAX's persistent cache (jskel's source changed, the program did not): XLA:CPU
+        # serializes such a deserialized executable without some of its functions (a later
+        # process failed with "Function compare_convert_fusion not found"), so it is not stored
+        _counts["from_jax_cache"] += 1
+        return compiled
     if path is not None:
         # before its first run: once run, XLA:CPU's sort thunks hold a function pointer to their
         # comparator and the executable no longer serializes (`LessThan` is not serializable)

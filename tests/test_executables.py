@@ -177,3 +177,23 @@ def test_the_cap_reads_positive_mib_only():
     for bad in ("0", "-3", "lots", "inf", "nan"):
         with pytest.raises(ValueError, match=rf"^JSKEL_EXECUTABLES_MAX_MB: '{bad}' is not a positive number of MiB$"):
             executables.max_bytes({"JSKEL_EXECUTABLES_MAX_MB": bad})
+
+
+def test_a_program_served_by_jax_cache_is_not_stored(store, monkeypatch):
+    """A compile that JAX's persistent cache answered (its hit event counted) is used but not
+    stored: XLA:CPU re-serializes such an executable without some of its functions, and a later
+    process that loaded it failed ("Function compare_convert_fusion not found")."""
+    from jskel import cache
+
+    cache.count_programs()
+    monkeypatch.setitem(cache._counts, "loaded", cache._counts["loaded"])  # restored after
+
+    def served():
+        cache._counts["loaded"] += 1  # what JAX's cache-hit event records
+        return _compile()
+
+    before = executables._counts["from_jax_cache"]
+    out = executables.compiled_for(_affine, ARGS, None, served)(*ARGS)
+    np.testing.assert_array_equal(out, TRUTH)
+    assert list(store.glob("*.jx")) == [] and executables._counts["from_jax_cache"] == before + 1
+    assert _get()[1:] == (0, 1) and len(list(store.glob("*.jx"))) == 1  # a compile of its own is stored
