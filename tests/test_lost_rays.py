@@ -343,6 +343,41 @@ def test_cells_far_ray_and_step_cap_are_flagged(tmp_path):
     assert not np.isfinite(capped.t[0]) and capped.flags[0] & FLAG_STEP_CAP
 
 
+def test_cells_part_stepped_over_between_samples_is_flagged(tmp_path):
+    """A cell that is a box of tile-map voxels (16 per tile edge), a linear step of 1/24 tile (2/3
+    of a voxel: Nürnberg Sec. 5.3's knob) and rays across one edge of the box, inside it by up to
+    0.2 voxel: their chord through the box is shorter than a step, so the samples straddle it.
+    Against ray-box slabs in float64: every ray the box stops is a hit or flagged ``graze`` (the
+    voxels between two samples looked up, ``cells._trace.stepped_over``), never a silent miss,
+    and no ray the box does not stop is flagged."""
+    tile = np.zeros((16, 16, 16), np.int64)
+    tile[4:12, 3:13, 5:11] = 1
+    np.save(tmp_path / "tile.npy", tile)
+    cfg = {"type": "cells", "base": {"type": "sphere", "radius": 1.0}, "tiles": 1, "steps_per_tile": 24,
+           "tile_map": {"type": "file", "path": str(tmp_path / "tile.npy")}, "cache": None}
+    built = cells.build(cells.CellsConfig.model_validate(cfg))
+    size = built.info["tile_size"]
+    vox = size / 16
+    blo, bhi = built.bounds[0] + vox * np.array([4, 3, 5]), built.bounds[0] + vox * np.array([12, 13, 11])
+    rng = np.random.default_rng(3)
+    D = np.stack([np.ones(CHUNK), -rng.uniform(0.5, 2, CHUNK), rng.uniform(-0.3, 0.3, CHUNK)], 1)
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    edge = np.stack([np.full(CHUNK, blo[0]), np.full(CHUNK, blo[1]), rng.uniform(blo[2] + vox, bhi[2] - vox, CHUNK)], 1)
+    inward = np.cross(D, [0.0, 0.0, 1.0])
+    inward *= np.sign(inward[:, :1] + inward[:, 1:2]) / np.linalg.norm(inward, axis=1, keepdims=True)
+    O = edge + inward * vox * rng.uniform(-0.2, 0.2, (CHUNK, 1)) - 2.0 * size * D
+    hit, Of, Df = cast(built, O, D, "cells")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (blo - Of) / Df, (bhi - Of) / Df
+    near, far = np.minimum(ta, tb).max(1), np.maximum(ta, tb).min(1)
+    stops = near <= far
+    graze = (hit.flags & FLAG_GRAZE) != 0
+    got = np.isfinite(hit.t)
+    assert np.sum(stops & ~got) > 5  # the case: chords between samples
+    assert np.all(got | graze | ~stops) and not np.any(graze & ~stops)
+    assert np.all(np.abs(hit.t[got] - near[got]) <= size / 24)  # the hits: within one step of the box
+
+
 # ---------------------------------------------------------------- the renderer keeps them
 
 

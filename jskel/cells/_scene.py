@@ -16,7 +16,7 @@ import numpy as np
 from .. import checks
 from ..interface import Built, OwnMaterial, Representation
 from ..numerics import differentiable_root, safe_normalize
-from ..rays import FLAG_FLOAT_SPACING, FLAG_STEP_CAP, Hit, masked_hit
+from ..rays import FLAG_FLOAT_SPACING, FLAG_GRAZE, FLAG_STEP_CAP, Hit, masked_hit
 from ._base import base_inside as base_inside
 from ._config import CellsConfig as CellsConfig
 from ._membership import INSIDE, memory_table, membership, unpack, words_for
@@ -211,7 +211,8 @@ def intersect_one(p: CellParams, static: Static, origin, direction, t_min, t_max
     """First hit (Alg. 3.1): t on the inside cell's boundary, Alg. 4.8 normal, uv 0, prim = the
     whole cell's global id (also written as ``cell.npy``); flags STEP_CAP where ``max_steps``
     samples ran out before the ray left the object, FLOAT_SPACING where the linear step was
-    below a few ulps of t and raised to them (``cells._trace.march``). With ``static.two_sided`` (refraction) a
+    below a few ulps of t and raised to them, GRAZE where a voxel between two samples was a
+    target no sample landed in (a part thinner than the step) or may be (``cells._trace.march``). With ``static.two_sided`` (refraction) a
     ray that starts in an inside cell gets its exit (Alg. 3.3): the normal and the cell are
     those of the cell it leaves (looked up at the last sample inside)."""
     m = first_hit(p, origin, direction, t_min, t_max, static.options, static.two_sided)
@@ -250,7 +251,7 @@ def intersect_one(p: CellParams, static: Static, origin, direction, t_min, t_max
     x_in = origin + jnp.where(jnp.isfinite(t), t, 0.0) * direction
     cid = cell_id(p, jnp.where(leaving, x_cell, x_in))
     capped = (~m.found) & (m.steps >= static.options.steps)  # stopped by max_steps: counted, not silent
-    flags = jnp.where(capped, FLAG_STEP_CAP, 0) | jnp.where(m.floored, FLAG_FLOAT_SPACING, 0)
+    flags = jnp.where(capped, FLAG_STEP_CAP, 0) | jnp.where(m.floored, FLAG_FLOAT_SPACING, 0) | jnp.where(m.stepped, FLAG_GRAZE, 0)
     return masked_hit(t, x_in, n, jnp.zeros((2,), origin.dtype), cid, flags)
 
 

@@ -15,7 +15,10 @@ entry; here the ray enters at the box and steps on through outside cells, which 
 first inside cell. Empty-tile skipping (Alg. 3.2 rows 11-16): in a tile with no INSIDE part the
 march jumps to the first sample t_k past the tile's exit, so the samples (and the image) are
 bitwise those of the march without skipping; only fewer are evaluated. Refraction marches
-inside the object (Alg. 3.3) and skips tiles whose parts are all INSIDE the same way.
+inside the object (Alg. 3.3) and skips tiles whose parts are all INSIDE the same way. A part
+thinner than the step lies in voxels between two samples: where a step crosses two or three
+voxel faces the march looks up the voxels between (:func:`between`) and a target among them
+flags the ray (``FLAG_GRAZE``; the samples and the hit stay those of Alg. 3.1).
 
 Normals come from the normal map (Alg. 4.8) at the hit's voxel; reflection and refraction follow
 the law of reflection and Snell's law, with total internal reflection where sin > 1
@@ -98,9 +101,10 @@ def box_interval(lo, hi, o, d):
 class March(NamedTuple):
     t: jnp.ndarray  # boundary t (inf: none found)
     t_out: jnp.ndarray  # the last sample on the starting side
-    steps: jnp.ndarray  # samples evaluated (int32)
+    steps: jnp.ndarray  # samples evaluated (int32), the voxels looked up between samples included
     found: jnp.ndarray
     floored: jnp.ndarray  # the step was below a few ulps of t and raised to them (FLAG_FLOAT_SPACING)
+    stepped: jnp.ndarray  # a voxel between two samples was a target the samples missed, or may be (FLAG_GRAZE)
 
 
 def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -> March:
@@ -110,7 +114,10 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
     Alg. 3.2 rows 11-16) or with INSIDE parts only (leaving, Alg. 3.3 rows 12-15) are jumped
     over to the first sample past their exit (bitwise the same samples). A step below
     ``rays.ulp_floor`` of the interval's far end (where t + h would round back to t) is raised to
-    it and reported in ``floored``."""
+    it and reported in ``floored``. Between two consecutive samples on the starting side the
+    ray may cross voxels no sample lands in (a part thinner than the step, the resolution of
+    Sec. 5.3): :func:`between` finds them, the march looks them up (one lookup an iteration, as
+    its samples) and reports a target among them in ``stepped``."""
     dn = safe_sqrt(jnp.sum(d * d))
     h0 = safe_div(p.step * p.size, dn, 0.0)  # d = 0: no step, no NaN
     far = jnp.maximum(jnp.abs(t_start), jnp.where(jnp.isfinite(t_end), jnp.abs(t_end), 0.0))
@@ -122,10 +129,20 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
         return ((code == INSIDE) == want_inside), tile, ok
 
     def body(st):
-        k, found, evals = st
+        k, found, evals, stepped, pend, k_next, had = st
         t = t_start + k.astype(o.dtype) * h
-        hit, tile, ok = is_target(t)
+        # the voxels between this sample and the one before (evaluated, or in a tile a skip
+        # passed over: on the starting side); pend 1, 2: this iteration looks up the pend-th
+        c, mids = between(p, o, d, t_start + (k - 1).astype(o.dtype) * h, t)
+        probe = pend > 0
+        found_here, tile, ok = is_target(jnp.where(probe, jnp.where(pend == 2, mids[1], mids[0]), t))
+        hit = ~probe & found_here
         flags = p.tile_flags[tile[0], tile[1], tile[2]]
+        # c > 3 (a step above the voxel edge): the voxels between are not looked up; where this
+        # sample's tile or the one before has an INSIDE part, one may be
+        has = (flags & TILE_HAS_INSIDE) != 0
+        unknown = (c > 3) & (has | had)
+        stepped = stepped | (probe & found_here) | (~probe & (k > 0) & ~hit & unknown)
         can_skip = ok & jnp.where(want_inside, (flags & TILE_HAS_INSIDE) == 0, (flags & TILE_ALL_INSIDE) != 0)
         if opt.skip:
             lo = p.lo + tile.astype(o.dtype) * p.size
@@ -134,13 +151,19 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
             nk = jnp.where(~hit & can_skip, jnp.maximum(k + 1, k_exit), k + 1)
         else:
             nk = k + 1
-        return jnp.where(hit, k, nk), hit, evals + 1
+        # after a sample that is not a hit: look up the c - 1 <= 2 voxels between, then go on
+        more = jnp.where(probe, pend < jnp.minimum(c, 3) - 1, (k > 0) & ~hit & (c >= 2) & (c <= 3))
+        pend = jnp.where(more, pend + 1, 0)
+        k_next = jnp.where(probe, k_next, nk)
+        k = jnp.where(hit | more, k, k_next)
+        return k, hit, evals + 1, stepped, pend, k_next, jnp.where(probe, had, has)
 
     def cond(st):
-        k, found, evals = st
+        k, found, evals = st[:3]
         return (~found) & (evals < opt.steps) & (t_start + k.astype(o.dtype) * h <= t_end)
 
-    k, found, evals = jax.lax.while_loop(cond, body, (jnp.int32(0), jnp.asarray(False), jnp.int32(0)))
+    false, zero = jnp.asarray(False), jnp.int32(0)
+    k, found, evals, stepped, _, _, _ = jax.lax.while_loop(cond, body, (zero, false, zero, false, zero, zero, false))
     t_in = t_start + k.astype(o.dtype) * h
     t_prev = jnp.where(k > 0, t_start + (k - 1).astype(o.dtype) * h, t_start)
 
@@ -152,7 +175,29 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
 
     a, b = jax.lax.fori_loop(0, opt.bisection, bis, (t_prev, t_in)) if opt.bisection else (t_prev, t_in)
     inf = jnp.asarray(jnp.inf, o.dtype)
-    return March(jnp.where(found, b, inf), jnp.where(found, a, inf), evals, found, floor > h0)
+    return March(jnp.where(found, b, inf), jnp.where(found, a, inf), evals, found, floor > h0, stepped)
+
+
+def between(p: CellParams, o, d, ta, tb):
+    """The voxels of the tile map that the ray passes between two samples ta < tb and no sample
+    lands in (membership is constant on a voxel, Sec. 3.1.4): (c, mids (2,)). The
+    voxels' indices at the two ends differ by c steps over the three axes: c <= 1, both voxels
+    are sampled and nothing lies between; with a step below the voxel edge c <= 3 and the c - 1
+    voxels between hold the midpoints ``mids`` of the sorted face crossings (:func:`march`
+    looks them up); c > 3 (a step above the voxel edge) is not told that way."""
+    r = p.split.shape[0]
+    vox = p.size / r
+
+    def index(t):
+        return jnp.floor((o + t * d - p.lo) / vox)
+
+    va, vb = index(ta), index(tb)
+    c = jnp.sum(jnp.abs(vb - va)).astype(jnp.int32)
+    face = p.lo + jnp.maximum(va, vb) * vox  # the face each changing axis crosses (one step on it)
+    s = jnp.clip(jnp.where(va != vb, safe_div(face - o, d, jnp.inf), jnp.inf), ta, tb)
+    s0, s2 = jnp.min(s), jnp.max(s)  # sorted by min, max and the one between (a sort costs more on a CPU)
+    s1 = jnp.clip(jnp.sum(s) - s0 - s2, s0, s2)
+    return c, jnp.stack([0.5 * (s0 + s1), 0.5 * (s1 + s2)])
 
 
 def object_interval(p: CellParams, o, d, t_min, t_max):
@@ -178,7 +223,8 @@ def first_hit(p: CellParams, o, d, t_min, t_max, opt: TraceOptions, two_sided: b
     want = ~starts_inside(p, o, d, t_min) if two_sided else True
     m = march(p, o, d, t0, t1, want, opt)
     inf = jnp.asarray(jnp.inf, o.dtype)
-    return m._replace(t=jnp.where(t0 <= t1, m.t, inf), found=m.found & (t0 <= t1), floored=m.floored & (t0 <= t1))
+    live = t0 <= t1
+    return m._replace(t=jnp.where(live, m.t, inf), found=m.found & live, floored=m.floored & live, stepped=m.stepped & live)
 
 
 def normal_at(p: CellParams, x, d):
