@@ -261,7 +261,7 @@ def test_implicit_methods_hit_within_tolerance_or_flag(method, log_scale, log_sh
 
 
 @pytest.mark.parametrize("method", ["lipschitz", "naive", "bisection"])
-@settings(max_examples=3, deadline=None, derandomize=True, phases=[Phase.generate], suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@settings(max_examples=2, deadline=None, derandomize=True, phases=[Phase.generate], suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 @given(log_scale=st.floats(-10, 10), log_shift=st.floats(-2, 5), seed=st.integers(0, 2**31 - 1))
 def test_blended_primitives_hit_within_tolerance_or_flag(method, log_scale, log_shift, seed, tmp_path_factory):
     """Two balls and a tapered tube that blend (Rouiller 2011, Sec. 3: the kernels summed),
