@@ -79,11 +79,12 @@ def max_bytes(env=None) -> int:
 
 
 def evict(folder: Path, limit: int, keep: Path | None = None) -> list[Path]:
-    """Remove the least recently used entries (oldest modification time first) of ``folder``
-    until its entries take at most ``limit`` bytes; ``keep`` is never removed. Returns the
-    entries removed (an entry another process removed first is skipped)."""
+    """Remove the least recently used entries of ``folder`` (``.jx`` executables and ``.jxs``
+    shapes, oldest modification time first) until they take at most ``limit`` bytes; ``keep``
+    is never removed. Returns the entries removed (one another process removed first is
+    skipped)."""
     entries = []
-    for p in folder.glob("*.jx"):
+    for p in (q for q in folder.iterdir() if q.suffix in (".jx", ".jxs")):  # executables, shapes
         try:
             st = p.stat()
         except FileNotFoundError:
@@ -251,22 +252,55 @@ def _store(path: Path, key: str, compiled, mesh) -> None:
     except Exception:  # noqa: BLE001 - e.g. an XLA:CPU thunk without serialization
         _counts["unstorable"] += 1
         return
+    if _write(path, body):
+        _counts["stored"] += 1
+
+
+def _write(path: Path, body: bytes) -> bool:
+    """Write an entry's ``body`` (after its digest line) to ``path`` atomically (a temporary file
+    in the folder, renamed), then keep the folder under its cap (:func:`evict`); False (one
+    warning line) when it cannot be written."""
     tmp = None
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
         with os.fdopen(fd, "wb") as f:
             f.write(MAGIC + hashlib.sha256(body).hexdigest().encode() + b"\n" + body)
         os.replace(tmp, path)
-        _counts["stored"] += 1
     except OSError as e:
         _warn(f"stored executables {path.parent}: cannot write ({e.strerror or e})")
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
-        return
+        return False
     try:
         evict(path.parent, _state["max_bytes"], keep=path)
     except OSError as e:
         _warn(f"stored executables {path.parent}: cannot remove old entries ({e.strerror or e})")
+    return True
+
+
+def eval_shape(fn, *args):
+    """``jax.eval_shape(fn, *args)`` kept beside the executables (same key, safety and cap): a
+    warm process reads the output's shapes and dtypes instead of tracing ``fn`` (a render asks
+    whether a representation's hits carry flags this way)."""
+    d = _state["dir"]
+    key = None if d is None else entry_key(fn, args)
+    if key is None:
+        return jax.eval_shape(fn, *args)
+    key = hashlib.sha256(f"eval_shape {key}".encode()).hexdigest()
+    path = d / f"{key}.jxs"
+    try:
+        body = _read(path)
+        if body is not None:
+            stored_key, out = pickle.loads(body)
+            if stored_key != key:
+                raise ValueError("holds another entry")
+            _touch(path)
+            return out
+    except Exception as e:  # noqa: BLE001 - whatever is wrong with an entry, trace instead
+        _warn(f"stored shapes {path} {e if isinstance(e, ValueError) else type(e).__name__}; tracing again")
+    out = jax.eval_shape(fn, *args)
+    _write(path, pickle.dumps((key, out), protocol=pickle.HIGHEST_PROTOCOL))
+    return out
 
 
 def compiled_for(fn, args, mesh, compile_: Callable):

@@ -197,3 +197,22 @@ def test_a_program_served_by_jax_cache_is_not_stored(store, monkeypatch):
     np.testing.assert_array_equal(out, TRUTH)
     assert list(store.glob("*.jx")) == [] and executables._counts["from_jax_cache"] == before + 1
     assert _get()[1:] == (0, 1) and len(list(store.glob("*.jx"))) == 1  # a compile of its own is stored
+
+
+def _halves(x):
+    return {"half": x[: x.shape[0] // 2] * 2.0, "flags": None}
+
+
+def test_shapes_are_stored_and_read_back_untraced(store, monkeypatch):
+    """``executables.eval_shape``: the first call traces and stores the output's shapes, the
+    second reads them back (tracing would raise) and gets the same tree, None leaf included."""
+    x = np.zeros(6, np.float32)
+    first = executables.eval_shape(_halves, x)
+    assert first["half"].shape == (3,) and first["half"].dtype == np.float32 and first["flags"] is None
+    assert len(list(store.glob("*.jxs"))) == 1 and list(store.glob("*.jx")) == []
+
+    def no_trace(*a, **k):
+        raise AssertionError("traced again")
+
+    monkeypatch.setattr(executables.jax, "eval_shape", no_trace)
+    assert executables.eval_shape(_halves, x) == first

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from .. import registry
+from .. import executables, registry
 from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
 from ..rays import Hit, Rays, flag_counts, make_rays
 from ..cache import count_programs, program_counts
@@ -210,7 +210,7 @@ def _reports_flags(obj: Object, dtype) -> bool:
     ray, no compile; jit's own cache keys the trace on the object's static part and dtype)"""
     z = jax.ShapeDtypeStruct((3,), dtype)
     s = jax.ShapeDtypeStruct((), dtype)
-    return jax.eval_shape(_one_hit, obj, z, z, s, s).flags is not None
+    return executables.eval_shape(_one_hit, obj, z, z, s, s).flags is not None  # stored: a warm process does not trace
 
 
 def _flag_counts(flags) -> dict:
