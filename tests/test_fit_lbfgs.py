@@ -29,7 +29,8 @@ def rosenbrock(x):
 def test_reaches_closed_form_minima_and_every_step_meets_the_wolfe_conditions():
     """A linear least-squares problem (truth: NumPy's float64 lstsq) and Rosenbrock's function in
     four variables (minimum at ones); every step that moved meets sufficient decrease and the
-    strong curvature condition, checked here in float64 from the iterates."""
+    strong curvature condition, checked here in float64 from the iterates; once steepest
+    descent finds no decrease (float32's floor, at the minimum), iterations evaluate nothing."""
     rng = np.random.default_rng(0)
     a, b = rng.normal(size=(30, 4)), rng.normal(size=30)
     want = np.linalg.lstsq(a, b, rcond=None)[0]
@@ -57,6 +58,9 @@ def test_reaches_closed_form_minima_and_every_step_meets_the_wolfe_conditions():
         assert abs(g1 @ s) <= C2 * abs(g0 @ s) * 1.01 + 1e-5  # strong curvature
         checked += 1
     assert checked > 15
+    first = next(i for i, (_, st) in enumerate(states) if bool(st.stuck))
+    assert first < 70 and {int(st.evals) for _, st in states[first:]} == {int(states[first][1].evals)}
+    assert all(np.array_equal(np.asarray(x), np.asarray(states[first][0])) for x, _ in states[first:])
 
 
 def _count(jaxpr, name):

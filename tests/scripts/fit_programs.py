@@ -69,25 +69,29 @@ def problem(solver, **kw):
     return pr, key, x0, p
 
 
-which = sys.argv[1:] or ["lbfgs", "lm", "lm_sparse", "gn", "gn_sparse", "batch"]
-for w in which:
-    if w == "lbfgs":
-        pr, key, x0, p = problem("lbfgs", restarts=2)
-        measure("lbfgs_solve_starts_2", _fit._solve_starts, jnp.stack([x0, x0 * 1.01]), p, pr, key)
-    elif w in ("lm", "gn", "lm_sparse", "gn_sparse"):
-        name = "lm" if w.startswith("lm") else "gauss_newton"
-        pr, key, x0, p = problem(name, jacobian="sparse" if w.endswith("sparse") else "dense")
-        st0 = measure(w + "_initial", _fit._initial, x0, p, pr, key)(x0, p)
-        measure(w + "_update", _fit._update, x0, st0, p, pr, key)
-        if w == "lm":
-            measure("loss", _fit._loss, x0, p, pr)
-    elif w == "batch":
-        base = sample_surface(BENT, BENT_R, CHAIN, 600, np.random.default_rng(5))
-        s = SolverConfig(name="lm", loss="l2", maxiter=300, tol=1e-7)
-        seg = segments_of(BENT, BENT_R, CHAIN)
-        pr = problem_of(seg, s)
-        key = _fit.solver_key(s, 600 + 5 * len(pr.triples), 24)
-        nz = normaliser_of(base)
-        x0 = jnp.asarray(np.stack([nz.start(BENT, BENT_R, pr)] * 3), jnp.float32)
-        p = jnp.asarray(np.stack([nz.points(base)] * 3), jnp.float32)
-        measure("lm_batch3_solve_clouds", _fit._solve_clouds, x0, p, pr, key)
+def main(which):
+    for w in which:
+        if w == "lbfgs":
+            pr, key, x0, p = problem("lbfgs", restarts=2)
+            measure("lbfgs_solve_starts_2", _fit._solve_starts, jnp.stack([x0, x0 * 1.01]), p, pr, key)
+        elif w in ("lm", "gn", "lm_sparse", "gn_sparse"):
+            name = "lm" if w.startswith("lm") else "gauss_newton"
+            pr, key, x0, p = problem(name, jacobian="sparse" if w.endswith("sparse") else "dense")
+            st0 = measure(w + "_initial", _fit._initial, x0, p, pr, key)(x0, p)
+            measure(w + "_update", _fit._update, x0, st0, p, pr, key)
+            if w == "lm":
+                measure("loss", _fit._loss, x0, p, pr)
+        elif w == "batch":
+            base = sample_surface(BENT, BENT_R, CHAIN, 600, np.random.default_rng(5))
+            s = SolverConfig(name="lm", loss="l2", maxiter=300, tol=1e-7)
+            seg = segments_of(BENT, BENT_R, CHAIN)
+            pr = problem_of(seg, s)
+            key = _fit.solver_key(s, 600 + 5 * len(pr.triples), 24)
+            nz = normaliser_of(base)
+            x0 = jnp.asarray(np.stack([nz.start(BENT, BENT_R, pr)] * 3), jnp.float32)
+            p = jnp.asarray(np.stack([nz.points(base)] * 3), jnp.float32)
+            measure("lm_batch3_solve_clouds", _fit._solve_clouds, x0, p, pr, key)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:] or ["lbfgs", "lm", "lm_sparse", "gn", "gn_sparse", "batch"])
