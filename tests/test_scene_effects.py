@@ -364,6 +364,22 @@ def test_pixels_needing_no_secondary_ray_are_unchanged_by_the_effect(mirror_glas
     assert np.all(on.aovs["secondary"][mirror] >= 1)
 
 
+def test_no_bounce_leaves_mirror_and_glass_black_and_the_rest_unchanged(mirror_glass):
+    """``render.bounces = 0`` with both reflective and transparent materials: Whitted's sum keeps
+    only ``(1 - kr - kt) * local``, which is 0 for the mirror (kr = 1) and the glass (kt = 1), and
+    every pixel that needed no secondary ray is the bounced render's."""
+    raw = mirror_glass_scene()
+    raw["render"]["bounces"] = 0
+    _, flat = run(raw)
+    on = mirror_glass
+    assert np.array_equal(flat.aovs["obj"], on.aovs["obj"])
+    ends = (on.aovs["obj"] == 0) | (on.aovs["obj"] == 1)
+    assert ends.sum() > 300 and np.all(flat.rgb[ends] == 0)
+    same = on.aovs["secondary"] == 0
+    assert same.sum() > 5000
+    np.testing.assert_array_equal(flat.rgb[same], on.rgb[same])
+
+
 # --------------------------------------------------------------------------- output, samples, validation
 
 

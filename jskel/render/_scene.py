@@ -252,7 +252,7 @@ def scene_batch(static: SceneStatic):
     """The per-chunk function ``(params, rays) -> dict of per-ray outputs`` for a scene."""
     eff = static.effects
     levels = 1 + eff.bounces
-    cap_factor = 2 if (eff.reflection and eff.refraction) else 1
+    cap_factor = 2 if (eff.reflection and eff.refraction and levels > 1) else 1  # no level after the camera's: N
 
     def batch(params: SceneParams, rays: Rays):
         n, dtype = rays.size, rays.origins.dtype
