@@ -118,11 +118,7 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
     ray may cross voxels no sample lands in (a part thinner than the step, the resolution of
     Sec. 5.3): :func:`between` finds them, the march looks them up (one lookup an iteration, as
     its samples) and reports a target among them in ``stepped``."""
-    dn = safe_sqrt(jnp.sum(d * d))
-    h0 = safe_div(p.step * p.size, dn, 0.0)  # d = 0: no step, no NaN
-    far = jnp.maximum(jnp.abs(t_start), jnp.where(jnp.isfinite(t_end), jnp.abs(t_end), 0.0))
-    floor = ulp_floor(far, safe_div(jnp.max(jnp.abs(o)), dn, 0.0))
-    h = jnp.maximum(h0, floor)
+    h, floored = _step(p, o, d, t_start, t_end)
 
     def is_target(t):
         code, tile, ok = membership_at(p, o + t * d)
@@ -167,15 +163,30 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
     t_in = t_start + k.astype(o.dtype) * h
     t_prev = jnp.where(k > 0, t_start + (k - 1).astype(o.dtype) * h, t_start)
 
+    a, b = _bisect(lambda t: is_target(t)[0], t_prev, t_in, opt.bisection)
+    inf = jnp.asarray(jnp.inf, o.dtype)
+    return March(jnp.where(found, b, inf), jnp.where(found, a, inf), evals, found, floored, stepped)
+
+
+def _step(p: CellParams, o, d, t_start, t_end):
+    """The march's step in t (``p.step`` cell sizes over |d|), raised to ``rays.ulp_floor`` of the
+    interval's far end; (step, whether it was raised)."""
+    dn = safe_sqrt(jnp.sum(d * d))
+    h0 = safe_div(p.step * p.size, dn, 0.0)  # d = 0: no step, no NaN
+    far = jnp.maximum(jnp.abs(t_start), jnp.where(jnp.isfinite(t_end), jnp.abs(t_end), 0.0))
+    floor = ulp_floor(far, safe_div(jnp.max(jnp.abs(o)), dn, 0.0))
+    return jnp.maximum(h0, floor), floor > h0
+
+
+def _bisect(is_target, a, b, n: int):
+    """``n`` bisection steps of [a, b] (b a target, a not): the last non-target and target t."""
     def bis(_, lh):
         a, b = lh
         mid = 0.5 * (a + b)
-        hit = is_target(mid)[0]
+        hit = is_target(mid)
         return jnp.where(hit, a, mid), jnp.where(hit, mid, b)
 
-    a, b = jax.lax.fori_loop(0, opt.bisection, bis, (t_prev, t_in)) if opt.bisection else (t_prev, t_in)
-    inf = jnp.asarray(jnp.inf, o.dtype)
-    return March(jnp.where(found, b, inf), jnp.where(found, a, inf), evals, found, floor > h0, stepped)
+    return jax.lax.fori_loop(0, n, bis, (a, b)) if n else (a, b)
 
 
 def between(p: CellParams, o, d, ta, tb):
