@@ -8,6 +8,7 @@ import pytest
 import reference as ref
 from conftest import cast
 from jskel import frusta
+from jskel.rays import FLAG_GRAZE
 
 MAP = 64  # every test map is 64 x 64 so the compiled shapes are shared
 
@@ -86,6 +87,8 @@ def test_thin_spike_needs_enough_steps(tmp_path):
         found[steps] = np.isfinite(hit.t[0])
         if found[steps]:
             assert abs(hit.t[0] - 2.0) < 0.05  # at the spike, near the chord's middle
+        else:  # stepped over: a lost ray, never a silent miss
+            assert hit.flags[0] & FLAG_GRAZE
     assert not found[3] and found[64]
 
 
@@ -236,6 +239,7 @@ def test_compacted_march_equals_masked_march(tmp_path, rng):
     assert h.mean() > 0.1
     np.testing.assert_array_equal(compact.prim[h], masked.prim[h])
     np.testing.assert_allclose(compact.t[h], masked.t[h], atol=1e-3)
+    assert np.mean(compact.flags == masked.flags) >= 0.998  # (a flag compares t: program noise may flip one)
 
 
 def test_uv_auto_is_approximate_only_where_the_paper_says_it_is_exact(tmp_path):
@@ -256,3 +260,89 @@ def test_bad_relief_input_names_the_field(tmp_path):
 
     with pytest.raises(ValueError, match=r"object\.relief\.thickness"):
         validate({"object": {"type": "frusta", "skeleton": {"procedural": "well"}, "relief": {"map": "brick", "thickness": -1}}})
+
+
+def _rays_into_shell(rng, r, T, H, n):
+    """Rays from outside the outer cylinder of radius r + T towards random points of its shell."""
+    ang, y, rr = rng.uniform(0, 2 * np.pi, n), rng.uniform(0.2, H - 0.2, n), r + T * rng.uniform(0, 1, n)
+    P = np.stack([rr * np.sin(ang), y, rr * np.cos(ang)], 1)
+    D = rng.normal(size=(n, 3))
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    O = P - 1.5 * D
+    keep = np.hypot(O[:, 0], O[:, 2]) > r + T + 1e-3
+    return O[keep], D[keep]
+
+
+@pytest.mark.parametrize("kind,steps", [("spikes", 3), ("smooth", 64)])
+def test_unflagged_rays_agree_with_a_dense_float64_march(tmp_path, rng, kind, steps):
+    """A coarse march steps over bumps thinner than a step (Sec. 3 samples only): such rays
+    carry ``graze`` (the bound between two samples, ``_relief._step_undecided``), and every ray
+    without it, hit or miss, agrees with the 4096-step float64 march of the same height field.
+    The steps match test_thin_spike_needs_enough_steps' builds (their programs are reused)."""
+    r, H, T = 0.5, 2.0, 0.2
+    if kind == "spikes":  # 60 one-texel spikes: thinner than 3 steps of a chord
+        img = np.zeros((MAP, MAP), np.uint8)
+        img[rng.integers(0, MAP, 60), rng.integers(0, MAP, 60)] = 255
+    else:
+        img = _smooth_map()
+    O, D = _rays_into_shell(rng, r, T, H, 1000)
+    t_ref, ds_ref = _ref_march(img, r, r, H, T, O, D)
+    b = build_relief(tmp_path, img, [[0, 0, 0], [0, H, 0]], [r, r], [-1, 0], thickness=T, steps=steps, bisection=8, scale=[1, 1])
+    hit = cast(b, O, D, culled=True)
+    flagged = (hit.flags & FLAG_GRAZE) != 0
+    same = np.isfinite(hit.t) == np.isfinite(t_ref)
+    with np.errstate(invalid="ignore"):  # inf - inf where both miss
+        near = np.abs(np.where(np.isfinite(t_ref), hit.t - t_ref, 0.0)) <= ds_ref * 4096 / steps + 1e-4  # within one step
+    agree = same & (near | ~np.isfinite(t_ref))
+    assert np.all(agree[~flagged]), np.flatnonzero(~agree & ~flagged)[:5]
+    if kind == "spikes":
+        assert np.sum(~agree) > 20 and np.all(flagged[~agree]) and 0.3 < np.mean(flagged) < 0.75  # the coarse march errs; flagged
+    else:
+        assert np.all(agree) and np.mean(flagged) < 0.1  # a smooth map: few rays the bound cannot decide
+    assert np.sum(np.isfinite(hit.t) & ~flagged) > 100
+
+
+def test_plain_frusta_trace_no_flag_work(tmp_path):
+    """Without relief the frusta programs contain none of the march's bound (its name scope)
+    and their hits no flags; with relief both programs contain it."""
+    import jax
+
+    from jskel.frusta._relief import UNDECIDED_SCOPE
+    from jskel.rays import make_rays
+
+    rays = make_rays(np.zeros((8, 3)), np.tile([1.0, 0, 0], (8, 1)))
+    joints, radii, parents = SEG
+    plain = frusta.build(frusta.FrustaConfig.model_validate(
+        {"type": "frusta", "skeleton": {"joints": joints, "radii": radii, "parents": parents}}))
+    relief = build_relief(tmp_path, np.zeros((MAP, MAP)), *SEG, thickness=0.1, steps=3, bisection=8, scale=[1, 1])
+    for b, has in ((plain, False), (relief, True)):
+        for f in (frusta.intersect, frusta.intersect_batch):
+            fn = jax.jit(lambda rr, f=f, b=b: f(b.params, b.static, rr))
+            assert (UNDECIDED_SCOPE in fn.lower(rays).as_text(debug_info=True)) == has, (f.__name__, has)
+            assert (jax.eval_shape(fn, rays).flags is not None) == has
+
+
+def test_render_counts_relief_rays_that_cannot_decide(tmp_path, rng):
+    """The render's flags AOV and run.json carry the relief's ``graze``: the same pixels as a
+    cast of the camera's rays (16 x 12 pixels at 60 one-texel spikes, 3 steps)."""
+    import imageio.v3 as iio
+
+    from jskel.config import validate
+    from jskel.render import camera_of, render
+
+    img = np.zeros((MAP, MAP), np.uint8)
+    img[rng.integers(0, MAP, 60), rng.integers(0, MAP, 60)] = 255
+    iio.imwrite(tmp_path / "h.png", img)
+    relief = {"map": str(tmp_path / "h.png"), "thickness": 0.2, "steps": 3, "bisection": 8, "scale": [1, 1]}
+    exp, obj = validate({"object": {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 2, 0]], "radii": [0.5, 0.5], "parents": [-1, 0]},
+                                    "relief": relief},
+                         "camera": {"eye": [0.0, 1.0, 4.0], "target": [0.0, 1.0, 0.0], "up": [0.0, 1.0, 0.0], "fov_deg": 40,
+                                    "width": 16, "height": 12}})
+    res = render(exp, obj)
+    flags = np.asarray(res.hits.flags).reshape(-1)
+    O, D = camera_of(exp).ray_arrays()
+    b = build_relief(tmp_path, img, [[0, 0, 0], [0, 2, 0]], [0.5, 0.5], [-1, 0], thickness=0.2, steps=3, bisection=8, scale=[1, 1])
+    own = (cast(b, O, D, culled=True).flags & FLAG_GRAZE) != 0
+    assert 0 < own.sum() < own.size
+    assert np.mean(((flags & FLAG_GRAZE) != 0) == own) >= 0.99
+    assert res.run["flags"]["graze"] == int(np.sum((flags & FLAG_GRAZE) != 0))

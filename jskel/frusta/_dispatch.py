@@ -63,23 +63,25 @@ def _plain_search(static: Static):
 
 
 def _relief_search(static: Static):
-    """(t, s, code, idx) of a batch against the relief segments (marched only for the (ray,
-    segment) pairs whose ray enters a shell), and its closed-form ``winner``: the march and
+    """(t, s, code, idx, t_undecided) of a batch against the relief segments (marched only for
+    the (ray, segment) pairs whose ray enters a shell; t_undecided the least t where a march
+    could not exclude a crossing, ``_relief``), and its closed-form ``winner``: the march and
     bisection of the winning segment alone, differentiated by the implicit-function theorem
     (``_relief``)."""
 
     def search(sc: FrustaScene, rays: Rays):
         seg_fn = make_relief_t(sc.maps, static.relief)
         g, cap = sc.relief, min(rays.origins.shape[0], 4096)
-        return tuple(nearest_batch_compact(g.frusta, g.block_c, g.block_r, enters_shell, seg_fn, *rays, static.relief_block, cap))
+        return tuple(nearest_batch_compact(g.frusta, g.block_c, g.block_r, enters_shell, seg_fn, *rays, static.relief_block, cap,
+                                           undecided=True))
 
     def winner(sc: FrustaScene, rays: Rays, out):
-        t, s, code, idx = out
+        t, idx = out[0], out[3]
         hit = jnp.isfinite(t)
         seg = jax.tree_util.tree_map(lambda x: x[jnp.maximum(idx, 0)], sc.relief.frusta)
         seg, o, d = hold(hit, (seg, rays.origins, rays.directions))  # (the maps are shared by every ray)
-        tt, ss, _ = jax.vmap(make_relief_t(sc.maps, static.relief))(seg, o, d, rays.t_min, rays.t_max)
-        return tt, ss, None, None
+        tt, ss = jax.vmap(make_relief_t(sc.maps, static.relief))(seg, o, d, rays.t_min, rays.t_max)[:2]
+        return tt, ss, None, None, None
 
     return search, winner
 

@@ -236,20 +236,25 @@ def _reduce_block(ts, ss, cs, base, carry):
     )
 
 
-def nearest_one(params: FrustaParams, seg_fn, origin, direction, t_min, t_max, block: int):
+def nearest_one(params: FrustaParams, seg_fn, origin, direction, t_min, t_max, block: int, undecided: bool = False):
     """Brute-force nearest of ``seg_fn(seg, o, d, t_min, t_max) -> (t, s, code)`` over segments.
 
-    Returns (t, s, code, idx) with idx the position in ``params`` (-1 on a miss).
+    Returns (t, s, code, idx) with idx the position in ``params`` (-1 on a miss). ``undecided``
+    (static; the relief's test): seg_fn returns a fourth value, the t where it could not decide
+    (inf where it could), and its least over every segment is returned fifth.
     """
     vfn = jax.vmap(seg_fn, in_axes=(0, None, None, None, None))
     inf = jnp.asarray(jnp.inf, origin.dtype)
 
     def step(carry, xs):
         blk, base = xs
-        ts, ss, cs = vfn(blk, origin, direction, t_min, t_max)
-        return _reduce_block(ts, ss, cs, base, carry), None
+        out = vfn(blk, origin, direction, t_min, t_max)
+        best = _reduce_block(*out[:3], base, carry[:4])
+        if undecided:
+            best = best + (jnp.minimum(carry[4], jnp.min(out[3])),)
+        return best, None
 
-    init = (inf, jnp.zeros((), origin.dtype), jnp.int32(SIDE), jnp.int32(-1))
+    init = (inf, jnp.zeros((), origin.dtype), jnp.int32(SIDE), jnp.int32(-1)) + ((inf,) if undecided else ())
     nblk = params.h.shape[0] // block
     bases = jnp.arange(nblk, dtype=jnp.int32) * block
     out, _ = jax.lax.scan(step, init, (_blocks(params, block), bases))
@@ -313,7 +318,8 @@ def nearest_batch(params: FrustaParams, block_c, block_r, seg_fn, origins, direc
     return _scan_blocks(step, params, block, block_c, block_r, _no_hits(n, dtype))
 
 
-def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn, origins, directions, t_min, t_max, block: int, cap: int):
+def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn, origins, directions, t_min, t_max, block: int, cap: int,
+                          undecided: bool = False):
     """Like :func:`nearest_batch`, but ``seg_fn`` runs only on the (ray, segment) pairs that
     ``pre_fn(seg, o, d, t_min, t_max) -> bool`` admits: compaction, not masking.
 
@@ -321,7 +327,8 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
     evaluated for every pair; the admitted pairs are gathered into dense sub-batches of ``cap``
     lanes and a ``while_loop`` runs only as many sub-batches as there are admitted pairs. Under
     vmap a per-pair ``cond`` would run the expensive branch for every pair. Results are merged
-    with scatter-min, so they equal the masked version up to ties in t.
+    with scatter-min, so they equal the masked version up to ties in t. ``undecided``: as in
+    :func:`nearest_one` (the least over the marched pairs, fifth).
     """
     n = origins.shape[0]
     dtype = origins.dtype
@@ -342,7 +349,7 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
             order = jnp.concatenate([order, jnp.zeros((cap,), jnp.int32)])
 
             def sub(state):
-                j, (bt, bs, bc, bi) = state
+                j, (bt, bs, bc, bi, *bu) = state
                 lane = j * cap + jnp.arange(cap, dtype=jnp.int32)
                 pair = jax.lax.dynamic_slice(order, (j * cap,), (cap,))
                 live = lane < count
@@ -350,22 +357,24 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
                 sj = pair % block
                 seg = jax.tree_util.tree_map(lambda a: a[sj], blk)
                 rc = jnp.minimum(ray, n - 1)
-                t, s_, code = vseg(seg, origins[rc], directions[rc], t_min[rc], t_max[rc])
+                t, s_, code, *und = vseg(seg, origins[rc], directions[rc], t_min[rc], t_max[rc])
                 t = jnp.where(live, t, jnp.inf)
+                bu = [b_.at[ray].min(u_, mode="drop") for b_, u_ in zip(bu, und)]  # (dropped where not live)
                 new_t = bt.at[ray].min(t, mode="drop")
                 win = live & (t == new_t[rc]) & (t < bt[rc])
                 wr = jnp.where(win, ray, n)
                 bs = bs.at[wr].set(s_, mode="drop")
                 bc = bc.at[wr].set(code, mode="drop")
                 bi = bi.at[wr].set(base + sj, mode="drop")
-                return j + 1, (new_t, bs, bc, bi)
+                return j + 1, (new_t, bs, bc, bi, *bu)
 
             _, out = jax.lax.while_loop(lambda st: st[0] * cap < count, sub, (jnp.int32(0), carry))
             return out
 
         return jax.lax.cond(jnp.any(touches(c, r)), work, lambda c_: c_, carry), None
 
-    return _scan_blocks(step, params, block, block_c, block_r, _no_hits(n, dtype))
+    init = _no_hits(n, dtype) + ((jnp.full((n,), jnp.inf, dtype),) if undecided else ())
+    return _scan_blocks(step, params, block, block_c, block_r, init)
 
 
 def inside_one(params: FrustaParams, point) -> jnp.ndarray:

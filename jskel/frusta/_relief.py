@@ -33,20 +33,33 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..numerics import differentiable_root, dot3, eps_of, safe_div, safe_normalize, safe_sqrt
 from ..rays import masked_hit
 from ._intersect import CAP_BOTTOM, CAP_TOP, FrustaParams, recentre, side_roots
 
 RELIEF = 3
+UNDECIDED_SCOPE = "relief_undecided"  # the name scope of the march's graze bound
 _TWO_PI = 2.0 * jnp.pi
 
 
 class ReliefMaps(NamedTuple):
-    """height: (H, W) uint8 (8-bit storage, Sec. 4); scale: (2,) repeats per unit u and v."""
+    """height: (H, W) uint8 (8-bit storage, Sec. 4); scale: (2,) repeats per unit u and v;
+    slope: (2,) the largest change of the bilinear height per texel along x and along y
+    (:func:`texel_slopes`), the bound the march's ``graze`` test needs."""
 
     height: jnp.ndarray
     scale: jnp.ndarray
+    slope: jnp.ndarray
+
+
+def texel_slopes(height) -> np.ndarray:
+    """(2,) float64: the largest |difference| of neighbouring texels along x and along y (both
+    wrapping, which bounds the clamped v as well), over 255. The bilinear height's partial
+    derivatives in texel units never exceed them (each is an interpolation of such differences)."""
+    img = np.asarray(height, np.float64)
+    return np.array([np.max(np.abs(np.roll(img, -1, 1) - img)), np.max(np.abs(np.roll(img, -1, 0) - img))]) / 255.0
 
 
 class ReliefQuality(NamedTuple):
@@ -151,26 +164,35 @@ def enters_shell(seg: FrustaParams, o, d, t_min, t_max):
 
 
 def make_relief_t(maps: ReliefMaps, q: ReliefQuality):
-    """Per-segment relief test ``(seg, o, d, t_min, t_max) -> (t, s, code)`` for nearest_*."""
+    """Per-segment relief test ``(seg, o, d, t_min, t_max) -> (t, s, code, t_undecided)`` for
+    nearest_* (``undecided=True``): t_undecided is the ray's t at the start of the first march
+    step that could not exclude a crossing (:func:`_step_undecided`; inf where none)."""
     return functools.partial(_relief_t, maps, q)
 
 
 def _relief_t(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, o, d, t_min, t_max):
-    """(t, s, code) of one ray against one relief segment (Sec. 3): the ray's interval in the
-    shell (:func:`_shell_window`), marched (:func:`_march`) and bisected (:func:`_bisect`) for
-    its first crossing of the relief surface; inf where it has none in (t_min, t_max]."""
+    """(t, s, code, t_undecided) of one ray against one relief segment (Sec. 3): the ray's
+    interval in the shell (:func:`_shell_window`), marched (:func:`_march`) and bisected
+    (:func:`_bisect`) for its first crossing of the relief surface; t inf where it has none in
+    (t_min, t_max]; t_undecided as :func:`make_relief_t` says."""
     n_steps, n_bis = int(q.steps), int(q.bisection)
     inf = jnp.asarray(jnp.inf, o.dtype)
     t0, e, s_a, s_b, ok, entry, from_outside = _shell_window(seg, o, d, t_min, t_max)
-    gap = _gap_of(maps, q, seg, e, d, s_a, s_b)
+    sample = _sampler(maps, q, seg, e, d, s_a, s_b)
+
+    def gap(s):
+        w, _, hgt, _, _ = sample(s)
+        return w - hgt
 
     def below(s):
         return gap(s) <= 0  # exactly w <= h: a float difference is 0 only when equal
 
-    b0 = below(s_a)
+    first = sample(s_a)
+    b0 = first[0] - first[2] <= 0
     inside0 = (~from_outside) & b0  # the march starts below the relief surface
     hit_at_entry = from_outside & b0
-    found, lo, hi = _march(below, inside0, hit_at_entry, s_a, s_b, n_steps, q.early_exit)
+    period = maps.scale[0] * maps.height.shape[1]
+    found, lo, hi, s_und = _march(sample, maps.slope, period, inside0, hit_at_entry, first, s_a, s_b, n_steps, q.early_exit)
     if n_bis > 0:
         lo, hi = _bisect(below, inside0, lo, hi, n_bis)
     # the crossing found by the march and bisection, differentiable by the implicit-function
@@ -179,7 +201,8 @@ def _relief_t(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, o, d, t_min
     t = t0 + s_hit
     good = ok & found & (t > t_min) & (t <= t_max)
     code = jnp.where(hit_at_entry, entry, RELIEF)
-    return jnp.where(good, t, inf), s_hit, code.astype(jnp.int32)
+    t_und = jnp.where(ok & jnp.isfinite(s_und), t0 + s_und, inf)
+    return jnp.where(good, t, inf), s_hit, code.astype(jnp.int32), t_und
 
 
 def _shell_window(seg: FrustaParams, o, d, t_min, t_max):
@@ -199,44 +222,94 @@ def _shell_window(seg: FrustaParams, o, d, t_min, t_max):
     return t0, e, s_a, s_b, ok, entry, from_outside
 
 
-def _gap_of(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, e, d, s_a, s_b):
-    """``gap(s)`` = w - h at e + s d: negative below the relief surface (Eq. 11-12 against the
-    map), (u, v) exact per sample or, ``approximate``, v linear between the window's ends."""
+def _sampler(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, e, d, s_a, s_b):
+    """``sample(s) -> (w, dw/ds, h, X, Y)`` at e + s d: the ray height w (Eq. 11-12) and its
+    derivative along the ray, the map's height h there, and the texel coordinates (X, Y) it was
+    read at; w - h is negative below the relief surface. (u, v) exact per sample or,
+    ``approximate``, v linear between the window's ends."""
     k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
+    du, dm, dw_ = dot3(d, seg.u), dot3(d, seg.m), dot3(d, seg.w)
     if q.uv == "approximate":
         v_a = exact_v(seg, e + s_a * d)[0]
         v_b = exact_v(seg, e + s_b * d)[0]
+    hh, ww = maps.height.shape
 
-    def gap(s):
+    def sample(s):
         p = e + s * d
         y = dot3(p, seg.m)
         x, z = dot3(p, seg.u), dot3(p, seg.w)
         rho = safe_sqrt(x * x + z * z)
         w = safe_div(rho - (seg.r1 + k * y), seg.shell, 0.0)  # Eq. 11-12
+        dw = safe_div(safe_div(x * du + z * dw_, rho, 0.0) - k * dm, seg.shell, 0.0)
         if q.uv == "exact":
             v = exact_v(seg, p)[0]
         else:
             v = v_a + (v_b - v_a) * safe_div(s - s_a, s_b - s_a, 0.0)
         u = _angle_u(seg, p, v)
-        hgt = sample_height(maps, u * maps.scale[0], (v + seg.v_off) * maps.scale[1], q.v_mode)
-        return w - hgt
+        uu, vv = u * maps.scale[0], (v + seg.v_off) * maps.scale[1]
+        return w, dw, sample_height(maps, uu, vv, q.v_mode), u * (maps.scale[0] * ww), vv * hh
 
-    return gap
+    return sample
 
 
-def _march(below, inside0, hit_at_entry, s_a, s_b, n_steps: int, early_exit: bool):
-    """(found, lo, hi): ``n_steps`` uniform samples of [s_a, s_b] (Sec. 3), the first bracket
-    [lo, hi] where ``below`` changes from its value at the start; ``early_exit`` stops the
-    loop once found (a ``while_loop``), else a ``fori_loop`` of exactly ``n_steps``."""
+def _least_of_upper(lines, ds):
+    """min over s in [0, ds] of max_k (c_k + m_k s) for ``lines`` [(c_k, m_k)]: a convex
+    piecewise-linear function, least at an end or where two of its lines meet."""
+    cands = [jnp.zeros_like(ds), ds]
+    for i in range(len(lines)):
+        for j in range(i + 1, len(lines)):
+            (ci, mi), (cj, mj) = lines[i], lines[j]
+            cands.append(jnp.clip(safe_div(cj - ci, mi - mj, 0.0), 0.0, ds))
+    vals = [functools.reduce(jnp.maximum, [c + m * x for c, m in lines]) for x in cands]
+    return functools.reduce(jnp.minimum, vals)
+
+
+def _step_undecided(prev, cur, ds, slope, period, inside0):
+    """Whether one march step cannot exclude a crossing between its samples ``prev`` and
+    ``cur`` (both on the start's side of the surface), from bounds rather than samples.
+
+    h, the bilinear height, changes at most at rate L = (slope_x |dX| + slope_y |dY|) / ds along
+    the step (u and v move monotonically over one step; u the short way round), so it stays
+    below min(h_a + L s, h_b + L (ds - s)) and above the max of the mirrored lines. w is convex
+    along the ray (the distance to the axis is a norm of an affine function; the inner radius
+    is linear in s): above its tangents at both ends, below its chord. A ray from outside may
+    have crossed where the least of max(tangents) - min(h lines) is <= 0; one starting below
+    the surface where the most of chord - max(h lines) is > 0. The paper's uniform march
+    (Sec. 3) compares samples only; these are the bounds between them."""
+    w_a, dw_a, h_a, x_a, y_a = prev
+    w_b, dw_b, h_b, x_b, y_b = cur
+    dx = x_b - x_a
+    dx = dx - period * jnp.round(safe_div(dx, period, 0.0))  # u wraps at 1, X at ``period``
+    rate = safe_div(slope[0] * jnp.abs(dx) + slope[1] * jnp.abs(y_b - y_a), ds, 0.0)
+    w_lines = [(w_a, dw_a), (w_b - dw_b * ds, dw_b)]  # tangents at both ends
+    h_up = [(h_a, rate), (h_b + rate * ds, -rate)]
+    gap_lo = _least_of_upper([(cw - ch, mw - mh) for cw, mw in w_lines for ch, mh in h_up], ds)
+    chord = (w_a, safe_div(w_b - w_a, ds, 0.0))
+    h_lo = [(h_a, -rate), (h_b - rate * ds, rate)]
+    gap_hi = -_least_of_upper([(ch - chord[0], mh - chord[1]) for ch, mh in h_lo], ds)
+    return jnp.where(inside0, gap_hi > 0, gap_lo <= 0)
+
+
+def _march(sample, slope, period, inside0, hit_at_entry, first, s_a, s_b, n_steps: int, early_exit: bool):
+    """(found, lo, hi, s_undecided): ``n_steps`` uniform samples of [s_a, s_b] (Sec. 3), the
+    first bracket [lo, hi] where the side of the surface changes from the start's, and the
+    start of the first step before it that :func:`_step_undecided` could not decide (inf where
+    none). ``early_exit`` stops the loop once found (a ``while_loop``), else a ``fori_loop``
+    of exactly ``n_steps``. ``first``: the sample at s_a; slope, period: the map's texel
+    slopes and the texel X where u wraps."""
     ds = (s_b - s_a) / n_steps
 
     def visit(i, carry):
-        found, lo, hi = carry
+        found, lo, hi, prev, s_und = carry
         s_i = s_a + ds * i
-        c = (~found) & (below(s_i) != inside0)
-        return found | c, jnp.where(c, s_i - ds, lo), jnp.where(c, s_i, hi)
+        cur = sample(s_i)
+        c = (~found) & ((cur[0] - cur[2] <= 0) != inside0)
+        with jax.named_scope(UNDECIDED_SCOPE):  # (tests/test_relief.py: plain frusta never trace it)
+            und = (~found) & (~c) & _step_undecided(prev, cur, ds, slope, period, inside0)
+        s_und = jnp.where(und & ~jnp.isfinite(s_und), s_i - ds, s_und)
+        return found | c, jnp.where(c, s_i - ds, lo), jnp.where(c, s_i, hi), cur, s_und
 
-    init = (hit_at_entry, s_a, s_a)
+    init = (hit_at_entry, s_a, s_a, first, jnp.asarray(jnp.inf, s_a.dtype))
     if early_exit:
         def cond(st):
             return (st[0] < n_steps + 1) & ~st[1][0]
@@ -245,10 +318,10 @@ def _march(below, inside0, hit_at_entry, s_a, s_b, n_steps: int, early_exit: boo
             i, carry = st
             return i + 1, visit(i, carry)
 
-        _, (found, lo, hi) = jax.lax.while_loop(cond, body, (jnp.int32(1), init))
+        _, (found, lo, hi, _, s_und) = jax.lax.while_loop(cond, body, (jnp.int32(1), init))
     else:
-        found, lo, hi = jax.lax.fori_loop(1, n_steps + 1, visit, init)
-    return found, lo, hi
+        found, lo, hi, _, s_und = jax.lax.fori_loop(1, n_steps + 1, visit, init)
+    return found, lo, hi, s_und
 
 
 def _bisect(below, inside0, lo, hi, n_bis: int):

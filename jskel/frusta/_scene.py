@@ -16,7 +16,7 @@ from ..executables import StoredJit
 from ..executor import size_bucket
 from ..numerics import on_device
 from ..interface import Built, Object, Preliminary, Representation
-from ..rays import Hit, Rays
+from ..rays import FLAG_GRAZE, Hit, Rays
 from ..textures import bilinear_wrap, load_texture
 from ._accel import build_bvh, winner_ts
 from ._build import _HOST_OPTS, FrustaArrays, _bucket, piece_bounds
@@ -28,7 +28,7 @@ from ._intersect import inside_one as _inside_one
 from ._intersect import _finish, _segment_t, nearest_one
 from ._maps import load_height_map, relief_memory
 from ._pack import FrustaScene, Static, make_group
-from ._relief import ReliefMaps, ReliefQuality
+from ._relief import ReliefMaps, ReliefQuality, texel_slopes
 from ._relief import make_relief_finish, make_relief_t
 
 
@@ -111,7 +111,7 @@ def _relief_group(cfg: FrustaConfig, arrays: FrustaArrays, ids, anchor, dtype):
     shell[ids] = rel.thickness
     relief, block = make_group(arrays, ids, anchor, cfg.block, dtype, shell)
     height = load_height_map(rel.map)
-    maps = ReliefMaps(on_device(height), on_device(rel.scale, dtype))
+    maps = ReliefMaps(on_device(height), on_device(rel.scale, dtype), on_device(texel_slopes(height), dtype))
     return relief, block, maps, relief_memory(arrays, height, rel.scale, ids)
 
 
@@ -140,8 +140,16 @@ def _nearest_hit(a: Hit, b: Hit) -> Hit:
     return jax.tree_util.tree_map(lambda x, y: jnp.where(closer.reshape(closer.shape + (1,) * (x.ndim - closer.ndim)), y, x), a, b)
 
 
+def _relief_flags(out: Hit, t_undecided) -> Hit:
+    """``out`` with its flags: ``FLAG_GRAZE`` where a relief march could not exclude a crossing
+    before the ray's nearest hit (any finite t_undecided on a miss), Bhagvat et al. 2009 Sec. 3
+    and ``_relief._step_undecided``; 0 elsewhere. Only scenes with relief carry flags."""
+    return out._replace(flags=jnp.where(t_undecided < out.t, FLAG_GRAZE, 0).astype(jnp.int32))
+
+
 def intersect_one(scene: FrustaScene, static: Static, origin, direction, t_min, t_max) -> Hit:
-    """Nearest hit of one ray with the plain and relief frusta of ``scene`` (brute force)."""
+    """Nearest hit of one ray with the plain and relief frusta of ``scene`` (brute force); with
+    relief its flags (:func:`_relief_flags`)."""
     hits = []
     if scene.plain is not None:
         f = scene.plain.frusta
@@ -150,12 +158,12 @@ def intersect_one(scene: FrustaScene, static: Static, origin, direction, t_min, 
     if scene.relief is not None:
         f = scene.relief.frusta
         seg_fn = make_relief_t(scene.maps, static.relief)
-        t, s, c, i = nearest_one(f, seg_fn, origin, direction, t_min, t_max, static.relief_block)
+        t, s, c, i, und = nearest_one(f, seg_fn, origin, direction, t_min, t_max, static.relief_block, undecided=True)
         hits.append(make_relief_finish(scene.maps, static.relief)(f, origin, direction, t, s, c, i))
     out = hits[0]
     for h in hits[1:]:
         out = _nearest_hit(out, h)
-    return out
+    return out if scene.relief is None else _relief_flags(out, und)
 
 
 def intersect(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
@@ -166,7 +174,8 @@ def intersect(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
 
 class FrustaPayload(NamedTuple):
     """What :func:`surface` needs of a preliminary hit, per ray and per group present (plain,
-    relief; None where absent): each group's nearest (t, s, code, index) (``_intersect``)."""
+    relief; None where absent): each group's nearest (t, s, code, index) (``_intersect``), the
+    relief's with the least t where its march could not decide, fifth (``_relief``)."""
 
     plain: tuple | None
     relief: tuple | None
@@ -217,11 +226,11 @@ def surface(scene: FrustaScene, static: Static, rays: Rays, pre: Preliminary) ->
         hits.append(jax.lax.cond(jnp.any(jnp.isfinite(t)), lambda: fin(g.frusta, o, d, t, s, c, i, static.quality.normals), lambda: miss))
     if pre.payload.relief is not None:
         fin = jax.vmap(make_relief_finish(scene.maps, static.relief), in_axes=(None, 0, 0, 0, 0, 0, 0))
-        hits.append(fin(scene.relief.frusta, o, d, *pre.payload.relief))
+        hits.append(fin(scene.relief.frusta, o, d, *pre.payload.relief[:4]))
     out = hits[0]
     for h in hits[1:]:
         out = _nearest_hit(out, h)
-    return out
+    return out if pre.payload.relief is None else _relief_flags(out, pre.payload.relief[4])
 
 
 def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:
