@@ -214,8 +214,8 @@ def first_set(words, q: int):
 class _Batch(NamedTuple):
     """What :func:`nearest_binned`'s loops read of one batch: the primitive boxes, the pair
     test, the rays cut into ``p`` packets of ``g`` (``po``, ``pd``, ``pa``, ``pb``: (P, G, ...)),
-    the batch's bounds ``whole``, its ``n`` rays, and the ``k`` candidates per block and ``q``
-    pairs per step."""
+    the batch's bounds ``whole``, its ``n`` rays, the ``k`` candidates per block and ``q``
+    pairs per step, and whether the pair test is compiled for ``q`` lanes alone (``one_lane``)."""
 
     lo: jax.Array
     hi: jax.Array
@@ -230,6 +230,7 @@ class _Batch(NamedTuple):
     g: int
     k: int
     q: int
+    one_lane: bool = False
 
 
 # every packet's bounds against one block's boxes: (P, K) met and entry t
@@ -237,7 +238,7 @@ _meets_per_packet = jax.vmap(packet_entry, in_axes=(0, 0, 0, 0, 0, 0, None, None
 
 
 def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pairs: int, origins, directions, t_min, t_max, groups=None,
-                   fallback: Callable | None = None, fallback_above: int = 0, root=None):
+                   fallback: Callable | None = None, fallback_above: int = 0, root=None, one_lane: bool = False):
     """Nearest hit of every ray of a batch (N,) through packet candidate lists (module docstring).
 
     lo, hi: (S, 3) primitive boxes (empty boxes for padding). ``pair_fn(ids (Q,), o, d, t_min,
@@ -254,7 +255,10 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
     logarithmic (docs/performance.md: cost per ray against log(segments)).
 
     ``root = (lo (3,), hi (3,))``, a box around every primitive: a batch that cannot meet it
-    (sky) skips everything but its own bounds (a ``lax.cond``)."""
+    (sky) skips everything but its own bounds (a ``lax.cond``).
+
+    ``one_lane``: the pair test is compiled once, on ``pairs`` lanes, instead of once per lane
+    size of :func:`_lane_test` (for few primitives: a smaller program, see its caller)."""
     n = origins.shape[0]
     g = min(packet, n)
     n_pad = -(-n // g) * g
@@ -266,7 +270,7 @@ def nearest_binned(lo, hi, pair_fn: Callable, packet: int, candidates: int, pair
     s = lo.shape[0]
     k = min(candidates, s)
     q = min(pairs, p * k)
-    batch = _Batch(lo, hi, pair_fn, po, pd, pa, pb, whole, n, p, g, k, q)
+    batch = _Batch(lo, hi, pair_fn, po, pd, pa, pb, whole, n, p, g, k, q, one_lane)
     full = functools.partial(_full, batch, groups, fallback, fallback_above, origins, directions, t_min, t_max)
 
     def sky():
@@ -370,9 +374,9 @@ def _lane_test(batch: _Batch, na, rows, prim):
     """t (Q, G) of a step's pairs (packet ``rows``, primitive ``prim``), on the smallest of
     q/4, q/2, q lanes that holds the step's ``na`` pairs (a switch: one branch runs; a block's
     last step is often part-full, and the step's cost is its lanes). Each branch is its own
-    program, so t is materialised once."""
+    program, so t is materialised once. ``batch.one_lane``: q lanes alone (one copy of the test)."""
     q = batch.q
-    sizes = [m for m in (q // 4, q // 2) if m >= 16] + [q]
+    sizes = [m for m in (q // 4, q // 2) if m >= 16 and not batch.one_lane] + [q]
     if len(sizes) > 1:
         return jax.lax.switch(sum((na > m).astype(jnp.int32) for m in sizes[:-1]), [_lanes(batch, m, rows, prim) for m in sizes])
     return fenced(na >= 0, _lanes(batch, q, rows, prim))  # (a switch of one branch is inlined)

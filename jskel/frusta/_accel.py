@@ -151,6 +151,17 @@ def bin_groups(tree: BVH, per: int):
     return tree.lo[ng : 2 * ng], tree.hi[ng : 2 * ng], tree.order.reshape(ng, -1)
 
 
+# up to this many segments (the plain group's size bucket, so no new program) ``nearest_bins``
+# compiles its pair test for one lane count, not three (``accel._bins._lane_test``): a smaller
+# program at no cost in render time on small objects; above it the three are kept (a long list's
+# part-full steps run on fewer lanes). One-off, fresh processes, 2-core AMD EPYC, AVX-512, 2026-12-02
+# (tests/scripts/traversal_programs.py with --bins-one-lane 32 and 0): the default experiment's
+# 30-segment saguaro, 5,687 StableHLO lines against 7,400, compile 4.7-5.3 s of process CPU
+# against 6.6-6.7 s, warm render 42-45 ms CPU against 55-61 ms; experiments/scene_effects.yaml,
+# 24,290 lines against 27,626, compile 17.7 s against 20.3 s.
+BINS_ONE_LANE = 32
+
+
 def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, pairs: int, group: int, walk_ratio: float, origins, directions, t_min, t_max,
                  leaf: int = 4, walk_group: int = 512):
     """(t, s, code, idx, (n_batch, n_pairs)) of a batch through packet candidate lists
@@ -183,7 +194,8 @@ def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, p
     # (not compiled where the list cannot pass the threshold: fewer segments than that)
     fallback = walks if walk_ratio > 0 and int(walk_ratio * n) < f.h.shape[0] else None
     t, idx, counts = nearest_binned(fb.box_lo, fb.box_hi, pair_fn, packet, candidates, pairs, origins, directions, t_min, t_max, groups,
-                                    fallback, int(walk_ratio * n), root=(fb.tree.lo[1], fb.tree.hi[1]))
+                                    fallback, int(walk_ratio * n), root=(fb.tree.lo[1], fb.tree.hi[1]),
+                                    one_lane=f.h.shape[0] <= BINS_ONE_LANE)
     def again():
         seg = jax.tree_util.tree_map(lambda x: x[jnp.maximum(idx, 0)], f)
         return jax.vmap(_segment_t)(seg, origins, directions, t_min, t_max) + (jax.vmap(recentre)(seg, origins, directions)[0],)
