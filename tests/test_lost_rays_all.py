@@ -44,6 +44,7 @@ from jskel.rays import FLAG_NAMES, make_rays
 
 import implicit_reference as iref
 import reference as ref
+from triangles import moller_trumbore
 
 N = 256  # rays per example: one shape, one compile per representation
 EPS32 = float(np.finfo(np.float32).eps)
@@ -119,17 +120,10 @@ def _sphere(c, rho):
 
 
 def _triangles(v, f):
-    a, e1, e2 = v[f[:, 0]], v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]
+    tri = v[f]
 
     def trace(O, D):  # Moller-Trumbore, rays x faces
-        p = np.cross(D[:, None], e2[None])
-        det = np.sum(e1[None] * p, -1)
-        inv = 1.0 / np.where(det != 0, det, 1.0)
-        s = O[:, None] - a[None]
-        u = np.sum(s * p, -1) * inv
-        q = np.cross(s, e1[None])
-        w = np.sum(D[:, None] * q, -1) * inv
-        t = np.sum(e2[None] * q, -1) * inv
+        t, u, w, det = moller_trumbore(tri, O, D)
         ok = (det != 0) & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 0)
         return np.where(ok, t, np.inf).min(1)
     return trace

@@ -8,6 +8,7 @@ import jax
 import numpy as np
 import pytest
 import trimesh
+from triangles import moller_trumbore
 
 from jskel import cells, mesh
 from jskel.rays import make_rays
@@ -21,19 +22,10 @@ def _brute_f64(tri, O, D):
     """Nearest (t, face) of every ray over every triangle, float64 Möller-Trumbore written
     independently of ``jskel.mesh``; its edge tests are widened by 1e-9 (exact ones miss rays
     through a shared vertex on every triangle around it, even in float64)."""
-    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     t_best = np.full(len(O), np.inf)
     f_best = np.full(len(O), -1)
     for lo in range(0, len(O), 256):
-        o, d = O[lo:lo + 256, None, :], D[lo:lo + 256, None, :]
-        p = np.cross(d, e2)
-        det = np.sum(e1 * p, -1)
-        inv = 1.0 / np.where(det == 0, 1.0, det)
-        s = o - v0
-        u = np.sum(s * p, -1) * inv
-        q = np.cross(s, e1)
-        v = np.sum(d * q, -1) * inv
-        t = np.sum(e2 * q, -1) * inv
+        t, u, v, det = moller_trumbore(tri, O[lo:lo + 256], D[lo:lo + 256])
         ok = (det != 0) & (u >= -1e-9) & (v >= -1e-9) & (u + v <= 1 + 1e-9) & (t > 0)
         t = np.where(ok, t, np.inf)
         t_best[lo:lo + 256] = t.min(1)

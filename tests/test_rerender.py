@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import reference as ref
+from triangles import moller_trumbore
 from jskel import config
 from jskel.cache import count_programs, program_counts
 from jskel.executor import batch_bucket, calls_grouping, map_chunks, size_bucket
@@ -206,16 +207,7 @@ def _mesh_object(tmp, tri):
 def _triangles_f64(tri, O, D):
     """(t, ambiguous) of every ray against every triangle, float64 Moller-Trumbore: the nearest
     t > 0 (inf: none), and whether some triangle's barycentric margin is within 1e-4 of an edge."""
-    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    o, d = O[:, None, :], D[:, None, :]
-    p = np.cross(d, e2)
-    det = np.sum(e1 * p, -1)
-    inv = 1.0 / np.where(det == 0, 1.0, det)
-    s = o - v0
-    u = np.sum(s * p, -1) * inv
-    q = np.cross(s, e1)
-    v = np.sum(d * q, -1) * inv
-    t = np.sum(e2 * q, -1) * inv
+    t, u, v, det = moller_trumbore(tri, O, D)
     margin = np.minimum(np.minimum(u, v), 1 - u - v)
     t_hit = np.where((det != 0) & (margin >= 0) & (t > 0), t, np.inf)
     return t_hit.min(1), np.any((det != 0) & (np.abs(margin) < 1e-4) & (t > 0), axis=1)
