@@ -121,9 +121,9 @@ class JsonLines:
         self.out = None if out is None else Path(out)
         self.run = None
         if self.out is not None:
+            self.run = provenance(command)  # before the file is emptied: a tracked result file is not a change of the code
             self.out.parent.mkdir(parents=True, exist_ok=True)
             self.out.write_text("")
-            self.run = provenance(command)
 
     def __call__(self, row: dict, keep: bool = True):
         """Print ``row``; also append it to ``out`` (with ``run``) unless ``keep`` is False (a log line)."""
