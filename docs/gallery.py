@@ -1,9 +1,9 @@
 """Render README's gallery: every listed experiment through ``python -m jskel render`` (the
 command a user runs), at 320x240, copied to ``docs/gallery/<name>.png``, with
-``docs/gallery/gallery.md`` (the Markdown table README includes). Each run's seconds are
-printed, not written into the table: a render time belongs in a result file with its provenance,
-and ``experiments/bench_latency.yaml`` times these same experiments
-(``docs/bench_latency_cpu.jsonl``).
+``docs/gallery/gallery.md`` (the whole table, linked from the repository root; README.md shows
+eight of its images, docs/index.md all of them). Each run's seconds are printed, not written
+into the table: a render time belongs in a result file with its provenance, and
+``experiments/bench_latency.yaml`` times these same experiments (``docs/bench_latency_cpu.jsonl``).
 
     python docs/gallery.py            # from the repository root
 """
