@@ -77,6 +77,12 @@ def test_docs_site_builds_strict(tmp_path):
     for name in notebooks:
         page = (tmp_path / "site" / "notebooks" / name / "index.html").read_text(encoding="utf-8")
         assert "jp-RenderedImage" in page and "data:image/png;base64," in page, f"notebooks/{name}: no stored figure shown"
+        assert "Outputs stored from one run:" in page, f"notebooks/{name}: the page does not say which run stored its outputs"
+    # every sweep report's page names the command that wrote it and its result file
+    for report in sorted((ROOT / "docs").glob("sweep_*/report.md")):
+        page = (tmp_path / "site" / report.parent.name / "report" / "index.html").read_text(encoding="utf-8")
+        exp = f"experiments/{report.parent.name.rsplit('_', 1)[0]}.yaml"
+        assert (ROOT / exp).is_file() and f"python -m jskel sweep {exp}" in page and "results.csv" in page, report.parent.name
 
 
 # --- the configuration reference: every key of every file the project reads has a description ---

@@ -10,6 +10,10 @@ row, and a table of the rest. A page marks a table to take from a result file wi
 without the key); the marker becomes the table of the latest run and the line that says where
 it comes from. An unknown file, a column no selected row has, or a selection of no rows fails
 the build.
+
+A sweep's report page (``sweep_*/report.md``, as ``jskel sweep`` wrote it) that does not name the
+command which wrote it gets a line naming it and its result file (``sweep_relief_steps_cpu/`` is
+``experiments/sweep_relief_steps.yaml``'s; a folder with no such experiment fails the build).
 """
 
 from __future__ import annotations
@@ -116,5 +120,25 @@ def on_files(files, config):
     return files
 
 
+SWEEP_REPORT = re.compile(r"(sweep_[^/]+)_[^_/]+/report\.md")
+
+
+def sweep_command(markdown: str, src_uri: str, root: Path) -> str:
+    """A sweep report without its ``Written ... by `command` `` line gets one after its heading."""
+    m = SWEEP_REPORT.fullmatch(src_uri)
+    if m is None or re.search(r"^Written .* by `", markdown, re.M):
+        return markdown
+    exp = Path("experiments") / f"{m.group(1)}.yaml"
+    if not (root / exp).is_file():
+        raise PluginError(f"{src_uri}: no {exp} wrote this sweep report")
+    folder = posixpath.dirname(src_uri)
+    line = (f"Written by `python -m jskel sweep {exp.as_posix()} --out docs/{folder}` (the result file `results.csv`, "
+            f"`pareto.png` and this report); the report records no date, commit or machine: "
+            f"[Sweeps](../sweeps.md) gives them from git history.")
+    head, _, rest = markdown.partition("\n")
+    return f"{head}\n\n{line}\n{rest}"
+
+
 def on_page_markdown(markdown, page, config, files):
+    markdown = sweep_command(markdown, page.file.src_uri, Path(config["docs_dir"]).parent)
     return MARKER.sub(lambda m: marked_table(m.group(1), config["docs_dir"], page.file.src_uri), markdown)
