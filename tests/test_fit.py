@@ -149,8 +149,9 @@ def noisy_branch():
 def test_recovers_a_known_chain_from_noisy_points_with_outliers(noisy_branch, solver):
     """5 segments, Gaussian noise of 1 % of the chain's length, 5 % outliers, a start moved by
     10 % (joints by 10 % of a segment, radii by 10 %): joints within 2 % of the length, radii
-    within 5 %. LM with jaxopt's dense Jacobian, and the same algorithm on the sparse normal
-    equations (``solver.jacobian: sparse``) takes the same steps to the same skeleton. L-BFGS
+    within 5 %. LM on the dense normal equations; jaxopt's LM (``solver.jacobian: jaxopt``, an
+    implementation of its own of the same algorithm) and the same solver on the sparse normal
+    equations (``solver.jacobian: sparse``) take the same steps to the same skeleton. L-BFGS
     runs 2 starts in one call (the given one and a perturbed copy, in turn under lax.map) and
     keeps the best: from single starts it once stopped in a local minimum (an earlier loss); with
     4 starts all four reached the same loss to 1e-4, at twice the test's run time."""
@@ -165,11 +166,12 @@ def test_recovers_a_known_chain_from_noisy_points_with_outliers(noisy_branch, so
     if solver == "lbfgs":
         assert len(res.restart_losses) == 2 and min(res.restart_losses) == pytest.approx(res.history[-1], rel=1e-5)
     else:
-        sp = fit_points(pts, j0, r0, CHAIN, s.model_copy(update={"jacobian": "sparse"}))
-        np.testing.assert_allclose(sp.history[:6], res.history[:6], rtol=1e-4)  # the same first steps
-        assert abs(sp.iterations - res.iterations) <= 2 and abs(sp.history[-1] / res.history[-1] - 1) < 1e-4
-        np.testing.assert_allclose(sp.joints, res.joints, atol=1e-3 * length)
-        np.testing.assert_allclose(sp.radii, res.radii, rtol=1e-3)
+        for jac in ("jaxopt", "sparse"):
+            sp = fit_points(pts, j0, r0, CHAIN, s.model_copy(update={"jacobian": jac}))
+            np.testing.assert_allclose(sp.history[:6], res.history[:6], rtol=1e-4)  # the same first steps
+            assert abs(sp.iterations - res.iterations) <= 2 and abs(sp.history[-1] / res.history[-1] - 1) < 1e-4
+            np.testing.assert_allclose(sp.joints, res.joints, atol=1e-3 * length)
+            np.testing.assert_allclose(sp.radii, res.radii, rtol=1e-3)
 
 
 def test_batched_fits_match_the_truth_for_every_cloud():

@@ -1,8 +1,10 @@
-"""The fit's sparse normal equations and the solver that uses them (issue 10): J^T J and J^T r
-assembled from each point's one segment and each segment's four joints equal those of the
-dense Jacobian; the colouring keeps every dependency set apart; the Levenberg-Marquardt and
-Gauss-Newton steps on supplied normal equations solve closed-form problems. (That they take
-jaxopt's Levenberg-Marquardt's steps on a real fit is asserted in ``test_fit``'s recovery test.)"""
+"""The fit's normal equations and the solver that uses them (issue 10): J^T J and J^T r
+assembled from each point's one segment and each segment's four joints, and those of the dense
+solver's one linearization, equal those of the dense Jacobian; the colouring keeps every
+dependency set apart; the Levenberg-Marquardt and Gauss-Newton steps on supplied normal
+equations solve closed-form problems, from an initial state that is one update of a blank one.
+(That they take jaxopt's Levenberg-Marquardt's steps on a real fit is asserted in
+``test_fit``'s recovery test.)"""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ import pytest
 from jskel.fit import perturbed, segments_of
 from jskel.fit._bench import bent_chain
 from jskel.fit._config import SolverConfig
-from jskel.fit._problem import normal_equations, normaliser_of, problem_of, residuals
+from jskel.fit._problem import dense_equations, normal_equations, normaliser_of, problem_of, residuals
 from jskel.fit._normal import point_rows, structure
 from jskel.fit._solvers import normal_solver
 
@@ -52,14 +54,16 @@ def test_sparse_normal_equations_equal_the_dense_jacobians(case):
     rr, jtj, g = jax.jit(lambda x: normal_equations(x, pts, pr))(x)
     # the reference, dense forward mode, as one compiled program (run op by op it took twice the
     # compile time of the program, on 2 cores)
-    rd, jac = jax.jit(lambda x: (residuals(x, pts, pr), jax.jacfwd(lambda x: residuals(x, pts, pr))(x)))(x)
+    rd, jac, dense = jax.jit(lambda x: (residuals(x, pts, pr), jax.jacfwd(lambda x: residuals(x, pts, pr))(x),
+                                        dense_equations(x, pts, pr)))(x)
     jac = np.asarray(jac, np.float64)
     assert np.count_nonzero(np.abs(jac[-5 * len(pr.triples):]).sum(1)) > 0  # penalty rows are live
-    np.testing.assert_allclose(np.asarray(rr), np.asarray(rd), atol=1e-6)
     want = jac.T @ jac
-    np.testing.assert_allclose(np.asarray(jtj), want, atol=2e-5 * np.abs(want).max())
     want_g = jac.T @ np.asarray(rd, np.float64)
-    np.testing.assert_allclose(np.asarray(g), want_g, atol=2e-5 * np.abs(want_g).max())
+    for got in ((rr, jtj, g), dense):  # the sparse assembly, and the dense solver's one linearization
+        np.testing.assert_allclose(np.asarray(got[0]), np.asarray(rd), atol=1e-6)
+        np.testing.assert_allclose(np.asarray(got[1]), want, atol=2e-5 * np.abs(want).max())
+        np.testing.assert_allclose(np.asarray(got[2]), want_g, atol=2e-5 * np.abs(want_g).max())
     from jskel.fit._normal import flat_geometry
     from jskel.fit._distance import geometry
     from jskel.fit._problem import radii_of, unpack
@@ -99,7 +103,7 @@ def _linear_system(a, b):
         r = a @ x - b
         return r, a.T @ a, a.T @ r
 
-    return system, lambda x: 0.5 * jnp.sum((a @ x - b) ** 2)
+    return system
 
 
 @pytest.mark.parametrize("damped", [True, False], ids=["lm", "gauss_newton"])
@@ -110,10 +114,15 @@ def test_normal_solver_reaches_closed_form_minima(damped):
     a = rng.normal(size=(30, 4))
     b = rng.normal(size=30)
     want = np.linalg.lstsq(a, b, rcond=None)[0]
-    system, loss = _linear_system(jnp.asarray(a, jnp.float32), jnp.asarray(b, jnp.float32))
-    step = normal_solver(lambda x: system(x), loss, damped=damped)
+    system = _linear_system(jnp.asarray(a, jnp.float32), jnp.asarray(b, jnp.float32))
+    step = normal_solver(lambda x: system(x), damped=damped)
     x = jnp.zeros(4, jnp.float32)
-    st = step.init(x)
+    st = step.init(x)  # one update from the blank state: a zero step to x, the system there
+    res0 = -b  # a @ 0 - b, in float64
+    np.testing.assert_allclose(float(st.value), 0.5 * res0 @ res0, rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(st.gradient), a.T @ res0, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(float(st.damping), (1e-6 if damped else 1e-9) * np.max(np.diag(a.T @ a)), rtol=1e-5)
+    assert int(st.iter_num) == 0 and np.array_equal(np.asarray(step.update(x, step.blank(x))[0]), np.zeros(4))
     upd = jax.jit(step.update)
     for _ in range(8):
         x, st = upd(x, st)
@@ -125,7 +134,7 @@ def test_normal_solver_reaches_closed_form_minima(damped):
         jac = jnp.stack([jnp.stack([-20.0 * x[0], 10.0]), jnp.stack([-1.0, 0.0])])
         return r, jac.T @ jac, jac.T @ r
 
-    step = normal_solver(ros, lambda x: 0.5 * jnp.sum(ros(x)[0] ** 2), damped=damped)
+    step = normal_solver(ros, damped=damped)
     x = jnp.asarray([-1.2, 1.0], jnp.float32)
     st = step.init(x)
     upd = jax.jit(step.update)

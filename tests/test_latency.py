@@ -29,6 +29,18 @@ def test_a_process_is_timed_to_its_outputs_and_its_report_read(tmp_path):
     assert bad["error"] == "jskel: error: camera.width: bad"
 
 
+def test_a_fits_first_iteration_is_timed_from_the_process_start(tmp_path):
+    """A fake fit process sleeps 0.5 s, notes the time as its first iteration's, sleeps again and
+    writes fit.json: the row's ``first_iteration_s`` is those first 0.5 s (and process start-up)."""
+    out = tmp_path / "o"
+    fit = {"compile_s": 2.5, "seconds": 1.5, "iterations": 9}
+    code = (f"import json, os, time; time.sleep(0.5); f = dict({fit!r}, first_iteration_at=time.time()); time.sleep(0.6); "
+            f"os.makedirs({str(out)!r}); open({str(out / 'fit.json')!r}, 'w').write(json.dumps(f))")
+    row = timed_process([sys.executable, "-c", code], process_env(tmp_path / "c"), out, 60)
+    assert row["compile_s"] == 2.5 and row["fit_s"] == 1.5 and row["iterations"] == 9
+    assert 0.5 <= row["first_iteration_s"] <= row["outputs_s"] - 0.55
+
+
 def test_each_process_gets_its_own_cache_and_no_bars(monkeypatch, tmp_path):
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/elsewhere")
     monkeypatch.setenv("JSKEL_CACHE", "off")

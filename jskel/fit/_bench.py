@@ -22,7 +22,7 @@ from pydantic import Field
 from ..config import StrictModel
 from ._config import SolverConfig
 from ._distance import segments_of
-from ._fit import fit_many, fit_points, uses_sparse
+from ._fit import fit_many, fit_points, jacobian_of
 from ._measures import culling_exact_fraction
 from ._points import sample_surface
 from ._problem import loss, normaliser_of, problem_of
@@ -54,7 +54,7 @@ class FitBench(StrictModel):
     """Segments each point is measured against (0: all)."""
     max_seconds: Annotated[float, Field(gt=0.0)] | None = 300.0
     """Limit of each fit's stepping loop; a row says when it ran out."""
-    jacobian: Literal["auto", "dense", "sparse"] = "auto"
+    jacobian: Literal["auto", "dense", "sparse", "jaxopt"] = "auto"
     """``lm`` / ``gauss_newton`` (``solver.jacobian``); rows say which ran."""
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.003
     """``adam``: step size."""
@@ -146,7 +146,7 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                     emit(row)
                     rows.append(row)
                     continue
-                jac = ("sparse" if uses_sparse(s, n + 5 * (segs - 1), 4 * (segs + 1)) else "dense") if name in ("lm", "gauss_newton") else None
+                jac = jacobian_of(s, n + 5 * (segs - 1), 4 * (segs + 1))
                 row = {"solver": name, "jacobian": jac, "loss": b.loss, "smoothness": b.smoothness, "points": n, "segments": segs, "compile_s": round(res.compile_s, 3),
                        "seconds": round(res.seconds, 4), "iterations": res.iterations, "converged": res.converged,
                        "s_per_iteration": round(res.seconds / max(res.iterations, 1), 5),

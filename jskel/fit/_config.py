@@ -90,7 +90,7 @@ class InitConfig(StrictModel):
 
 
 class SolverConfig(StrictModel):
-    """``name``: lm (Levenberg-Marquardt), gauss_newton (both jaxopt, or the sparse form), lbfgs (``_lbfgs``) or adam (optax).
+    """``name``: lm (Levenberg-Marquardt), gauss_newton (both the project's, or jaxopt's), lbfgs (``_lbfgs``) or adam (optax).
     ``loss``: l2, huber, cauchy or geman_mcclure (bounded), with ``scale`` a fraction of the cloud's extent.
     ``smoothness``: weight of the joints' second differences along chains. ``restarts``: fits
     from that many perturbed starts in one call (``_fit.over_batch``), the best kept. ``validity``: weight of the
@@ -98,11 +98,13 @@ class SolverConfig(StrictModel):
     its segments (``_distance.plane_margins``), so no piece becomes an unbounded wedge.
     ``candidates``: each point is measured against its that many nearest segments (by a lower
     bound; 0: all); fit.json reports the fraction of points for which that is certainly exact.
-    ``jacobian`` (lm, gauss_newton): ``dense``, jaxopt's solvers on the residuals (a dense
-    Jacobian, forward mode); ``sparse``, the same Levenberg-Marquardt on normal equations
-    assembled from the problem's sparsity (``_normal``: each point depends on one segment's
-    four joints); ``auto``, sparse from ``_fit.SPARSE_FROM`` Jacobian entries (residuals x
-    unknowns, 131,072: about 5,000 points on a 5-segment chain), where it is as fast or faster."""
+    ``jacobian`` (lm, gauss_newton): the project's Levenberg-Marquardt / Gauss-Newton
+    (``_solvers.normal_solver``) on ``dense`` normal equations (the Jacobian by forward mode,
+    ``_problem.dense_equations``) or ``sparse`` ones assembled from the problem's sparsity
+    (``_normal``: each point depends on one segment's four joints); ``auto``, sparse from
+    ``_fit.SPARSE_FROM`` Jacobian entries (residuals x unknowns, 131,072: about 5,000 points on
+    a 5-segment chain), where it is as fast or faster, dense below; ``jaxopt``, jaxopt's solvers
+    on the residuals (the same algorithm, the reference; larger programs, slower to compile)."""
 
     name: Literal["lm", "gauss_newton", "lbfgs", "adam"] = "lm"
     """The solver: Levenberg-Marquardt, Gauss-Newton, L-BFGS (strong Wolfe line search) or Adam (optax)."""
@@ -132,8 +134,8 @@ class SolverConfig(StrictModel):
     """Stop the stepping loop after this long (reported); unset: no limit."""
     validity: Annotated[float, Field(ge=0.0)] = 1.0
     """Weight of the penalty keeping shared cutting planes cutting ellipses (0: off)."""
-    jacobian: Literal["auto", "dense", "sparse"] = "auto"
-    """``lm`` / ``gauss_newton``: jaxopt's dense Jacobian, the sparse normal equations, or ``auto`` (sparse for big problems)."""
+    jacobian: Literal["auto", "dense", "sparse", "jaxopt"] = "auto"
+    """``lm`` / ``gauss_newton``: dense or sparse normal equations, ``auto`` (sparse for big problems), or jaxopt's solvers."""
 
 
 class FitFile(StrictModel):

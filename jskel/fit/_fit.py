@@ -17,12 +17,12 @@ from .. import checks, progress
 from . import _solvers
 from ._config import SolverConfig
 from ._distance import segments_of
-from ._problem import Problem, loss, normal_equations, normaliser_of, problem_of, residuals
+from ._problem import Problem, dense_equations, loss, normal_equations, normaliser_of, problem_of, residuals
 from ._starts import perturbed
 
 
 class FitResult(NamedTuple):
-    """A fitted skeleton in world units, with the loss after each iteration, iterations, whether the stopping rule was met, seconds (compile apart), the solver's final error and the restarts' losses."""
+    """A fitted skeleton in world units, with the loss after each iteration, iterations, whether the stopping rule was met, seconds (compile apart), the solver's final error, the restarts' losses and when the first iteration was done."""
 
     joints: np.ndarray
     radii: np.ndarray
@@ -35,9 +35,10 @@ class FitResult(NamedTuple):
     error: float  # the solver's final stopping measure
     restarts: int
     restart_losses: list
+    first_iteration_at: float | None = None  # time.time() when the stepping loop's first iteration was done (None: one batched call)
 
 
-DENSE_JACOBIAN_MAX = 1 << 24  # entries (residuals x unknowns) up to which LM forms J (64 MiB in float32)
+DENSE_JACOBIAN_MAX = 1 << 24  # entries (residuals x unknowns) up to which jaxopt's LM forms J (64 MiB in float32)
 
 
 # Jacobian entries (residuals x unknowns) from which ``solver.jacobian: auto`` assembles the
@@ -48,11 +49,15 @@ DENSE_JACOBIAN_MAX = 1 << 24  # entries (residuals x unknowns) up to which LM fo
 SPARSE_FROM = 1 << 17
 
 
-def uses_sparse(s: SolverConfig, n_res: int, n_par: int) -> bool:
-    """Whether LM / Gauss-Newton run on the sparse normal equations (``solver.jacobian``)."""
+def jacobian_of(s: SolverConfig, n_res: int, n_par: int) -> str | None:
+    """How LM / Gauss-Newton form their steps (``solver.jacobian``, ``auto`` resolved):
+    ``dense`` or ``sparse`` normal equations for the project's solver, or ``jaxopt``; None for
+    the other solvers."""
     if s.name not in ("lm", "gauss_newton"):
-        return False
-    return s.jacobian == "sparse" or (s.jacobian == "auto" and n_res * n_par >= SPARSE_FROM)
+        return None
+    if s.jacobian == "auto":
+        return "sparse" if n_res * n_par >= SPARSE_FROM else "dense"
+    return s.jacobian
 
 
 class SolverKey(NamedTuple):
@@ -66,18 +71,19 @@ class SolverKey(NamedTuple):
     learning_rate: float
     patience: int
     ftol: float
+    jacobian: str | None  # LM / Gauss-Newton: dense or sparse normal equations, or jaxopt's solvers
     dense: bool  # jaxopt's LM forms the Jacobian
-    sparse: bool  # LM / Gauss-Newton on the assembled sparse normal equations
 
 
 def solver_key(s: SolverConfig, n_res: int, n_par: int) -> SolverKey:
     return SolverKey(s.name, int(s.maxiter), float(s.tol), float(s.learning_rate), int(s.patience), float(s.ftol),
-                     n_res * n_par <= DENSE_JACOBIAN_MAX, uses_sparse(s, n_res, n_par))
+                     jacobian_of(s, n_res, n_par), n_res * n_par <= DENSE_JACOBIAN_MAX)
 
 
 def stepper(pr: Problem, key: SolverKey) -> _solvers.Stepper:
     """The solver of ``key`` on the problem ``pr`` (built while tracing; nothing compiles here)."""
-    normal = (lambda x, p: normal_equations(x, p, pr)) if key.sparse else None
+    system = {"dense": dense_equations, "sparse": normal_equations}.get(key.jacobian)
+    normal = (lambda x, p: system(x, p, pr)) if system is not None else None
     return _solvers.make(key.name, lambda x, p: residuals(x, p, pr), lambda x, p: loss(x, p, pr), key.maxiter, key.tol,
                          key.learning_rate, dense=key.dense, normal=normal)
 
@@ -136,25 +142,31 @@ class RunEnd(NamedTuple):
 def run_to_end(pr: Problem, key: SolverKey, x0, points) -> RunEnd:
     """One fit as a single ``while_loop`` with the stepping loop's stopping rule (the solver's
     criterion, or ``patience`` iterations in a row whose loss fell by less than ``ftol``),
-    recording the loss after each iteration; ``vmap`` of it fits many problems in one call."""
+    recording the loss after each iteration; ``vmap`` of it fits many problems in one call. A
+    solver with a ``blank`` state makes its initial state with the loop's first pass (iteration
+    -1), so the program holds its update once."""
     step = stepper(pr, key)
-    st0 = _typed_state(step, x0, (points,))
-    # the loss the state holds (every solver but adam's): no further copy of the loss in the loop
-    l0 = step.value(st0) if step.value else loss(x0, points, pr)
+    if step.blank is not None:
+        st0, it0 = jax.tree_util.tree_map(jnp.asarray, step.blank(x0)), -1
+        l0 = jnp.asarray(jnp.nan, x0.dtype)
+    else:
+        st0, it0 = _typed_state(step, x0, (points,)), 0
+        # the loss the state holds (every solver but adam's): no further copy of the loss in the loop
+        l0 = step.value(st0) if step.value else loss(x0, points, pr)
     hist0 = jnp.full((key.maxiter + 1,), jnp.nan, l0.dtype).at[0].set(l0)
 
     def cond(c):
         x, st, it, prev, stalled, hist = c
-        return (it < key.maxiter) & (step.error(st) > key.tol) & (stalled < key.patience)
+        return (it < 0) | ((it < key.maxiter) & (step.error(st) > key.tol) & (stalled < key.patience))
 
     def body(c):
         x, st, it, prev, stalled, hist = c
         x, st = step.update(x, st, points)
         cur = step.value(st) if step.value else loss(x, points, pr)
-        stalled = jnp.where(prev - cur <= key.ftol * jnp.abs(prev), stalled + 1, 0)
+        stalled = jnp.where((it >= 0) & (prev - cur <= key.ftol * jnp.abs(prev)), stalled + 1, 0)
         return x, st, it + 1, cur, stalled, hist.at[it + 1].set(cur)
 
-    x, st, it, cur, stalled, hist = jax.lax.while_loop(cond, body, (x0, st0, jnp.int32(0), l0, jnp.int32(0), hist0))
+    x, st, it, cur, stalled, hist = jax.lax.while_loop(cond, body, (x0, st0, jnp.int32(it0), l0, jnp.int32(0), hist0))
     return RunEnd(x, it, cur, hist, step.error(st), stalled)
 
 
@@ -190,7 +202,7 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
     x0 = jnp.asarray(nz.start(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), pr), dtype)
     t_all = time.perf_counter()
     restart_losses = []
-    end = None
+    end, first_at = None, None
     if s.restarts > 1:
         x0, restart_losses, end, compile_s = _best_start(pr, key, s, nz, (joints0, radii0, parents), pts, seed, perturb)
     if end is not None and s.max_seconds is None:
@@ -198,7 +210,7 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
         x, history, error = end.x, [float(v) for v in np.asarray(end.history)[: it + 1]], float(end.error)
         converged = error <= s.tol or int(end.stalled) >= s.patience
     else:
-        x, st, history, it, converged, compile_s = _stepped(pr, key, s, x0, pts)
+        x, st, history, it, converged, compile_s, first_at = _stepped(pr, key, s, x0, pts)
         error = float(stepper(pr, key).error(st))
     seconds = time.perf_counter() - t_all - compile_s
     if not np.all(np.isfinite(np.asarray(x))) or not np.isfinite(history[-1]):
@@ -207,7 +219,7 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
         raise ValueError(f"solver.name: {s.name} diverged: the loss rose from {history[0]:.4g} to {history[-1]:.4g} in {it} iterations "
                          "(try lm, a smaller learning_rate or more points)")
     j, r = nz.world(x, pr)
-    return FitResult(j, r, np.asarray(parents), history, it, converged, seconds, compile_s, error, s.restarts, restart_losses)
+    return FitResult(j, r, np.asarray(parents), history, it, converged, seconds, compile_s, error, s.restarts, restart_losses, first_at)
 
 
 def _best_start(pr: Problem, key: SolverKey, s: SolverConfig, nz, start, pts, seed: int, perturb: float):
@@ -233,14 +245,20 @@ def _best_start(pr: Problem, key: SolverKey, s: SolverConfig, nz, start, pts, se
 def _stepped(pr: Problem, key: SolverKey, s: SolverConfig, x0, pts):
     """The stepping loop: one compiled update per iteration on the host, the loss recorded after
     each, stopped by the solver's criterion, ``patience`` iterations of stalled loss or
-    ``max_seconds``. Returns (x, state, loss history, iterations, converged, compile seconds)."""
+    ``max_seconds``. Returns (x, state, loss history, iterations, converged, compile seconds,
+    ``time.time()`` when the first iteration was done)."""
     quiet = progress.quiet()
     if not quiet:
         print(f"jskel: compiling the {s.name} solver ...", file=sys.stderr, flush=True)
     step = stepper(pr, key)
-    t0 = time.perf_counter()  # compile seconds: the initial state's and the update's programs (none when cached)
-    st0 = _initial(x0, pts, pr, key)
-    upd = _update.lower(x0, st0, pts, pr, key).compile()
+    t0 = time.perf_counter()  # compile seconds: the update's program (and the initial state's, where separate; none when cached)
+    if step.blank is not None:  # the initial state is one pass of the update's own program
+        blank = jax.tree_util.tree_map(jnp.asarray, step.blank(x0))
+        upd = _update.lower(x0, blank, pts, pr, key).compile()
+        st0 = upd(x0, blank, pts)[1]
+    else:
+        st0 = _initial(x0, pts, pr, key)
+        upd = _update.lower(x0, st0, pts, pr, key).compile()
     if step.value is None:  # the loss recorded after each iteration: the state's own where it holds one
         lossf = _loss.lower(x0, pts, pr).compile()
         value = lambda x, st: float(lossf(x, pts))  # noqa: E731
@@ -252,11 +270,13 @@ def _stepped(pr: Problem, key: SolverKey, s: SolverConfig, x0, pts):
     converged = False
     it = 0
     stalled = 0
+    first_at = None
     t_loop = time.perf_counter()
     bar = progress.bar(s.maxiter, f"fit ({s.name})", "it")
     for it in range(1, s.maxiter + 1):  # host loop over iterations: one compiled update each
         x, st = upd(x, st, pts)
-        history.append(value(x, st))
+        history.append(value(x, st))  # float(): the iteration is done
+        first_at = time.time() if it == 1 else first_at
         bar.update(1)
         bar.set_postfix(loss=f"{history[-1]:.4g}", refresh=False)
         if s.max_seconds is not None and time.perf_counter() - t_loop > s.max_seconds:
@@ -271,7 +291,7 @@ def _stepped(pr: Problem, key: SolverKey, s: SolverConfig, x0, pts):
             converged = True
             break
     bar.close()
-    return x, st, history, it, converged, compile_s
+    return x, st, history, it, converged, compile_s, first_at
 
 
 def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32):

@@ -103,6 +103,16 @@ def normal_equations(x, points, pr: Problem):
                                     lambda d: _solvers.robust_residuals(d, pr.loss, pr.scale))
 
 
+def dense_equations(x, points, pr: Problem):
+    """(r, J^T J, J^T r) of :func:`residuals` at ``x`` with the dense Jacobian: the residuals
+    linearized once and the linear map pushed along every unknown's unit vector under ``vmap``
+    (forward mode, (P, M) for P unknowns and M residuals), so the program holds the residuals'
+    forward pass once, then one batched tangent pass."""
+    r, lin = jax.linearize(lambda v: residuals(v, points, pr), x)
+    jt = jax.vmap(lin)(jnp.eye(x.shape[-1], dtype=x.dtype))  # (P, M): row p is dr/dx_p
+    return r, jt @ jt.T, jt @ r
+
+
 def loss(x, points, pr: Problem):
     r = residuals(x, points, pr)
     return 0.5 * jnp.sum(r * r)

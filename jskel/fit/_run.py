@@ -4,6 +4,7 @@ and ``fit.png``."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import jax
@@ -29,6 +30,19 @@ def framing_camera(joints, radii, width: int = 480, height: int = 360, fov: floa
     eye = c + d * dist
     return {"eye": [float(x) for x in eye], "target": [float(x) for x in c], "up": [0.0, 1.0, 0.0], "fov_deg": fov,
             "width": width, "height": height}
+
+
+def process_started() -> float | None:
+    """``time.time()`` at this process's start (Linux: its start in clock ticks after boot, from
+    /proc), or None where that cannot be read."""
+    import os
+
+    try:
+        ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return time.time() - uptime + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def residual_stats(d: np.ndarray, inlier: float) -> dict:
@@ -123,6 +137,7 @@ def fit_info(cfg: FitFile, res: FitResult, how: str, pinfo: dict, points: np.nda
     residuals ``d`` (world units; inliers within 3 robust scales of the cloud's extent) and the
     fitted skeleton's plane margin and culling exactness."""
     ext = float(np.max(np.ptp(points, axis=0)))
+    started = process_started()
     return {
         "name": cfg.name,
         "solver": cfg.solver.model_dump(mode="json"),
@@ -135,6 +150,10 @@ def fit_info(cfg: FitFile, res: FitResult, how: str, pinfo: dict, points: np.nda
         "solver_error": res.error,
         "seconds": res.seconds,
         "compile_s": res.compile_s,
+        # when the stepping loop's first iteration was done (None: the restarts' one batched call),
+        # as time.time() and in seconds from the process's start (issue 27's time to a first iteration)
+        "first_iteration_at": res.first_iteration_at,
+        "first_iteration_s": (res.first_iteration_at - started if res.first_iteration_at is not None and started is not None else None),
         "loss_start": res.history[0],
         "loss_final": res.history[-1],
         "history": res.history,

@@ -26,6 +26,7 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import _lbfgs
 
@@ -61,6 +62,7 @@ class Stepper(NamedTuple):
     update: Callable  # (x, state, *args) -> (x, state)
     error: Callable  # state -> the solver's stopping measure
     value: Callable | None = None  # state -> the loss at the state's point, where the state holds it
+    blank: Callable | None = None  # x0 -> a state one update turns into the initial state at x0 (no iteration counted)
 
 
 SOLVERS = ("lm", "gauss_newton", "lbfgs", "adam")
@@ -91,46 +93,54 @@ class NormalState(NamedTuple):
     iter_num: jnp.ndarray
 
 
-def normal_solver(system: Callable, loss: Callable, damped: bool = True, tau: float = 1e-6) -> Stepper:
+def normal_solver(system: Callable, damped: bool = True, tau: float = 1e-6) -> Stepper:
     """Levenberg-Marquardt (``damped``) or Gauss-Newton on supplied normal equations:
-    ``system(x, *args) -> (r, J^T J, J^T r)`` (for example assembled from the problem's sparsity,
-    ``_normal``), ``loss(x, *args) = |r|^2 / 2``.
+    ``system(x, *args) -> (r, J^T J, J^T r)`` (assembled from the problem's sparsity, ``_normal``,
+    or from a dense Jacobian, ``_problem.dense_equations``); the loss is ``|r|^2 / 2``.
 
     The same algorithm as jaxopt's ``LevenbergMarquardt`` (Madsen, Nielsen and Tingleff 2004,
     Sec. 3.2 and Algorithm 3.16, as jaxopt implements it): step ``(J^T J + mu I) h = -J^T r`` by
     Cholesky; gain ratio ``rho = (F(x) - F(x + h)) / (h^T (mu h - J^T r) / 2)``; accepted when
     ``rho > 0``, then ``mu *= max(1/3, 1 - (2 rho - 1)^3)``, ``nu = 2``; else ``mu *= nu``,
-    ``nu *= 2``; ``mu`` starts at ``tau max diag(J^T J)``. A rejected step does not recompute
-    the system (``lax.cond``). Gauss-Newton takes every step with ``mu`` fixed at ``1e-9 max
-    diag(J^T J)`` (a ridge that keeps the factorisation defined where J^T J is singular, as
-    jaxopt's conjugate gradients are)."""
+    ``nu *= 2``; ``mu`` starts at ``tau max diag(J^T J)``. Gauss-Newton takes every step with
+    ``mu`` fixed at ``1e-9 max diag(J^T J)`` (a ridge that keeps the factorisation defined where
+    J^T J is singular, as jaxopt's conjugate gradients are).
 
-    def init(x0, *args):
-        r, jtj, g = system(x0, *args)
-        scale = jnp.max(jnp.diagonal(jtj))
-        mu = (tau if damped else 1e-9) * scale
-        return NormalState(0.5 * jnp.sum(r * r), g, jtj, mu, jnp.asarray(2.0, x0.dtype), jnp.sqrt(jnp.sum(g * g)), jnp.int32(0))
+    The program holds the system once: an update evaluates it at the trial point (its ``r`` is
+    the trial's loss) and keeps it or the old one by the gain ratio (a rejected step costs a
+    system instead of a loss; an accepted one a system instead of a loss and a system). The
+    initial state is one update from :func:`blank <Stepper>`'s state (``iter_num`` -1: a zero
+    step, always taken, ``mu`` set from the new J^T J), so the host loop compiles one program
+    where an ``init`` of its own was a second program holding the system again."""
+
+    def blank(x0):
+        p, dt = x0.shape[-1], x0.dtype
+        z = np.zeros((p,), dt)
+        return NormalState(np.asarray(np.inf, dt), z, np.zeros((p, p), dt), np.asarray(1.0, dt), np.asarray(2.0, dt),
+                           np.asarray(np.inf, dt), np.int32(-1))
 
     def update(x, st, *args):
+        fresh = st.iter_num < 0  # from blank: h = 0, taken, mu from the system at x
         a = st.jtj + st.damping * jnp.eye(x.shape[-1], dtype=x.dtype)
         h = -jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), st.gradient)
         xn = x + h
-        ln = loss(xn, *args)
+        r, jtj, g = system(xn, *args)
+        ln = 0.5 * jnp.sum(r * r)
         rho = (st.value - ln) / (0.5 * jnp.dot(h, st.damping * h - st.gradient))
-        ok = jnp.isfinite(ln) & (rho > 0) if damped else jnp.asarray(True)
+        ok = fresh | (jnp.isfinite(ln) & (rho > 0)) if damped else jnp.asarray(True)
+        start = (tau if damped else 1e-9) * jnp.max(jnp.diagonal(jtj))
+        grown = st.damping * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3) if damped else st.damping
+        two = jnp.asarray(2.0, x.dtype)
+        new = NormalState(ln, g, jtj, jnp.where(fresh, start, grown), two, jnp.sqrt(jnp.sum(g * g)), st.iter_num + 1)
+        old = st._replace(damping=jnp.minimum(st.damping * st.increase, DAMPING_MAX),
+                          increase=jnp.minimum(2.0 * st.increase, DAMPING_MAX), iter_num=st.iter_num + 1)
+        keep = lambda n, o: jnp.where(ok, n, o)  # noqa: E731
+        return keep(xn, x), jax.tree_util.tree_map(keep, new, old)
 
-        def accept(_):
-            r, jtj, g = system(xn, *args)
-            mu = st.damping * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3) if damped else st.damping
-            return xn, NormalState(0.5 * jnp.sum(r * r), g, jtj, mu, jnp.asarray(2.0, x.dtype), jnp.sqrt(jnp.sum(g * g)), st.iter_num + 1)
+    def init(x0, *args):
+        return update(x0, blank(x0), *args)[1]
 
-        def reject(_):
-            return x, st._replace(damping=jnp.minimum(st.damping * st.increase, DAMPING_MAX),
-                                  increase=jnp.minimum(2.0 * st.increase, DAMPING_MAX), iter_num=st.iter_num + 1)
-
-        return jax.lax.cond(ok, accept, reject, None)
-
-    return Stepper(init, update, lambda st: st.error, lambda st: st.value)
+    return Stepper(init, update, lambda st: st.error, lambda st: st.value, blank)
 
 
 def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: float, learning_rate: float = 0.01,
@@ -138,13 +148,15 @@ def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: floa
     """A :class:`Stepper` for solver ``name`` (``lm``, ``gauss_newton``, ``lbfgs``, ``adam``).
 
     ``normal``: for ``lm`` and ``gauss_newton``, ``normal(x, *args) -> (r, J^T J, J^T r)``
-    assembled by the caller (:func:`normal_solver`; the fit's is ``_normal``); without it
-    jaxopt's solvers run on ``residuals``. ``dense``: jaxopt's Levenberg-Marquardt forms the
-    Jacobian (forward mode, one pass per unknown) and solves its normal equations by Cholesky;
-    otherwise it runs matrix-free conjugate gradients on J^T J products. On the 24-unknown
-    chain the matrix-free form took 35 s to compile against 11 s dense (CPU, development run)."""
+    supplied by the caller (:func:`normal_solver`; the fit's are ``_problem.dense_equations``
+    and the sparse ``_normal``); without it jaxopt's solvers run on ``residuals`` (the fit's
+    ``solver.jacobian: jaxopt``, kept as the reference the project's solver is checked
+    against). ``dense``: jaxopt's Levenberg-Marquardt forms the Jacobian (forward mode) and
+    solves its normal equations by Cholesky; otherwise it runs matrix-free conjugate gradients
+    on J^T J products. On the 24-unknown chain the matrix-free form took 35 s to compile against
+    11 s dense (2-core CPU)."""
     if normal is not None and name in ("lm", "gauss_newton"):
-        return normal_solver(normal, loss, damped=name == "lm")
+        return normal_solver(normal, damped=name == "lm")
     if name == "lbfgs":
         init, update = _lbfgs.lbfgs(loss)
         return Stepper(init, update, lambda st: st.error, lambda st: st.value)

@@ -4,7 +4,8 @@ Each case is a fresh process (``python -m jskel render|sweep|fit ...``) timed fr
 its outputs written (the newest file in its output folder; ``wall_s`` is to its exit), first
 with an empty persistent compilation cache (a temporary ``JSKEL_CACHE_DIR`` of its own, JAX's
 own variable unset), then again with that cache warm. Rows carry the compile, build and render
-seconds and the programs compiled and loaded that the process wrote (run.json, fit.json). The
+seconds and the programs compiled and loaded that the process wrote (run.json, fit.json), and a
+fit's seconds from its start to its first iteration done (``first_iteration_s``). The
 bare-JAX floor (a process that imports JAX and runs one operation) and, when installed,
 Mitsuba's ``scalar_rgb`` process for the same skeleton (``peers.mitsuba_image``) are reference
 rows of the same run; every case row also says its seconds over the floor. Then, in this
@@ -85,8 +86,10 @@ def _newest(folder: Path, since: float) -> float | None:
     return max(times) - since if times else None
 
 
-def reported(folder: Path) -> dict:
-    """The seconds and program counts a jskel process wrote in ``folder`` (run.json, fit.json)."""
+def reported(folder: Path, t0: float | None = None) -> dict:
+    """The seconds and program counts a jskel process wrote in ``folder`` (run.json, fit.json);
+    a fit's ``first_iteration_s``: from ``t0`` (``time.time()`` when the process was started)
+    to its first iteration done."""
     row = {}
     if (folder / "run.json").exists():
         r = json.loads((folder / "run.json").read_text())
@@ -95,6 +98,8 @@ def reported(folder: Path) -> dict:
     if (folder / "fit.json").exists():
         f = json.loads((folder / "fit.json").read_text())
         row.update({"compile_s": round(f["compile_s"], 4), "fit_s": round(f["seconds"], 4), "iterations": f["iterations"]})
+        if f.get("first_iteration_at") is not None and t0 is not None:
+            row["first_iteration_s"] = round(f["first_iteration_at"] - t0, 4)
     return row
 
 
@@ -111,7 +116,7 @@ def timed_process(cmd: list[str], env: dict, out: Path | None, timeout: float) -
         return {**row, "error": (p.stderr.strip().splitlines() or [f"exit {p.returncode}"])[-1]}
     if out is not None:
         row["outputs_s"] = round(_newest(out, t0), 4) if _newest(out, t0) is not None else None
-        row.update(reported(out))
+        row.update(reported(out, t0))
     return row
 
 
