@@ -197,9 +197,9 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
         raise ValueError(f"points: {len(points)} points for {n_par} unknowns (4 per joint of {len(joints0)}); need at least as many points")
     pr = problem_of(seg, s)
     nz = normaliser_of(points)
-    pts = jnp.asarray(nz.points(points), dtype)
+    pts = jnp.asarray(np.asarray(nz.points(points), dtype))  # cast on the host: no device program for it
     key = solver_key(s, len(points) + 5 * len(pr.triples), n_par)
-    x0 = jnp.asarray(nz.start(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), pr), dtype)
+    x0 = jnp.asarray(np.asarray(nz.start(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), pr), dtype))
     t_all = time.perf_counter()
     restart_losses = []
     end, first_at = None, None

@@ -130,8 +130,10 @@ class Normaliser(NamedTuple):
         return np.concatenate([j.reshape(-1), _softplus_inv(np.asarray(radii, np.float64) / self.extent - pr.min_radius)])
 
     def world(self, x, pr: Problem):
+        """Joints and radii in world units (float64 NumPy: :func:`radii_of` on the host, so no
+        device operation compiles a program of its own)."""
         joints, u = unpack(np.asarray(x, np.float64))
-        r = np.asarray(radii_of(jnp.asarray(u), pr), np.float64) * self.extent
+        r = (pr.min_radius + np.logaddexp(u, 0.0)) * self.extent
         return joints * self.extent + self.centre, r
 
 

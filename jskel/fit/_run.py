@@ -13,7 +13,7 @@ import numpy as np
 from .. import frusta, skeletons
 from ._config import FitFile
 from ._fit import FitResult, fit_points
-from ._measures import culling_exact_fraction, plane_margin_min, point_distances
+from ._measures import measures
 from ._points import load_points
 from ._starts import perturbed, starting_skeleton
 
@@ -103,13 +103,13 @@ def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
     if cfg.init.perturb > 0:
         j0, r0 = perturbed(j0, r0, parents, cfg.init.perturb, np.random.default_rng(cfg.init.seed))
     res = fit_points(points, j0, r0, parents, cfg.solver, dtype, seed=cfg.init.seed, perturb=cfg.init.perturb)
-    d = point_distances(points, res.joints, res.radii, res.parents, dtype)
+    d, exact, margin = measures(points, res.joints, res.radii, res.parents, cfg.solver.candidates, dtype)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "fitted.yaml").write_text(f"# fitted by `jskel fit` ({cfg.solver.name}, {cfg.solver.loss} loss)\n"
                                      + yaml.safe_dump(fitted_experiment(cfg, res), sort_keys=False))
     skeletons.write_swc(out / "fitted.swc", skeletons.from_arrays(res.joints, res.radii, res.parents))  # for neuron/plant tools
-    info = fit_info(cfg, res, how, pinfo, points, d)
+    info = fit_info(cfg, res, how, pinfo, points, d, exact, margin)
     if truth is not None and len(truth[0]) == len(res.joints) and np.array_equal(truth[2], res.parents):
         info["truth"] = truth_errors(res, truth, pinfo["skeleton_length"])
     from ..render import environment
@@ -132,10 +132,12 @@ def fitted_experiment(cfg: FitFile, res: FitResult) -> dict:
     }
 
 
-def fit_info(cfg: FitFile, res: FitResult, how: str, pinfo: dict, points: np.ndarray, d: np.ndarray) -> dict:
+def fit_info(cfg: FitFile, res: FitResult, how: str, pinfo: dict, points: np.ndarray, d: np.ndarray, exact: float,
+             margin: float | None) -> dict:
     """``fit.json``'s facts of a fit: the solver, the start, the points, the loss curve, the
-    residuals ``d`` (world units; inliers within 3 robust scales of the cloud's extent) and the
-    fitted skeleton's plane margin and culling exactness."""
+    residuals ``d`` (world units; inliers within 3 robust scales of the cloud's extent), the
+    fraction of points the culling serves ``exact``ly and the fitted skeleton's smallest plane
+    ``margin`` (``_measures.measures``)."""
     ext = float(np.max(np.ptp(points, axis=0)))
     started = process_started()
     return {
@@ -161,8 +163,8 @@ def fit_info(cfg: FitFile, res: FitResult, how: str, pinfo: dict, points: np.nda
         "restart_losses": res.restart_losses,
         "residuals": residual_stats(d, 3.0 * cfg.solver.scale * ext),
         # n . m - sin(half-angle) of the worst shared cutting plane (< 0: a piece is unbounded)
-        "plane_margin_min": plane_margin_min(res.joints, res.radii, res.parents),
-        "culling_exact_fraction": culling_exact_fraction(points, res.joints, res.radii, res.parents, cfg.solver.candidates),
+        "plane_margin_min": margin,
+        "culling_exact_fraction": exact,
         "dtype": cfg.dtype,
     }
 
