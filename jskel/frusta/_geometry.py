@@ -227,12 +227,14 @@ def cutting_planes(j, ma, ca, ra0, ra1, ha, mb, rb0, rb1, hb):
     n = n * jnp.where(dot3(n, ma + mb) < 0, -1.0, 1.0)[:, None]
     p = j + a2[:, :1] * e1 + a2[:, 1:] * e2
 
-    def bounded(n, p):  # both pieces: an ellipse facing their segment, within reach
-        return _within_reach(n, p, ca, ma, ra0, ra1, ha) & _within_reach(n, p, j, mb, rb0, rb1, hb)
-
     bis = _unit(ma + mb)
-    eq35 = ~collinear & oka & okb & bounded(n, p)
-    bisector = ~collinear & ~eq35 & bounded(bis, j)
+    # both pieces of both candidate planes (an ellipse facing their segment, within reach) in one
+    # call on the four stacked cases: the program holds one copy of the test, not four
+    cat = lambda *xs: jnp.concatenate(xs, 0)  # noqa: E731
+    ok = _within_reach(cat(n, n, bis, bis), cat(p, p, j, j), cat(ca, j, ca, j), cat(ma, mb, ma, mb), cat(ra0, rb0, ra0, rb0),
+                       cat(ra1, rb1, ra1, rb1), cat(ha, hb, ha, hb)).reshape((4,) + ha.shape)
+    eq35 = ~collinear & oka & okb & ok[0] & ok[1]
+    bisector = ~collinear & ~eq35 & ok[2] & ok[3]
     kind = jnp.where(collinear, PLANE_COLLINEAR, jnp.where(eq35, PLANE_EQ35, jnp.where(bisector, PLANE_BISECTOR, PLANE_SPLIT)))
     n = jnp.where(eq35[:, None], n, jnp.where(collinear[:, None], ma, bis))
     p = jnp.where(eq35[:, None], p, j)
