@@ -79,9 +79,15 @@ def _miss(n: int, dtype) -> SceneHit:
                     jnp.full((n,), -1, jnp.int32), jnp.full((n,), -1, jnp.int32), z3, jnp.zeros((n,), jnp.int32))
 
 
-def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live) -> SceneHit:
+def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live, any_hit=None) -> SceneHit:
     """Nearest hit over all objects of the ``live`` rays (others: misses). Each object traces
-    only the live rays that cross its bounding box, compacted into sub-batches of ``lanes``."""
+    only the live rays that cross its bounding box, compacted into sub-batches of ``lanes``.
+
+    ``any_hit`` (N,) bool, optional, marks rows that only ask whether they meet some object in
+    (t_min, t_max] (shadow rays cast in the same batch as the rays they light, so that each
+    object's traversal is traced once in the program, not once per query): an object skips such
+    a row once an earlier object hit it (early out, as :func:`occluded`), and of such a row only
+    ``jnp.isfinite(t)`` means anything (what the interface's default ``occluded`` asks)."""
     n, dtype = rays.size, rays.origins.dtype
     eff = static.effects
     if static.single and not (eff.reflection or eff.refraction):  # a scene of one, camera rays only: one batch (the representation culls), as computed once
@@ -91,6 +97,8 @@ def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live) -> Scene
     for k, (rep, st) in enumerate(zip(static.reps, static.statics)):
         x = params.xforms[k]
         need = (live & _box_crossed(rays, x.lo, x.hi)) if static.compaction else jnp.ones_like(live)
+        if any_hit is not None and static.compaction:
+            need = need & ~(any_hit & jnp.isfinite(best.t))
         fn = functools.partial(_object_hits, rep, st, params.objects[k], x, k, identity=static.single)
         hk = compact_map(fn, need, rays, _miss(n, dtype), static.lanes)
         closer = hk.t < best.t

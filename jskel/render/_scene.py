@@ -27,7 +27,10 @@ Effects only where the scene calls for them, in both senses:
   Each object traces only the queued rays that are live *and* cross its world bounding box,
   gathered into dense sub-batches of ``lanes`` rays (``jskel.wavefront.compact_map``); shadow rays
   are gathered the same way per light, and an object tests only the shadow rays that no earlier
-  object has already blocked (early out across objects). Reflection and refraction rays are
+  object has already blocked (early out across objects). In a scene (not a scene of one) a
+  level's shadow rays travel in the next step's batch, behind the next level's rays, as
+  any-hit rows of the same ``nearest`` (``_piped``), so each object's traversal appears once in
+  the program instead of twice. Reflection and refraction rays are
   compacted into the next level's queue (``jnp.nonzero`` with a static size). Under ``vmap`` a
   ``lax.cond`` would run both branches for every ray; here the work follows the number of rays
   that need it (the ``bench_effects`` benchmark measures 10/50/100 % reflective coverage).
@@ -65,31 +68,23 @@ import jax.numpy as jnp
 
 from .. import checks, registry
 from ..numerics import safe_normalize
-from ..optics import reflect, refract_surface
 from ..rays import FLAG_BAD_DIRECTION, FLAG_OVERFLOW, FLAG_TIR, Hit, Rays, or_flags_at
-from ..spawning import bad_directions, spawn_rays
 from ..wavefront import compact_map
 from ..shading import facing, light_at, shade_local
 from ._build import Effects as Effects
 from ._build import Materials, SceneParams, SceneStatic
 from ._hits import SceneHit as SceneHit
 from ._hits import _miss, nearest, occluded
+from ._queue import Queue as Queue
+from ._queue import _camera_queue, _tir, _transmitted
+from ._queue import spawn as spawn
+from ._queue import spawned as spawned
 from ._build import build_scene as build_scene
 from ._build import build_single as build_single
 from ._build import effects_of as effects_of
 
 
 SHADE_LANES = 1024  # hits per sub-batch of the local shading (cheap per ray: wide batches)
-
-
-def spawned(q_rays: Rays, hit: SceneHit, mat: Materials, directions, t_max=jnp.inf) -> Rays:
-    """Secondary rays from each hit along ``directions`` (``spawning.spawn_rays``, as
-    ``jskel.spawn``): offset along the normal, to the directions' side, by a float rounding bound
-    on the hit's position (pbrt-v4 Sec. 6.8.6) plus the object's own surface offset
-    (``Materials.offset``: ``Built.secondary_offset`` or four times its surface tolerance,
-    scaled by its placement)."""
-    surface = mat.offset[jnp.maximum(hit.obj, 0)]
-    return spawn_rays(q_rays, hit.t, hit.position, hit.normal, directions, surface, t_max)
 
 
 def environment(env, d):
@@ -109,9 +104,9 @@ def _escaped(params: SceneParams, static: SceneStatic, d):
     return environment(params.env, d)
 
 
-def _visibility(params: SceneParams, static: SceneStatic, hit: SceneHit, q_rays: Rays, live):
-    """(N, L) visibility of each light from each live hit: 1, or 0 where a shadow ray is
-    blocked. Shadow rays exist only for hits facing the light, of lights casting shadows."""
+def shadow_rays(params: SceneParams, static: SceneStatic, hit: SceneHit, q_rays: Rays, live):
+    """(rays, need), both of N*L rows (ray i's light l at row i*L + l): a shadow ray from each
+    hit towards each light, needed only from live hits facing a light that casts shadows."""
     n, nl = hit.t.shape[0], params.lights.radiance.shape[0]
     got = live & jnp.isfinite(hit.t)
     nf = jax.vmap(facing)(hit.normal, q_rays.directions)
@@ -121,65 +116,42 @@ def _visibility(params: SceneParams, static: SceneStatic, hit: SceneHit, q_rays:
     need = got[:, None] & params.shadows[None, :] & facing_light
     each = jax.tree_util.tree_map(lambda a: jnp.repeat(a, nl, axis=0), (q_rays, hit))
     rays = spawned(each[0], each[1], params.mat, ldir.reshape(n * nl, 3), dist.reshape(n * nl))
+    return rays, need.reshape(n * nl)
+
+
+def _lit(blocked, n: int, nl: int, dtype):
+    """(N, L) visibility from the shadow rays' (N*L,) ``blocked``: 0 where blocked, else 1."""
+    return jnp.where(blocked.reshape(n, nl), 0.0, 1.0).astype(dtype)
+
+
+def _visibility(params: SceneParams, static: SceneStatic, hit: SceneHit, q_rays: Rays, live):
+    """(N, L) visibility of each light from each live hit: 1, or 0 where a shadow ray is
+    blocked (its own any-hit pass, :func:`occluded`; a scene casts them with the next level's
+    rays instead, ``_levels``)."""
+    rays, need = shadow_rays(params, static, hit, q_rays, live)
     with jax.named_scope("shadow_rays"):
-        blocked = occluded(params, static, rays, need.reshape(n * nl))
-    return jnp.where(blocked.reshape(n, nl), 0.0, 1.0).astype(p0.dtype)
+        blocked = occluded(params, static, rays, need)
+    return _lit(blocked, hit.t.shape[0], params.lights.radiance.shape[0], hit.position.dtype)
 
 
-def _tir(params: SceneParams, q, hits: SceneHit, kt):
-    """Which live rays of a level are refracted at their hit (``kt > 0``) beyond the critical
-    angle: ``jskel.optics.refract_surface``'s mask, for the pixels' ``FLAG_TIR`` bit."""
-    _, tir = refract_surface(q.rays.directions, hits.normal, params.mat.ior[jnp.maximum(hits.obj, 0)])
-    return q.live & (kt > 0) & tir
-
-
-class Queue(NamedTuple):
-    """One level of the ray tree: Q rays with their weight, pixel (slot in the chunk), kind (0
-    camera, 1 reflection, 2 refraction at the first bounce) and whether the slot is live."""
-
-    rays: Rays
-    weight: jnp.ndarray
-    pixel: jnp.ndarray
-    kind: jnp.ndarray
-    live: jnp.ndarray
-
-
-def _compact_queue(cands: Queue, cap: int):
-    """The live candidates moved to the front of a queue of ``cap`` slots; (queue, dropped)
-    where ``dropped`` (M,) marks live candidates that did not fit."""
-    live = cands.live
-    idx = jnp.nonzero(live, size=cap, fill_value=0)[0]
-    count = jnp.sum(live.astype(jnp.int32))
-    keep = jnp.arange(cap) < count
-    q = jax.tree_util.tree_map(lambda a: a[idx], cands)
-    q = q._replace(live=keep)
-    rank = jnp.cumsum(live.astype(jnp.int32)) - 1
-    return q, live & (rank >= cap)
-
-
-def _transmitted(m: Materials, hits: SceneHit, d, kd):
-    """The refracted direction at each hit (the mirrored one under total internal reflection),
-    whether it is one, and the colour factor of a ``tint`` material where the ray enters:
-    0.5 + 0.5 x the colour there (Nürnberg 2011, Sec. 3.2.4), 1 elsewhere."""
+def weights(m: Materials, hits: SceneHit, got, level):
+    """(kr, kt) (N,) of each hit: the share of its light that comes by reflection and by
+    refraction; past the first level a ``local_once`` material passes its light on whole."""
     k = jnp.maximum(hits.obj, 0)
-    t, tir = refract_surface(d, hits.normal, m.ior[k])
-    entering = (jnp.sum(d * hits.normal, axis=-1) < 0) & ~tir
-    factor = jnp.where(((m.tint[k] > 0) & entering)[:, None], 0.5 + 0.5 * kd, 1.0)
-    return t, tir, factor
+    later = (level > 0) & (m.local_once[k] > 0)
+    kr = jnp.where(got & ~later, m.reflect[k], 0.0)
+    kt = jnp.where(got, jnp.where(later, 1.0, m.transmit[k]), 0.0)
+    return kr, kt
 
 
-def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: SceneHit, level=0):
-    """Add one level's light to ``rgb`` (N,3) and return (rgb, visibility, kr, kt). On the last
-    level (``level == bounces``) a material with ``last_local`` keeps its local light whole
-    (Nürnberg 2011, Alg. 3.2: the last bounce's hit is shaded, not weighted by 1 - k), and one
-    with ``last_env`` adds the environment its refracted ray would see (Alg. 3.3's end)."""
+def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: SceneHit, vis, level=0):
+    """``rgb`` (N,3) with one level's light added, each light seen as ``vis`` (Q, L) says. On
+    the last level (``level == bounces``) a material with ``last_local`` keeps its local light
+    whole (Nürnberg 2011, Alg. 3.2: the last bounce's hit is shaded, not weighted by 1 - k), and
+    one with ``last_env`` adds the environment its refracted ray would see (Alg. 3.3's end)."""
     n_pix = rgb.shape[0]
     d = q.rays.directions
     got = q.live & jnp.isfinite(hits.t)
-    if static.effects.shadows:
-        vis = _visibility(params, static, hits, q.rays, q.live)
-    else:
-        vis = jnp.ones((hits.t.shape[0], params.lights.radiance.shape[0]), d.dtype)
     m = params.mat
     k = jnp.maximum(hits.obj, 0)
     kd = hits.base * m.color[k]
@@ -190,9 +162,7 @@ def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: S
 
     # local light only where a ray hit, in dense sub-batches (the misses take the environment)
     local = compact_map(shade, got, (pos0, hits.normal, d, kd, m.specular[k], m.shininess[k], vis), jnp.zeros_like(kd), SHADE_LANES)
-    later = (level > 0) & (m.local_once[k] > 0)  # past the first level: light passed on whole
-    kr = jnp.where(got & ~later, m.reflect[k], 0.0)
-    kt = jnp.where(got, jnp.where(later, 1.0, m.transmit[k]), 0.0)
+    kr, kt = weights(m, hits, got, level)
     last = level == static.effects.bounces
     w_local = jnp.where(last & (m.last_local[k] > 0), 1.0, 1.0 - kr - kt)
     col = jnp.where(got[:, None], w_local[:, None] * local, _escaped(params, static, d))
@@ -201,51 +171,99 @@ def shade_level(params: SceneParams, static: SceneStatic, q: Queue, rgb, hits: S
         ends = got & last & (m.last_env[k] > 0)
         col = col + jnp.where(ends[:, None], kt[:, None] * factor * _escaped(params, static, t), 0.0)
     if static.effects.bounces == 0:  # the camera rays alone: slot i is pixel i, no scatter
-        return rgb + q.weight * col, vis, kr, kt
+        return rgb + q.weight * col
     dst = jnp.where(q.live, q.pixel, n_pix)
-    rgb = rgb.at[dst].add(q.weight * col, mode="drop")
-    return rgb, vis, kr, kt
+    return rgb.at[dst].add(q.weight * col, mode="drop")
 
 
-def spawn(params: SceneParams, static: SceneStatic, q: Queue, hits: SceneHit, kr, kt, level: int):
-    """Reflection and refraction rays of a level, compacted into the next level's queue.
-    Returns (queue, the candidates' pixels, which candidates were dropped, which asked for a
-    zero or non-finite direction, ``spawning.bad_directions``: left out of the queue)."""
-    eff = static.effects
-    d = safe_normalize(q.rays.directions)
-    nf = jax.vmap(facing)(hits.normal, d)
-    cands, dirs = [], []
-    if eff.reflection:
-        with jax.named_scope("reflection_rays"):
-            r = reflect(d, nf)
-            kind = jnp.where(level == 0, 1, q.kind).astype(jnp.int32)
-            cands.append(Queue(spawned(q.rays, hits, params.mat, r), q.weight * kr[:, None], q.pixel, kind, q.live & (kr > 0)))
-            dirs.append(r)
-    if eff.refraction:
-        with jax.named_scope("refraction_rays"):
-            kd = hits.base * params.mat.color[jnp.maximum(hits.obj, 0)]
-            t, _, factor = _transmitted(params.mat, hits, d, kd)  # t: through the surface, or back on the near side under TIR
-            kind = jnp.where(level == 0, 2, q.kind).astype(jnp.int32)
-            cands.append(Queue(spawned(q.rays, hits, params.mat, t), q.weight * kt[:, None] * factor, q.pixel, kind, q.live & (kt > 0)))
-            dirs.append(t)
-    allc = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *cands)
-    bad = allc.live & bad_directions(jnp.concatenate(dirs, axis=0))  # (a ray spawned empty: it would see the environment)
-    nq, dropped = _compact_queue(allc._replace(live=allc.live & ~bad), q.live.shape[0])
-    return nq, allc.pixel, dropped, bad
+class Records(NamedTuple):
+    """What a chunk's pixels gather over the levels: colour, flags, where the first reflection /
+    refraction path ends (N, 2), secondary rays, the camera rays' hits and their visibility."""
+
+    rgb: jnp.ndarray
+    flags: jnp.ndarray
+    first_obj: jnp.ndarray
+    secondary: jnp.ndarray
+    aov: SceneHit
+    vis0: jnp.ndarray
 
 
-def _camera_queue(rays: Rays, cap: int) -> Queue:
-    """The first level's queue of ``cap`` slots: the camera rays (slot i is pixel i, weight 1,
-    kind 0), then dead padding slots for the rays later levels spawn."""
-    n, dtype = rays.size, rays.origins.dtype
-    pad = cap - n
+def _advance(params: SceneParams, static: SceneStatic, level, q: Queue, hits: SceneHit, rec: Records):
+    """Level ``level``'s hits recorded (flags, the camera rays' AOVs, secondary rays, where paths
+    end) and its reflection and refraction rays spawned: (next queue, records)."""
+    n = rec.rgb.shape[0]
+    levels = 1 + static.effects.bounces
+    kr, kt = weights(params.mat, hits, q.live & jnp.isfinite(hits.t), level)
+    flags = rec.flags
+    if static.effects.refraction:  # the pixels whose refracted ray turned back (total internal reflection)
+        tir = jnp.where(_tir(params, q, hits, kt), q.pixel, n)
+        flags = flags | jnp.zeros_like(flags).at[tir].max(FLAG_TIR, mode="drop")  # one bit: a max is its or
+    first = level == 0
+    aov = hits if first is True else jax.tree_util.tree_map(lambda a, b: jnp.where(first, a[:n], b), hits, rec.aov)
+    if levels == 1:  # the camera rays alone: slot i is pixel i, no scatter, no later level
+        return q, rec._replace(flags=flags | jnp.where(q.live, hits.flags, 0), aov=aov)
+    flags = or_flags_at(flags, jnp.where(q.live, q.pixel, n), hits.flags)  # a miss's flags too: a lost ray is one
+    secondary = rec.secondary.at[jnp.where(q.live & ~first, q.pixel, n)].add(1, mode="drop")
+    col = jnp.clip(q.kind - 1, 0, 1)
+    # where the path of the first reflection / refraction ray ends: later levels overwrite
+    first_obj = rec.first_obj.at[jnp.where(q.live & (level >= 1), q.pixel, n), col].set(hits.obj, mode="drop")
+    q, pix, dropped, bad = spawn(params, static, q, hits, kr, kt, level)
+    lost = jnp.where(dropped, FLAG_OVERFLOW, 0) | jnp.where(bad, FLAG_BAD_DIRECTION, 0)
+    flags = or_flags_at(flags, jnp.where(lost != 0, pix, n), lost)
+    return q, rec._replace(flags=flags, aov=aov, secondary=secondary, first_obj=first_obj)
 
-    def padded(a, fill):
-        return jnp.concatenate([a, jnp.full((pad,) + a.shape[1:], fill, a.dtype)], axis=0) if pad else a
 
-    return Queue(Rays(padded(rays.origins, 0.0), padded(rays.directions, 1.0), padded(rays.t_min, 0.0), padded(rays.t_max, 0.0)),
-                 jnp.ones((cap, 3), dtype), jnp.arange(cap, dtype=jnp.int32) % n, jnp.zeros((cap,), jnp.int32),
-                 jnp.arange(cap) < n)
+def _levels(params: SceneParams, static: SceneStatic, q: Queue, rec: Records) -> Records:
+    """The ray tree level by level, each level's shadow rays cast on their own (a scene of one;
+    any render without shadows). ``level`` is traced, so every level runs one copy of the
+    tracing code (unrolling them multiplied the compile time by the depth), and the loop ends at
+    the first level with no live ray."""
+    n, levels, eff = rec.rgb.shape[0], 1 + static.effects.bounces, static.effects
+
+    def level_fn(level, q, rec):
+        hits = nearest(params, static, q.rays, q.live)
+        if eff.shadows:
+            vis = _visibility(params, static, hits, q.rays, q.live)
+        else:
+            vis = jnp.ones((hits.t.shape[0], params.lights.radiance.shape[0]), rec.rgb.dtype)
+        rgb = shade_level(params, static, q, rec.rgb, hits, vis, level)
+        vis0 = vis if levels == 1 else jnp.where(level == 0, vis[:n], rec.vis0)
+        return _advance(params, static, level, q, hits, rec._replace(rgb=rgb, vis0=vis0))
+
+    if levels == 1:
+        return level_fn(0, q, rec)[1]
+    # stops early once a level spawns no ray (a scalar loop condition: a real branch)
+    return jax.lax.while_loop(lambda c: (c[0] < levels) & jnp.any(c[1].live),
+                              lambda c: (c[0] + 1, *level_fn(c[0], c[1], c[2])), (jnp.int32(0), q, rec))[2]
+
+
+def _piped(params: SceneParams, static: SceneStatic, q: Queue, rec: Records) -> Records:
+    """The ray tree of a scene with shadows, wavefront style: step i casts one batch, level i's
+    rays followed by level i - 1's shadow rays (``nearest``'s any-hit rows), through each
+    object once, then shades level i - 1 and spawns level i + 1. So each object's traversal is
+    traced once in the program instead of once for hits and once for shadows. ``1 + bounces``
+    levels take one step more than levels (the last casts shadow rays only); the loop ends
+    once no level is left to cast or shade."""
+    n, levels, dtype = rec.rgb.shape[0], 1 + static.effects.bounces, rec.rgb.dtype
+    cap, nl = q.live.shape[0], params.lights.radiance.shape[0]
+    any_hit = jnp.arange(cap * (1 + nl)) >= cap
+
+    def step(c):
+        i, q, prev, prev_hits, rec = c
+        srays, sneed = shadow_rays(params, static, prev_hits, prev.rays, prev.live)
+        both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b], axis=0), q.rays, srays)
+        with jax.named_scope("rays_and_shadow_rays"):
+            h = nearest(params, static, both, jnp.concatenate([q.live, sneed]), any_hit)
+        hits = jax.tree_util.tree_map(lambda a: a[:cap], h)
+        vis = _lit(jnp.isfinite(h.t[cap:]), cap, nl, dtype)
+        rgb = shade_level(params, static, prev, rec.rgb, prev_hits, vis, i - 1)
+        rec = rec._replace(rgb=jnp.where(i > 0, rgb, rec.rgb), vis0=jnp.where(i == 1, vis[:n], rec.vis0))
+        q_next, rec = _advance(params, static, i, q, hits, rec)
+        return i + 1, q_next._replace(live=q_next.live & (i + 1 < levels)), q, hits, rec
+
+    dead = q._replace(live=jnp.zeros_like(q.live))
+    init = (jnp.int32(0), q, dead, _miss(cap, dtype), rec)
+    return jax.lax.while_loop(lambda c: jnp.any(c[1].live) | jnp.any(c[2].live), step, init)[4]
 
 
 def scene_batch(static: SceneStatic):
@@ -257,50 +275,14 @@ def scene_batch(static: SceneStatic):
     def batch(params: SceneParams, rays: Rays):
         n, dtype = rays.size, rays.origins.dtype
         q = _camera_queue(rays, cap_factor * n)
-        rgb = jnp.zeros((n, 3), dtype)
-        flags = jnp.zeros((n,), jnp.int32)
-        first_obj = jnp.full((n, 2), -1, jnp.int32)  # where the reflection / refraction path ends
-        secondary = jnp.zeros((n,), jnp.int32)
-
-        def level_fn(level, carry):
-            """One level of the ray tree; ``level`` is traced, so every level runs one copy of
-            the tracing code (unrolling them multiplied the compile time by the depth), and the
-            loop ends at the first level with no live ray."""
-            q, rgb, flags, first_obj, secondary, aov, vis0 = carry
-            hits = nearest(params, static, q.rays, q.live)
-            rgb, vis, kr, kt = shade_level(params, static, q, rgb, hits, level)
-            first = level == 0
-            if static.effects.refraction:  # the pixels whose refracted ray turned back (total internal reflection)
-                tir = jnp.where(_tir(params, q, hits, kt), q.pixel, n)
-                flags = flags | jnp.zeros_like(flags).at[tir].max(FLAG_TIR, mode="drop")  # one bit: a max is its or
-            if levels == 1:  # the camera rays alone: slot i is pixel i, no scatter, no later level
-                return q, rgb, flags | jnp.where(q.live, hits.flags, 0), first_obj, secondary, hits, vis
-            flags = or_flags_at(flags, jnp.where(q.live, q.pixel, n), hits.flags)  # a miss's flags too: a lost ray is one
-            aov = jax.tree_util.tree_map(lambda a, b: jnp.where(first, a[:n], b), hits, aov)
-            vis0 = jnp.where(first, vis[:n], vis0)
-            secondary = secondary.at[jnp.where(q.live & ~first, q.pixel, n)].add(1, mode="drop")
-            col = jnp.clip(q.kind - 1, 0, 1)
-            # where the path of the first reflection / refraction ray ends: later levels overwrite
-            first_obj = first_obj.at[jnp.where(q.live & (level >= 1), q.pixel, n), col].set(hits.obj, mode="drop")
-            if levels > 1:
-                q, pix, dropped, bad = spawn(params, static, q, hits, kr, kt, level)
-                lost = jnp.where(dropped, FLAG_OVERFLOW, 0) | jnp.where(bad, FLAG_BAD_DIRECTION, 0)
-                flags = or_flags_at(flags, jnp.where(lost != 0, pix, n), lost)
-            return q, rgb, flags, first_obj, secondary, aov, vis0
-
-        aov = _miss(n, dtype)
-        vis0 = jnp.ones((n, params.lights.radiance.shape[0]), dtype)
-        carry = (q, rgb, flags, first_obj, secondary, aov, vis0)
-        if levels == 1:
-            carry = level_fn(0, carry)
-        else:  # stops early once a level spawns no ray (a scalar loop condition: a real branch)
-            carry = jax.lax.while_loop(lambda c: (c[0] < levels) & jnp.any(c[1][0].live),
-                                       lambda c: (c[0] + 1, level_fn(c[0], c[1])), (jnp.int32(0), carry))[1]
-        _, rgb, flags, first_obj, secondary, aov, vis0 = carry
+        rec = Records(jnp.zeros((n, 3), dtype), jnp.zeros((n,), jnp.int32), jnp.full((n, 2), -1, jnp.int32),
+                      jnp.zeros((n,), jnp.int32), _miss(n, dtype), jnp.ones((n, params.lights.radiance.shape[0]), dtype))
+        rec = (_piped if eff.shadows and not static.single else _levels)(params, static, q, rec)
+        aov, flags = rec.aov, rec.flags
         if static.single:  # a single object's outputs: its hit, the colour, the shadows it asked for
-            out = {"hit": Hit(aov.t, aov.position, aov.normal, aov.uv, aov.prim, flags), "rgb": rgb}
-            return {**out, "visibility": vis0} if eff.shadows else out
-        return {"hit": aov, "rgb": rgb, "visibility": vis0, "flags": flags, "first_obj": first_obj, "secondary": secondary}
+            out = {"hit": Hit(aov.t, aov.position, aov.normal, aov.uv, aov.prim, flags), "rgb": rec.rgb}
+            return {**out, "visibility": rec.vis0} if eff.shadows else out
+        return {"hit": aov, "rgb": rec.rgb, "visibility": rec.vis0, "flags": flags, "first_obj": rec.first_obj, "secondary": rec.secondary}
 
     return batch
 
