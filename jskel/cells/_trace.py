@@ -72,7 +72,8 @@ def locate(p: CellParams, x):
     r = p.split.shape[0]
     u = (x - p.lo) / p.size
     tile = jnp.floor(u)
-    inside_obj = jnp.all((tile >= 0) & (tile < n))
+    inb = (tile >= 0) & (tile < n)
+    inside_obj = inb[0] & inb[1] & inb[2]  # by component: under vmap a reduction over 3 is a library call
     local = u - tile
     vox = jnp.clip(jnp.floor(local * r), 0, r - 1).astype(jnp.int32)
     return jnp.clip(tile, 0, n - 1).astype(jnp.int32), inside_obj, vox
@@ -86,16 +87,27 @@ def membership_at(p: CellParams, x):
     return jnp.where(ok & (s > 0), code, 0), tile, ok
 
 
-def box_interval(lo, hi, o, d):
-    """Slab test: (t_enter, t_exit) of the ray against the box [lo, hi] (t_enter > t_exit: miss)."""
-    inv = safe_div(1.0, d, jnp.inf)
+def _min3(v):
+    """min over a last axis of 3, by component (under vmap ``jnp.min`` is a library reduction on XLA:CPU)."""
+    return jnp.minimum(jnp.minimum(v[..., 0], v[..., 1]), v[..., 2])
+
+
+def _max3(v):
+    """max over a last axis of 3, by component (:func:`_min3`)."""
+    return jnp.maximum(jnp.maximum(v[..., 0], v[..., 1]), v[..., 2])
+
+
+def box_interval(lo, hi, o, d, inv=None):
+    """Slab test: (t_enter, t_exit) of the ray against the box [lo, hi] (t_enter > t_exit: miss);
+    ``inv``: 1 / d as ``safe_div(1, d, inf)`` gives it, when the caller has it already."""
+    inv = safe_div(1.0, d, jnp.inf) if inv is None else inv
     ta = (lo - o) * inv
     tb = (hi - o) * inv
     # a zero direction component: inside the slab (-inf, inf) or outside it (inf, -inf)
     inslab = (o >= lo) & (o <= hi)
     t0 = jnp.where(d == 0, jnp.where(inslab, -jnp.inf, jnp.inf), jnp.minimum(ta, tb))
     t1 = jnp.where(d == 0, jnp.where(inslab, jnp.inf, -jnp.inf), jnp.maximum(ta, tb))
-    return jnp.max(t0), jnp.min(t1)
+    return _max3(t0), _min3(t1)  # by component (numerics.dot3: a reduction over 3 under vmap is slow)
 
 
 class March(NamedTuple):
@@ -119,6 +131,8 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
     Sec. 5.3): :func:`between` finds them, the march looks them up (one lookup an iteration, as
     its samples) and reports a target among them in ``stepped``."""
     h, floored = _step(p, o, d, t_start, t_end)
+    inv = safe_div(1.0, d, jnp.inf)  # once a ray, for the tiles' exits
+    vr = voxel_ray(p, o, d)
 
     def is_target(t):
         code, tile, ok = membership_at(p, o + t * d)
@@ -129,9 +143,9 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
         t = t_start + k.astype(o.dtype) * h
         # the voxels between this sample and the one before (evaluated, or in a tile a skip
         # passed over: on the starting side); pend 1, 2: this iteration looks up the pend-th
-        c, mids = between(p, o, d, t_start + (k - 1).astype(o.dtype) * h, t)
+        c, mid0, mid1 = between(p, vr, o, d, t_start + (k - 1).astype(o.dtype) * h, t)
         probe = pend > 0
-        found_here, tile, ok = is_target(jnp.where(probe, jnp.where(pend == 2, mids[1], mids[0]), t))
+        found_here, tile, ok = is_target(jnp.where(probe, jnp.where(pend == 2, mid1, mid0), t))
         hit = ~probe & found_here
         flags = p.tile_flags[tile[0], tile[1], tile[2]]
         # c > 3 (a step above the voxel edge): the voxels between are not looked up; where this
@@ -142,7 +156,7 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
         can_skip = ok & jnp.where(want_inside, (flags & TILE_HAS_INSIDE) == 0, (flags & TILE_ALL_INSIDE) != 0)
         if opt.skip:
             lo = p.lo + tile.astype(o.dtype) * p.size
-            _, t_exit = box_interval(lo, lo + p.size, o, d)
+            _, t_exit = box_interval(lo, lo + p.size, o, d, inv)
             k_exit = jnp.ceil((t_exit - t_start) / h).astype(jnp.int32)
             nk = jnp.where(~hit & can_skip, jnp.maximum(k + 1, k_exit), k + 1)
         else:
@@ -189,26 +203,47 @@ def _bisect(is_target, a, b, n: int):
     return jax.lax.fori_loop(0, n, bis, (a, b)) if n else (a, b)
 
 
-def between(p: CellParams, o, d, ta, tb):
+class VoxelRay(NamedTuple):
+    """A ray in the tile map's voxel units (one voxel edge = 1, from the object's corner), once a ray."""
+
+    q0: jnp.ndarray  # (3,) origin
+    qd: jnp.ndarray  # (3,) direction
+    inv: jnp.ndarray  # (3,) 1 / qd (inf where 0)
+
+
+def voxel_ray(p: CellParams, o, d) -> VoxelRay:
+    """The ray in voxel units, taken once before the march (no division at each sample)."""
+    vox = p.size / p.split.shape[0]
+    qd = d / vox
+    return VoxelRay((o - p.lo) / vox, qd, safe_div(1.0, qd, jnp.inf))
+
+
+def voxel_of(p: CellParams, x):
+    """The tile map voxel (3,) (integers as floats) holding x, counted from the object's corner:
+    :func:`locate`'s tile x r + voxel, bitwise where r is a power of two (u r and (u - tile) r
+    are exact), so a sample and the voxels between it and the next agree on where a face lies."""
+    return jnp.floor((x - p.lo) / p.size * p.split.shape[0])
+
+
+def between(p: CellParams, vr: VoxelRay, o, d, ta, tb):
     """The voxels of the tile map that the ray passes between two samples ta < tb and no sample
-    lands in (membership is constant on a voxel, Sec. 3.1.4): (c, mids (2,)). The
-    voxels' indices at the two ends differ by c steps over the three axes: c <= 1, both voxels
-    are sampled and nothing lies between; with a step below the voxel edge c <= 3 and the c - 1
-    voxels between hold the midpoints ``mids`` of the sorted face crossings (:func:`march`
-    looks them up); c > 3 (a step above the voxel edge) is not told that way."""
-    r = p.split.shape[0]
-    vox = p.size / r
-
-    def index(t):
-        return jnp.floor((o + t * d - p.lo) / vox)
-
-    va, vb = index(ta), index(tb)
-    c = jnp.sum(jnp.abs(vb - va)).astype(jnp.int32)
-    face = p.lo + jnp.maximum(va, vb) * vox  # the face each changing axis crosses (one step on it)
-    s = jnp.clip(jnp.where(va != vb, safe_div(face - o, d, jnp.inf), jnp.inf), ta, tb)
-    s0, s2 = jnp.min(s), jnp.max(s)  # sorted by min, max and the one between (a sort costs more on a CPU)
-    s1 = jnp.clip(jnp.sum(s) - s0 - s2, s0, s2)
-    return c, jnp.stack([0.5 * (s0 + s1), 0.5 * (s1 + s2)])
+    lands in (membership is constant on a voxel, Sec. 3.1.4): (c, mid0, mid1). The voxels'
+    indices at the two ends (:func:`voxel_of`, as the samples were looked up) differ by c steps
+    over the three axes: c <= 1, both voxels are sampled and nothing lies between; with a step
+    below the voxel edge c <= 3 and the c - 1 voxels between hold the midpoints ``mid0``,
+    ``mid1`` of the sorted face crossings (:func:`march` looks them up); c > 3 (a step above the
+    voxel edge) is not told that way. It runs at every sample, so it is written by component
+    (under vmap a reduction over 3 became a library call on XLA:CPU, as ``numerics.dot3``
+    notes) and takes the face crossings in the ray's voxel frame (:func:`voxel_ray`) without
+    a division."""
+    va, vb = voxel_of(p, o + ta * d), voxel_of(p, o + tb * d)
+    dv = jnp.abs(vb - va)
+    c = (dv[0] + dv[1] + dv[2]).astype(jnp.int32)
+    # the face each changing axis crosses (one step on it), at its t
+    s = jnp.clip(jnp.where(va != vb, (jnp.maximum(va, vb) - vr.q0) * vr.inv, jnp.inf), ta, tb)
+    s0, s2 = _min3(s), _max3(s)  # sorted by min, max and the one between (a sort costs more on a CPU)
+    s1 = jnp.clip(s[0] + s[1] + s[2] - s0 - s2, s0, s2)
+    return c, 0.5 * (s0 + s1), 0.5 * (s1 + s2)
 
 
 def object_interval(p: CellParams, o, d, t_min, t_max):
