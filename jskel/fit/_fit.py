@@ -36,6 +36,7 @@ class FitResult(NamedTuple):
     restarts: int
     restart_losses: list
     first_iteration_at: float | None = None  # time.time() when the stepping loop's first iteration was done (None: one batched call)
+    first_iteration_cpu: float | None = None  # the process's CPU seconds then (time.process_time())
 
 
 DENSE_JACOBIAN_MAX = 1 << 24  # entries (residuals x unknowns) up to which jaxopt's LM forms J (64 MiB in float32)
@@ -202,7 +203,7 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
     x0 = jnp.asarray(np.asarray(nz.start(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), pr), dtype))
     t_all = time.perf_counter()
     restart_losses = []
-    end, first_at = None, None
+    end, first_at = None, (None, None)
     if s.restarts > 1:
         x0, restart_losses, end, compile_s = _best_start(pr, key, s, nz, (joints0, radii0, parents), pts, seed, perturb)
     if end is not None and s.max_seconds is None:
@@ -219,7 +220,7 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
         raise ValueError(f"solver.name: {s.name} diverged: the loss rose from {history[0]:.4g} to {history[-1]:.4g} in {it} iterations "
                          "(try lm, a smaller learning_rate or more points)")
     j, r = nz.world(x, pr)
-    return FitResult(j, r, np.asarray(parents), history, it, converged, seconds, compile_s, error, s.restarts, restart_losses, first_at)
+    return FitResult(j, r, np.asarray(parents), history, it, converged, seconds, compile_s, error, s.restarts, restart_losses, *first_at)
 
 
 def _best_start(pr: Problem, key: SolverKey, s: SolverConfig, nz, start, pts, seed: int, perturb: float):
@@ -246,7 +247,7 @@ def _stepped(pr: Problem, key: SolverKey, s: SolverConfig, x0, pts):
     """The stepping loop: one compiled update per iteration on the host, the loss recorded after
     each, stopped by the solver's criterion, ``patience`` iterations of stalled loss or
     ``max_seconds``. Returns (x, state, loss history, iterations, converged, compile seconds,
-    ``time.time()`` when the first iteration was done)."""
+    ``time.time()`` and the process's CPU seconds when the first iteration was done)."""
     quiet = progress.quiet()
     if not quiet:
         print(f"jskel: compiling the {s.name} solver ...", file=sys.stderr, flush=True)
@@ -270,13 +271,13 @@ def _stepped(pr: Problem, key: SolverKey, s: SolverConfig, x0, pts):
     converged = False
     it = 0
     stalled = 0
-    first_at = None
+    first_at = (None, None)
     t_loop = time.perf_counter()
     bar = progress.bar(s.maxiter, f"fit ({s.name})", "it")
     for it in range(1, s.maxiter + 1):  # host loop over iterations: one compiled update each
         x, st = upd(x, st, pts)
         history.append(value(x, st))  # float(): the iteration is done
-        first_at = time.time() if it == 1 else first_at
+        first_at = (time.time(), time.process_time()) if it == 1 else first_at
         bar.update(1)
         bar.set_postfix(loss=f"{history[-1]:.4g}", refresh=False)
         if s.max_seconds is not None and time.perf_counter() - t_loop > s.max_seconds:

@@ -156,6 +156,7 @@ def fit_info(cfg: FitFile, res: FitResult, how: str, pinfo: dict, points: np.nda
         # as time.time() and in seconds from the process's start (issue 27's time to a first iteration)
         "first_iteration_at": res.first_iteration_at,
         "first_iteration_s": (res.first_iteration_at - started if res.first_iteration_at is not None and started is not None else None),
+        "first_iteration_cpu_s": res.first_iteration_cpu,  # the process's CPU seconds by then (steadier on a shared machine)
         "loss_start": res.history[0],
         "loss_final": res.history[-1],
         "history": res.history,
