@@ -6,9 +6,10 @@ Public API:
   skeleton's frusta (``_distance``), with :func:`segments_of` for the static topology, each
   point against its ``candidates`` nearest segments (:func:`culling_exact` certifies it);
   :func:`plane_margins`: how far each shared cutting plane is from leaving a piece unbounded;
-* :func:`fit_points`: fit joints and radii of a fixed topology (jaxopt LM / Gauss-Newton, the
-  project's L-BFGS (``_lbfgs``) or optax Adam through the adapter in ``_solvers``; for large problems LM and
-  Gauss-Newton on normal equations assembled from the problem's sparsity, ``_normal``);
+* :func:`fit_points`: fit joints and radii of a fixed topology (the project's LM / Gauss-Newton
+  on dense normal equations, or for large problems on normal equations assembled from the
+  problem's sparsity, ``_normal``; the project's L-BFGS (``_lbfgs``), optax Adam, or jaxopt's LM /
+  Gauss-Newton (``solver.jacobian: jaxopt``), all through the adapter in ``_solvers``);
 * :func:`pca_chain`, :func:`mst_skeleton`: starting skeletons estimated from points (``_starts``);
   :func:`read_points`, :func:`load_points`: the cloud (``_points``); the least-squares problem
   in normalised coordinates is ``_problem``'s;
