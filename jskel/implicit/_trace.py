@@ -76,8 +76,10 @@ from ..rays import FLAG_NO_BRACKET as NO_BRACKET
 from ..rays import FLAG_OVERFLOW as OVERFLOW
 from ..rays import FLAG_STEP_CAP as STEP_CAP
 from ..rays import ulp_floor
-from ._bounds import field_bound, watched_bisect
+from ._bounds import certified_reach, field_bound, watched_bisect
 from ._field import Displace, Prims, Shape, closest, kernel, lipschitz_total, shaped_field
+
+CERTIFY_STEPS = 32  # most steps of the march that certifies open pieces (docs/numerics.md)
 
 
 class Quality(NamedTuple):
@@ -279,7 +281,9 @@ def _bisection_method(cand: Candidates, g, tune: Tuning, o, d, t_min, t_max, q: 
     T; otherwise the field may still cross (the Fig. 7 case: two primitives that just blend,
     Sec. 4.2.2) and the miss carries ``NO_BRACKET``. A hit whose bracket may hold an earlier
     crossing than the one bisected (Sec. 4.2.2: the bracket can straddle a later one) carries
-    ``GRAZE`` (:func:`._bounds.watched_bisect`)."""
+    ``GRAZE`` (:func:`._bounds.watched_bisect`). Either flag is set only where
+    :func:`._bounds.certified_reach` then fails to march through what the bounds left open
+    (the whole [t_lo, t_hi] of a miss) within ``CERTIFY_STEPS`` steps."""
     inf = jnp.asarray(jnp.inf, o.dtype)
     sub, t_lo, t_hi, anyc = cand.sub, cand.t_lo, cand.t_hi, cand.any
     tin = _inside_points(sub, o, d)
@@ -288,14 +292,20 @@ def _bisection_method(cand: Candidates, g, tune: Tuning, o, d, t_min, t_max, q: 
     t_in = jnp.min(jnp.where(inside, tin, inf))
     found = anyc & jnp.isfinite(t_in)
     start = jnp.where(found, t_lo, 0.0)  # a miss bisects [0, 0]: finite, masked after
-    lo, hi, earlier = watched_bisect(sub, g, tune.threshold, tune.eps, q.shape, tune.disp, o, d, start,
-                                    jnp.where(found, t_in, 0.0), q.bisection)
+    lo, hi, open_from, until = watched_bisect(sub, g, tune.threshold, tune.eps, q.shape, tune.disp, o, d, start,
+                                              jnp.where(found, t_in, 0.0), q.bisection)
     # a miss differentiates at t = 0 (g finite there; t_lo may be inf), and is masked after
     t = jnp.where(found, differentiable_root(g, jnp.where(found, 0.5 * (lo + hi), 0.0)), inf)
     T = tune.threshold
     bound = field_bound(sub, o, d, q.shape, tune.disp)
     undecided = anyc & ~found & (bound > T * (1 - 8 * jnp.finfo(o.dtype).eps))
-    return t, jnp.where(undecided, NO_BRACKET, 0) | jnp.where(found & earlier, GRAZE, 0)
+    earlier = found & (open_from < until)
+    # one march certifies what the bounds left open: a found ray's [open_from, until], a
+    # no-bracket ray's whole [t_lo, t_hi]
+    t0 = jnp.where(earlier, open_from, jnp.where(undecided, t_lo, 0.0))
+    t1 = jnp.where(earlier, until, jnp.where(undecided, t_hi, 0.0))
+    open_ = certified_reach(sub, T, q.shape, tune.disp, o, d, t0, t1, CERTIFY_STEPS) < t1
+    return t, jnp.where(undecided & open_, NO_BRACKET, 0) | jnp.where(earlier & open_, GRAZE, 0)
 
 
 def _march(cand: Candidates, g, tune: Tuning, o, d, q: Quality):
