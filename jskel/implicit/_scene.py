@@ -20,7 +20,7 @@ from ._config import ImplicitConfig
 from ._field import Prims, shaped_field
 from ._primitives import csg_shape, expand, primitives
 from ._projectors import Projector, Skin, displace_params, project, projector_arrays, rest_position
-from ._trace import OVERFLOW, Quality, Tuning, blocks_used, cull, surface_one, trace_one
+from ._trace import OVERFLOW, Quality, Tuning, blocks_used, certify, cull, surface_one, trace_one
 
 
 class ImplicitScene(NamedTuple):
@@ -173,32 +173,57 @@ def skin_of(rig, anchor, dtype) -> Skin:
     return Skin(on_device(heads - anchor, dtype), on_device(tails - anchor, dtype), on_device(infl, dtype), on_device(to_rest, dtype))
 
 
-def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min, t_max) -> Hit:
-    """First hit of one ray; (u, v) from the projector applied at the rest-pose position."""
+def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min, t_max, deferred: bool = False):
+    """First hit of one ray; (u, v) from the projector applied at the rest-pose position.
+    ``deferred`` (``bisection``): (hit, (candidates, origin, direction, Certify job)) with the
+    certifying march left to :func:`intersect_batch`."""
     q = static.quality
     cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity, q.block, q.block_capacity, q.cull)
-    t, flags = trace_one(cand, scene.tune, origin, direction, t_min, t_max, q)
+    out = trace_one(cand, scene.tune, origin, direction, t_min, t_max, q, deferred)
+    t, flags = out[:2]
     pos, n, prim = surface_one(cand, scene.tune, origin, direction, t, q)
     prim = scene.prim_id[prim]
     uv = choose_uv(scene, static, pos)[1]
-    return masked_hit(t, pos, n, uv, prim, flags)
+    hit = masked_hit(t, pos, n, uv, prim, flags)
+    return (hit, (cand.sub, origin, direction, out[2])) if deferred else hit
 
 
 def intersect_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int = 256) -> Hit:
     """vmap of :func:`intersect_one`, then the rays whose culling overflowed (too many blocks
     or candidates) are traced again with flat culling (every primitive tested, no block list),
     gathered into dense sub-batches (``wavefront.compact_map``): a grazing ray through a large model
-    costs P sphere tests only where it needs them. With the block level off it is the vmap."""
+    costs P sphere tests only where it needs them. With the block level off it is the vmap.
+    ``bisection``'s certifying march (``_trace.certify``) runs the same way on only the rays
+    whose bounds left a piece open: as a ``while_loop`` under vmap it would last as long as the
+    batch's slowest ray for every ray."""
     q = static.quality
-    hits = jax.vmap(lambda o, d, a, b: intersect_one(scene, static, o, d, a, b))(*rays)
-    if not blocks_used(scene.prims.a.shape[0], q.block, q.block_capacity):
-        return hits
-    flat = static._replace(quality=q._replace(block=0))
+    deferred = q.method == "bisection"
 
-    def redo(sub: Rays) -> Hit:
-        return jax.vmap(lambda o, d, a, b: intersect_one(scene, flat, o, d, a, b))(*sub)
+    def one(st: Static, defer: bool):
+        return jax.vmap(lambda o, d, a, b: intersect_one(scene, st, o, d, a, b, defer))
 
-    return compact_map(redo, (hits.flags & OVERFLOW) != 0, rays, hits, lanes)
+    out = one(static, deferred)(*rays)
+    if blocks_used(scene.prims.a.shape[0], q.block, q.block_capacity):
+        flat = static._replace(quality=q._replace(block=0))
+        if not deferred:
+            return compact_map(lambda sub: one(flat, False)(*sub), (out.flags & OVERFLOW) != 0, rays, out, lanes)
+
+        def redo(sub):  # flat culling keeps another candidate count: these few rays march in place
+            r, (c, o, d, j) = sub
+            no = jnp.zeros_like(j.undecided)
+            return one(flat, False)(*r), (c, o, d, j._replace(undecided=no, earlier=no))
+
+        out = compact_map(redo, (out[0].flags & OVERFLOW) != 0, (rays, out[1]), out, lanes)
+    if not deferred:
+        return out
+    hits, job = out
+    job, tune = jax.lax.stop_gradient((job, scene.tune))  # flags only: nothing to differentiate
+
+    def march(sub):
+        return jax.vmap(lambda s, o, d, j: certify(s, tune, q, o, d, j))(*sub)
+
+    need = job[3].undecided | job[3].earlier
+    return hits._replace(flags=hits.flags | compact_map(march, need, job, jnp.zeros_like(hits.flags), lanes))
 
 
 def choose_uv(scene: ImplicitScene, static: Static, pos):

@@ -255,10 +255,29 @@ def _inside_points(sub: Prims, o, d):
     return jnp.take_along_axis(cands, best[None, :], axis=0)[0]
 
 
-def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
+class Certify(NamedTuple):
+    """What a ``bisection`` ray leaves to the certifying march (:func:`certify`): whether it is an
+    undecided miss or a hit with an open piece before its bracket, and that piece [t0, t1]."""
+
+    undecided: jnp.ndarray
+    earlier: jnp.ndarray
+    t0: jnp.ndarray
+    t1: jnp.ndarray
+
+
+def certify(sub: Prims, tune: Tuning, q: Quality, o, d, job: Certify):
+    """``NO_BRACKET`` / ``GRAZE`` of one ``bisection`` ray: set where
+    :func:`._bounds.certified_reach` does not get through ``job``'s open piece within
+    ``CERTIFY_STEPS`` steps."""
+    open_ = certified_reach(sub, tune.threshold, q.shape, tune.disp, o, d, job.t0, job.t1, CERTIFY_STEPS) < job.t1
+    return jnp.where(job.undecided & open_, NO_BRACKET, 0) | jnp.where(job.earlier & open_, GRAZE, 0)
+
+
+def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality, deferred: bool = False):
     """(t, flags) of the first hit of one ray over its culled candidates; t = inf on a miss.
     Flags (``jskel.rays``): OVERFLOW from culling; the tracer's own in :func:`_bisection_method`
-    and :func:`_march`."""
+    and :func:`_march`. ``deferred`` (``bisection`` only): (t, flags, :class:`Certify`) without
+    the certifying march, for a batch to run :func:`certify` on only the rays that need it."""
     sub, T = cand.sub, tune.threshold
 
     def g(t):
@@ -266,7 +285,10 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality):
 
     flags = jnp.where(cand.overflow, OVERFLOW, 0)
     if q.method == "bisection":
-        t, own = _bisection_method(cand, g, tune, o, d, t_min, t_max, q)
+        t, job = _bisection_method(cand, g, tune, o, d, t_min, t_max, q)
+        if deferred:
+            return t, flags, job
+        own = certify(sub, tune, q, o, d, job)
     elif q.method in ("naive", "lipschitz"):
         t, own = _march(cand, g, tune, o, d, q)
     else:  # pragma: no cover - validated in config
@@ -283,7 +305,8 @@ def _bisection_method(cand: Candidates, g, tune: Tuning, o, d, t_min, t_max, q: 
     crossing than the one bisected (Sec. 4.2.2: the bracket can straddle a later one) carries
     ``GRAZE`` (:func:`._bounds.watched_bisect`). Either flag is set only where
     :func:`._bounds.certified_reach` then fails to march through what the bounds left open
-    (the whole [t_lo, t_hi] of a miss) within ``CERTIFY_STEPS`` steps."""
+    (the whole [t_lo, t_hi] of a miss) within ``CERTIFY_STEPS`` steps: returns t and the
+    :class:`Certify` job of that march (:func:`certify`)."""
     inf = jnp.asarray(jnp.inf, o.dtype)
     sub, t_lo, t_hi, anyc = cand.sub, cand.t_lo, cand.t_hi, cand.any
     tin = _inside_points(sub, o, d)
@@ -300,12 +323,11 @@ def _bisection_method(cand: Candidates, g, tune: Tuning, o, d, t_min, t_max, q: 
     bound = field_bound(sub, o, d, q.shape, tune.disp)
     undecided = anyc & ~found & (bound > T * (1 - 8 * jnp.finfo(o.dtype).eps))
     earlier = found & (open_from < until)
-    # one march certifies what the bounds left open: a found ray's [open_from, until], a
-    # no-bracket ray's whole [t_lo, t_hi]
+    # one march (:func:`certify`) certifies what the bounds left open: a found ray's
+    # [open_from, until], a no-bracket ray's whole [t_lo, t_hi]
     t0 = jnp.where(earlier, open_from, jnp.where(undecided, t_lo, 0.0))
     t1 = jnp.where(earlier, until, jnp.where(undecided, t_hi, 0.0))
-    open_ = certified_reach(sub, T, q.shape, tune.disp, o, d, t0, t1, CERTIFY_STEPS) < t1
-    return t, jnp.where(undecided & open_, NO_BRACKET, 0) | jnp.where(earlier & open_, GRAZE, 0)
+    return t, Certify(undecided, earlier, t0, t1)
 
 
 def _march(cand: Candidates, g, tune: Tuning, o, d, q: Quality):
