@@ -39,15 +39,20 @@ def cast(built, O, D):
     return out._replace(position=np.asarray(out.position, np.float64) + built.anchor)
 
 
-@pytest.fixture(scope="module")
-def random_case():
-    rng = np.random.default_rng(7)
+def random_rays(seed, n, samples, batch):
+    """n random rays through the model's box (enlarged by 1) and their float64 first root with
+    ``samples`` per ray: (O, D, t_ref, margin, slope, the box's diagonal)."""
     a, b, ra, rb = arrays()
     lo = np.minimum(a, b).min(0) - 1.0
     hi = np.maximum(a, b).max(0) + 1.0
-    O, D = ref.random_rays(rng, lo, hi, 50_000, spread=1.2)
-    t_ref, margin, slope = iref.first_root(O, D, a, b, ra, rb, T, n=256, batch=2000)
-    scale = float(np.linalg.norm(hi - lo))
+    O, D = ref.random_rays(np.random.default_rng(seed), lo, hi, n, spread=1.2)
+    t_ref, margin, slope = iref.first_root(O, D, a, b, ra, rb, T, n=samples, batch=batch)
+    return O, D, t_ref, margin, slope, float(np.linalg.norm(hi - lo))
+
+
+@pytest.fixture(scope="module")
+def random_case():
+    O, D, t_ref, margin, slope, scale = random_rays(7, 50_000, 256, 2000)
     # well-posed rays: not grazing the level set (margin) and crossing it at a real angle (slope)
     clear = (margin > 0.005) & ((~np.isfinite(t_ref)) | (slope > 0.02))
     return O, D, t_ref, clear, scale
@@ -88,13 +93,8 @@ def test_bisection_flags_few_rays_falsely_and_every_real_miss():
     (seed 11), against the float64 first root: every ray the tracer got wrong (a miss where
     the reference crosses, or a hit more than the tolerance after its first crossing) carries a
     flag, and rays flagged while right are under 1 % (5.1 % of rays were flagged before)."""
-    rng = np.random.default_rng(11)
-    a, b, ra, rb = arrays()
-    lo = np.minimum(a, b).min(0) - 1.0
-    hi = np.maximum(a, b).max(0) + 1.0
-    O, D = ref.random_rays(rng, lo, hi, 6000, spread=1.2)
-    t_ref, _, _ = iref.first_root(O, D, a, b, ra, rb, T, n=512, batch=1000)
-    tol = 1e-4 * float(np.linalg.norm(hi - lo))
+    O, D, t_ref, _, _, scale = random_rays(11, 6000, 512, 1000)
+    tol = 1e-4 * scale
     hit = cast(implicit.build(model_cfg("bisection")), O, D)
     t = np.where(np.isfinite(hit.t), hit.t, np.inf)
     wrong = np.where(np.isfinite(t_ref), t > t_ref + tol, np.isfinite(t))
