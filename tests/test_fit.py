@@ -150,8 +150,9 @@ def test_recovers_a_known_chain_from_noisy_points_with_outliers(noisy_branch, so
     """5 segments, Gaussian noise of 1 % of the chain's length, 5 % outliers, a start moved by
     10 % (joints by 10 % of a segment, radii by 10 %): joints within 2 % of the length, radii
     within 5 %. LM on the dense normal equations; jaxopt's LM (``solver.jacobian: jaxopt``, an
-    implementation of its own of the same algorithm) and the same solver on the sparse normal
-    equations (``solver.jacobian: sparse``) take the same steps to the same skeleton. L-BFGS
+    implementation of its own of the same algorithm) takes the same steps to the same skeleton
+    (the sparse normal equations equal the dense ones in ``test_fit_normal``, and fit in
+    ``test_batched_fits_match_the_truth_for_every_cloud``). L-BFGS
     runs 2 starts in one call (the given one and a perturbed copy, in turn under lax.map) and
     keeps the best: from single starts it once stopped in a local minimum (an earlier loss); with
     4 starts all four reached the same loss to 1e-4, at twice the test's run time."""
@@ -166,7 +167,7 @@ def test_recovers_a_known_chain_from_noisy_points_with_outliers(noisy_branch, so
     if solver == "lbfgs":
         assert len(res.restart_losses) == 2 and min(res.restart_losses) == pytest.approx(res.history[-1], rel=1e-5)
     else:
-        for jac in ("jaxopt", "sparse"):
+        for jac in ("jaxopt",):
             sp = fit_points(pts, j0, r0, CHAIN, s.model_copy(update={"jacobian": jac}))
             np.testing.assert_allclose(sp.history[:6], res.history[:6], rtol=1e-4)  # the same first steps
             assert abs(sp.iterations - res.iterations) <= 2 and abs(sp.history[-1] / res.history[-1] - 1) < 1e-4
@@ -175,7 +176,8 @@ def test_recovers_a_known_chain_from_noisy_points_with_outliers(noisy_branch, so
 
 
 def test_batched_fits_match_the_truth_for_every_cloud():
-    """vmap over 3 clouds (noise-free, each a translated and scaled copy) fits each one."""
+    """vmap over 3 clouds (noise-free, each a translated and scaled copy) fits each one, LM on
+    the sparse normal equations (``solver.jacobian: sparse``)."""
     rng = np.random.default_rng(5)
     from jskel.fit import sample_surface
 
@@ -185,7 +187,7 @@ def test_batched_fits_match_the_truth_for_every_cloud():
     j0, r0 = perturbed(BENT, BENT_R, CHAIN, 0.05, np.random.default_rng(1))
     starts_j = np.stack([j0 * s + t for s, t in zip(scales, shifts)])
     starts_r = np.stack([r0 * s for s in scales])
-    J, R, losses, secs, _ = fit_many(clouds, starts_j, starts_r, CHAIN, SolverConfig(name="lm", loss="l2", maxiter=300, tol=1e-7))
+    J, R, losses, secs, _ = fit_many(clouds, starts_j, starts_r, CHAIN, SolverConfig(name="lm", loss="l2", maxiter=300, tol=1e-7, jacobian="sparse"))
     for i, (s, t) in enumerate(zip(scales, shifts)):
         np.testing.assert_allclose((J[i] - t) / s, BENT, atol=0.02)
         np.testing.assert_allclose(R[i] / s, BENT_R, rtol=0.03)

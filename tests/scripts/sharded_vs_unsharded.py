@@ -16,12 +16,12 @@ import numpy as np
 from jskel import config
 from jskel.render import render
 
+# one case per representation's kind of build (the executor that shards knows nothing of
+# representations): the frusta BVH with chunks grouped per call, implicit blocks, cells
 cases = {
-    "frusta_bvh": ("experiments/aloe.yaml", []),
     # 2 chunks per call on both sides (16 chunks of 75 on one device, 4 per device on four): with
     # 4 devices each call's chunks are dealt out in turn (call_layout.call_rays)
     "frusta_bvh_grouped": ("experiments/aloe.yaml", ["render.chunk=75", "render.chunks_per_call=2"]),
-    "frusta_blocks": ("experiments/well.yaml", []),
     "implicit_blocks": ("experiments/blobs_5000.yaml", []),
     "cells_reflection": ("experiments/torus_cells_reflection.yaml", [f"object.cache={sys.argv[1]}", "object.tiles=6",
                                                                      "object.tile_map.resolution=16"]),
