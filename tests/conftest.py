@@ -13,14 +13,6 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(os.path.dirname(
 # one CPU device, as the tests' shapes assume (jskel would otherwise make one per core; the
 # sharding tests force their own count); subprocesses inherit it
 os.environ.setdefault("JSKEL_HOST_DEVICES", "1")
-# the suite compiles at XLA's backend optimisation level 0 without LLVM's expensive passes: the
-# same programs with the same meaning, and on 2 cores compiling dominates the suite (one-off,
-# 2026-12-03 at da767f9, 2-core AMD EPYC: test_relief and test_fit_normal took 192 s of CPU
-# instead of 244, the float64 gradient checks 57 instead of 70). Renders and benchmarks run at
-# XLA's defaults; CI's first step renders the default experiment at them. Subprocesses inherit it.
-_LEVEL0 = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _LEVEL0).strip()
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402

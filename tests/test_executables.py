@@ -112,7 +112,7 @@ def test_an_unsharded_program_is_loaded_onto_its_one_device_of_two(tmp_path):
             f"ex.use_dir({str(tmp_path / 'x')!r}); a = (np.float32(3), np.arange(8, dtype=np.float32)); "
             "c = ex.compiled_for(operator.mul, a, None, lambda: jax.jit(operator.mul).lower(*a).compile()); "
             "print(json.dumps([np.asarray(c(*a)).tolist(), ex.counts()['loaded'], len(jax.devices())]))")
-    env = dict(os.environ, XLA_FLAGS=os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2")
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     for loaded in (0, 1):
         p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
         assert p.returncode == 0 and "warning" not in p.stderr, p.stderr[-2000:]
