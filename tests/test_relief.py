@@ -346,3 +346,38 @@ def test_render_counts_relief_rays_that_cannot_decide(tmp_path, rng):
     assert 0 < own.sum() < own.size
     assert np.mean(((flags & FLAG_GRAZE) != 0) == own) >= 0.99
     assert res.run["flags"]["graze"] == int(np.sum((flags & FLAG_GRAZE) != 0))
+
+
+def test_another_step_count_renders_without_a_program_and_marches_as_many_steps(tmp_path):
+    """The step count is a traced value (``ReliefMaps.steps``): a render at 3 steps, then at 64
+    hands XLA no program, and each render's depth is its own step count's march: its t equals
+    the cast of the camera's rays through an object built with that count (within rounding), and the two counts
+    differ on some pixels (1-texel spikes, which 3 steps step over)."""
+    import imageio.v3 as iio
+
+    from jskel.cache import count_programs, program_counts
+    from jskel.config import validate
+    from jskel.render import camera_of, render
+
+    img = np.zeros((MAP, MAP), np.uint8)
+    img[np.random.default_rng(4).integers(0, MAP, (2, 200))] = 255
+    iio.imwrite(tmp_path / "h.png", img)
+    skel = {"joints": [[0, 0, 0], [0, 2, 0]], "radii": [0.5, 0.5], "parents": [-1, 0]}
+    cam = {"eye": [0.0, 1.0, 4.0], "target": [0.0, 1.0, 0.0], "up": [0.0, 1.0, 0.0], "fov_deg": 40, "width": 16, "height": 12}
+    ts = []
+    for steps in (3, 64):
+        relief = {"map": str(tmp_path / "h.png"), "thickness": 0.2, "steps": steps, "bisection": 8, "scale": [1, 1]}
+        exp, obj = validate({"object": {"type": "frusta", "skeleton": skel, "relief": relief}, "camera": cam})
+        count_programs()
+        before = program_counts()
+        res = render(exp, obj)
+        after = program_counts()
+        if steps == 64:
+            assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]
+        O, D = camera_of(exp).ray_arrays()
+        b = build_relief(tmp_path, img, skel["joints"], skel["radii"], skel["parents"], thickness=0.2, steps=steps, bisection=8, scale=[1, 1])
+        t, want = np.asarray(res.hits.t, np.float64).reshape(-1), cast(b, O, D, culled=True).t
+        np.testing.assert_array_equal(np.isfinite(t), np.isfinite(want))
+        np.testing.assert_allclose(t[np.isfinite(t)], want[np.isfinite(t)], rtol=1e-6)  # (two programs: rounding apart)
+        ts.append(t)
+    assert np.any(ts[0] != ts[1])

@@ -15,8 +15,8 @@ surface where w <= h(u, v). (u, v) per sample either way the paper gives:
 * ``approximate`` (default): u from the angle, v interpolated linearly between the exact v at
   the ends of the interval. The paper notes this is exact when the cutting planes are parallel.
 
-The step and bisection counts are static (they shape the program); thickness, tiling and the
-height map are traced. ``early_exit`` marches in a ``while_loop`` that stops when every ray of
+The bisection count is static (it shapes the program); the step count, thickness, tiling and
+the height map are traced, so trying several step counts compiles once. ``early_exit`` marches in a ``while_loop`` that stops when every ray of
 the batch has found its bracket (under vmap the loop runs while any ray is still marching);
 the fixed variant is a ``fori_loop`` of exactly ``steps`` iterations.
 
@@ -47,11 +47,14 @@ _TWO_PI = 2.0 * jnp.pi
 class ReliefMaps(NamedTuple):
     """height: (H, W) uint8 (8-bit storage, Sec. 4); scale: (2,) repeats per unit u and v;
     slope: (2,) the largest change of the bilinear height per texel along x and along y
-    (:func:`texel_slopes`), the bound the march's ``graze`` test needs."""
+    (:func:`texel_slopes`), the bound the march's ``graze`` test needs; steps: () int32, the
+    march's uniform samples (Sec. 3), a traced value, so a sweep over steps or a notebook that
+    tries several compiles one program."""
 
     height: jnp.ndarray
     scale: jnp.ndarray
     slope: jnp.ndarray
+    steps: jnp.ndarray
 
 
 def texel_slopes(height) -> np.ndarray:
@@ -63,9 +66,9 @@ def texel_slopes(height) -> np.ndarray:
 
 
 class ReliefQuality(NamedTuple):
-    """Static march options (changing one recompiles)."""
+    """Static march options (changing one recompiles; the step count is a value,
+    ``ReliefMaps.steps``)."""
 
-    steps: int = 32
     bisection: int = 6
     uv: str = "approximate"  # or "exact"
     early_exit: bool = False
@@ -175,7 +178,7 @@ def _relief_t(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, o, d, t_min
     interval in the shell (:func:`_shell_window`), marched (:func:`_march`) and bisected
     (:func:`_bisect`) for its first crossing of the relief surface; t inf where it has none in
     (t_min, t_max]; t_undecided as :func:`make_relief_t` says."""
-    n_steps, n_bis = int(q.steps), int(q.bisection)
+    n_steps, n_bis = maps.steps, int(q.bisection)
     inf = jnp.asarray(jnp.inf, o.dtype)
     t0, e, s_a, s_b, ok, entry, from_outside = _shell_window(seg, o, d, t_min, t_max)
     sample = _sampler(maps, q, seg, e, d, s_a, s_b)
@@ -290,14 +293,14 @@ def _step_undecided(prev, cur, ds, slope, period, inside0):
     return jnp.where(inside0, gap_hi > 0, gap_lo <= 0)
 
 
-def _march(sample, slope, period, inside0, hit_at_entry, first, s_a, s_b, n_steps: int, early_exit: bool):
+def _march(sample, slope, period, inside0, hit_at_entry, first, s_a, s_b, n_steps, early_exit: bool):
     """(found, lo, hi, s_undecided): ``n_steps`` uniform samples of [s_a, s_b] (Sec. 3), the
     first bracket [lo, hi] where the side of the surface changes from the start's, and the
     start of the first step before it that :func:`_step_undecided` could not decide (inf where
     none). ``early_exit`` stops the loop once found (a ``while_loop``), else a ``fori_loop``
-    of exactly ``n_steps``. ``first``: the sample at s_a; slope, period: the map's texel
-    slopes and the texel X where u wraps."""
-    ds = (s_b - s_a) / n_steps
+    of exactly ``n_steps`` (a traced int32: the loop's bound is a value). ``first``: the sample
+    at s_a; slope, period: the map's texel slopes and the texel X where u wraps."""
+    ds = (s_b - s_a) / n_steps.astype(s_a.dtype)
 
     def visit(i, carry):
         found, lo, hi, prev, s_und = carry

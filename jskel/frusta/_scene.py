@@ -111,7 +111,8 @@ def _relief_group(cfg: FrustaConfig, arrays: FrustaArrays, ids, anchor, dtype):
     shell[ids] = rel.thickness
     relief, block = make_group(arrays, ids, anchor, cfg.block, dtype, shell)
     height = load_height_map(rel.map)
-    maps = ReliefMaps(on_device(height), on_device(rel.scale, dtype), on_device(texel_slopes(height), dtype))
+    maps = ReliefMaps(on_device(height), on_device(rel.scale, dtype), on_device(texel_slopes(height), dtype),
+                      on_device(np.int32(rel.steps)))
     return relief, block, maps, relief_memory(arrays, height, rel.scale, ids)
 
 
@@ -123,7 +124,7 @@ def _relief_quality(rel, arrays: FrustaArrays, ids) -> ReliefQuality:
     if uv == "auto":
         par = np.abs(np.sum(arrays.nb[ids] * arrays.nt[ids], -1)) >= 1.0 - 1e-12
         uv = "approximate" if np.all(par) else "exact"
-    return ReliefQuality(rel.steps, rel.bisection, uv, rel.early_exit, rel.v_mode)
+    return ReliefQuality(rel.bisection, uv, rel.early_exit, rel.v_mode)
 
 
 # stored: a warm process loads them untraced. Up to SMALL_BVH rows the tree is built by a
