@@ -227,3 +227,37 @@ def test_bad_implicit_input_names_the_key():
         implicit.build(implicit.ImplicitConfig.model_validate({**base, "threshold": 1.5}))
     with pytest.raises(ValueError, match=r"object\.tubes\[0\]\.radius_b: the lipschitz method"):
         implicit.build(implicit.ImplicitConfig.model_validate({**base, "tubes": [{"a": [0, 0, 0], "b": [1, 0, 0], "radius_a": 0.5, "radius_b": 0}]}))
+
+
+def test_another_step_cap_or_bisection_count_casts_without_a_program():
+    """The step cap and the bisection count are traced values (``Tuning``): casting with 2
+    halvings, then 10, then a step cap of 64, hands XLA no program after the first, and each
+    runs its own count: 10 halvings land closer to the float64 first root than 2 (median and
+    worst error over the rays both hit), and a cap of 64 Lipschitz steps leaves more rays
+    unfinished than 256."""
+    from jskel.cache import count_programs, program_counts
+    from jskel.implicit import build
+
+    O, D, t_ref, _, _, scale = random_rays(11, 2000, 512, 1000)
+    errs, programs = [], []
+    for n in (2, 10):
+        b = build(model_cfg("bisection", bisection=n))
+        count_programs()
+        before = program_counts()
+        hit = cast(b, O, D)
+        after = program_counts()
+        programs.append(after["compiled"] + after["loaded"] - before["compiled"] - before["loaded"])
+        both = np.isfinite(hit.t) & np.isfinite(t_ref)
+        assert both.mean() > 0.1
+        errs.append(np.abs(hit.t[both] - t_ref[both]) / scale)
+    assert programs[1] == 0
+    assert np.median(errs[1]) < 0.25 * np.median(errs[0]) and errs[1].max() < errs[0].max()
+    capped = []
+    for steps in (256, 64):
+        b = build(model_cfg("lipschitz", steps=steps, eps=1e-4))
+        count_programs()
+        before = program_counts()
+        capped.append(int(np.sum((cast(b, O, D).flags & implicit.STEP_CAP) != 0)))
+        after = program_counts()
+    assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]
+    assert capped[1] > capped[0]

@@ -65,8 +65,8 @@ def _reach(p, ab, d, t0=None, t1=None):
     return dot3(e, e), jnp.where(k * s <= w0, -1, jnp.where(k * s >= w1, 1, 0))
 
 
-def watched_bisect(sub: Prims, g, threshold, eps, shape: Shape, disp: Displace, o, d, lo, hi, n: int):
-    """``n`` halvings of [lo, hi] (g(lo) <= 0 < g(hi)), and whether [lo, final lo] may hold a
+def watched_bisect(sub: Prims, g, threshold, eps, shape: Shape, disp: Displace, o, d, lo, hi, n):
+    """``n`` (traced int32, 0 allowed) halvings of [lo, hi] (g(lo) <= 0 < g(hi)), and whether [lo, final lo] may hold a
     crossing: the bisection converges on *a* crossing of its bracket, not the first (Sec.
     4.2.2). The outside ends it keeps rise, lo_0 < lo_1 < ...; on a piece [a, b] between two of
     them the field is at most the sum over the candidates of the smaller of two bounds of each
@@ -114,8 +114,7 @@ def watched_bisect(sub: Prims, g, threshold, eps, shape: Shape, disp: Displace, 
 
     inf = jnp.asarray(jnp.inf, o.dtype)
     st = (lo, g(lo), kernels(lo), hi, inf, -inf)
-    if n > 0:
-        st = jax.lax.fori_loop(0, n, body, st)
+    st = jax.lax.fori_loop(0, n, body, st)
     return st[0], st[3], st[4], jnp.minimum(st[5], st[0] - safe_div(eps, speed, 0.0))
 
 

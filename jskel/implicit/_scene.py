@@ -122,12 +122,12 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
         on_device(_pad(gid, n, 0)),
     )
     tune = Tuning(on_device(cfg.threshold, dtype), on_device(cfg.step, dtype), on_device(cfg.eps, dtype),
-                  displace_params(cfg, anchor, dtype))
+                  displace_params(cfg, anchor, dtype), on_device(np.int32(cfg.steps)), on_device(np.int32(cfg.bisection)))
     projs, tex, kinds, textured = projector_arrays(cfg, anchor, dtype)
     prim_id = np.full(n + 1, -1, np.int32)
     prim_id[:p] = order
     scene = ImplicitScene(prims, tune, on_device(cfg.color, dtype), skin_of(rig, anchor, dtype), projs, *tex, on_device(prim_id))
-    q = Quality(cfg.method, cfg.steps, cfg.bisection, cfg.capacity, early_exit=cfg.early_exit, shape=shape,
+    q = Quality(cfg.method, cfg.capacity, early_exit=cfg.early_exit, shape=shape,
                 block=cfg.block_size, block_capacity=cfg.block_capacity or (16 if cfg.cull == "tree" else 32), cull=cfg.cull)
     static = Static(q, kinds, textured)
     info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_bound": fmax}

@@ -83,11 +83,10 @@ CERTIFY_STEPS = 32  # most steps of the march that certifies open pieces (docs/n
 
 
 class Quality(NamedTuple):
-    """Static options: changing one recompiles. (Step length and eps are traced: see ``Tuning``.)"""
+    """Static options: changing one recompiles. (Step length, eps, the step cap and the bisection
+    count are traced: see ``Tuning``.)"""
 
     method: str = "lipschitz"  # naive | bisection | lipschitz
-    steps: int = 256  # step cap of the naive and Lipschitz marches
-    bisection: int = 12
     capacity: int = 32  # candidate list per ray
     block: int = 16  # primitives per culling block (0: test every primitive)
     block_capacity: int = 16  # blocks kept per ray
@@ -97,13 +96,17 @@ class Quality(NamedTuple):
 
 
 class Tuning(NamedTuple):
-    """Traced knobs: threshold T, naive step length, Lipschitz minimum step (world units), and
-    the displacement's parameters."""
+    """Traced knobs: threshold T, naive step length, Lipschitz minimum step (world units), the
+    displacement's parameters, the marches' step cap and the bisection count (int32 values: a
+    sweep over either compiles one program; their loops have traced bounds and are never
+    differentiated, the root goes through ``numerics.differentiable_root``)."""
 
     threshold: jnp.ndarray
     step: jnp.ndarray
     eps: jnp.ndarray
     disp: Displace
+    steps: jnp.ndarray
+    bisection: jnp.ndarray
 
 
 def influence_spheres(prims: Prims):
@@ -222,16 +225,15 @@ def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_
     return Candidates(sub, gid, t_lo, t_hi, count > 0, (count > capacity) | block_overflow)
 
 
-def _bisect(g, lo, hi, n: int):
+def _bisect(g, lo, hi, n):
+    """``n`` (traced int32, 0 allowed) halvings of [lo, hi] keeping the half where g turns > 0."""
     def body(_, lh):
         lo, hi = lh
         mid = 0.5 * (lo + hi)
         inside = g(mid) > 0
         return jnp.where(inside, lo, mid), jnp.where(inside, mid, hi)
 
-    if n > 0:
-        lo, hi = jax.lax.fori_loop(0, n, body, (lo, hi))
-    return lo, hi
+    return jax.lax.fori_loop(0, n, body, (lo, hi))
 
 
 def _inside_points(sub: Prims, o, d):
@@ -316,7 +318,7 @@ def _bisection_method(cand: Candidates, g, tune: Tuning, o, d, t_min, t_max, q: 
     found = anyc & jnp.isfinite(t_in)
     start = jnp.where(found, t_lo, 0.0)  # a miss bisects [0, 0]: finite, masked after
     lo, hi, open_from, until = watched_bisect(sub, g, tune.threshold, tune.eps, q.shape, tune.disp, o, d, start,
-                                              jnp.where(found, t_in, 0.0), q.bisection)
+                                              jnp.where(found, t_in, 0.0), tune.bisection)
     # a miss differentiates at t = 0 (g finite there; t_lo may be inf), and is masked after
     t = jnp.where(found, differentiable_root(g, jnp.where(found, 0.5 * (lo + hi), 0.0)), inf)
     T = tune.threshold
@@ -366,21 +368,19 @@ def _march(cand: Candidates, g, tune: Tuning, o, d, q: Quality):
     init = (jnp.int32(0), t_lo, t_lo, jnp.zeros((), o.dtype), false, false, false, false)
     if q.early_exit:
         def cond(st):
-            return (st[0] < q.steps) & ~st[4] & (st[2] <= t_hi)
+            return (st[0] < tune.steps) & ~st[4] & (st[2] <= t_hi)
 
         i, tp, t, gp, found, near, grazed, floored = jax.lax.while_loop(cond, visit, init)
     else:
-        i, tp, t, gp, found, near, grazed, floored = jax.lax.fori_loop(0, q.steps, lambda _, st: visit(st), init)
+        i, tp, t, gp, found, near, grazed, floored = jax.lax.fori_loop(0, tune.steps, lambda _, st: visit(st), init)
     found = found & anyc
     capped = (~found) & anyc & (t <= t_hi)  # stopped by the step cap before leaving the interval
     tail = (t > t_hi) & (tp <= t_hi) & (tune.threshold - gp <= L * (t_hi - tp))  # up to T and back to 0 by t_hi
     grazed = anyc & (grazed | (~found & (near | tail)))
     flags = jnp.where(capped, STEP_CAP, 0) | jnp.where(grazed, GRAZE, 0) | jnp.where(anyc & floored, FLOAT_SPACING, 0)
     first_sample = tp == t  # inside already at the first sample: nothing to bisect
-    lo, hi = _bisect(g, tp, t, q.bisection)
-    t_hit = jnp.where(first_sample | (q.bisection == 0), t, 0.5 * (lo + hi))
-    if q.bisection == 0:
-        t_hit = t
+    lo, hi = _bisect(g, tp, t, tune.bisection)
+    t_hit = jnp.where(first_sample | (tune.bisection == 0), t, 0.5 * (lo + hi))
     return jnp.where(found, differentiable_root(g, jnp.where(found, t_hit, 0.0)), inf), flags
 
 
