@@ -33,8 +33,7 @@ def kind_of(raw: dict) -> str:
 
 def validate_file(path: Path, kind: str, raw: dict) -> int:
     """Validate ``path`` as the CLI reads it; returns how many experiments it names."""
-    from jskel.fit import FitFile
-    from jskel.fit._bench import FitBenchFile
+    from jskel.fit import FitBenchFile, FitFile
     from jskel.measure.bench import BenchFile, groups_of
     from jskel.measure.latency import LatencyFile
     from jskel.measure.sweep import load_sweep

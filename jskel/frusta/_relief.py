@@ -16,9 +16,10 @@ surface where w <= h(u, v). (u, v) per sample either way the paper gives:
   the ends of the interval. The paper notes this is exact when the cutting planes are parallel.
 
 The bisection count is static (it shapes the program); the step count, thickness, tiling and
-the height map are traced, so trying several step counts compiles once. ``early_exit`` marches in a ``while_loop`` that stops when every ray of
-the batch has found its bracket (under vmap the loop runs while any ray is still marching);
-the fixed variant is a ``fori_loop`` of exactly ``steps`` iterations.
+the height map are traced, so trying several step counts compiles once. ``early_exit`` marches
+in a ``while_loop`` that stops when every ray of the batch has found its bracket (under vmap the
+loop runs while any ray is still marching); the fixed variant is a ``fori_loop`` of exactly
+``steps`` iterations.
 
 Shading normals come from the height map's gradient (central differences, one texel apart)
 mapped to the surface frame: with P'(u, v) = P0 + h T n_r (n_r radial), the normal is

@@ -66,8 +66,8 @@ def _reach(p, ab, d, t0=None, t1=None):
 
 
 def watched_bisect(sub: Prims, g, threshold, eps, shape: Shape, disp: Displace, o, d, lo, hi, n):
-    """``n`` (traced int32, 0 allowed) halvings of [lo, hi] (g(lo) <= 0 < g(hi)), and whether [lo, final lo] may hold a
-    crossing: the bisection converges on *a* crossing of its bracket, not the first (Sec.
+    """``n`` (traced int32, 0 allowed) halvings of [lo, hi] (g(lo) <= 0 < g(hi)), and whether
+    [lo, final lo] may hold a crossing: the bisection converges on *a* crossing of its bracket, not the first (Sec.
     4.2.2). The outside ends it keeps rise, lo_0 < lo_1 < ...; on a piece [a, b] between two of
     them the field is at most the sum over the candidates of the smaller of two bounds of each
     kernel f_i: its value at its distance to the piece (:func:`_kernel_bounds`; where the
