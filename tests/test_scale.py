@@ -127,7 +127,8 @@ def test_memory_budget_shrinks_the_chunk_and_keeps_the_image():
     from jskel.config import load
     from jskel.render import render
 
-    base = ["camera.width=64", "camera.height=48", "render.chunk=2048", "render.progress=false"]
+    # block culling: the budget is the executor's, whatever the cast (the BVH's bins compile twice as long)
+    base = ["camera.width=64", "camera.height=48", "render.chunk=2048", "render.progress=false", "object.accel=blocks"]
     exp, obj = load("experiments/saguaro.yaml", base)
     plain = render(exp, obj)
     assert "memory_budget" not in plain.run and plain.run["peak_host_mb"] > 0
@@ -251,8 +252,8 @@ def test_packets_share_short_walks_on_coherent_rays_and_equal_per_ray_walks():
 
 def test_chunks_per_call_equal_one_chunk_per_call(rng):
     """``map_chunks`` with several chunks per compiled call (a loop over them, the CPU's
-    default on big batches) returns what one chunk per call returns, bit for bit: the bins cast
-    of a random tree, 20 chunks of 512 rays run as 3 calls of 8 (the last call's 4 padding
+    default on big batches) returns what one chunk per call returns, bit for bit: the block-culled
+    cast of a random tree (the conftest's padded shapes), 20 chunks of 512 rays run as 3 calls of 8 (the last call's 4 padding
     chunks skipped). Chunks per call are powers of two up to the group: a few programs for
     every batch size."""
     from conftest import batch_fn, frusta_object
@@ -264,7 +265,7 @@ def test_chunks_per_call_equal_one_chunk_per_call(rng):
     assert [calls_grouping(n, 64) for n in (7, 8, 9, 17, 33, 96)] == [1, 8, 16, 32, 64, 64]
     assert calls_grouping(20, 8) == 8 and calls_grouping(100, 1) == 1 and calls_grouping(40, 48) == 48
     j, r, p = random_tree(rng, 40)
-    built = build_skeleton(j, r, p, accel="bvh", traversal="bins")
+    built = build_skeleton(j, r, p, accel="blocks")
     n = 20 * 512 - 100
     O = rng.uniform(j.min(0) - 1.0, j.max(0) + 1.0, (n, 3))
     D = rng.normal(size=(n, 3)) + (j.mean(0) - O)

@@ -180,12 +180,26 @@ def test_tiny_sweep_writes_every_output_and_resumes(tmp_path, monkeypatch):
     assert sorted(r["setting"] for r in again) == sorted(r["setting"] for r in rows)
 
 
+# the parallel run's sweep: block culling (each worker process compiles its own programs, and the
+# BVH's compile twice as long), a traced camera value varied next to a static option
+PAR = """base: {base}
+set: [camera.width=32, camera.height=32, render.chunk=1024, object.accel=blocks]
+vary:
+  object.normals: [interpolated, geometric]
+  camera.fov_deg: [36, 40]
+reference: [object.normals=interpolated]
+metrics: [normal_deg_mean, hit_miss_pct, depth_rmse, ssim, memory_bytes]
+runs: 2
+warmup: 1
+"""
+
+
 def test_parallel_workers_measure_the_same_errors(tmp_path):
     """Two spawned worker processes measure the tiny sweep: the same settings and the same
     (deterministic) errors as one process; only the timings may differ."""
     base = ROOT / "experiments" / "saguaro.yaml"
-    seq = _write(tmp_path / "seq.yaml", TINY.format(base=base))
-    par = _write(tmp_path / "par.yaml", TINY.format(base=base) + "parallel: 2\n")
+    seq = _write(tmp_path / "seq.yaml", PAR.format(base=base))
+    par = _write(tmp_path / "par.yaml", PAR.format(base=base) + "parallel: 2\n")
     assert cli.main(["sweep", str(seq), "--out", str(tmp_path / "a")]) == 0
     assert cli.main(["sweep", str(par), "--out", str(tmp_path / "b")]) == 0
     a = {r["setting"]: r for r in _rows(tmp_path / "a" / "results.csv")}
