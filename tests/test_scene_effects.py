@@ -97,7 +97,9 @@ def radial(p, x, z, r):
 # --------------------------------------------------------------------------- two objects
 
 
-SAG = {"type": "frusta", "skeleton": {"procedural": "saguaro", "seed": 0, "scale": 0.5, "offset": [-1.8, -0.5, 0]}}
+# block culling: these tests are about the scene's integrator, and a BVH's bins program compiles
+# twice as long (scenes with a BVH object: test_mesh's mirror scene, the cacti scene experiments)
+SAG = {"type": "frusta", "skeleton": {"procedural": "saguaro", "seed": 0, "scale": 0.5, "offset": [-1.8, -0.5, 0]}, "accel": "blocks"}
 BLOB = balls(((1.4, 1.0, 0.0), 1.3), ((1.9, 1.6, 0.3), 0.9))
 CAM2 = camera((0.0, 1.5, 7.0), (0.0, 1.0, 0.0), 96, 64)
 NO_SHADOW = [{"direction": [0.4, 0.9, 0.5], "shadows": False}]
