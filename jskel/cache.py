@@ -97,6 +97,14 @@ def default_cache_dir(env=None) -> Path | None:
     return Path(base) / "jskel" / "jax"
 
 
+def data_dir(name: str, env=None) -> Path | None:
+    """The folder ``name`` of jskel's cache directory (:func:`default_cache_dir`), where
+    precomputed data are kept beside the compiled programs: ``~/.cache/jskel/jax/<name>``, or
+    under ``JSKEL_CACHE_DIR``; None with ``JSKEL_CACHE=off``. Not created here."""
+    root = default_cache_dir(env)
+    return None if root is None else root / name
+
+
 def unsafe_reason(path: Path) -> str | None:
     """Why ``path`` (an existing directory) must not hold executables this process loads: not
     a directory, owned by another user, or writable by group or others; None when it is safe."""

@@ -10,6 +10,9 @@ from __future__ import annotations
 import os
 
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(os.path.dirname(__file__), "..", ".jax_cache"))
+# jskel's own cache directory (precomputed cell objects, ``cache: auto``) in the checkout, not the
+# user's home; compiled programs stay in JAX's folder above
+os.environ.setdefault("JSKEL_CACHE_DIR", os.path.join(os.path.dirname(__file__), "..", ".jskel_cache"))
 # one CPU device, as the tests' shapes assume (jskel would otherwise make one per core; the
 # sharding tests force their own count); subprocesses inherit it
 os.environ.setdefault("JSKEL_HOST_DEVICES", "1")

@@ -431,3 +431,19 @@ def test_refraction_mode_is_the_integrators_glass_material_against_a_float64_alg
     err = np.abs(res.rgb - want_rgb).max(axis=1)[same]
     assert np.all(np.isfinite(res.rgb)) and np.mean(err) < 5e-3 and np.mean(err > 5e-2) < 0.03, (np.mean(err), np.mean(err > 5e-2))
     np.testing.assert_allclose(res.rgb[~hit & same], want_rgb[~hit & same], atol=2e-6)  # escaping camera rays see the sky
+
+
+def test_the_default_cache_lives_in_jskels_cache_directory_and_follows_its_switch(tmp_path, monkeypatch):
+    """``cache: auto`` (the default) keeps precomputed objects in the ``cells`` folder of
+    ``JSKEL_CACHE_DIR``, not under the working directory; ``JSKEL_CACHE=off`` keeps none."""
+    precompute = cells.precompute
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("JSKEL_CACHE_DIR", str(tmp_path / "jc"))
+    cfg = cells.CellsConfig.model_validate({"type": "cells", "base": {"type": "sphere", "radius": 1.0}, "tiles": 2,
+                                            "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}})
+    assert cfg.cache == "auto"
+    assert precompute(cfg).info["cache"] == "miss" and precompute(cfg).info["cache"] == "hit"
+    assert len(list((tmp_path / "jc" / "cells").glob("*.npz"))) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["jc"]  # nothing written where the process runs
+    monkeypatch.setenv("JSKEL_CACHE", "off")
+    assert precompute(cfg).info["cache"] == "off"

@@ -108,5 +108,7 @@ class CellsConfig(StrictModel):
     """Cell colours: ``worley``, or a path to a (c, c, c, 3) .npy array in [0, 1]."""
     environment: str = "sky"
     """What reflected and refracted rays see: ``sky``, or a path to an equirectangular image."""
-    cache: str | None = ".jskel_cache/cells"
-    """Folder for precomputed objects; null: none."""
+    cache: str | None = "auto"
+    """Folder for precomputed objects: ``auto``, the ``cells`` folder of jskel's cache directory
+    (``~/.cache/jskel/jax/cells``; ``JSKEL_CACHE_DIR`` moves it, ``JSKEL_CACHE=off`` turns it
+    off, as for compiled programs); a path; null: none."""

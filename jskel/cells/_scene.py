@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import checks
+from ..cache import data_dir
 from ..interface import Built, OwnMaterial, Representation
 from ..numerics import differentiable_root, safe_normalize
 from ..rays import FLAG_FLOAT_SPACING, FLAG_GRAZE, FLAG_STEP_CAP, Hit, masked_hit
@@ -107,7 +108,8 @@ def precompute(cfg: CellsConfig) -> CellObject:
     the cache folder when the same inputs were computed before."""
     inside, lo, hi, digest = base_inside(cfg)
     key = _cache_key(cfg, digest)
-    path = Path(cfg.cache) / f"{key}.npz" if cfg.cache else None
+    folder = data_dir("cells") if cfg.cache == "auto" else (Path(cfg.cache) if cfg.cache else None)
+    path = folder / f"{key}.npz" if folder is not None else None
     if path is not None and path.exists():
         z = np.load(path, allow_pickle=False)
         info = json.loads(str(z["info"]))
