@@ -19,20 +19,33 @@ from ._pack import FrustaScene, Group, Static
 from ._relief import enters_shell, make_relief_t
 
 
-def traversal_of(cfg: FrustaConfig) -> str:
-    """``object.traversal`` resolved: ``auto`` is the Pallas kernel on an accelerator and packet
-    candidate lists (``bins``) on the CPU. On the H100 at 1024x768 the kernel took 13-16 ms on
+def traversal_of(cfg: FrustaConfig, plain_segments: int) -> str:
+    """``object.traversal`` resolved: ``auto`` is the Pallas kernel on an accelerator; on the
+    CPU, packet candidate lists (``bins``) from :data:`AUTO_BINS_SEGMENTS` plain segments and
+    per-ray walks below. On the H100 at 1024x768 the kernel took 13-16 ms on
     the palm, oasis and cacti, XLA's per-ray walk over the whole frame 48-162 ms, and packets
     4.6-9.2 s (a ``lax.map`` of scalar loops is bound by launches there). On the 2-core CPU bins
     beat the BVH packets on every scene of ``experiments/bench_scale_bins.yaml`` (docs/performance.md); a
     render of ``experiments/scene_cacti.yaml`` (``--set objects.1.shape.traversal=...``), whose
     shadow and reflection rays reach the cacti too, was faster with bins as well (one warm
-    render each way, not a committed bench)."""
+    render each way, not a committed bench). Below the threshold the walks' program compiles
+    2.4-3.4 s faster and their renders lose less than that (see the constant)."""
     if cfg.traversal != "auto":
         return cfg.traversal
     if jax.default_backend() != "cpu":
         return "kernel"
-    return "bins"
+    return "bins" if plain_segments >= AUTO_BINS_SEGMENTS else "walks"
+
+
+# from this many plain segments ``auto`` picks bins on the CPU, below it the per-ray walks, whose
+# program compiles faster: the bins hold the walks (for chunks they hand back) and their own pair
+# loop. One-off, 2-core AMD EPYC, 2026-12-03 at 4394324, `jskel render EXP --set
+# object.traversal=T` at 1024x768, cold (JSKEL_CACHE=off), compile / first render in seconds,
+# bins vs walks: saguaro (30 segments) 6.27 / 0.24 vs 3.87 / 0.34; aloe (229) 6.66 / 0.27 vs
+# 3.27 / 0.56; dancing cacti (2,158) 6.21 / 0.29 vs 3.61 / 1.87; L-system tree (4,374) 6.55 / 0.15
+# vs 3.05 / 1.20. Below a thousand segments the bins' extra compile takes 12-24 frames of that
+# size to earn back (and its renders gain 0.03 s at 320x240); from two thousand, 2-4 frames.
+AUTO_BINS_SEGMENTS = 1024
 
 # below this many plain segments the block scan beat the BVH (256x192: the 8-segment well 0.11 s
 # with blocks, 0.16 s with the tree; the 30-segment saguaro 0.24 s vs 0.10 s)

@@ -71,9 +71,10 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         info = dict(info, relief_uv=rq.uv)
     static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block,
                     "none" if cfg.accel == "none" else ("bvh" if plain is not None and plain.bvh is not None else "blocks"),
-                    cfg.leaf, cfg.group, cfg.packet, traversal_of(cfg), cfg.kernel_block, cfg.kernel_warps,
+                    cfg.leaf, cfg.group, cfg.packet, traversal_of(cfg, s - relief_ids.size), cfg.kernel_block, cfg.kernel_warps,
                     (cfg.bin_packet, cfg.bin_candidates, cfg.bin_pairs, cfg.bin_group, float(cfg.bin_walk_ratio)))
-    info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size))
+    info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size),
+                accel=static.accel, traversal=static.traversal if static.accel == "bvh" else None)  # what ``auto`` chose
     return Built(scene, static, anchor, (lo, hi), info, primitives=int(s))
 
 
