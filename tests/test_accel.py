@@ -141,6 +141,41 @@ def test_bvh_and_blocks_equal_brute_force_on_random_skeletons(skeletons, accel, 
         np.testing.assert_array_equal(a.normal[same], b.normal[same])
 
 
+def _windows(rng, n):
+    """(t_min, t_max) per ray: t_min 0 or up to 2, t_max +inf for half the rays, else 0.5-4 past t_min."""
+    t_min = np.where(rng.uniform(size=n) < 0.3, 0.0, rng.uniform(0.0, 2.0, n))
+    return t_min, np.where(rng.uniform(size=n) < 0.5, np.inf, t_min + rng.uniform(0.5, 4.0, n))
+
+
+def _assert_windowed(a, b, t_min, t_max):
+    """Brute force ``a`` and a traversal ``b`` of rays with windows: every hit inside its window,
+    a miss +inf (never its t_max), the same hits as brute force."""
+    for h in (a, b):
+        hit = np.isfinite(h.t)
+        assert np.all(h.t[hit] > t_min[hit] - 1e-6) and np.all(h.t[hit] <= t_max[hit] * (1 + 1e-6))
+        assert np.all(np.isposinf(h.t[~hit])) and np.all(h.prim[~hit] == -1)
+    assert 0.05 < np.isfinite(a.t).mean() < 0.95 and np.isfinite(t_max[~np.isfinite(a.t)]).sum() > 50
+    np.testing.assert_array_equal(np.isfinite(a.t), np.isfinite(b.t))
+    hit = np.isfinite(a.t)
+    np.testing.assert_allclose(b.t[hit], a.t[hit], rtol=8 * np.finfo(np.float32).eps, atol=0)
+
+
+@pytest.mark.parametrize("traversal", ["walks", "packets", "bins"])
+def test_a_ray_whose_window_ends_before_any_segment_misses(skeletons, traversal):
+    """Random windows (t_min > 0, finite t_max) on incoherent rays: the BVH's per-ray walks and
+    packets start their best t at t_max, and once returned t_max itself for a ray that met
+    nothing (found by the conformance suite when ``auto`` began to pick the walks); bins hand
+    their overflowing chunks to the walks (``bin_walk_ratio: 1e-6``: every chunk with a candidate)."""
+    rng = np.random.default_rng(9)
+    j, r, p = skeletons[1]
+    brute = build_skeleton(j, r, p, accel="none")
+    kw = {"bin_walk_ratio": 1e-6} if traversal == "bins" else {}
+    fast = build_skeleton(j, r, p, accel="bvh", traversal=traversal, **kw)
+    O, D = ref.random_rays(rng, j.min(0) - 0.5, j.max(0) + 0.5, 2048, spread=1.0)
+    t_min, t_max = _windows(rng, len(O))
+    _assert_windowed(cast(brute, O, D, t_min, t_max), cast(fast, O, D, t_min, t_max, culled=True), t_min, t_max)
+
+
 @pytest.mark.parametrize("traversal", ["packets", "bins"])
 def test_bvh_equals_brute_force_on_the_lsystem_tree(traversal):
     """The 4,374-segment tree at 64 x 48 in screen-tile order; bins within float rounding (see
@@ -236,6 +271,10 @@ def test_pallas_kernel_walk_equals_brute_force_on_random_skeletons(skeletons, le
     fast = build_skeleton(j, r, p, accel="bvh", leaf=leaf, traversal="kernel", kernel_block=block)
     assert fast.static.traversal == "kernel"
     O, D = ref.random_rays(rng, j.min(0) - 0.5, j.max(0) + 0.5, 2048, spread=1.0)
+    # windows: half the rays end at a finite t_max, most start beyond 0 (the same program)
+    t_min, t_max = _windows(rng, len(O))
+    aw, bw = cast(brute, O, D, t_min, t_max), cast(fast, O, D, t_min, t_max, culled=True)
+    _assert_windowed(aw, bw, t_min, t_max)
     a = cast(brute, O, D)
     b = cast(fast, O, D, culled=True)
     hit = np.isfinite(a.t)

@@ -109,6 +109,12 @@ def _init(dtype):
     return Best(jnp.asarray(jnp.inf, dtype), jnp.zeros((), dtype), jnp.int32(SIDE), jnp.int32(-1))
 
 
+def miss_is_inf(t, idx):
+    """t where a segment was hit, else +inf: the walks start their best t at the ray's t_max, so a
+    ray with a finite window that meets nothing would otherwise come back with t = t_max."""
+    return jnp.where(idx >= 0, t, jnp.asarray(jnp.inf, t.dtype))
+
+
 def nearest_bvh(f: FrustaParams, fb: FrustaBVH, leaf: int, o, d, t_min, t_max):
     """(t, s, code, idx, visits, leaves) of one ray through the tree; idx indexes ``f``."""
 
@@ -116,7 +122,7 @@ def nearest_bvh(f: FrustaParams, fb: FrustaBVH, leaf: int, o, d, t_min, t_max):
         return _leaf_best(f, fb, leaf, slots, o, d, t_min, t_hi)
 
     best, visits, leaves = nearest(fb.tree, leaf_fn, leaf, o, d, t_min, t_max, _init(o.dtype))
-    return best.t, best.s, best.code, best.idx, visits, leaves
+    return miss_is_inf(best.t, best.idx), best.s, best.code, best.idx, visits, leaves
 
 
 def nearest_packets(f: FrustaParams, fb: FrustaBVH, leaf: int, packet: int, origins, directions, t_min, t_max):
@@ -130,7 +136,7 @@ def nearest_packets(f: FrustaParams, fb: FrustaBVH, leaf: int, packet: int, orig
 
     def one(xs):
         best, it = nearest_packet(fb.tree, leaf_fn, leaf, *xs, _init(origins.dtype))
-        return best.t, best.s, best.code, best.idx, jnp.broadcast_to(it, best.t.shape)
+        return miss_is_inf(best.t, best.idx), best.s, best.code, best.idx, jnp.broadcast_to(it, best.t.shape)
 
     return map_groups(lambda *xs: one(xs), g, origins, directions, t_min, t_max)
 

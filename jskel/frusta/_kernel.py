@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 
 from ..accel import descend
-from ._accel import _PACKED, FrustaBVH, packed_widths
+from ._accel import _PACKED, FrustaBVH, miss_is_inf, packed_widths
 from ._intersect import SIDE, FrustaParams, _segment_t
 
 
@@ -264,5 +264,6 @@ def nearest_kernel(f: FrustaParams, fb: FrustaBVH, leaf: int, origins, direction
     if interpret is None:
         interpret = jax.default_backend() == "cpu"
     widths = packed_widths(f)
-    return _walk(fb, origins, directions, t_min, t_max, f_shape=(widths, sum(widths)), leaf=leaf,
-                 block=block, num_warps=num_warps, interpret=interpret)
+    t, *rest = _walk(fb, origins, directions, t_min, t_max, f_shape=(widths, sum(widths)), leaf=leaf,
+                     block=block, num_warps=num_warps, interpret=interpret)
+    return (miss_is_inf(t, rest[2]), *rest)
