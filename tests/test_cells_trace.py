@@ -447,3 +447,32 @@ def test_the_default_cache_lives_in_jskels_cache_directory_and_follows_its_switc
     assert sorted(p.name for p in tmp_path.iterdir()) == ["jc"]  # nothing written where the process runs
     monkeypatch.setenv("JSKEL_CACHE", "off")
     assert precompute(cfg).info["cache"] == "off"
+
+
+def test_another_sample_cap_or_bisection_count_casts_without_a_program(obj):
+    """The sample cap and the bisection count are values (``CellParams``): the fixture's object
+    with 2 halvings, 12 halvings and a cap of 8 samples casts through the program its first cast
+    compiled (nothing handed to XLA), and each runs its own count. A hit's t is the inside end of
+    the last bracket, so the same linear steps give the same hits, and 12 halvings land at or
+    before 2 halvings' t, within that bracket (h / 4, h the linear step), and nearer on most
+    rays; a cap of 8 samples stops rays that need more (STEP_CAP), which the default cap does not."""
+    from jskel.cache import count_programs, program_counts
+    from jskel.rays import FLAG_STEP_CAP
+
+    tmp, built, O, D = obj
+    variants = [cells.build(cell_cfg(tmp, **kw)) for kw in ({"bisection": 2}, {"bisection": 12}, {"max_steps": 8})]
+    base, _ = trace(built, O, D)
+    count_programs()
+    before = program_counts()
+    (h2, _), (h12, _), (hc, _) = (trace(b, O, D) for b in variants)
+    after = program_counts()
+    assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]
+    np.testing.assert_array_equal(np.isfinite(h2.t), np.isfinite(h12.t))
+    both = np.isfinite(h2.t)
+    assert both.mean() > 0.2
+    h = float(built.params.step) * float(built.params.size)  # |D| = 1
+    gap = h2.t[both].astype(np.float64) - h12.t[both]
+    assert np.all(gap >= -1e-6 * h) and np.all(gap <= h / 4 * (1 + 1e-3)) and np.mean(gap > 1e-3 * h) > 0.5
+    capped = (np.asarray(hc.flags) & FLAG_STEP_CAP) != 0
+    assert capped.sum() > 20 and not np.any((np.asarray(base.flags) & FLAG_STEP_CAP) != 0)
+    assert np.all(~np.isfinite(hc.t[capped]))

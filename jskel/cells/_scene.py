@@ -193,8 +193,9 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
         jnp.asarray(obj.size, dtype), jnp.asarray(1.0 / cfg.steps_per_tile, dtype),
         jnp.asarray(obj.offsets.astype(np.int32)), jnp.asarray(obj.split_cell.astype(np.int32)),
         jnp.asarray(environment_map(cfg.environment), dtype), jnp.asarray(cfg.ior, dtype), jnp.asarray(cfg.reflectivity, dtype),
+        jnp.asarray(cfg.max_steps, jnp.int32), jnp.asarray(cfg.bisection, jnp.int32),
     )
-    static = Static(TraceOptions(cfg.max_steps, cfg.bisection, cfg.skip), cfg.mode == "refraction")
+    static = Static(TraceOptions(cfg.skip), cfg.mode == "refraction")
     info = dict(obj.info)
     info["words_per_tile"] = words_for(slots)
     tol = float(obj.size / cfg.steps_per_tile * 0.5**cfg.bisection)  # the last bisection bracket's width
@@ -252,7 +253,7 @@ def intersect_one(p: CellParams, static: Static, origin, direction, t_min, t_max
     t = jnp.where(jnp.isfinite(m.t), differentiable_root(g, jnp.where(jnp.isfinite(m.t), m.t, 0.0)), m.t)
     x_in = origin + jnp.where(jnp.isfinite(t), t, 0.0) * direction
     cid = cell_id(p, jnp.where(leaving, x_cell, x_in))
-    capped = (~m.found) & (m.steps >= static.options.steps)  # stopped by max_steps: counted, not silent
+    capped = (~m.found) & (m.steps >= p.max_steps)  # stopped by max_steps: counted, not silent
     flags = jnp.where(capped, FLAG_STEP_CAP, 0) | jnp.where(m.floored, FLAG_FLOAT_SPACING, 0) | jnp.where(m.stepped, FLAG_GRAZE, 0)
     return masked_hit(t, x_in, n, jnp.zeros((2,), origin.dtype), cid, flags)
 
@@ -289,9 +290,12 @@ def environment(env: jnp.ndarray, d):
 
 def traced_fields(p: CellParams) -> dict:
     """What ``interface.checked_intersect`` verifies of a traced cell object's placement: its
-    corner ``lo`` finite, its tile edge ``size`` and search ``step`` positive."""
+    corner ``lo`` finite, its tile edge ``size``, search ``step`` and sample cap positive, its
+    bisection count not negative."""
     return {"lo": (jnp.reshape(p.lo, (1, 3)), "finite", None, None), "size": (jnp.reshape(p.size, (1,)), "positive", None, None),
-            "step": (jnp.reshape(p.step, (1,)), "positive", None, None)}
+            "step": (jnp.reshape(p.step, (1,)), "positive", None, None),
+            "max_steps": (jnp.reshape(p.max_steps, (1,)), "positive", None, None),
+            "bisection": (jnp.reshape(p.bisection, (1,)), "nonnegative", None, None)}
 
 
 @final

@@ -41,7 +41,9 @@ TILE_ALL_INSIDE = 2
 
 
 class CellParams(NamedTuple):
-    """Device arrays of a cell object: tile map of split cells, packed memberships, tile flags, normal and colour maps, placement, step, offsets, environment, ior, reflectivity."""
+    """Device arrays of a cell object: tile map of split cells, packed memberships, tile flags,
+    normal and colour maps, placement, step, offsets, environment, ior, reflectivity, and the
+    search's sample cap and bisection count (traced: a sweep over them compiles one program)."""
 
     split: jnp.ndarray  # (r,r,r) int32 split index, 0 empty space
     words: jnp.ndarray  # (N,N,N,W) uint32 packed membership
@@ -56,13 +58,14 @@ class CellParams(NamedTuple):
     env: jnp.ndarray  # (H,W,3) equirectangular environment, (1,1,3): procedural sky
     ior: jnp.ndarray  # () index of refraction of the inside cells
     reflectivity: jnp.ndarray  # () mirror weight k of the reflection mode
+    max_steps: jnp.ndarray  # () int32 cap on linear-search samples per ray segment
+    bisection: jnp.ndarray  # () int32 halvings of the last bracket (Alg. 3.1 rows 19-28)
 
 
 class TraceOptions(NamedTuple):
-    """Static options of the linear + binary search (Alg. 3.1): sample cap, bisection steps, tile skipping."""
+    """Static option of the linear + binary search (Alg. 3.1): tile skipping. The sample cap and
+    the bisection count are values in :class:`CellParams`."""
 
-    steps: int = 4096  # cap on linear-search samples per ray segment
-    bisection: int = 10
     skip: bool = True  # empty / full tile skipping
 
 
@@ -170,14 +173,16 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
 
     def cond(st):
         k, found, evals = st[:3]
-        return (~found) & (evals < opt.steps) & (t_start + k.astype(o.dtype) * h <= t_end)
+        return (~found) & (evals < p.max_steps) & (t_start + k.astype(o.dtype) * h <= t_end)
 
     false, zero = jnp.asarray(False), jnp.int32(0)
     k, found, evals, stepped, _, _, _ = jax.lax.while_loop(cond, body, (zero, false, zero, false, zero, zero, false))
     t_in = t_start + k.astype(o.dtype) * h
     t_prev = jnp.where(k > 0, t_start + (k - 1).astype(o.dtype) * h, t_start)
 
-    a, b = _bisect(lambda t: is_target(t)[0], t_prev, t_in, opt.bisection)
+    # the march's t carries no derivative (the surface's comes from the crossed voxel face,
+    # ``differentiable_root``), and a loop of a traced length cannot be reversed
+    a, b = _bisect(lambda t: is_target(t)[0], *jax.lax.stop_gradient((t_prev, t_in)), p.bisection)
     inf = jnp.asarray(jnp.inf, o.dtype)
     return March(jnp.where(found, b, inf), jnp.where(found, a, inf), evals, found, floored, stepped)
 
@@ -192,15 +197,16 @@ def _step(p: CellParams, o, d, t_start, t_end):
     return jnp.maximum(h0, floor), floor > h0
 
 
-def _bisect(is_target, a, b, n: int):
-    """``n`` bisection steps of [a, b] (b a target, a not): the last non-target and target t."""
+def _bisect(is_target, a, b, n):
+    """``n`` (traced int32, 0 allowed) bisection steps of [a, b] (b a target, a not): the last
+    non-target and target t."""
     def bis(_, lh):
         a, b = lh
         mid = 0.5 * (a + b)
         hit = is_target(mid)
         return jnp.where(hit, a, mid), jnp.where(hit, mid, b)
 
-    return jax.lax.fori_loop(0, n, bis, (a, b)) if n else (a, b)
+    return jax.lax.fori_loop(0, n, bis, (a, b))
 
 
 class VoxelRay(NamedTuple):
