@@ -29,7 +29,7 @@ def traversal_of(cfg: FrustaConfig, plain_segments: int) -> str:
     render of ``experiments/scene_cacti.yaml`` (``--set objects.1.shape.traversal=...``), whose
     shadow and reflection rays reach the cacti too, was faster with bins as well (one warm
     render each way, not a committed bench). Below the threshold the walks' program compiles
-    2.4-3.4 s faster and their renders lose less than that (see the constant)."""
+    3 s faster and their renders are at most a few times slower (see the constant)."""
     if cfg.traversal != "auto":
         return cfg.traversal
     if jax.default_backend() != "cpu":
@@ -38,14 +38,14 @@ def traversal_of(cfg: FrustaConfig, plain_segments: int) -> str:
 
 
 # from this many plain segments ``auto`` picks bins on the CPU, below it the per-ray walks, whose
-# program compiles faster: the bins hold the walks (for chunks they hand back) and their own pair
-# loop. One-off, 2-core AMD EPYC, 2026-12-03 at 4394324, `jskel render EXP --set
-# object.traversal=T` at 1024x768, cold (JSKEL_CACHE=off), compile / first render in seconds,
-# bins vs walks: saguaro (30 segments) 6.27 / 0.24 vs 3.87 / 0.34; aloe (229) 6.66 / 0.27 vs
-# 3.27 / 0.56; dancing cacti (2,158) 6.21 / 0.29 vs 3.61 / 1.87; L-system tree (4,374) 6.55 / 0.15
-# vs 3.05 / 1.20. Below a thousand segments the bins' extra compile takes 12-24 frames of that
-# size to earn back (and its renders gain 0.03 s at 320x240); from two thousand, 2-4 frames.
-AUTO_BINS_SEGMENTS = 1024
+# program compiles faster (the bins hold the walks, for chunks they hand back, and their own
+# pair loop). `python -m jskel bench experiments/bench_frusta.yaml` at 1024x768, warm medians of
+# 5, compile apart, 2-core AMD EPYC, 2026-12-03, one run each way at 4cbc63e (`--set
+# 'set=[object.traversal=bins]'` for bins), compile / render in seconds: saguaro (30 segments)
+# bins 6.19 / 0.071, walks 3.21 / 0.170; aloe (229) bins 6.85 / 0.069, walks 3.15 / 0.479. The
+# bins' extra compile takes 30 such frames to earn back on the saguaro (walks 2.4x slower), 9 on
+# the aloe, where the walks are 7x slower: the line is drawn between them.
+AUTO_BINS_SEGMENTS = 64
 
 # below this many plain segments the block scan beat the BVH (256x192: the 8-segment well 0.11 s
 # with blocks, 0.16 s with the tree; the 30-segment saguaro 0.24 s vs 0.10 s)
