@@ -177,12 +177,7 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
 
     false, zero = jnp.asarray(False), jnp.int32(0)
     k, found, evals, stepped, _, _, _ = jax.lax.while_loop(cond, body, (zero, false, zero, false, zero, zero, false))
-    t_in = t_start + k.astype(o.dtype) * h
-    t_prev = jnp.where(k > 0, t_start + (k - 1).astype(o.dtype) * h, t_start)
-
-    # the march's t carries no derivative (the surface's comes from the crossed voxel face,
-    # ``differentiable_root``), and a loop of a traced length cannot be reversed
-    a, b = _bisect(lambda t: is_target(t)[0], *jax.lax.stop_gradient((t_prev, t_in)), p.bisection)
+    a, b = _refine(lambda t: is_target(t)[0], t_start, k, h, p.bisection)
     inf = jnp.asarray(jnp.inf, o.dtype)
     return March(jnp.where(found, b, inf), jnp.where(found, a, inf), evals, found, floored, stepped)
 
@@ -195,6 +190,15 @@ def _step(p: CellParams, o, d, t_start, t_end):
     far = jnp.maximum(jnp.abs(t_start), jnp.where(jnp.isfinite(t_end), jnp.abs(t_end), 0.0))
     floor = ulp_floor(far, safe_div(jnp.max(jnp.abs(o)), dn, 0.0))
     return jnp.maximum(h0, floor), floor > h0
+
+
+def _refine(is_target, t_start, k, h, n):
+    """The last linear bracket [t_(k-1), t_k] ([t_start, t_start] at k = 0) after ``n`` halvings
+    (:func:`_bisect`). The march's t carries no derivative (the surface's comes from the crossed
+    voxel face, ``differentiable_root``), and a loop of a traced length cannot be reversed."""
+    t_in = t_start + k.astype(h.dtype) * h
+    t_prev = jnp.where(k > 0, t_start + (k - 1).astype(h.dtype) * h, t_start)
+    return _bisect(is_target, *jax.lax.stop_gradient((t_prev, t_in)), n)
 
 
 def _bisect(is_target, a, b, n):
