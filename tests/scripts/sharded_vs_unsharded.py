@@ -21,7 +21,7 @@ from jskel.render import render
 cases = {
     # 2 chunks per call on both sides (16 chunks of 75 on one device, 4 per device on four): with
     # 4 devices each call's chunks are dealt out in turn (call_layout.call_rays)
-    "frusta_bvh_grouped": ("experiments/aloe.yaml", ["render.chunk=75", "render.chunks_per_call=2"]),
+    "frusta_bvh_grouped": ("experiments/saguaro.yaml", ["render.chunk=75", "render.chunks_per_call=2", "object.accel=bvh"]),
     "implicit_blocks": ("experiments/blobs_5000.yaml", []),
     "cells_reflection": ("experiments/torus_cells_reflection.yaml", [f"object.cache={sys.argv[1]}", "object.tiles=6",
                                                                      "object.tile_map.resolution=16"]),
@@ -44,8 +44,8 @@ from jskel import registry  # noqa: E402
 from jskel.measure.cast import cast_resident, resident_rays  # noqa: E402
 from jskel.camera import tile_inverse  # noqa: E402
 
-exp, obj = config.load("experiments/aloe.yaml", ["camera.width=40", "camera.height=30", "render.chunk=150", "render.devices=all"])
-want = render(*config.load("experiments/aloe.yaml", ["camera.width=40", "camera.height=30", "render.chunk=150", "render.devices=one"]),
+exp, obj = config.load("experiments/saguaro.yaml", ["camera.width=40", "camera.height=30", "render.chunk=150", "render.devices=all"])
+want = render(*config.load("experiments/saguaro.yaml", ["camera.width=40", "camera.height=30", "render.chunk=150", "render.devices=one"]),
               progress=False).hits
 built = registry.get(obj.type).build(obj, np.float32)
 chunks = resident_rays(exp, built)
