@@ -176,6 +176,8 @@ def test_bench_cost_against_size_writes_rows_with_traversal_counts_and_a_plot(tm
     assert cli.main(["bench", str(spec), "--out", str(out)]) == 0
     rows = [json.loads(x) for x in out.read_text().splitlines()]
     assert [r["primitives"] for r in rows] == [30, 480]
+    # each row says what its compile_s was (each size is a new program: compiled, or loaded from a cache)
+    assert all(sum(r["programs"].values()) >= 1 for r in rows)
     assert rows[0]["run"]["command"] == f"python -m jskel bench {spec} --out {out}"  # as typed, in every row
     assert out.with_suffix(".png").exists()
     for k, r in zip((1, 4), rows):

@@ -17,6 +17,7 @@ from typing import Annotated, Any, Literal, NamedTuple
 from pydantic import Field
 
 from .. import registry
+from ..cache import count_programs, program_counts
 from ..config import ConfigError, StrictModel, chunk_of, read_yaml
 from ..fit import FitBenchFile, run_fit_bench
 from ..peers.studies import STUDIES, StudyOptions
@@ -96,6 +97,8 @@ class Group(NamedTuple):
 def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
     """Render once (compiles; its compile seconds are kept), ``warmup - 1`` more, then ``runs``
     timed renders (``timing.render_runs``). Returns (row, first result)."""
+    count_programs()
+    before = program_counts()
     first, warm = render_runs(exp, obj, runs, warmup)
     s = spread([w["render_s"] for w in warm])
     r = first.run
@@ -105,6 +108,12 @@ def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
            "runs": runs, "mrays_per_s": round(r["rays"] / s.median / 1e6, 4), "hit_fraction": round(r["hit_fraction"], 4),
            "device": r["device"], "jax": r["jax"], "jskel": r["jskel"]}
     # the build of warm runs (the first also compiles the jitted BVH build for new shapes)
+    # what the first render's compile_s was: programs XLA compiled, programs JAX's persistent
+    # cache served, executables loaded from disk (with none compiled it was a load: run the
+    # bench with JSKEL_CACHE=off to time compiles)
+    got = r["programs"]
+    row["programs"] = {"compiled": got["compiled"] - before["compiled"], "loaded": got["loaded"] - before["loaded"],
+                       "executables_loaded": got["executables"]["loaded"] - before["executables"]["loaded"]}
     row["build_s"] = round(spread([w["build_s"] for w in warm]).median, 4)
     row["build_first_s"] = round(r["build_s"], 4)
     row["us_per_ray"] = round(s.median / r["rays"] * 1e6, 4)
