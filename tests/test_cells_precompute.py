@@ -170,3 +170,23 @@ def test_mesh_implicit_and_frusta_base_shapes_match_their_closed_forms(tmp_path,
     diff = present & (got != want)
     assert np.all((got[diff] == INTERSECTED) | (want[diff] == INTERSECTED))  # never inside vs outside
     assert np.sum(want == INSIDE) > 50
+
+
+@pytest.mark.parametrize("base", [{"type": "torus", "major": 1.0, "minor": 0.45, "center": [0.3, -0.2, 0.1]},
+                                  {"type": "sphere", "radius": 0.8, "center": [0.0, 0.5, -0.25]}], ids=["torus", "sphere"])
+def test_analytic_base_shapes_give_the_memberships_of_their_point_tests(base):
+    """The torus and the sphere test their voxels as three broadcast axes (``AxisInside``, no
+    (B, r^3, 3) points): the memberships equal, code for code, those of this file's own point
+    tests of the same shapes through ``membership``, on the object's own box."""
+    got, obj = _codes(base, tiles=6)
+    c = np.asarray(base["center"])
+    if base["type"] == "torus":
+        def truth(p):
+            return torus_inside(p - c, base["major"], base["minor"])
+    else:
+        def truth(p):
+            return np.sum((p - c) ** 2, 1) < base["radius"] ** 2
+    sc = split_cells(voronoi_tile(16, 8, 1))
+    want = unpack(membership(sc, part_offsets(sc, part_links(sc)), truth, obj.lo, obj.size, 6, coarse=2).words, 64)
+    assert np.sum(want == INSIDE) > 20 and np.sum(want == INTERSECTED) > 20
+    np.testing.assert_array_equal(got, want)

@@ -28,20 +28,35 @@ def base_inside(cfg: CellsConfig) -> tuple[Callable, np.ndarray, np.ndarray, str
     return _object_inside(b, c)
 
 
+class AxisInside:
+    """An inside test written over coordinates that broadcast (``xyz(x, y, z) -> bool``), and
+    callable as every base shape's test is, on points (M, 3). The precompute's voxel work passes
+    a batch of tiles' voxel centres as three axes, (B, r, 1, 1), (B, 1, r, 1) and (B, 1, 1, r),
+    instead of the (B, r^3, 3) points: the same float64 operations on the same values, so the
+    same flags, without the points (on the 32^3-tile torus at 32^3 voxels a tile, the points and
+    the test on them took 12 of the precompute's 15 s)."""
+
+    def __init__(self, xyz: Callable):
+        self.xyz = xyz
+
+    def __call__(self, p):
+        return self.xyz(p[:, 0], p[:, 1], p[:, 2])
+
+
 def _analytic_inside(b, c: np.ndarray):
     """:func:`base_inside` of a torus (about the y axis) or a sphere centred at ``c``."""
     if b.type == "torus":
-        def inside(p):
-            q = np.hypot(p[:, 0] - c[0], p[:, 2] - c[2]) - b.major
-            return q * q + (p[:, 1] - c[1]) ** 2 < b.minor * b.minor
+        def torus(x, y, z):
+            q = np.hypot(x - c[0], z - c[2]) - b.major
+            return q * q + (y - c[1]) ** 2 < b.minor * b.minor
 
         ext = np.array([b.major + b.minor, b.minor, b.major + b.minor])
-        return inside, c - ext, c + ext, ""
+        return AxisInside(torus), c - ext, c + ext, ""
 
-    def inside(p):
-        return np.sum((p - c) ** 2, 1) < b.radius * b.radius
+    def sphere(x, y, z):
+        return (x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2 < b.radius * b.radius
 
-    return inside, c - b.radius, c + b.radius, ""
+    return AxisInside(sphere), c - b.radius, c + b.radius, ""
 
 
 def _mesh_voxels_inside(b, c: np.ndarray):

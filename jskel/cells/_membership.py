@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..progress import bar as progress_bar
+from ._base import AxisInside
 from ._tiles import SplitCells
 
 OUTSIDE, INSIDE, INTERSECTED, UNSET = 0, 1, 2, 3
@@ -156,8 +157,13 @@ def _measure_batch(act, i: int, batch: int, lo, size: float, res: int, inside: C
     ``batch`` by repeating the last, so one program serves every batch), into ``mins``/``maxs``."""
     idx = act[i : i + batch]
     pad = batch - len(idx)
-    pts = tile_points(lo, size, np.concatenate([idx, np.repeat(idx[-1:], pad, 0)]), res)
-    flags = np.asarray(inside(pts.reshape(-1, 3))).reshape(batch, -1)
+    tiles = np.concatenate([idx, np.repeat(idx[-1:], pad, 0)])
+    if isinstance(inside, AxisInside):  # the voxel centres as three axes (B, r) that broadcast
+        g = (np.arange(res) + 0.5) / res
+        x, y, z = (np.asarray(lo)[a] + (tiles[:, a, None] + g[None, :]) * size for a in range(3))
+        flags = np.asarray(inside.xyz(x[:, :, None, None], y[:, None, :, None], z[:, None, None, :])).reshape(batch, -1)
+    else:
+        flags = np.asarray(inside(tile_points(lo, size, tiles, res).reshape(-1, 3))).reshape(batch, -1)
     mn, mx = _part_min_max(jnp.asarray(flags), split_flat, slot_ids)
     mins[i : i + len(idx)] = np.asarray(mn)[: len(idx)]
     maxs[i : i + len(idx)] = np.asarray(mx)[: len(idx)]
