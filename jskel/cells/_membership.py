@@ -141,15 +141,17 @@ def _ring(active: np.ndarray) -> np.ndarray:
 
 @jax.jit
 def _part_min_max(flags, split, slots):
-    """Per tile (B, r^3) bool flags and the tile's split map (r^3,) -> min, max per slot (B, S)
-    (-1 / 2 for absent slots), as one segment reduction over (tile, slot)."""
-    b = flags.shape[0]
-    s = slots.shape[0]
-    seg = (jnp.arange(b)[:, None] * (s + 1) + split[None, :]).reshape(-1)
-    f = flags.reshape(-1).astype(jnp.int32)
-    mn = jax.ops.segment_min(f, seg, num_segments=b * (s + 1)).reshape(b, s + 1)[:, 1:]
-    mx = jax.ops.segment_max(f, seg, num_segments=b * (s + 1)).reshape(b, s + 1)[:, 1:]
-    return mn, mx
+    """Per tile (B, r^3) bool flags and the tile's split map (r^3,) -> min, max of the flag per
+    slot (B, S), from the count of inside voxels of each slot: one (B, r^3) x (r^3, S) product
+    with the slots' indicator (integer counts below 2^24, exact in float32 in any order of
+    summation); min is 1 where every voxel of the slot is inside, max 1 where any is (an absent
+    slot, which the caller masks, reads min 1, max 0). Against a segment min / max over (tile,
+    slot), the 32^3-tile torus' membership took 1.9 s instead of 2.6 s (one-off, 2026-12-03,
+    2-core AMD EPYC)."""
+    indicator = (split[:, None] == (slots[None, :] + 1)).astype(jnp.float32)
+    count = jnp.dot(flags.astype(jnp.float32), indicator, precision=jax.lax.Precision.HIGHEST)
+    size = jnp.sum(indicator, 0)
+    return (count == size[None, :]).astype(jnp.int32), (count > 0).astype(jnp.int32)
 
 
 def _measure_batch(act, i: int, batch: int, lo, size: float, res: int, inside: Callable, split_flat, slot_ids, mins, maxs):
