@@ -83,11 +83,19 @@ class Membership(NamedTuple):
     coarse_tested: int  # inside tests of the coarse classification
 
 
-def tile_points(lo, size, tiles_idx: np.ndarray, res: int) -> np.ndarray:
-    """World voxel centres (B, r^3, 3) of the tiles at integer coordinates ``tiles_idx`` (B,3)."""
+def tile_axes(lo, size, tiles_idx: np.ndarray, res: int) -> tuple:
+    """The world voxel-centre coordinates of the tiles at integer coordinates ``tiles_idx``
+    (B, 3), one axis each, shaped to broadcast: x (B, r, 1, 1), y (B, 1, r, 1), z (B, 1, 1, r)."""
     g = (np.arange(res) + 0.5) / res
-    local = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
-    return np.asarray(lo) + (tiles_idx[:, None, :] + local[None]) * size
+    x, y, z = (np.asarray(lo)[a] + (tiles_idx[:, a, None] + g[None, :]) * size for a in range(3))
+    return x[:, :, None, None], y[:, None, :, None], z[:, None, None, :]
+
+
+def tile_points(lo, size, tiles_idx: np.ndarray, res: int) -> np.ndarray:
+    """World voxel centres (B, r^3, 3) of the tiles at ``tiles_idx`` (B, 3): :func:`tile_axes`
+    broadcast together, x slowest."""
+    axes = np.broadcast_arrays(*tile_axes(lo, size, tiles_idx, res))
+    return np.stack(axes, -1).reshape(len(tiles_idx), -1, 3)
 
 
 def classify_tiles(inside: Callable, lo, size: float, n: int, coarse: int):
@@ -160,10 +168,8 @@ def _measure_batch(act, i: int, batch: int, lo, size: float, res: int, inside: C
     idx = act[i : i + batch]
     pad = batch - len(idx)
     tiles = np.concatenate([idx, np.repeat(idx[-1:], pad, 0)])
-    if isinstance(inside, AxisInside):  # the voxel centres as three axes (B, r) that broadcast
-        g = (np.arange(res) + 0.5) / res
-        x, y, z = (np.asarray(lo)[a] + (tiles[:, a, None] + g[None, :]) * size for a in range(3))
-        flags = np.asarray(inside.xyz(x[:, :, None, None], y[:, None, :, None], z[:, None, None, :])).reshape(batch, -1)
+    if isinstance(inside, AxisInside):  # the voxel centres as three axes that broadcast
+        flags = np.asarray(inside.xyz(*tile_axes(lo, size, tiles, res))).reshape(batch, -1)
     else:
         flags = np.asarray(inside(tile_points(lo, size, tiles, res).reshape(-1, 3))).reshape(batch, -1)
     mn, mx = _part_min_max(jnp.asarray(flags), split_flat, slot_ids)
