@@ -348,11 +348,13 @@ def test_render_counts_relief_rays_that_cannot_decide(tmp_path, rng):
     assert res.run["flags"]["graze"] == int(np.sum((flags & FLAG_GRAZE) != 0))
 
 
-def test_another_step_count_renders_without_a_program_and_marches_as_many_steps(tmp_path):
-    """The step count is a traced value (``ReliefMaps.steps``): a render at 3 steps, then at 64
-    hands XLA no program, and each render's depth is its own step count's march: its t equals
-    the cast of the camera's rays through an object built with that count (within rounding), and the two counts
-    differ on some pixels (1-texel spikes, which 3 steps step over)."""
+def test_another_step_or_bisection_count_renders_without_a_program_and_marches_as_many(tmp_path):
+    """The step and bisection counts are traced values (``ReliefMaps.steps``, ``.bisection``): a
+    render at 3 steps and 8 halvings, then at 64 steps, then at 64 steps and no halving hands XLA
+    no program after the first, and each render's depth is its own counts' march: its t equals
+    the cast of the camera's rays through an object built with those counts (within rounding);
+    3 and 64 steps differ on some pixels (1-texel spikes, which 3 steps step over), and so do 8
+    halvings and none (the hit moves within the march's bracket)."""
     import imageio.v3 as iio
 
     from jskel.cache import count_programs, program_counts
@@ -365,19 +367,40 @@ def test_another_step_count_renders_without_a_program_and_marches_as_many_steps(
     skel = {"joints": [[0, 0, 0], [0, 2, 0]], "radii": [0.5, 0.5], "parents": [-1, 0]}
     cam = {"eye": [0.0, 1.0, 4.0], "target": [0.0, 1.0, 0.0], "up": [0.0, 1.0, 0.0], "fov_deg": 40, "width": 16, "height": 12}
     ts = []
-    for steps in (3, 64):
-        relief = {"map": str(tmp_path / "h.png"), "thickness": 0.2, "steps": steps, "bisection": 8, "scale": [1, 1]}
+    for steps, bisection in ((3, 8), (64, 8), (64, 0)):
+        relief = {"map": str(tmp_path / "h.png"), "thickness": 0.2, "steps": steps, "bisection": bisection, "scale": [1, 1]}
         exp, obj = validate({"object": {"type": "frusta", "skeleton": skel, "relief": relief}, "camera": cam})
         count_programs()
         before = program_counts()
         res = render(exp, obj)
         after = program_counts()
-        if steps == 64:
+        if ts:
             assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]
         O, D = camera_of(exp).ray_arrays()
-        b = build_relief(tmp_path, img, skel["joints"], skel["radii"], skel["parents"], thickness=0.2, steps=steps, bisection=8, scale=[1, 1])
+        b = build_relief(tmp_path, img, skel["joints"], skel["radii"], skel["parents"], thickness=0.2, steps=steps, bisection=bisection,
+                         scale=[1, 1])
         t, want = np.asarray(res.hits.t, np.float64).reshape(-1), cast(b, O, D, culled=True).t
         np.testing.assert_array_equal(np.isfinite(t), np.isfinite(want))
         np.testing.assert_allclose(t[np.isfinite(t)], want[np.isfinite(t)], rtol=1e-6)  # (two programs: rounding apart)
         ts.append(t)
-    assert np.any(ts[0] != ts[1])
+    assert np.any(ts[0] != ts[1]) and np.any(ts[1] != ts[2])
+
+
+def test_a_bad_traced_step_or_bisection_count_is_named(tmp_path):
+    """``checked_intersect``'s checks (``interface._problems``, the fields a checked program
+    verifies) name a relief step count below 1 and a negative bisection count with its value."""
+    import jax.numpy as jnp
+
+    from jskel.checks import checked
+    from jskel.interface import Object, _problems
+    from jskel.rays import make_rays
+
+    b = build_relief(tmp_path, np.zeros((MAP, MAP)), *SEG, thickness=0.1, steps=8, bisection=4)
+    rays = make_rays(np.zeros((4, 3)), np.tile([0.0, 0.0, 1.0], (4, 1)))
+    only_checks = checked(lambda obj, r: jnp.zeros(()), _problems)
+    only_checks(Object(b.params, b.static, "frusta"), rays)  # good values: nothing raised
+    maps = b.params.maps._replace(steps=jnp.int32(0), bisection=jnp.int32(-1))
+    with pytest.raises(ValueError) as e:
+        only_checks(Object(b.params._replace(maps=maps), b.static, "frusta"), rays)
+    assert e.value.lines == ["relief.steps[0]: not positive (got 0); 1 of 1 entries",
+                             "relief.bisection[0]: negative (got -1); 1 of 1 entries"]

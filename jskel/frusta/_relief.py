@@ -15,8 +15,8 @@ surface where w <= h(u, v). (u, v) per sample either way the paper gives:
 * ``approximate`` (default): u from the angle, v interpolated linearly between the exact v at
   the ends of the interval. The paper notes this is exact when the cutting planes are parallel.
 
-The bisection count is static (it shapes the program); the step count, thickness, tiling and
-the height map are traced, so trying several step counts compiles once. ``early_exit`` marches
+The step count, the bisection count, thickness, tiling and the height map are traced, so trying
+several step or bisection counts compiles once. ``early_exit`` marches
 in a ``while_loop`` that stops when every ray of the batch has found its bracket (under vmap the
 loop runs while any ray is still marching); the fixed variant is a ``fori_loop`` of exactly
 ``steps`` iterations.
@@ -49,13 +49,15 @@ class ReliefMaps(NamedTuple):
     """height: (H, W) uint8 (8-bit storage, Sec. 4); scale: (2,) repeats per unit u and v;
     slope: (2,) the largest change of the bilinear height per texel along x and along y
     (:func:`texel_slopes`), the bound the march's ``graze`` test needs; steps: () int32, the
-    march's uniform samples (Sec. 3), a traced value, so a sweep over steps or a notebook that
-    tries several compiles one program."""
+    march's uniform samples (Sec. 3); bisection: () int32, the halvings of the bracket the march
+    found (Sec. 3's bisectional search). Both are traced values, so a sweep over either or a
+    notebook that tries several compiles one program."""
 
     height: jnp.ndarray
     scale: jnp.ndarray
     slope: jnp.ndarray
     steps: jnp.ndarray
+    bisection: jnp.ndarray
 
 
 def texel_slopes(height) -> np.ndarray:
@@ -67,10 +69,9 @@ def texel_slopes(height) -> np.ndarray:
 
 
 class ReliefQuality(NamedTuple):
-    """Static march options (changing one recompiles; the step count is a value,
-    ``ReliefMaps.steps``)."""
+    """Static march options (changing one recompiles; the step and bisection counts are values,
+    ``ReliefMaps.steps`` and ``ReliefMaps.bisection``)."""
 
-    bisection: int = 6
     uv: str = "approximate"  # or "exact"
     early_exit: bool = False
     v_mode: str = "wrap"  # or "clamp"
@@ -179,7 +180,7 @@ def _relief_t(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, o, d, t_min
     interval in the shell (:func:`_shell_window`), marched (:func:`_march`) and bisected
     (:func:`_bisect`) for its first crossing of the relief surface; t inf where it has none in
     (t_min, t_max]; t_undecided as :func:`make_relief_t` says."""
-    n_steps, n_bis = maps.steps, int(q.bisection)
+    n_steps, n_bis = maps.steps, maps.bisection
     inf = jnp.asarray(jnp.inf, o.dtype)
     t0, e, s_a, s_b, ok, entry, from_outside = _shell_window(seg, o, d, t_min, t_max)
     sample = _sampler(maps, q, seg, e, d, s_a, s_b)
@@ -197,8 +198,7 @@ def _relief_t(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, o, d, t_min
     hit_at_entry = from_outside & b0
     period = maps.scale[0] * maps.height.shape[1]
     found, lo, hi, s_und = _march(sample, maps.slope, period, inside0, hit_at_entry, first, s_a, s_b, n_steps, q.early_exit)
-    if n_bis > 0:
-        lo, hi = _bisect(below, inside0, lo, hi, n_bis)
+    lo, hi = _bisect(below, inside0, lo, hi, n_bis)
     # the crossing found by the march and bisection, differentiable by the implicit-function
     # theorem (numerics.differentiable_root); an entry hit is the shell's own analytic root
     s_hit = jnp.where(hit_at_entry, s_a, differentiable_root(gap, 0.5 * (lo + hi)))
@@ -328,9 +328,11 @@ def _march(sample, slope, period, inside0, hit_at_entry, first, s_a, s_b, n_step
     return found, lo, hi, s_und
 
 
-def _bisect(below, inside0, lo, hi, n_bis: int):
-    """The bracket [lo, hi] halved ``n_bis`` times, keeping the half where ``below`` changes
-    (Sec. 3's bisectional search)."""
+def _bisect(below, inside0, lo, hi, n_bis):
+    """The bracket [lo, hi] halved ``n_bis`` times (a traced int32; 0 leaves it as the march
+    found it), keeping the half where ``below`` changes (Sec. 3's bisectional search). The
+    loop's trip count is a value, so it is never differentiated: :func:`_relief_t` takes the
+    derivative of the root at its midpoint (``numerics.differentiable_root``)."""
     def bis(_, lh):
         lo, hi = lh
         mid = 0.5 * (lo + hi)

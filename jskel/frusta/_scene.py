@@ -113,7 +113,7 @@ def _relief_group(cfg: FrustaConfig, arrays: FrustaArrays, ids, anchor, dtype):
     relief, block = make_group(arrays, ids, anchor, cfg.block, dtype, shell)
     height = load_height_map(rel.map)
     maps = ReliefMaps(on_device(height), on_device(rel.scale, dtype), on_device(texel_slopes(height), dtype),
-                      on_device(np.int32(rel.steps)))
+                      on_device(np.int32(rel.steps)), on_device(np.int32(rel.bisection)))
     return relief, block, maps, relief_memory(arrays, height, rel.scale, ids)
 
 
@@ -125,7 +125,7 @@ def _relief_quality(rel, arrays: FrustaArrays, ids) -> ReliefQuality:
     if uv == "auto":
         par = np.abs(np.sum(arrays.nb[ids] * arrays.nt[ids], -1)) >= 1.0 - 1e-12
         uv = "approximate" if np.all(par) else "exact"
-    return ReliefQuality(rel.bisection, uv, rel.early_exit, rel.v_mode)
+    return ReliefQuality(uv, rel.early_exit, rel.v_mode)
 
 
 # stored: a warm process loads them untraced. Up to SMALL_BVH rows the tree is built by a
@@ -286,8 +286,12 @@ def inside(scene: FrustaScene, static: Static, point):
 def traced_fields(scene: FrustaScene) -> dict:
     """What ``interface.checked_intersect`` verifies of traced frusta params, each segment by its
     skeleton segment id (``sid``; padding skipped): its base centre ``c1`` finite, its length
-    ``h`` positive (joints that met), its radii at base and top ``r1``, ``r2`` not negative."""
+    ``h`` positive (joints that met), its radii at base and top ``r1``, ``r2`` not negative; a
+    relief's march step count positive and its bisection count not negative."""
     out = {}
+    if scene.maps is not None:
+        out["relief.steps"] = (jnp.reshape(scene.maps.steps, (1,)), "positive", None, None)
+        out["relief.bisection"] = (jnp.reshape(scene.maps.bisection, (1,)), "nonnegative", None, None)
     for prefix, g in (("segments", scene.plain), ("relief_segments", scene.relief)):
         if g is not None:
             f = g.frusta
