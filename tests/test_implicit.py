@@ -7,9 +7,9 @@ import pytest
 
 import implicit_reference as iref
 import reference as ref
+from conftest import whole_chunks
 from jskel import implicit
 from jskel.rays import FLAG_GRAZE, FLAG_NO_BRACKET, make_rays
-from jskel.executor import map_chunks
 from jskel.interface import Object, intersect_each
 
 # a small model: 4 balls, a constant and a tapering tube
@@ -35,7 +35,7 @@ def arrays():
 
 def cast(built, O, D):
     rays = make_rays(np.asarray(O) - built.anchor, D)
-    out = map_chunks(intersect_each, Object(built.params, built.static, "implicit"), rays, chunk=8192, progress=False).out
+    out = whole_chunks(intersect_each, Object(built.params, built.static, "implicit"), rays)
     return out._replace(position=np.asarray(out.position, np.float64) + built.anchor)
 
 

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import whole_chunks
 from jskel import cells, implicit, rays
-from jskel.executor import map_chunks
 from jskel.interface import Object, intersect_each
 from jskel.rays import FLAG_FLOAT_SPACING, FLAG_GRAZE, FLAG_NAMES, FLAG_NO_BRACKET, FLAG_OVERFLOW, FLAG_STEP_CAP, make_rays
 
@@ -95,7 +95,7 @@ def cast(built, O, D, name="implicit"):
     """Rays (float64 world) relative to the anchor as the tracer gets them (float32); returns the
     NumPy Hit and those rays in float64 (the exact rays traced, for the reference)."""
     r = make_rays(np.asarray(O, np.float64) - built.anchor, D)
-    out = map_chunks(intersect_each, Object(built.params, built.static, name), r, chunk=CHUNK, progress=False).out
+    out = whole_chunks(intersect_each, Object(built.params, built.static, name), r, CHUNK)
     return out, np.asarray(r.origins, np.float64) + built.anchor, np.asarray(r.directions, np.float64)
 
 

@@ -10,9 +10,9 @@ import pytest
 import trimesh
 from triangles import moller_trumbore
 
+from conftest import whole_chunks
 from jskel import cells, mesh
 from jskel.rays import make_rays
-from jskel.executor import map_chunks
 from jskel.interface import Object, intersect
 
 N = 4096
@@ -50,7 +50,7 @@ def _cfg(path, **kw):
 
 
 def _cast(built, O, D):
-    return map_chunks(intersect, Object(built.params, built.static, "mesh"), make_rays(O - built.anchor, D), chunk=N, progress=False).out
+    return whole_chunks(intersect, Object(built.params, built.static, "mesh"), make_rays(O - built.anchor, D), N)
 
 
 def test_every_format_reads_the_same_triangles(files):
