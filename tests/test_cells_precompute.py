@@ -139,8 +139,7 @@ def test_mesh_implicit_and_frusta_base_shapes_match_their_closed_forms(tmp_path,
     R sqrt(1 - sqrt(T))) and a one-segment frusta cylinder (radius 0.6, flat caps) give the
     memberships of their closed forms except next to the surface (where the polygon or the
     float32 inside test decides a boundary voxel), never inside for outside. The mesh is
-    voxelized at 256 a side (``base.voxels``; 99.2 % agree, against 98.4 % at 128): the default
-    512 took most of this test's 48 s."""
+    voxelized at 256 a side (``base.voxels``), the default 512 fills a grid eight times larger."""
     import trimesh
 
     if kind == "mesh":
@@ -190,3 +189,35 @@ def test_analytic_base_shapes_give_the_memberships_of_their_point_tests(base):
     want = unpack(membership(sc, part_offsets(sc, part_links(sc)), truth, obj.lo, obj.size, 6, coarse=2).words, 64)
     assert np.sum(want == INSIDE) > 20 and np.sum(want == INTERSECTED) > 20
     np.testing.assert_array_equal(got, want)
+
+
+def test_a_mesh_of_large_triangles_voxelizes_to_its_closed_form():
+    """``filled_voxels`` on a box of 12 triangles (each cut into a lattice of hundreds of
+    points per edge, ``surface_points``) and on a 20-face icosahedron: every voxel whose centre
+    lies more than a voxel's half diagonal inside the closed form is filled, every one as far
+    outside is empty (a surface sampled too coarsely would leak and leave the inside empty; the
+    check fails with samples 3 voxels apart), and each voxel sits where the grid's origin says."""
+    import trimesh
+
+    from jskel.cells._base import filled_voxels
+
+    for mesh, inside in ((trimesh.creation.box(extents=(2.0, 1.0, 0.6)),
+                          lambda p: np.max(np.abs(p) - [1.0, 0.5, 0.3], axis=1)),
+                         (trimesh.creation.icosahedron(), None)):
+        v, f = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
+        pitch = 1.0 / 32
+        grid, origin = filled_voxels(v, f, pitch)
+        centres = (np.argwhere(np.ones(grid.shape, bool)) + origin) * pitch
+        if inside is None:  # the convex icosahedron: the largest signed plane distance of its faces
+            n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+            off = np.sum(n * v[f[:, 0]], 1)
+            assert np.all(off > 0)  # outward normals
+
+            def inside(p):
+                return np.max(p @ n.T - off, axis=1)
+        sd = inside(centres).reshape(grid.shape)
+        half = 0.5 * np.sqrt(3) * pitch
+        assert np.all(grid[sd < -half]) and not np.any(grid[sd > half])
+        assert np.sum(sd < -half) > 1000  # (and the icosahedron's box holds over 1,000 voxels outside it)
+        assert np.sum(sd > half) > (1000 if mesh.faces.shape[0] == 20 else -1)
