@@ -21,11 +21,13 @@ count, first indices and values), so all are raised at once, as the host checks 
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
 from typing import Any
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
@@ -214,7 +216,15 @@ def checked(fn, problems, static_argnums=()):
 
     def both(*args):
         err, found = checkify.checkify(problems)(*args)
-        return err, found, fn(*args)
+        # a value found bad skips the work it would spoil (a zero march step runs every ray to
+        # its step cap): ``lax.cond`` on one scalar is a real branch, and the zeros it returns
+        # instead are never seen, because ``run`` raises
+        # (``fn`` traced once, to a jaxpr the branch evaluates: its zeros need its shapes)
+        bad = functools.reduce(jnp.logical_or, [f.count > 0 for f in found], jnp.bool_(False))
+        closed, shapes = jax.make_jaxpr(lambda: fn(*args), return_shape=True)()
+        leaves, tree = jax.tree_util.tree_flatten(shapes)
+        out = jax.lax.cond(bad, lambda: [jnp.zeros(s.shape, s.dtype) for s in leaves], jax.extend.core.jaxpr_as_fun(closed))
+        return err, found, tree.unflatten(out)
 
     program = jax.jit(both, static_argnums=static_argnums)
 
