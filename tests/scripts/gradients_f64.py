@@ -15,10 +15,11 @@ object's parameters and the ray origins at once (one random direction through al
   data-dependent length are never differentiated: ``accel.nearest_tangent`` differentiates the
   winner's closed form, or the relief's implicit-function derivative at the marched root
   (``numerics.differentiable_root``);
-* implicit, each of the three methods, culled through blocks (the tree and the block spheres)
-  with room for two blocks per ray, so that rays along a row of balls overflow and are retraced
-  by ``wavefront.compact_map``, whose loop over sub-batches has a data-dependent trip count
-  (this path raised in reverse mode); in the primitives' centres and radii, and the threshold;
+* implicit, each of the three methods: the Lipschitz march and the bisection culled through
+  blocks (the tree, the Morton blocks' spheres) with room for two blocks per ray, so that rays
+  along a row of balls overflow and are retraced by ``wavefront.compact_map``, whose loop over
+  sub-batches has a data-dependent trip count (this path raised in reverse mode); the naive
+  march with flat culling; in the primitives' centres and radii, and the threshold;
 * cells, first hit (the reflection mode's cast too) and the two-sided cast of the refraction
   mode, in every float leaf: membership is discrete, so t moves only with the face of the voxel
   the ray crosses, i.e. with the origin, the object's corner ``lo`` and its tile edge ``size``;
@@ -228,10 +229,14 @@ for early in (False, True):
                      "relief": {"map": "brick", "thickness": 0.1, "scale": [2.0, 1.0], "steps": 64, "bisection": 40, "uv": "exact",
                                 "early_exit": early}}, o, d)
 
-# implicit: a 6 x 4 grid of balls in blocks of 4, two blocks kept per ray: rays along the rows
-# meet more and are retraced with flat culling through wavefront.compact_map
+# implicit: a 6 x 4 grid of balls. The Lipschitz march (the tree's leaves) and the bisection
+# (Morton blocks) cull in blocks of 4 with two blocks kept per ray: rays along the rows meet more
+# and are retraced with flat culling through wavefront.compact_map, in each block culling's
+# program. The naive march culls flat (``block_size: 0``, room for every ball): its roots'
+# derivatives in a program without the retrace, whose derivative the other two check (in
+# float64 the retrace made this check 26 s of CPU against 7 s flat, one-off, 2026-12-03)
 BALLS = [{"center": [0.9 * i, 0.9 * j, 0.0], "radius": 0.6} for i in range(6) for j in range(4)]
-for method, cull in (("lipschitz", "tree"), ("bisection", "blocks"), ("naive", "tree")):
+for method, cull in (("lipschitz", "tree"), ("bisection", "blocks"), ("naive", None)):
     name = f"implicit_{method}"
     if not wanted(name):
         continue
@@ -239,12 +244,14 @@ for method, cull in (("lipschitz", "tree"), ("bisection", "blocks"), ("naive", "
     o1[:, :2] += 0.9 * rng.integers(0, [6, 4], (4, 2))  # near a ball's centre
     o2 = np.stack([np.full(4, -2.0), 0.9 * np.arange(4) + 0.05, np.full(4, 0.02)], 1)
     d2 = np.tile([1.0, 0.01, 0.005], (4, 1))
-    raw = {"type": "implicit", "threshold": 0.5, "balls": BALLS, "method": method, "cull": cull, "step": 0.01, "eps": 1e-3,
-           "bisection": 40, "block_size": 4, "block_capacity": 2, "capacity": 24}
+    culling = {"block_size": 0} if cull is None else {"cull": cull, "block_size": 4, "block_capacity": 2}
+    raw = {"type": "implicit", "threshold": 0.5, "balls": BALLS, "method": method, "step": 0.01, "eps": 1e-3,
+           "bisection": 40, "capacity": 24, **culling}
     b, rays = check_batch(name, raw, np.vstack([o1, o2]), np.vstack([d1, d2]), free=implicit_free)
-    rep = registry.get("implicit")
-    first = jax.vmap(lambda o, d, a, c: rep.intersect_one(b.params, b.static, o, d, a, c))(*rays)
-    assert np.sum((np.asarray(first.flags) & FLAG_OVERFLOW) != 0) >= 2, "no ray went through the compacted retrace"
+    if cull is not None:
+        rep = registry.get("implicit")
+        first = jax.vmap(lambda o, d, a, c: rep.intersect_one(b.params, b.static, o, d, a, c))(*rays)
+        assert np.sum((np.asarray(first.flags) & FLAG_OVERFLOW) != 0) >= 2, "no ray went through the compacted retrace"
 
 # cells: a torus of Voronoi cells, first hit and the two-sided cast of the refraction mode, rays
 # aimed at the tube
