@@ -221,3 +221,22 @@ def test_a_mesh_of_large_triangles_voxelizes_to_its_closed_form():
         assert np.all(grid[sd < -half]) and not np.any(grid[sd > half])
         assert np.sum(sd < -half) > 1000  # (and the icosahedron's box holds over 1,000 voxels outside it)
         assert np.sum(sd > half) > (1000 if mesh.faces.shape[0] == 20 else -1)
+
+
+def test_surface_points_are_the_same_lattice_in_any_pieces():
+    """A triangle whose lattice exceeds the budget comes in bands of rows: the same points as in
+    one piece (sorted), each on its triangle (barycentric coordinates in [0, 1], float64)."""
+    from jskel.cells._base import surface_points
+
+    v = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.3]])
+    f = np.array([[0, 1, 2], [0, 1, 3]])
+    whole = np.concatenate(list(surface_points(v, f, 0.01)))
+    parts = list(surface_points(v, f, 0.01, budget=500))
+    assert len(parts) > 10 and max(len(p) for p in parts) <= 1000
+    pieces = np.concatenate(parts)
+    ks = [int(np.ceil(np.sqrt(2.0) / 0.01)), int(np.ceil(np.sqrt(1.09) / 0.01))]  # each one's longest edge
+    assert len(whole) == len(pieces) == sum((k + 1) * (k + 2) // 2 for k in ks)
+    k = ks[0]
+    np.testing.assert_array_equal(np.unique(whole, axis=0), np.unique(pieces, axis=0))
+    flat = pieces[np.abs(pieces[:, 2]) < 1e-15]  # the first triangle's points: x, y >= 0, x + y <= 1
+    assert len(flat) >= (k + 1) * (k + 2) // 2 and np.all(flat[:, :2] >= -1e-15) and np.all(flat[:, :2].sum(1) <= 1 + 1e-12)
