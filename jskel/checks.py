@@ -210,7 +210,8 @@ def checked(fn, problems, static_argnums=()):
     instead of returning silent misses. ``checkify`` reports only a program's first failing
     check; the counts and first indices travel as outputs instead, so every field's problem
     is named at once. The program (``.program``, one ``jax.jit``) is cached by JAX as ``fn``
-    would be: new values of the same shapes compile nothing. Only the checks are checkified:
+    would be: new values of the same shapes compile nothing. Once a check fails, ``fn``'s work is
+    skipped (a ``lax.cond``; the call raises instead of returning). Only the checks are checkified:
     ``checkify`` does not enter a vmap of a while loop, which every marching tracer is."""
     from jax.experimental import checkify
 

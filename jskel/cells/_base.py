@@ -121,7 +121,8 @@ def filled_voxels(v: np.ndarray, f: np.ndarray, pitch: float):
     origin = np.round(used.min(0) / pitch).astype(np.int64)
     grid = np.zeros(np.round(used.max(0) / pitch).astype(np.int64) - origin + 1, bool)
     for p in surface_points(v, f, 0.5 * pitch):
-        i = np.round(p / pitch).astype(np.int64) - origin
+        # (clipped: a sample one rounding past a vertex could round to the voxel past the box)
+        i = np.clip(np.round(p / pitch).astype(np.int64) - origin, 0, np.array(grid.shape) - 1)
         grid[i[:, 0], i[:, 1], i[:, 2]] = True
     return ndimage.binary_fill_holes(grid), origin
 
