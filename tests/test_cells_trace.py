@@ -100,7 +100,7 @@ def reference_first_cell(built, O, D, sub=4096, want=None):
         ss = s[found, first[found]]
         owner = tt - off[ss] + 2
         m = n + 4
-        cid[rows] = ((owner[:, 0] * m + owner[:, 1]) * m + owner[:, 2]) * (cell_of.shape[0] // 8 + 1) + cell_of[ss]
+        cid[rows] = ((owner[:, 0] * m + owner[:, 1]) * m + owner[:, 2]) * (int(p.slots) // 8 + 1) + cell_of[ss]
         alive = ~found & (t0[todo] + (k0 + block) * h <= t1[todo])
         todo = todo[alive]
         k0 += block
@@ -476,3 +476,31 @@ def test_another_sample_cap_or_bisection_count_casts_without_a_program(obj):
     capped = (np.asarray(hc.flags) & FLAG_STEP_CAP) != 0
     assert capped.sum() > 20 and not np.any((np.asarray(base.flags) & FLAG_STEP_CAP) != 0)
     assert np.all(~np.isfinite(hc.t[capped]))
+
+
+def test_another_cell_count_filling_the_same_words_casts_without_a_program(obj):
+    """7 cells a tile (56 split cells) instead of the fixture's 8 (64): both fit 4 membership
+    words (16 slots each), so the split-index tables have the same 65 rows and the count is a
+    value (``CellParams.slots``); the cast compiles nothing, and its first cells and t agree with
+    the float64 march written here, as the fixture's do (the whole-cell key counts 7 cells)."""
+    from jskel.cache import count_programs, program_counts
+
+    tmp, built, O, D = obj
+    seven = cells.build(cell_cfg(tmp, tile_map={"type": "voronoi", "resolution": 16, "cells": 7, "seed": 0}))
+    assert int(seven.params.slots) == 56 and int(built.params.slots) == 64
+    assert seven.params.split_cell.shape == built.params.split_cell.shape == (65,)
+    trace(built, O, D)
+    count_programs()
+    before = program_counts()
+    hit, _ = trace(seven, O, D)
+    after = program_counts()
+    assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]
+    t_ref, id_ref = reference_first_cell(seven, O, D)
+    assert np.isfinite(t_ref).mean() > 0.3
+    got = np.where(np.isfinite(hit.t), np.asarray(hit.prim), -1)
+    assert np.mean(got == id_ref) >= 0.995
+    cell_of = np.asarray(seven.params.split_cell)
+    assert np.all(cell_of[57:] == 0) and cell_of[1:57].max() == 7  # cells 1..7 (0: an empty part), then inert rows
+    both = np.isfinite(hit.t) & np.isfinite(t_ref) & (got == id_ref)
+    size = float((seven.bounds[1][0] - seven.bounds[0][0]) / 6)
+    assert np.quantile(np.abs(hit.t[both] - t_ref[both]), 0.99) < size / 256 + 1e-4

@@ -187,13 +187,18 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
     extent = obj.size * cfg.tiles
     lo = np.asarray(obj.lo, np.float64)
     anchor = lo + 0.5 * extent
+    rows = 16 * obj.words.shape[-1] + 1  # every slot the membership words hold, and index 0
+
+    def slot_table(a):  # split indices 0..S, then inert rows (no split voxel holds their index)
+        return jnp.asarray(np.concatenate([a, np.zeros((rows - len(a),) + a.shape[1:], a.dtype)]).astype(np.int32))
+
     params = CellParams(
         jnp.asarray(obj.split.astype(np.int32)), jnp.asarray(obj.words), jnp.asarray(tile_flags(obj.words, slots, present)),
         jnp.asarray(obj.normals, dtype), jnp.asarray(obj.colors, dtype), jnp.asarray(lo - anchor, dtype),
         jnp.asarray(obj.size, dtype), jnp.asarray(1.0 / cfg.steps_per_tile, dtype),
-        jnp.asarray(obj.offsets.astype(np.int32)), jnp.asarray(obj.split_cell.astype(np.int32)),
+        slot_table(obj.offsets), slot_table(obj.split_cell),
         jnp.asarray(environment_map(cfg.environment), dtype), jnp.asarray(cfg.ior, dtype), jnp.asarray(cfg.reflectivity, dtype),
-        jnp.asarray(cfg.max_steps, jnp.int32), jnp.asarray(cfg.bisection, jnp.int32),
+        jnp.asarray(cfg.max_steps, jnp.int32), jnp.asarray(cfg.bisection, jnp.int32), jnp.asarray(slots, jnp.int32),
     )
     static = Static(TraceOptions(cfg.skip), cfg.mode == "refraction")
     info = dict(obj.info)

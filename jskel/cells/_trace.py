@@ -43,7 +43,10 @@ TILE_ALL_INSIDE = 2
 class CellParams(NamedTuple):
     """Device arrays of a cell object: tile map of split cells, packed memberships, tile flags,
     normal and colour maps, placement, step, offsets, environment, ior, reflectivity, and the
-    search's sample cap and bisection count (traced: a sweep over them compiles one program)."""
+    search's sample cap and bisection count (traced: a sweep over them compiles one program).
+    The split-index tables hold as many rows as the W membership words have slots (16 W + 1,
+    index 0 the empty space), and the split-cell count S is a value, so another seed or cell
+    count whose S fills the same words renders through the same programs (issue 27)."""
 
     split: jnp.ndarray  # (r,r,r) int32 split index, 0 empty space
     words: jnp.ndarray  # (N,N,N,W) uint32 packed membership
@@ -53,13 +56,14 @@ class CellParams(NamedTuple):
     lo: jnp.ndarray  # (3,) object corner, relative to the anchor
     size: jnp.ndarray  # () tile edge
     step: jnp.ndarray  # () linear-search step in tiles (1/16 .. 1/512 in Sec. 5.3)
-    owner_off: jnp.ndarray  # (S+1, 3) int32 part offsets (whole-cell key)
-    split_cell: jnp.ndarray  # (S+1,) int32 cell index of each split index
+    owner_off: jnp.ndarray  # (16 W + 1, 3) int32 part offsets (whole-cell key) of split indices 0..S, then 0 rows
+    split_cell: jnp.ndarray  # (16 W + 1,) int32 cell index of each split index 0..S, then 0 rows
     env: jnp.ndarray  # (H,W,3) equirectangular environment, (1,1,3): procedural sky
     ior: jnp.ndarray  # () index of refraction of the inside cells
     reflectivity: jnp.ndarray  # () mirror weight k of the reflection mode
     max_steps: jnp.ndarray  # () int32 cap on linear-search samples per ray segment
     bisection: jnp.ndarray  # () int32 halvings of the last bracket (Alg. 3.1 rows 19-28)
+    slots: jnp.ndarray  # () int32 split cells S (a value: tile maps whose S fill the same W words share programs)
 
 
 class TraceOptions(NamedTuple):
@@ -308,6 +312,6 @@ def cell_id(p: CellParams, x):
     s = p.split[vox[0], vox[1], vox[2]]
     owner = tile - p.owner_off[s] + 2
     m = n + 4
-    cells = (p.split_cell.shape[0] - 1) // 8
+    cells = p.slots // 8
     key = ((owner[0] * m + owner[1]) * m + owner[2]) * (cells + 1) + p.split_cell[s]
     return jnp.where(ok & (s > 0), key, -1).astype(jnp.int32)
