@@ -114,8 +114,8 @@ def _loss(x, points, pr: Problem):
 
 # solvers whose batches run one fit after another (``lax.map``) instead of in lockstep
 # (``vmap``): L-BFGS's line search is a while loop inside every iteration, and in lockstep each
-# iteration waits for the batch's slowest search (CPU, 2 cores: 0.36 fits/s alone, 0.09-0.12
-# fits/s in vmapped batches of 8 and 32)
+# iteration waits for the batch's slowest search (docs/fitting.md; the batch rows of
+# docs/bench_fit_cpu.jsonl are these ``lax.map`` batches)
 SEQUENTIAL_BATCH = ("lbfgs",)
 
 
