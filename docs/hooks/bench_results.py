@@ -123,22 +123,22 @@ def on_files(files, config):
 SWEEP_REPORT = re.compile(r"(sweep_[^/]+)_[^_/]+/report\.md")
 
 
-def sweep_command(markdown: str, src_uri: str, root: Path) -> str:
-    """A sweep report without its ``Written ... by `command` `` line gets one after its heading."""
+def sweep_command(markdown: str, src_uri: str) -> str:
+    """A sweep report names its files under its ``Written ... by `command` `` line (the
+    provenance ``jskel sweep`` writes); a report without that line fails the build, since no
+    figure may stand without the command that produced it."""
     m = SWEEP_REPORT.fullmatch(src_uri)
-    if m is None or re.search(r"^Written .* by `", markdown, re.M):
+    if m is None:
         return markdown
-    exp = Path("experiments") / f"{m.group(1)}.yaml"
-    if not (root / exp).is_file():
-        raise PluginError(f"{src_uri}: no {exp} wrote this sweep report")
+    written = re.search(r"^Written .* by `[^`]+`.*$", markdown, re.M)
+    if written is None:
+        raise PluginError(f"{src_uri}: no 'Written ... by `command`' line: rerun experiments/{m.group(1)}.yaml to write it")
     folder = posixpath.dirname(src_uri)
-    line = (f"Written by `python -m jskel sweep {exp.as_posix()} --out docs/{folder}` (the result file `results.csv`, "
-            f"`pareto.png` and this report); the report records no date, commit or machine: "
-            f"[Sweeps](../sweeps.md) gives them from git history.")
-    head, _, rest = markdown.partition("\n")
-    return f"{head}\n\n{line}\n{rest}"
+    line = (f"Its files, as the command wrote them, are in `docs/{folder}`: `results.csv` (a row per setting), "
+            f"`pareto.png` and this report.")
+    return markdown[:written.end()] + "\n\n" + line + markdown[written.end():]
 
 
 def on_page_markdown(markdown, page, config, files):
-    markdown = sweep_command(markdown, page.file.src_uri, Path(config["docs_dir"]).parent)
+    markdown = sweep_command(markdown, page.file.src_uri)
     return MARKER.sub(lambda m: marked_table(m.group(1), config["docs_dir"], page.file.src_uri), markdown)
