@@ -511,8 +511,8 @@ def test_a_hits_normal_is_that_of_the_voxel_it_entered(obj):
     voxel on the ray's side of the face it crossed, found here in float64 from the float32 t (the
     axis whose voxel coordinate is nearest an integer), up to the orientation the cast chooses,
     or the ray's reverse where that voxel has none. The march's t lies within about an ulp of
-    the face, so the hit point in float32 may round back across it: looked up there, 1.7 % of the
-    torus cells' normals at 128x96 were a neighbouring cell's (2026-12-03)."""
+    the face, so the hit point in float32 may round back across it, where the normal map holds a
+    neighbouring cell's normal."""
     tmp, built, O, D = obj
     hit, _ = trace(built, O, D)
     p = built.params

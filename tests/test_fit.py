@@ -132,9 +132,9 @@ def test_distance_gradients_are_finite_at_hard_points():
     # compiled, as a fit runs it (XLA's fused program, not the ops one by one): a NaN in the
     # derivative raises FloatingPointError under debug_nans, and a NaN on the way that a
     # ``where`` masks in the value still reaches the gradient (0 * NaN), so it raises too.
-    # (op by op the same check compiles every primitive apart: 12.3-13.8 s against
-    # 9.7-10.0 s for the gradient call, two runs each in a fresh process with no compilation
-    # cache, 2026-12-03, the 2-core AMD EPYC)
+    # (op by op the same check compiled every primitive apart: 24.1 s in the slowest-tests list
+    # of ``pytest --durations`` at 75de3eb, 16.3 s compiled in ``.ci/run``'s at 3b6853c,
+    # 2026-12-03, the 2-core AMD EPYC; different runs of a machine whose speed varied)
     with jax.debug_nans(True):
         g = jax.jit(jax.grad(total, argnums=(0, 1, 2)))(jnp.asarray(J, jnp.float32), jnp.asarray(R, jnp.float32), jnp.asarray(hard, jnp.float32))
     for a in g:

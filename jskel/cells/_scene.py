@@ -269,10 +269,10 @@ def _crossed_face(p: CellParams, x0, direction):
     voxel coordinate nearest an integer, as the derivative takes it) and the point a quarter
     voxel past that face on the ray's side, in the voxel the ray entered. The march's t lies
     within its last bracket of the face; with the default 256 steps a tile and 10 halvings
-    that is about an ulp of float32 positions, so x0 itself fell in the voxel before the face on
-    1.7 % of the torus cells' hits (their Alg. 4.8 normal that voxel's: up to 141 degrees from
-    float64's, in the float32 precision sweep of 2026-12-03). Where x0 is not in an inside cell,
-    the normal and the cell id are looked up here instead."""
+    that is about an ulp of float32 positions, so x0 itself can fall in the voxel before the
+    face, whose Alg. 4.8 normal is another cell's (up to 141 degrees from float64's in
+    ``python -m jskel sweep experiments/sweep_precision_cells.yaml`` at 5b41912, 2026-12-03).
+    Where x0 is not in an inside cell, the normal and the cell id are looked up here instead."""
     r = p.split.shape[0]
     v = jax.lax.stop_gradient((x0 - p.lo) / p.size * r)
     face = jax.nn.one_hot(jnp.argmin(jnp.abs(v - jnp.round(v))), 3, dtype=x0.dtype)

@@ -45,8 +45,8 @@ class CellParams(NamedTuple):
     normal and colour maps, placement, step, offsets, environment, ior, reflectivity, and the
     search's sample cap and bisection count (traced: a sweep over them compiles one program).
     The split-index tables hold as many rows as the W membership words have slots (16 W + 1,
-    index 0 the empty space), and the split-cell count S is a value, so another seed or cell
-    count whose S fills the same words renders through the same programs (issue 27)."""
+    index 0 the empty space), and the split-cell count S is a value, so another cell count
+    whose S fills the same words renders through the same programs (issue 27)."""
 
     split: jnp.ndarray  # (r,r,r) int32 split index, 0 empty space
     words: jnp.ndarray  # (N,N,N,W) uint32 packed membership
