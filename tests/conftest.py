@@ -10,6 +10,10 @@ from __future__ import annotations
 import os
 
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(os.path.dirname(__file__), "..", ".jax_cache"))
+# every program is written to it, as the CLI writes them (``cache.MIN_COMPILE_S``), not only those
+# over JAX's default second: the two workers and the CLI, sweep and notebook subprocesses compile
+# many of the same small programs (the builds' pieces, the executor's)
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 # jskel's own cache directory (precomputed cell objects, ``cache: auto``) in the checkout, not the
 # user's home; compiled programs stay in JAX's folder above
 os.environ.setdefault("JSKEL_CACHE_DIR", os.path.join(os.path.dirname(__file__), "..", ".jskel_cache"))
