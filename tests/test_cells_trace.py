@@ -60,7 +60,7 @@ def reference_first_cell(built, O, D, sub=4096, want=None):
     whole-cell id of that sample) with the documented key (tile - offset, cell)."""
     want = np.ones(len(O), bool) if want is None else np.asarray(want, bool)
     p = built.params
-    n = p.words.shape[0]
+    n = int(p.tiles)
     r = p.split.shape[0]
     split = np.asarray(p.split)
     codes = unpack(np.asarray(p.words), split.max())
@@ -263,7 +263,7 @@ def _cell_lookup(built, x):
     """Float64 NumPy of Alg. 4.8's normal and the colour map at world points x (M,3), by the
     voxel / texel holding each point (the tile map wraps): (normal or 0, colour)."""
     p = built.params
-    n = p.words.shape[0]
+    n = int(p.tiles)
     lo = np.asarray(built.bounds[0], np.float64)
     size = float((built.bounds[1][0] - built.bounds[0][0]) / n)
     u = (x - lo) / size
@@ -319,7 +319,7 @@ def test_reflection_mode_is_the_integrators_mirror_material_against_a_float64_bo
     nrm = np.where(np.sum(nrm * nrm, 1, keepdims=True) > 0, nrm, -d)
     nf = np.where(np.sum(nrm * d, 1, keepdims=True) > 0, -nrm, nrm)
     r = d - 2 * np.sum(d * nf, 1, keepdims=True) * nf
-    voxel = float(built.bounds[1][0] - built.bounds[0][0]) / built.params.words.shape[0] / built.params.split.shape[0]
+    voxel = float(built.bounds[1][0] - built.bounds[0][0]) / int(built.params.tiles) / built.params.split.shape[0]
     t1, _ = reference_first_cell(built, x + voxel * nf, r)
     hit1 = np.isfinite(t1)
     n1, b1 = _cell_lookup(built, x + voxel * nf + np.where(hit1, t1, 0)[:, None] * r)
@@ -338,7 +338,7 @@ def test_reflection_mode_is_the_integrators_mirror_material_against_a_float64_bo
 def _in_cell(built, x):
     """Float64: is each point x (M,3) in an INSIDE split cell of the object?"""
     p = built.params
-    n, r = p.words.shape[0], p.split.shape[0]
+    n, r = int(p.tiles), p.split.shape[0]
     split = np.asarray(p.split)
     codes = unpack(np.asarray(p.words), split.max())
     lo = np.asarray(built.bounds[0], np.float64)
@@ -389,7 +389,7 @@ def test_refraction_mode_is_the_integrators_glass_material_against_a_float64_alg
     res = render(exp, o)
     assert res.run["effects"]["refraction"] and res.run["effects"]["bounces"] == bounces
     O, D = camera_of(exp).ray_arrays()
-    size = float((built.bounds[1][0] - built.bounds[0][0]) / built.params.words.shape[0])
+    size = float((built.bounds[1][0] - built.bounds[0][0]) / int(built.params.tiles))
     step = size / 256  # the object's linear step (steps_per_tile 256)
 
     def outward(x_cell, d, leaving):
@@ -504,6 +504,35 @@ def test_another_cell_count_filling_the_same_words_casts_without_a_program(obj):
     both = np.isfinite(hit.t) & np.isfinite(t_ref) & (got == id_ref)
     size = float((seven.bounds[1][0] - seven.bounds[0][0]) / 6)
     assert np.quantile(np.abs(hit.t[both] - t_ref[both]), 0.99) < size / 256 + 1e-4
+
+
+def test_another_tile_count_in_the_same_bucket_casts_without_a_program(obj):
+    """5 tiles along each axis instead of the fixture's 6: the tile tables are padded to the
+    count's size bucket (8) and the count is a value (``CellParams.tiles``), so the cast
+    compiles nothing; its first cells and t agree with the float64 march written here, whose
+    box is 5 tiles wide (a ray that crosses the padding tiles' region finds nothing there)."""
+    from jskel.cache import count_programs, program_counts
+
+    tmp, built, O, D = obj
+    five = cells.build(cell_cfg(tmp, tiles=5))
+    assert int(five.params.tiles) == 5 and int(built.params.tiles) == 6
+    assert five.params.words.shape == built.params.words.shape and five.params.words.shape[0] == 8
+    trace(built, O, D)
+    count_programs()
+    before = program_counts()
+    hit, _ = trace(five, O, D)
+    after = program_counts()
+    assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]
+    t_ref, id_ref = reference_first_cell(five, O, D)
+    assert np.isfinite(t_ref).mean() > 0.3
+    got = np.where(np.isfinite(hit.t), np.asarray(hit.prim), -1)
+    assert np.mean(got == id_ref) >= 0.995
+    both = np.isfinite(hit.t) & np.isfinite(t_ref) & (got == id_ref)
+    size = float((five.bounds[1][0] - five.bounds[0][0]) / 5)
+    assert np.quantile(np.abs(hit.t[both] - t_ref[both]), 0.99) < size / 256 + 1e-4
+    lo, hi = (np.asarray(b, np.float64) for b in five.bounds)
+    x = O + np.where(np.isfinite(hit.t), hit.t, 0)[:, None] * D
+    assert np.all(np.all((x >= lo - size / 256) & (x <= hi + size / 256), 1)[np.isfinite(hit.t)])  # no hit in the padding
 
 
 def test_a_hits_normal_is_that_of_the_voxel_it_entered(obj):

@@ -15,6 +15,7 @@ import numpy as np
 
 from .. import checks
 from ..cache import data_dir
+from ..executor import size_bucket
 from ..interface import Built, OwnMaterial, Representation
 from ..numerics import differentiable_root, safe_normalize
 from ..rays import FLAG_FLOAT_SPACING, FLAG_GRAZE, FLAG_STEP_CAP, Hit, masked_hit
@@ -192,13 +193,18 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
     def slot_table(a):  # split indices 0..S, then inert rows (no split voxel holds their index)
         return jnp.asarray(np.concatenate([a, np.zeros((rows - len(a),) + a.shape[1:], a.dtype)]).astype(np.int32))
 
+    def tile_table(a):  # the tile count's size bucket along the first three axes (never read)
+        pad = size_bucket(cfg.tiles) - cfg.tiles
+        return jnp.asarray(np.pad(a, [(0, pad)] * 3 + [(0, 0)] * (a.ndim - 3)))
+
     params = CellParams(
-        jnp.asarray(obj.split.astype(np.int32)), jnp.asarray(obj.words), jnp.asarray(tile_flags(obj.words, slots, present)),
+        jnp.asarray(obj.split.astype(np.int32)), tile_table(obj.words), tile_table(tile_flags(obj.words, slots, present)),
         jnp.asarray(obj.normals, dtype), jnp.asarray(obj.colors, dtype), jnp.asarray(lo - anchor, dtype),
         jnp.asarray(obj.size, dtype), jnp.asarray(1.0 / cfg.steps_per_tile, dtype),
         slot_table(obj.offsets), slot_table(obj.split_cell),
         jnp.asarray(environment_map(cfg.environment), dtype), jnp.asarray(cfg.ior, dtype), jnp.asarray(cfg.reflectivity, dtype),
         jnp.asarray(cfg.max_steps, jnp.int32), jnp.asarray(cfg.bisection, jnp.int32), jnp.asarray(slots, jnp.int32),
+        jnp.asarray(cfg.tiles, jnp.int32),
     )
     static = Static(TraceOptions(cfg.skip), cfg.mode == "refraction")
     info = dict(obj.info)

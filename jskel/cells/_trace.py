@@ -46,11 +46,14 @@ class CellParams(NamedTuple):
     search's sample cap and bisection count (traced: a sweep over them compiles one program).
     The split-index tables hold as many rows as the W membership words have slots (16 W + 1,
     index 0 the empty space), and the split-cell count S is a value, so another cell count
-    whose S fills the same words renders through the same programs (issue 27)."""
+    whose S fills the same words renders through the same programs (issue 27). Likewise the
+    tile tables (``words``, ``tile_flags``) are padded to the size bucket of the tile count
+    (``executor.size_bucket``: tiles 1-8 share a shape, then 9-16, ...) and the count N itself
+    is a value; the padding tiles lie outside the object's box, so nothing reads them."""
 
     split: jnp.ndarray  # (r,r,r) int32 split index, 0 empty space
-    words: jnp.ndarray  # (N,N,N,W) uint32 packed membership
-    tile_flags: jnp.ndarray  # (N,N,N) int32 TILE_HAS_INSIDE | TILE_ALL_INSIDE
+    words: jnp.ndarray  # (B,B,B,W) uint32 packed membership of the N^3 tiles, B = size_bucket(N)
+    tile_flags: jnp.ndarray  # (B,B,B) int32 TILE_HAS_INSIDE | TILE_ALL_INSIDE
     normals: jnp.ndarray  # (r,r,r,3) unit normals of Alg. 4.8 (0 inside a cell)
     colors: jnp.ndarray  # (c,c,c,3) tileable linear RGB
     lo: jnp.ndarray  # (3,) object corner, relative to the anchor
@@ -64,6 +67,7 @@ class CellParams(NamedTuple):
     max_steps: jnp.ndarray  # () int32 cap on linear-search samples per ray segment
     bisection: jnp.ndarray  # () int32 halvings of the last bracket (Alg. 3.1 rows 19-28)
     slots: jnp.ndarray  # () int32 split cells S (a value: tile maps whose S fill the same W words share programs)
+    tiles: jnp.ndarray  # () int32 tiles N along each axis (a value: counts in one size bucket share programs)
 
 
 class TraceOptions(NamedTuple):
@@ -75,7 +79,7 @@ class TraceOptions(NamedTuple):
 
 def locate(p: CellParams, x):
     """(tile (3,) int32, in object, voxel (3,) int32) of a point relative to the anchor."""
-    n = p.words.shape[0]
+    n = p.tiles
     r = p.split.shape[0]
     u = (x - p.lo) / p.size
     tile = jnp.floor(u)
@@ -261,7 +265,7 @@ def between(p: CellParams, vr: VoxelRay, o, d, ta, tb):
 
 
 def object_interval(p: CellParams, o, d, t_min, t_max):
-    n = p.words.shape[0]
+    n = p.tiles
     t0, t1 = box_interval(p.lo, p.lo + n * p.size, o, d)
     return jnp.maximum(t0, t_min), jnp.minimum(t1, t_max)
 
@@ -269,7 +273,7 @@ def object_interval(p: CellParams, o, d, t_min, t_max):
 def starts_inside(p: CellParams, o, d, t_min):
     """Alg. 3.3 row 3: does the ray start in an INSIDE cell (its first sample, at ``t_min``,
     inside the object's box and in an inside cell)? A ray from outside the box starts outside."""
-    n = p.words.shape[0]
+    n = p.tiles
     enter, _ = box_interval(p.lo, p.lo + n * p.size, o, d)
     return (enter <= t_min) & (membership_at(p, o + t_min * d)[0] == INSIDE)
 
@@ -307,7 +311,7 @@ def color_at(p: CellParams, x):
 
 def cell_id(p: CellParams, x):
     """Global id of the whole cell at x: the key (tile - part offset, cell index) as one int."""
-    n = p.words.shape[0]
+    n = p.tiles
     tile, ok, vox = locate(p, x)
     s = p.split[vox[0], vox[1], vox[2]]
     owner = tile - p.owner_off[s] + 2
