@@ -97,12 +97,18 @@ class CellsConfig(StrictModel):
     """``refraction``: index of refraction."""
     reflectivity: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
     """``reflection``: weight of the mirrored light."""
+    search: Literal["linear", "voxels"] = "linear"
+    """``linear``: Alg. 3.1's linear search every ``steps_per_tile``-th of a tile, then
+    ``bisection`` halvings of the last step; ``voxels``: every voxel of the tile map the ray
+    crosses, in order, to the first target (exact: the hit is the crossed face, no part is
+    stepped over; ``steps_per_tile`` and ``bisection`` are not used)."""
     steps_per_tile: Annotated[int, Field(ge=1, le=65536)] = 256
     """Linear search step, 1/steps_per_tile of a tile (the main quality knob)."""
     bisection: Annotated[int, Field(ge=0, le=40)] = 10
     """Bisection iterations refining a linear step's crossing."""
     max_steps: Annotated[int, Field(ge=1, le=1 << 24)] = 1 << 18
-    """Samples per ray segment; a ray that reaches the cap is flagged."""
+    """Samples (``voxels``: voxels and skipped tiles) per ray segment; a ray that reaches the cap
+    is flagged."""
     skip: bool = True
     """Skip empty and full tiles (Alg. 3.2, 3.3)."""
     color_map: str = "worley"

@@ -23,7 +23,9 @@ from ._base import base_inside as base_inside
 from ._config import CellsConfig as CellsConfig
 from ._membership import INSIDE, memory_table, membership, unpack, words_for
 from ._tiles import OFFSETS, SplitCells, part_links, part_offsets, sphere_tile, split_cells, validate_tile_map, voronoi_tile
-from ._trace import TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, TraceOptions, cell_id, color_at, first_hit, membership_at, normal_at, starts_inside
+from ._search import first_hit
+from ._voxels import INTO
+from ._trace import TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, TraceOptions, cell_id, color_at, membership_at, normal_at, starts_inside
 
 CACHE_VERSION = 1
 REFRACTED = 0.85  # the refraction mode's weight of the refracted light (0.15 local)
@@ -206,13 +208,14 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
         jnp.asarray(cfg.max_steps, jnp.int32), jnp.asarray(cfg.bisection, jnp.int32), jnp.asarray(slots, jnp.int32),
         jnp.asarray(cfg.tiles, jnp.int32),
     )
-    static = Static(TraceOptions(cfg.skip), cfg.mode == "refraction")
+    static = Static(TraceOptions(cfg.skip, cfg.search == "voxels"), cfg.mode == "refraction")
     info = dict(obj.info)
     info["words_per_tile"] = words_for(slots)
-    tol = float(obj.size / cfg.steps_per_tile * 0.5**cfg.bisection)  # the last bisection bracket's width
+    # the last bisection bracket's width; the voxel walk's hit lies _voxels.INTO of a voxel past the face
+    voxel = float(obj.size / obj.split.shape[0])
+    tol = voxel * INTO if cfg.search == "voxels" else float(obj.size / cfg.steps_per_tile * 0.5**cfg.bisection)
     # secondary rays start one voxel out of the hit cell (Alg. 3.2); refracted ones one linear
     # step through the surface, where Alg. 3.3 row 3 takes the sample that decides their side
-    voxel = float(obj.size / obj.split.shape[0])
     start = float(obj.size / cfg.steps_per_tile) if cfg.mode == "refraction" else voxel
     return Built(params, static, anchor, (lo, lo + extent), info, primitives=int(info["inside_split_cells"]), surface_tolerance=tol,
                  secondary_offset=start)

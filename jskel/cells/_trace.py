@@ -75,6 +75,7 @@ class TraceOptions(NamedTuple):
     the bisection count are values in :class:`CellParams`."""
 
     skip: bool = True  # empty / full tile skipping
+    voxels: bool = False  # the exact voxel walk (``_voxels.walk``) instead of the linear search
 
 
 def locate(p: CellParams, x):
@@ -276,19 +277,6 @@ def starts_inside(p: CellParams, o, d, t_min):
     n = p.tiles
     enter, _ = box_interval(p.lo, p.lo + n * p.size, o, d)
     return (enter <= t_min) & (membership_at(p, o + t_min * d)[0] == INSIDE)
-
-
-def first_hit(p: CellParams, o, d, t_min, t_max, opt: TraceOptions, two_sided: bool = False) -> March:
-    """Alg. 3.1 from the ray's entry into the object's box (see the module docstring): the
-    first entry into an INSIDE cell. ``two_sided`` (the refraction mode): a ray that starts in
-    an inside cell (:func:`starts_inside`) searches for its exit instead (Alg. 3.3 rows 3-17);
-    then ``t`` is the first sample outside and ``t_out`` the last one inside."""
-    t0, t1 = object_interval(p, o, d, t_min, t_max)
-    want = ~starts_inside(p, o, d, t_min) if two_sided else True
-    m = march(p, o, d, t0, t1, want, opt)
-    inf = jnp.asarray(jnp.inf, o.dtype)
-    live = t0 <= t1
-    return m._replace(t=jnp.where(live, m.t, inf), found=m.found & live, floored=m.floored & live, stepped=m.stepped & live)
 
 
 def normal_at(p: CellParams, x, d):
