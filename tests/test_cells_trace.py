@@ -562,6 +562,17 @@ def test_the_voxel_walk_finds_the_float64_marchs_first_cell_with_nothing_stepped
     np.testing.assert_array_equal(np.asarray(hit.t), np.asarray(hit_flat.t))
     np.testing.assert_array_equal(np.asarray(hit.prim), np.asarray(hit_flat.prim))
     assert np.mean(steps) * 4 < np.mean(steps_linear) and np.mean(steps) < np.mean(steps_flat)
+    # leaving (the refraction mode's two-sided search, Alg. 3.3): from half a voxel into the cells
+    # found, the first voxel outside them, against the float64 march looking for one
+    org = (O + (np.asarray(hit.t, np.float64)[:, None] + 0.5 * voxel / np.linalg.norm(D, axis=1)[:, None]) * D)[ok]
+    start = _in_cell(walk, org)
+    org, dd = org[start], D[ok][start]
+    exit_t = jax.jit(jax.vmap(lambda o, d: first_hit(walk.params, o, d, 0.0, jnp.inf, walk.static.options, True).t))
+    t_out = np.asarray(exit_t(jnp.asarray(org - walk.anchor, jnp.float32), jnp.asarray(dd, jnp.float32)), np.float64)
+    t_out_ref, _ = reference_first_cell(walk, org, dd, want=np.zeros(len(org), bool))
+    assert start.mean() > 0.9 and np.all(np.isfinite(t_out_ref))
+    np.testing.assert_array_equal(np.isfinite(t_out), True)
+    assert np.all(np.abs(t_out - t_out_ref) * np.linalg.norm(dd, axis=1) <= size / 4096 + 1e-5)
 
 
 def test_a_hits_normal_is_that_of_the_voxel_it_entered(obj):
