@@ -13,7 +13,7 @@ from jskel import cells, cli, executor
 from jskel.cells._membership import INSIDE, unpack
 from jskel.cells._search import first_hit
 from jskel.optics import reflect, refract
-from jskel.rays import FLAG_GRAZE, make_rays
+from jskel.rays import FLAG_FLOAT_SPACING, FLAG_GRAZE, make_rays
 from jskel.executor import map_chunks
 
 N_RAYS = 1000
@@ -573,6 +573,15 @@ def test_the_voxel_walk_finds_the_float64_marchs_first_cell_with_nothing_stepped
     assert start.mean() > 0.9 and np.all(np.isfinite(t_out_ref))
     np.testing.assert_array_equal(np.isfinite(t_out), True)
     assert np.all(np.abs(t_out - t_out_ref) * np.linalg.norm(dd, axis=1) <= size / 4096 + 1e-5)
+    # the same rays from 1,000 units back (about 330 object sizes): the same cells, no flag; from
+    # 10,000, where float32 positions are spaced above a 32nd of a voxel: every ray flagged
+    dn = D / np.linalg.norm(D, axis=1, keepdims=True)
+    near, _ = trace(walk, O, dn)
+    far3, _ = trace(walk, O - 1e3 * dn, dn)
+    np.testing.assert_array_equal(np.asarray(far3.prim), np.asarray(near.prim))
+    assert not np.any(np.asarray(far3.flags) & FLAG_FLOAT_SPACING)
+    far4, _ = trace(walk, O - 1e4 * dn, dn)
+    assert np.all(np.asarray(far4.flags) & FLAG_FLOAT_SPACING)
 
 
 def test_a_hits_normal_is_that_of_the_voxel_it_entered(obj):

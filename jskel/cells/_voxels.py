@@ -21,12 +21,17 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from ..rays import ulp_floor
 from ._membership import INSIDE, lookup
 from ._trace import TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, March, _min3, voxel_ray
 
 
 #: how far past the crossed face a hit's t lies, in voxel edges
 INTO = 2.0**-12
+#: the float spacing of a ray's positions, in voxel edges, above which a walk is flagged
+#: ``FLAG_FLOAT_SPACING`` (in float32, on an object 96 voxels wide: rays from 1e4 sizes away,
+#: not from 1e3)
+SPACING = 2.0**-5
 
 
 def _first_axis(te):
@@ -48,19 +53,22 @@ def _code(p: CellParams, g, r):
 def walk(p: CellParams, o, d, t_start, t_end, want_inside, skip: bool) -> March:
     """The first voxel from ``t_start`` whose INSIDE-ness equals ``want_inside`` (a Python bool
     or a traced one), before ``t_end``: ``t`` its entry (the crossed face, or ``t_start`` if the
-    ray starts in one) plus :data:`INTO` of a voxel edge, ``t_out`` the middle of the voxel before it (a point on the starting
-    side), ``steps`` the voxels and tiles visited; at most ``p.max_steps`` of them (a ray that
-    reaches the cap is not found: the caller flags it). ``floored`` and ``stepped`` are False:
-    no step is raised to float spacing and no voxel is passed over."""
+    ray starts in one) plus :data:`INTO` of a voxel edge, ``t_out`` the middle of the voxel
+    before it (a point on the starting side), ``steps`` the voxels and tiles visited; at most
+    ``p.max_steps`` of them (a ray that reaches the cap is not found: the caller flags it).
+    ``floored``: the float spacing of the ray's positions is above :data:`SPACING` of a voxel (a
+    ray from far away); ``stepped`` is False: no voxel is passed over."""
     o, d, t_start, t_end = jax.lax.stop_gradient((o, d, t_start, t_end))
     r = p.split.shape[0]
     nv = p.tiles * r
-    vr = voxel_ray(p, o, d)
+    # t from the ray's entry point, not its origin: a ray from far away keeps the exits' precision
+    # (its origin, 1e5 object sizes off, spans 1e8 voxels, whose float32 spacing is 8 of them)
+    tq = jnp.where(jnp.isfinite(t_start), t_start, 0.0)
+    vr = voxel_ray(p, o + tq * d, d)
     pos = vr.qd > 0
     inc = jnp.where(pos, 1, -1).astype(jnp.int32)
     inf = jnp.asarray(jnp.inf, o.dtype)
-    tq = jnp.where(jnp.isfinite(t_start), t_start, 0.0)
-    g0 = jnp.clip(jnp.floor(vr.q0 + tq * vr.qd), 0, nv - 1).astype(jnp.int32)
+    g0 = jnp.clip(jnp.floor(vr.q0), 0, nv - 1).astype(jnp.int32)
 
     def exits(face):  # t at which the ray reaches the planes ``face`` (3,) in voxel units
         return jnp.where(vr.qd != 0, (face.astype(o.dtype) - vr.q0) * vr.inv, inf)
@@ -86,15 +94,23 @@ def walk(p: CellParams, o, d, t_start, t_end, want_inside, skip: bool) -> March:
     def cond(st):
         g, t_in, _, evals, found = st
         inside = jnp.all((g >= 0) & (g < nv))
-        return (~found) & inside & (evals < p.max_steps) & (t_in <= t_end)
+        return (~found) & inside & (evals < p.max_steps) & (t_in <= t_end - tq)
 
-    init = (g0, tq, tq, jnp.int32(0), jnp.asarray(False))
+    zero = jnp.zeros((), o.dtype)
+    init = (g0, zero, zero, jnp.int32(0), jnp.asarray(False))
     _, t_in, t_before, evals, found = jax.lax.while_loop(cond, body, init)
-    found = found & (t_in <= t_end)
+    found = found & (t_in <= t_end - tq)
+    t_in, t_before = tq + t_in, tq + t_before
     # 2^-12 of a voxel past the face, into the voxel found: a point computed from t lies in it
     # (as the linear search's t is the target end of its last bracket), so the colour map,
     # whose texels may share the voxel's faces, is read on the cell's side
-    t_hit = t_in + INTO / jnp.sqrt(jnp.sum(vr.qd * vr.qd))
+    qn = jnp.sqrt(jnp.sum(vr.qd * vr.qd))
+    t_hit = t_in + INTO / qn
+    # the positions' float spacing along the ray (``rays.ulp_floor``, as the linear search floors
+    # its step) above SPACING of a voxel: which voxel a point near a face lies in is uncertain
+    far = jnp.maximum(jnp.abs(tq), jnp.where(jnp.isfinite(t_end), jnp.abs(t_end), 0.0))
+    dn = jnp.sqrt(jnp.sum(d * d))
+    spaced = ulp_floor(far, jnp.max(jnp.abs(o)) / jnp.where(dn > 0, dn, 1.0)) * qn > SPACING
     false = jnp.asarray(False)
-    return March(jnp.where(found, t_hit, inf), jnp.where(found, 0.5 * (t_before + t_in), inf), evals, found, false, false)
+    return March(jnp.where(found, t_hit, inf), jnp.where(found, 0.5 * (t_before + t_in), inf), evals, found, spaced, false)
 
