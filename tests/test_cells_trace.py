@@ -582,6 +582,20 @@ def test_the_voxel_walk_finds_the_float64_marchs_first_cell_with_nothing_stepped
     assert not np.any(np.asarray(far3.flags) & FLAG_FLOAT_SPACING)
     far4, _ = trace(walk, O - 1e4 * dn, dn)
     assert np.all(np.asarray(far4.flags) & FLAG_FLOAT_SPACING)
+    # along the axes (direction components exactly 0, whose exits are inf), a fifth of them in
+    # the planes of voxel faces: the float64 march's first cells on every ray
+    rng = np.random.default_rng(5)
+    lo, hi = (np.asarray(b, np.float64) for b in walk.bounds)
+    axis, sign = rng.integers(0, 3, len(O)), rng.choice([-1.0, 1.0], len(O))
+    da = np.zeros_like(D)
+    da[np.arange(len(O)), axis] = sign
+    oa = lo + rng.uniform(0, 1, D.shape) * (hi - lo)
+    oa[: len(O) // 5] = lo + np.round((oa[: len(O) // 5] - lo) / voxel) * voxel
+    oa[np.arange(len(O)), axis] = np.where(sign > 0, lo[axis] - 1.0, hi[axis] + 1.0)
+    ha, _ = trace(walk, oa, da)
+    ta_ref, ida_ref = reference_first_cell(walk, oa, da)
+    assert np.isfinite(ta_ref).mean() > 0.2
+    np.testing.assert_array_equal(np.where(np.isfinite(ha.t), np.asarray(ha.prim), -1), ida_ref)
 
 
 def test_a_hits_normal_is_that_of_the_voxel_it_entered(obj):

@@ -71,7 +71,7 @@ def walk(p: CellParams, o, d, t_start, t_end, want_inside, skip: bool) -> March:
     g0 = jnp.clip(jnp.floor(vr.q0), 0, nv - 1).astype(jnp.int32)
 
     def exits(face):  # t at which the ray reaches the planes ``face`` (3,) in voxel units
-        return jnp.where(vr.qd != 0, (face.astype(o.dtype) - vr.q0) * vr.inv, inf)
+        return jnp.where(vr.qd != 0, face.astype(o.dtype) - vr.q0, 1.0) * vr.inv  # inf, never NaN, where qd = 0
 
     def body(st):
         g, t_in, t_before, evals, found = st
