@@ -478,32 +478,39 @@ def test_another_sample_cap_or_bisection_count_casts_without_a_program(obj):
     assert np.all(~np.isfinite(hc.t[capped]))
 
 
+def cast_without_a_program(built, other, O, D):
+    """``other``'s cast after ``built``'s hands XLA no program, and its first cells and t agree
+    with the float64 march written here (t to the linear step, a 256th of a tile); its Hit."""
+    from jskel.cache import count_programs, program_counts
+
+    trace(built, O, D)
+    count_programs()
+    before = program_counts()
+    hit, _ = trace(other, O, D)
+    after = program_counts()
+    assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]
+    t_ref, id_ref = reference_first_cell(other, O, D)
+    assert np.isfinite(t_ref).mean() > 0.3
+    got = np.where(np.isfinite(hit.t), np.asarray(hit.prim), -1)
+    assert np.mean(got == id_ref) >= 0.995
+    both = np.isfinite(hit.t) & np.isfinite(t_ref) & (got == id_ref)
+    size = float((other.bounds[1][0] - other.bounds[0][0]) / int(other.params.tiles))
+    assert np.quantile(np.abs(hit.t[both] - t_ref[both]), 0.99) < size / 256 + 1e-4
+    return hit
+
+
 def test_another_cell_count_filling_the_same_words_casts_without_a_program(obj):
     """7 cells a tile (56 split cells) instead of the fixture's 8 (64): both fit 4 membership
     words (16 slots each), so the split-index tables have the same 65 rows and the count is a
     value (``CellParams.slots``); the cast compiles nothing, and its first cells and t agree with
     the float64 march written here, as the fixture's do (the whole-cell key counts 7 cells)."""
-    from jskel.cache import count_programs, program_counts
-
     tmp, built, O, D = obj
     seven = cells.build(cell_cfg(tmp, tile_map={"type": "voronoi", "resolution": 16, "cells": 7, "seed": 0}))
     assert int(seven.params.slots) == 56 and int(built.params.slots) == 64
     assert seven.params.split_cell.shape == built.params.split_cell.shape == (65,)
-    trace(built, O, D)
-    count_programs()
-    before = program_counts()
-    hit, _ = trace(seven, O, D)
-    after = program_counts()
-    assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]
-    t_ref, id_ref = reference_first_cell(seven, O, D)
-    assert np.isfinite(t_ref).mean() > 0.3
-    got = np.where(np.isfinite(hit.t), np.asarray(hit.prim), -1)
-    assert np.mean(got == id_ref) >= 0.995
+    cast_without_a_program(built, seven, O, D)
     cell_of = np.asarray(seven.params.split_cell)
     assert np.all(cell_of[57:] == 0) and cell_of[1:57].max() == 7  # cells 1..7 (0: an empty part), then inert rows
-    both = np.isfinite(hit.t) & np.isfinite(t_ref) & (got == id_ref)
-    size = float((seven.bounds[1][0] - seven.bounds[0][0]) / 6)
-    assert np.quantile(np.abs(hit.t[both] - t_ref[both]), 0.99) < size / 256 + 1e-4
 
 
 def test_another_tile_count_in_the_same_bucket_casts_without_a_program(obj):
@@ -511,25 +518,12 @@ def test_another_tile_count_in_the_same_bucket_casts_without_a_program(obj):
     count's size bucket (8) and the count is a value (``CellParams.tiles``), so the cast
     compiles nothing; its first cells and t agree with the float64 march written here, whose
     box is 5 tiles wide (a ray that crosses the padding tiles' region finds nothing there)."""
-    from jskel.cache import count_programs, program_counts
-
     tmp, built, O, D = obj
     five = cells.build(cell_cfg(tmp, tiles=5))
     assert int(five.params.tiles) == 5 and int(built.params.tiles) == 6
     assert five.params.words.shape == built.params.words.shape and five.params.words.shape[0] == 8
-    trace(built, O, D)
-    count_programs()
-    before = program_counts()
-    hit, _ = trace(five, O, D)
-    after = program_counts()
-    assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]
-    t_ref, id_ref = reference_first_cell(five, O, D)
-    assert np.isfinite(t_ref).mean() > 0.3
-    got = np.where(np.isfinite(hit.t), np.asarray(hit.prim), -1)
-    assert np.mean(got == id_ref) >= 0.995
-    both = np.isfinite(hit.t) & np.isfinite(t_ref) & (got == id_ref)
+    hit = cast_without_a_program(built, five, O, D)
     size = float((five.bounds[1][0] - five.bounds[0][0]) / 5)
-    assert np.quantile(np.abs(hit.t[both] - t_ref[both]), 0.99) < size / 256 + 1e-4
     lo, hi = (np.asarray(b, np.float64) for b in five.bounds)
     x = O + np.where(np.isfinite(hit.t), hit.t, 0)[:, None] * D
     assert np.all(np.all((x >= lo - size / 256) & (x <= hi + size / 256), 1)[np.isfinite(hit.t)])  # no hit in the padding
