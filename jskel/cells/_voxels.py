@@ -106,11 +106,16 @@ def walk(p: CellParams, o, d, t_start, t_end, want_inside, skip: bool) -> March:
     # whose texels may share the voxel's faces, is read on the cell's side
     qn = jnp.sqrt(jnp.sum(vr.qd * vr.qd))
     t_hit = t_in + INTO / qn
-    # the positions' float spacing along the ray (``rays.ulp_floor``, as the linear search floors
-    # its step) above SPACING of a voxel: which voxel a point near a face lies in is uncertain
-    far = jnp.maximum(jnp.abs(tq), jnp.where(jnp.isfinite(t_end), jnp.abs(t_end), 0.0))
-    dn = jnp.sqrt(jnp.sum(d * d))
-    spaced = ulp_floor(far, jnp.max(jnp.abs(o)) / jnp.where(dn > 0, dn, 1.0)) * qn > SPACING
     false = jnp.asarray(False)
-    return March(jnp.where(found, t_hit, inf), jnp.where(found, 0.5 * (t_before + t_in), inf), evals, found, spaced, false)
+    return March(jnp.where(found, t_hit, inf), jnp.where(found, 0.5 * (t_before + t_in), inf), evals, found,
+                 _spaced(o, d, tq, t_end, qn), false)
+
+
+def _spaced(o, d, t_start, t_end, qn):
+    """Whether the float spacing of the ray's positions (``rays.ulp_floor``, as the linear search
+    floors its step) is above :data:`SPACING` of a voxel (``qn``: voxels per unit of t): which
+    voxel a point near a face lies in is then uncertain."""
+    far = jnp.maximum(jnp.abs(t_start), jnp.where(jnp.isfinite(t_end), jnp.abs(t_end), 0.0))
+    dn = jnp.sqrt(jnp.sum(d * d))
+    return ulp_floor(far, jnp.max(jnp.abs(o)) / jnp.where(dn > 0, dn, 1.0)) * qn > SPACING
 
