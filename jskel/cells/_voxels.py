@@ -58,7 +58,8 @@ def walk(p: CellParams, o, d, t_start, t_end, want_inside, skip: bool) -> March:
     ``p.max_steps`` of them (a ray that reaches the cap is not found: the caller flags it).
     ``floored``: the float spacing of the ray's positions is above :data:`SPACING` of a voxel (a
     ray from far away); ``stepped`` is False: no voxel is passed over."""
-    o, d, t_start, t_end = jax.lax.stop_gradient((o, d, t_start, t_end))
+    # the value only: the hit's derivative is the crossed face's root (``_scene.intersect_one``)
+    p, o, d, t_start, t_end = jax.lax.stop_gradient((p, o, d, t_start, t_end))
     r = p.split.shape[0]
     nv = p.tiles * r
     # t from the ray's entry point, not its origin: a ray from far away keeps the exits' precision

@@ -20,7 +20,8 @@ object's parameters and the ray origins at once (one random direction through al
   along a row of balls overflow and are retraced by ``wavefront.compact_map``, whose loop over
   sub-batches has a data-dependent trip count (this path raised in reverse mode); the naive
   march with flat culling; in the primitives' centres and radii, and the threshold;
-* cells, first hit (the reflection mode's cast too) and the two-sided cast of the refraction
+* cells, first hit (the reflection mode's cast too; also through the voxel walk, ``search:
+  voxels``) and the two-sided cast of the refraction
   mode, in every float leaf: membership is discrete, so t moves only with the face of the voxel
   the ray crosses, i.e. with the origin, the object's corner ``lo`` and its tile edge ``size``;
   the other floats (normals, colours, environment, step, ior) leave t unchanged, and the check
@@ -255,15 +256,17 @@ for method, cull in (("lipschitz", "tree"), ("bisection", "blocks"), ("naive", N
 
 # cells: a torus of Voronoi cells, first hit and the two-sided cast of the refraction mode, rays
 # aimed at the tube
-for mode in ("first_hit", "refraction"):
-    if wanted(f"cells_{mode}"):
+# (and the first hit again through the exact voxel walk, ``search: voxels``)
+for mode, search in (("first_hit", "linear"), ("refraction", "linear"), ("first_hit", "voxels")):
+    name = f"cells_{mode}" if search == "linear" else f"cells_{search}"
+    if wanted(name):
         ang = rng.uniform(0, 2 * np.pi, 16)
         ring = np.stack([np.cos(ang), np.zeros(16), np.sin(ang)], 1)  # the torus' centre line (y up)
         o = 3.0 * ring + [0.1, 2.0, 0.3]
         d = ring - o  # from outside and above, aimed at the tube
-        check_batch(f"cells_{mode}", {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45}, "tiles": 6,
-                                      "bisection": 40, "mode": mode, "cache": str(TMP / "cells"),
-                                      "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}}, o, d)
+        check_batch(name, {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45}, "tiles": 6,
+                           "bisection": 40, "mode": mode, "search": search, "cache": str(TMP / "cells"),
+                           "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}}, o, d)
 
 # mesh: an icosphere, packets and walks
 sphere = TMP / "sphere.ply"
