@@ -23,7 +23,7 @@ References, float64, independent of jskel:
 * cells: one cell that is a box of tile-map voxels (as in tests/test_spawn.py), ray-box slabs;
   the linear search (Nurnberg 2011, Sec. 3.2) steps 1/256 of the tile and bisects the step that
   crosses, so ``tol_t`` is a quarter step and ``delta`` one step (a corner chord shorter than a
-  step may be stepped over).
+  step may be stepped over); the exact voxel walk (``search: voxels``) against the same.
 
 Implicit models of several primitives (two balls and a tapered tube that blend, Rouiller's sum of
 kernels, drawn anew from each example's seed) are checked against a dense float64 march of that
@@ -99,7 +99,8 @@ def _raw(name, tmp, s, off, method="lipschitz", seed=0):
     assert name == "cells", f"{name}: a new representation needs its object and reference here"
     np.save(tmp / "tile.npy", TILE)
     return {"type": "cells", "base": {"type": "sphere", "radius": s, "center": off.tolist()}, "tiles": 1,
-            "steps_per_tile": 256, "tile_map": {"type": "file", "path": str(tmp / "tile.npy")}, "cache": None}
+            "steps_per_tile": 256, "tile_map": {"type": "file", "path": str(tmp / "tile.npy")}, "cache": None,
+            "search": "voxels" if method == "voxels" else "linear"}
 
 
 # ---------------------------------------------------------------- float64 references: (O, D) -> t (inf: miss)
@@ -252,6 +253,20 @@ def test_implicit_methods_hit_within_tolerance_or_flag(method, log_scale, log_sh
     """The implicit ball with the other two tracers: the fixed-step march and the thesis'
     bisection (Rouiller 2011, Sec. 4.2), whose start point inside is the ball's centre."""
     _check("implicit", tmp_path_factory.mktemp(method), log_scale, log_shift, seed, method)
+
+
+@settings(max_examples=6, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(log_scale=st.floats(-10, 10), log_shift=st.floats(-2, 5), seed=st.integers(0, 2**31 - 1))
+def test_the_cells_voxel_walk_hits_within_tolerance_or_flags(log_scale, log_shift, seed, tmp_path_factory):
+    """The cell object through the exact voxel walk (``search: voxels``) instead of the linear
+    search, against the same ray-box reference."""
+    _check("cells", tmp_path_factory.mktemp("voxels"), log_scale, log_shift, seed, "voxels")
+
+
+@pytest.mark.parametrize("log_scale", [-10.0, 10.0])
+def test_the_cells_voxel_walk_at_the_extremes(log_scale, tmp_path_factory):
+    """The walk at 1e-10 and 1e10 with the object 1e5 sizes away."""
+    _check("cells", tmp_path_factory.mktemp("voxels"), log_scale, 5.0, 7, "voxels")
 
 
 @pytest.mark.parametrize("method", ["lipschitz", "naive", "bisection"])
