@@ -196,9 +196,15 @@ def _step(p: CellParams, o, d, t_start, t_end):
     interval's far end; (step, whether it was raised)."""
     dn = safe_sqrt(jnp.sum(d * d))
     h0 = safe_div(p.step * p.size, dn, 0.0)  # d = 0: no step, no NaN
-    far = jnp.maximum(jnp.abs(t_start), jnp.where(jnp.isfinite(t_end), jnp.abs(t_end), 0.0))
-    floor = ulp_floor(far, safe_div(jnp.max(jnp.abs(o)), dn, 0.0))
+    floor = position_spacing(o, d, t_start, t_end)
     return jnp.maximum(h0, floor), floor > h0
+
+
+def position_spacing(o, d, t_start, t_end):
+    """``rays.ulp_floor`` of a ray's interval [t_start, t_end] (its far end; the origin's
+    magnitude in units of t): the float spacing, in t, of the positions along it."""
+    far = jnp.maximum(jnp.abs(t_start), jnp.where(jnp.isfinite(t_end), jnp.abs(t_end), 0.0))
+    return ulp_floor(far, safe_div(jnp.max(jnp.abs(o)), safe_sqrt(jnp.sum(d * d)), 0.0))
 
 
 def _refine(is_target, t_start, k, h, n):

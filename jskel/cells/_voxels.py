@@ -21,9 +21,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..rays import ulp_floor
 from ._membership import INSIDE, lookup
-from ._trace import TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, March, _min3, voxel_ray
+from ._trace import TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, March, _min3, position_spacing, voxel_ray
 
 
 #: how far past the crossed face a hit's t lies, in voxel edges
@@ -113,10 +112,8 @@ def walk(p: CellParams, o, d, t_start, t_end, want_inside, skip: bool) -> March:
 
 
 def _spaced(o, d, t_start, t_end, qn):
-    """Whether the float spacing of the ray's positions (``rays.ulp_floor``, as the linear search
-    floors its step) is above :data:`SPACING` of a voxel (``qn``: voxels per unit of t): which
-    voxel a point near a face lies in is then uncertain."""
-    far = jnp.maximum(jnp.abs(t_start), jnp.where(jnp.isfinite(t_end), jnp.abs(t_end), 0.0))
-    dn = jnp.sqrt(jnp.sum(d * d))
-    return ulp_floor(far, jnp.max(jnp.abs(o)) / jnp.where(dn > 0, dn, 1.0)) * qn > SPACING
+    """Whether the float spacing of the ray's positions (``_trace.position_spacing``, the floor of
+    the linear search's step) is above :data:`SPACING` of a voxel (``qn``: voxels per unit of t):
+    which voxel a point near a face lies in is then uncertain."""
+    return position_spacing(o, d, t_start, t_end) * qn > SPACING
 
