@@ -350,6 +350,32 @@ def test_no_reflective_material_compiles_no_reflection_work():
     assert f_off < f_on
 
 
+def test_objects_of_one_shape_are_traced_once():
+    """Objects of one representation, options and param shapes share one traced copy of their
+    hit code (``render._hits.groups``): a scene of three cylinders, the middle one an implicit
+    blob, traces as few equations as one cylinder and one blob do (each cylinder alone, it held
+    about one more cylinder's worth). That the grouped objects' hits are right is checked by the
+    mirror and glass tests above (the two cylinders form one group)."""
+    from jskel.render._hits import groups
+
+    def scene(*shapes):
+        return {"objects": [{"shape": s} for s in shapes], "camera": CAM2, "lights": NO_SHADOW}
+
+    def size(*shapes):
+        exp, obj = validate(scene(*shapes))
+        params, static, _, _, _ = build_scene(exp, obj, np.float32)
+        rays = make_rays(np.zeros((64, 3)), np.tile([0.0, 0.0, -1.0], (64, 1)))
+        return groups(params, static), len(_eqns(jax.make_jaxpr(scene_call)(Scene(params, static), rays).jaxpr))
+
+    g3, n3 = size(cylinder(-2, 0, 0.5, 2), BLOB, cylinder(2, 0, 0.3, 3), cylinder(0, -1, 0.4, 1))
+    g1, n1 = size(cylinder(-2, 0, 0.5, 2), BLOB)
+    assert g3 == [[0, 2, 3], [1]] and g1 == [[0], [1]]
+    _, n_cyl = size(cylinder(-2, 0, 0.5, 2))
+    _, n_blob = size(BLOB)
+    per_cylinder = n1 - n_blob  # roughly what one more traced cylinder adds
+    assert per_cylinder > 100 and n3 < n1 + 0.3 * per_cylinder, (n3, n1, n_cyl, n_blob)
+
+
 def test_pixels_needing_no_secondary_ray_are_unchanged_by_the_effect(mirror_glass):
     _, plain = run(mirror_glass_scene(kr=0.0))  # the last reflective material removed
     on = mirror_glass

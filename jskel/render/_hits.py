@@ -94,18 +94,43 @@ def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live, any_hit=
         fn = functools.partial(_object_hits, static.reps[0], static.statics[0], params.objects[0], params.xforms[0], 0, identity=True)
         return fenced(always(rays.t_min), lambda: fn(rays))
     best = _miss(n, dtype)
-    for k, (rep, st) in enumerate(zip(static.reps, static.statics)):
-        x = params.xforms[k]
-        need = (live & _box_crossed(rays, x.lo, x.hi)) if static.compaction else jnp.ones_like(live)
-        if any_hit is not None and static.compaction:
-            need = need & ~(any_hit & jnp.isfinite(best.t))
-        fn = functools.partial(_object_hits, rep, st, params.objects[k], x, k, identity=static.single)
-        hk = compact_map(fn, need, rays, _miss(n, dtype), static.lanes)
-        closer = hk.t < best.t
-        flags = best.flags | hk.flags  # every object's flags: a ray lost by one object is not decided
-        best = jax.tree_util.tree_map(lambda a, b: jnp.where(closer.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), hk, best)
-        best = best._replace(flags=flags)
+    for ks in groups(params, static):
+        def merge(best, p, x, k, rep=static.reps[ks[0]], st=static.statics[ks[0]]):
+            need = (live & _box_crossed(rays, x.lo, x.hi)) if static.compaction else jnp.ones_like(live)
+            if any_hit is not None and static.compaction:
+                need = need & ~(any_hit & jnp.isfinite(best.t))
+            fn = functools.partial(_object_hits, rep, st, p, x, k, identity=static.single)
+            return _closer(compact_map(fn, need, rays, _miss(n, dtype), static.lanes), best)
+
+        if len(ks) == 1:
+            best = merge(best, params.objects[ks[0]], params.xforms[ks[0]], ks[0])
+        else:  # one traced copy of the object's tracing for the whole group
+            stack = functools.partial(jax.tree_util.tree_map, lambda *a: jnp.stack(a))
+            each = (stack(*[params.objects[k] for k in ks]), stack(*[params.xforms[k] for k in ks]), jnp.asarray(ks, jnp.int32))
+            best = jax.lax.scan(lambda b, item: (merge(b, *item), None), best, each)[0]
     return best
+
+
+def groups(params: SceneParams, static: SceneStatic) -> list:
+    """The scene's object indices grouped by representation, static options and the shapes of
+    their params, in order of each group's first object: :func:`nearest` traces one copy of the
+    hit code per group and runs it over the group's objects in a ``scan`` (a scene's floor,
+    mirror and glass rod of one segment each share a shape bucket, so their traversal is
+    compiled once, not three times)."""
+    found: dict = {}
+    for k, (rep, st, obj) in enumerate(zip(static.reps, static.statics, params.objects)):
+        leaves, tree = jax.tree_util.tree_flatten(obj)
+        found.setdefault((rep, st, tree, tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves)), []).append(k)
+    return list(found.values())
+
+
+def _closer(hk: SceneHit, best: SceneHit) -> SceneHit:
+    """``best`` with the rows where object hits ``hk`` are nearer replaced, ties going to the
+    lower object index (so the order in which groups are traced changes nothing), and every
+    object's flags kept: a ray lost by one object is not decided."""
+    closer = (hk.t < best.t) | ((hk.t == best.t) & (hk.obj >= 0) & (hk.obj < best.obj))
+    best = jax.tree_util.tree_map(lambda a, b: jnp.where(closer.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), hk, best)
+    return best._replace(flags=best.flags | hk.flags)
 
 
 def occluded(params: SceneParams, static: SceneStatic, rays: Rays, need):

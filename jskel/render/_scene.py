@@ -30,7 +30,9 @@ Effects only where the scene calls for them, in both senses:
   object has already blocked (early out across objects). In a scene (not a scene of one) a
   level's shadow rays travel in the next step's batch, behind the next level's rays, as
   any-hit rows of the same ``nearest`` (``_piped``), so each object's traversal appears once in
-  the program instead of twice. Reflection and refraction rays are
+  the program instead of twice; objects of one representation, options and param shapes (a
+  floor, a mirror and a glass rod of one segment each) share one traced copy, run over them in
+  a ``scan`` (``_hits.groups``). Reflection and refraction rays are
   compacted into the next level's queue (``jnp.nonzero`` with a static size). Under ``vmap`` a
   ``lax.cond`` would run both branches for every ray; here the work follows the number of rays
   that need it (the ``bench_effects`` benchmark measures 10/50/100 % reflective coverage).
