@@ -23,7 +23,7 @@ ROOT = next(p for p in [Path.cwd(), *Path.cwd().parents] if (p / "experiments").
 W, H = (96, 72) if SMALL else (320, 240)
 TILES = 8 if SMALL else 32
 plt.rcParams["figure.dpi"] = 60  # the stored renders stay small
-SMALLER = [f"object.tiles={TILES}", "object.tile_map.resolution=16" if SMALL else "object.tile_map.resolution=32",
+SMALLER = ["object.search=linear", f"object.tiles={TILES}", "object.tile_map.resolution=16" if SMALL else "object.tile_map.resolution=32",
            f"camera.width={W}", f"camera.height={H}"]
 
 # %% [markdown]
