@@ -61,7 +61,7 @@ def reference_first_cell(built, O, D, sub=4096, want=None):
     want = np.ones(len(O), bool) if want is None else np.asarray(want, bool)
     p = built.params
     n = int(p.tiles)
-    r = p.split.shape[0]
+    r = int(p.res)
     split = np.asarray(p.split)
     codes = unpack(np.asarray(p.words), split.max())
     off = np.asarray(p.owner_off)
@@ -269,7 +269,7 @@ def _cell_lookup(built, x):
     u = (x - lo) / size
     local = u - np.floor(u)
     normals, colors = np.asarray(p.normals, np.float64), np.asarray(p.colors, np.float64)
-    r, c = normals.shape[0], colors.shape[0]
+    r, c = int(p.res), int(p.cres)
     v = np.clip(np.floor(local * r), 0, r - 1).astype(np.int64)
     i = np.clip(np.floor(local * c), 0, c - 1).astype(np.int64)
     return normals[v[:, 0], v[:, 1], v[:, 2]], colors[i[:, 0], i[:, 1], i[:, 2]]
@@ -319,7 +319,7 @@ def test_reflection_mode_is_the_integrators_mirror_material_against_a_float64_bo
     nrm = np.where(np.sum(nrm * nrm, 1, keepdims=True) > 0, nrm, -d)
     nf = np.where(np.sum(nrm * d, 1, keepdims=True) > 0, -nrm, nrm)
     r = d - 2 * np.sum(d * nf, 1, keepdims=True) * nf
-    voxel = float(built.bounds[1][0] - built.bounds[0][0]) / int(built.params.tiles) / built.params.split.shape[0]
+    voxel = float(built.bounds[1][0] - built.bounds[0][0]) / int(built.params.tiles) / int(built.params.res)
     t1, _ = reference_first_cell(built, x + voxel * nf, r)
     hit1 = np.isfinite(t1)
     n1, b1 = _cell_lookup(built, x + voxel * nf + np.where(hit1, t1, 0)[:, None] * r)
@@ -338,7 +338,7 @@ def test_reflection_mode_is_the_integrators_mirror_material_against_a_float64_bo
 def _in_cell(built, x):
     """Float64: is each point x (M,3) in an INSIDE split cell of the object?"""
     p = built.params
-    n, r = int(p.tiles), p.split.shape[0]
+    n, r = int(p.tiles), int(p.res)
     split = np.asarray(p.split)
     codes = unpack(np.asarray(p.words), split.max())
     lo = np.asarray(built.bounds[0], np.float64)
@@ -529,6 +529,23 @@ def test_another_tile_count_in_the_same_bucket_casts_without_a_program(obj):
     assert np.all(np.all((x >= lo - size / 256) & (x <= hi + size / 256), 1)[np.isfinite(hit.t)])  # no hit in the padding
 
 
+def test_another_tile_map_resolution_in_the_same_bucket_casts_without_a_program(obj):
+    """Tile maps of 24 and 32 voxels a side: the map (split indices, normals) and the Worley
+    colour map drawn at its resolution are padded to the size bucket (32), and the resolutions
+    are values (``CellParams.res``, ``cres``), so the
+    second cast compiles nothing; its first cells and t agree with the float64 march written
+    here, which reads the map at 24 voxels a side."""
+    tmp, _, O, D = obj
+    maps = [cells.build(cell_cfg(tmp, tile_map={"type": "voronoi", "resolution": r, "cells": 8, "seed": 0})) for r in (32, 24)]
+    assert [int(m.params.res) for m in maps] == [32, 24]
+    assert maps[0].params.split.shape == maps[1].params.split.shape == (32, 32, 32)
+    assert maps[0].params.normals.shape == maps[1].params.normals.shape
+    assert maps[0].params.colors.shape == maps[1].params.colors.shape and int(maps[1].params.cres) == 24
+    split = np.asarray(maps[1].params.split)
+    assert np.all(split[24:] == 0) and split[:24, :24, :24].min() > 0  # padding past r, never read
+    cast_without_a_program(*maps, O, D)
+
+
 def test_the_voxel_walk_finds_the_float64_marchs_first_cell_with_nothing_stepped_over(obj):
     """``search: voxels`` visits every tile-map voxel the ray crosses, in order: its first cells
     equal the float64 march's at 1/4096 of a tile (written here) on every ray, its t lies within
@@ -546,7 +563,7 @@ def test_the_voxel_walk_finds_the_float64_marchs_first_cell_with_nothing_stepped
     assert np.isfinite(t_ref).mean() > 0.3 and np.all(got == id_ref)
     ok = np.isfinite(hit.t)
     size = float((walk.bounds[1][0] - walk.bounds[0][0]) / 6)
-    voxel = size / walk.params.split.shape[0]
+    voxel = size / int(walk.params.res)
     dn = np.linalg.norm(D[ok], axis=1)
     assert np.all(np.abs(hit.t[ok] - t_ref[ok]) * dn <= size / 4096 + 1e-5)
     x = (O - walk.anchor)[ok] + np.asarray(hit.t, np.float64)[ok, None] * D[ok]
@@ -602,7 +619,7 @@ def test_a_hits_normal_is_that_of_the_voxel_it_entered(obj):
     tmp, built, O, D = obj
     hit, _ = trace(built, O, D)
     p = built.params
-    r = p.split.shape[0]
+    r = int(p.res)
     t = np.asarray(hit.t, np.float64)
     ok = np.isfinite(t)
     x = (O - built.anchor)[ok] + t[ok, None] * D[ok]

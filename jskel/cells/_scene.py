@@ -195,18 +195,19 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
     def slot_table(a):  # split indices 0..S, then inert rows (no split voxel holds their index)
         return jnp.asarray(np.concatenate([a, np.zeros((rows - len(a),) + a.shape[1:], a.dtype)]).astype(np.int32))
 
-    def tile_table(a):  # the tile count's size bucket along the first three axes (never read)
-        pad = size_bucket(cfg.tiles) - cfg.tiles
-        return jnp.asarray(np.pad(a, [(0, pad)] * 3 + [(0, 0)] * (a.ndim - 3)))
+    def bucketed(a, n, dtype=None):  # n along the first three axes padded to n's size bucket (never read)
+        pad = size_bucket(n) - n
+        return jnp.asarray(np.pad(a, [(0, pad)] * 3 + [(0, 0)] * (a.ndim - 3)), dtype)
 
+    res, cres = int(obj.split.shape[0]), int(obj.colors.shape[0])
     params = CellParams(
-        jnp.asarray(obj.split.astype(np.int32)), tile_table(obj.words), tile_table(tile_flags(obj.words, slots, present)),
-        jnp.asarray(obj.normals, dtype), jnp.asarray(obj.colors, dtype), jnp.asarray(lo - anchor, dtype),
+        bucketed(obj.split.astype(np.int32), res), bucketed(obj.words, cfg.tiles), bucketed(tile_flags(obj.words, slots, present), cfg.tiles),
+        bucketed(obj.normals, res, dtype), bucketed(obj.colors, cres, dtype), jnp.asarray(lo - anchor, dtype),
         jnp.asarray(obj.size, dtype), jnp.asarray(1.0 / cfg.steps_per_tile, dtype),
         slot_table(obj.offsets), slot_table(obj.split_cell),
         jnp.asarray(environment_map(cfg.environment), dtype), jnp.asarray(cfg.ior, dtype), jnp.asarray(cfg.reflectivity, dtype),
         jnp.asarray(cfg.max_steps, jnp.int32), jnp.asarray(cfg.bisection, jnp.int32), jnp.asarray(slots, jnp.int32),
-        jnp.asarray(cfg.tiles, jnp.int32),
+        jnp.asarray(cfg.tiles, jnp.int32), jnp.asarray(res, jnp.int32), jnp.asarray(cres, jnp.int32),
     )
     static = Static(TraceOptions(cfg.skip, cfg.search == "voxels"), cfg.mode == "refraction")
     info = dict(obj.info)
@@ -248,7 +249,7 @@ def intersect_one(p: CellParams, static: Static, origin, direction, t_min, t_max
     # where that does not decide (thin parts), and in the two-sided cast of the refraction
     # mode (whose Alg. 3.3 reading orients by the ray, tests/test_cells_trace.py), by the ray
     n = normal_at(p, x_cell, direction)
-    h = 0.5 * p.size / p.split.shape[0]
+    h = 0.5 * p.size / p.res.astype(p.size.dtype)
     x_probe = jnp.where(leaving, x_cell, x0)
     out_along, out_against = (membership_at(p, x_probe + k * h * n)[0] != INSIDE for k in (1.0, -1.0))
     by_ray = (jnp.sum(n * direction) > 0) != leaving
@@ -282,7 +283,7 @@ def _crossed_face(p: CellParams, x0, direction):
     face, whose Alg. 4.8 normal is another cell's (up to 141 degrees from float64's in
     ``python -m jskel sweep experiments/sweep_precision_cells.yaml`` at 5b41912, 2026-12-03).
     Where x0 is not in an inside cell, the normal and the cell id are looked up here instead."""
-    r = p.split.shape[0]
+    r = p.res.astype(x0.dtype)
     v = jax.lax.stop_gradient((x0 - p.lo) / p.size * r)
     face = jax.nn.one_hot(jnp.argmin(jnp.abs(v - jnp.round(v))), 3, dtype=x0.dtype)
     side = jnp.where(jnp.sum(face * direction) > 0, 0.25, -0.25)

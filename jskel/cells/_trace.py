@@ -49,13 +49,16 @@ class CellParams(NamedTuple):
     whose S fills the same words renders through the same programs (issue 27). Likewise the
     tile tables (``words``, ``tile_flags``) are padded to the size bucket of the tile count
     (``executor.size_bucket``: tiles 1-8 share a shape, then 9-16, ...) and the count N itself
-    is a value; the padding tiles lie outside the object's box, so nothing reads them."""
+    is a value; the padding tiles lie outside the object's box, so nothing reads them. The tile
+    map (``split``, ``normals``) and the colour map are padded the same way to the size buckets
+    of their resolutions r and c, values too (``res``, ``cres``), so maps of 17 to 32 voxels a
+    side share programs; the padding voxels lie past r (c), where no point of a tile falls."""
 
-    split: jnp.ndarray  # (r,r,r) int32 split index, 0 empty space
+    split: jnp.ndarray  # (R,R,R) int32 split index of the r^3 tile map, 0 empty space, R = size_bucket(r)
     words: jnp.ndarray  # (B,B,B,W) uint32 packed membership of the N^3 tiles, B = size_bucket(N)
     tile_flags: jnp.ndarray  # (B,B,B) int32 TILE_HAS_INSIDE | TILE_ALL_INSIDE
-    normals: jnp.ndarray  # (r,r,r,3) unit normals of Alg. 4.8 (0 inside a cell)
-    colors: jnp.ndarray  # (c,c,c,3) tileable linear RGB
+    normals: jnp.ndarray  # (R,R,R,3) unit normals of Alg. 4.8 (0 inside a cell)
+    colors: jnp.ndarray  # (C,C,C,3) tileable linear RGB of the c^3 colour map, C = size_bucket(c)
     lo: jnp.ndarray  # (3,) object corner, relative to the anchor
     size: jnp.ndarray  # () tile edge
     step: jnp.ndarray  # () linear-search step in tiles (1/16 .. 1/512 in Sec. 5.3)
@@ -68,6 +71,8 @@ class CellParams(NamedTuple):
     bisection: jnp.ndarray  # () int32 halvings of the last bracket (Alg. 3.1 rows 19-28)
     slots: jnp.ndarray  # () int32 split cells S (a value: tile maps whose S fill the same W words share programs)
     tiles: jnp.ndarray  # () int32 tiles N along each axis (a value: counts in one size bucket share programs)
+    res: jnp.ndarray  # () int32 tile map resolution r (a value: resolutions in one size bucket share programs)
+    cres: jnp.ndarray  # () int32 colour map resolution c (likewise)
 
 
 class TraceOptions(NamedTuple):
@@ -80,14 +85,13 @@ class TraceOptions(NamedTuple):
 
 def locate(p: CellParams, x):
     """(tile (3,) int32, in object, voxel (3,) int32) of a point relative to the anchor."""
-    n = p.tiles
-    r = p.split.shape[0]
+    n, r = p.tiles, p.res
     u = (x - p.lo) / p.size
     tile = jnp.floor(u)
     inb = (tile >= 0) & (tile < n)
     inside_obj = inb[0] & inb[1] & inb[2]  # by component: under vmap a reduction over 3 is a library call
     local = u - tile
-    vox = jnp.clip(jnp.floor(local * r), 0, r - 1).astype(jnp.int32)
+    vox = jnp.clip(jnp.floor(local * r.astype(x.dtype)), 0, r - 1).astype(jnp.int32)
     return jnp.clip(tile, 0, n - 1).astype(jnp.int32), inside_obj, vox
 
 
@@ -238,7 +242,7 @@ class VoxelRay(NamedTuple):
 
 def voxel_ray(p: CellParams, o, d) -> VoxelRay:
     """The ray in voxel units, taken once before the march (no division at each sample)."""
-    vox = p.size / p.split.shape[0]
+    vox = p.size / p.res.astype(p.size.dtype)
     qd = d / vox
     return VoxelRay((o - p.lo) / vox, qd, safe_div(1.0, qd, jnp.inf))
 
@@ -247,7 +251,7 @@ def voxel_of(p: CellParams, x):
     """The tile map voxel (3,) (integers as floats) holding x, counted from the object's corner:
     :func:`locate`'s tile x r + voxel, bitwise where r is a power of two (u r and (u - tile) r
     are exact), so a sample and the voxels between it and the next agree on where a face lies."""
-    return jnp.floor((x - p.lo) / p.size * p.split.shape[0])
+    return jnp.floor((x - p.lo) / p.size * p.res.astype(x.dtype))
 
 
 def between(p: CellParams, vr: VoxelRay, o, d, ta, tb):
@@ -296,10 +300,10 @@ def normal_at(p: CellParams, x, d):
 
 def color_at(p: CellParams, x):
     """Nearest texel of the tileable colour map at x."""
-    c = p.colors.shape[0]
+    c = p.cres
     u = (x - p.lo) / p.size
     local = u - jnp.floor(u)
-    i = jnp.clip(jnp.floor(local * c), 0, c - 1).astype(jnp.int32)
+    i = jnp.clip(jnp.floor(local * c.astype(x.dtype)), 0, c - 1).astype(jnp.int32)
     return p.colors[i[0], i[1], i[2]]
 
 

@@ -59,7 +59,7 @@ def walk(p: CellParams, o, d, t_start, t_end, want_inside, skip: bool) -> March:
     ray from far away); ``stepped`` is False: no voxel is passed over."""
     # the value only: the hit's derivative is the crossed face's root (``_scene.intersect_one``)
     p, o, d, t_start, t_end = jax.lax.stop_gradient((p, o, d, t_start, t_end))
-    r = p.split.shape[0]
+    r = p.res
     nv = p.tiles * r
     # t from the ray's entry point, not its origin: a ray from far away keeps the exits' precision
     # (its origin, 1e5 object sizes off, spans 1e8 voxels, whose float32 spacing is 8 of them)
