@@ -64,9 +64,14 @@ def _examples(tmp):
     }
 
 
+#: variants held to the same contract: another search of a representation (name:variant -> overrides)
+VARIANTS = {"cells:voxels": {"search": "voxels"}}
+
+
 @pytest.fixture(scope="module")
 def examples(tmp_path_factory):
-    return _examples(tmp_path_factory.mktemp("conformance"))
+    found = _examples(tmp_path_factory.mktemp("conformance"))
+    return {**found, **{k: {**found[k.split(":")[0]], **v} for k, v in VARIANTS.items()}}
 
 
 def test_every_representation_has_an_example(tmp_path):
@@ -94,7 +99,7 @@ class Case:
 
     def __init__(self, name, raw):
         self.name = name
-        self.rep = registry.get(name)
+        self.rep = registry.get(name.split(":")[0])
         self.cfg = self.rep.Config.model_validate(raw)
         self.built = self.rep.build(self.cfg, np.float32)
         lo, hi = (np.asarray(b, np.float64) for b in self.built.bounds)
@@ -120,7 +125,7 @@ class Case:
 _CASES: dict = {}
 
 
-@pytest.fixture(params=registry.names())
+@pytest.fixture(params=registry.names() + list(VARIANTS))
 def case(request, examples):
     name = request.param
     if name not in _CASES:

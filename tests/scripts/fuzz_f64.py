@@ -5,7 +5,7 @@ Hypothesis draws scenes and rays: for implicit models, random metaballs and a me
 random rotation, a uniform scale log-uniform over 10^-2..10^3 and an offset log-uniform over
 10^-2..10^5 (the tracer's step and eps scale with the model, as a user sets them); for cell
 objects, a torus of cells at a random scale and centre, seen from random origins up to 10^4
-sizes away. Each example casts 256 rays in both precisions and checks: the float32 result is
+sizes away, searched by the linear search and again by the voxel walk. Each example casts 256 rays in both precisions and checks: the float32 result is
 float32 (no silent promotion); hit/miss agree and t agrees within 1e-3 of the scene's size plus
 32 float32 ulps of the origin's distance and of t (what a float32 ray can represent) on all but
 a thin band of rays (at most 2 %), and the median |dt| is a tenth of the tolerance or less.
@@ -35,7 +35,7 @@ from reference import rotation  # noqa: E402  (tests/reference.py)
 
 LONG = os.environ.get("JSKEL_FUZZ") == "long"
 N = 256
-worst = {"implicit": {"examples": 0, "disagree_frac": 0.0}, "cells": {"examples": 0, "disagree_frac": 0.0}}
+worst = {k: {"examples": 0, "disagree_frac": 0.0} for k in ("implicit", "cells", "cells_walk")}
 FNS = {}
 
 
@@ -117,25 +117,41 @@ def implicit_case(seed, log_scale, log_offset, q, u, far):
 CACHE = tempfile.mkdtemp()
 
 
-@settings(max_examples=RUNS, deadline=None, derandomize=not LONG, suppress_health_check=list(HealthCheck))
-@given(seed=st.integers(0, 2**31 - 1), log_scale=st.floats(-2, 3), log_offset=st.floats(-2, 5), u=unit, log_far=st.floats(0.2, 4.0))
-def cells_case(seed, log_scale, log_offset, u, log_far):
+def _cells(seed, log_scale, log_offset, u, log_far, search):
     rng = np.random.default_rng(seed)
     s = 10.0**log_scale
     centre = 10.0**log_offset * np.asarray(u) / np.linalg.norm(u)
     cfg = cells.CellsConfig.model_validate({
         "type": "cells", "base": {"type": "torus", "major": 1.0 * s, "minor": 0.45 * s, "center": centre.tolist()}, "tiles": 6,
         "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "steps_per_tile": 64, "bisection": 20,
-        "cache": CACHE})
+        "search": search, "cache": CACHE})
     b32, b64 = cells.build(cfg, np.float32), cells.build(cfg, np.float64)
     lo, hi = b64.bounds
     O, D, size = rays_at(rng, np.asarray(lo), np.asarray(hi), 10.0**log_far)
-    compare(cast(cells.REPRESENTATION, b32, O, D, np.float32), cast(cells.REPRESENTATION, b64, O, D, np.float64), size, "cells",
+    name = "cells" if search == "linear" else "cells_walk"
+    compare(cast(cells.REPRESENTATION, b32, O, D, np.float32), cast(cells.REPRESENTATION, b64, O, D, np.float64), size, name,
             np.linalg.norm(O - b64.anchor, axis=1))
+
+
+CELL_DRAWS = dict(seed=st.integers(0, 2**31 - 1), log_scale=st.floats(-2, 3), log_offset=st.floats(-2, 5), u=unit, log_far=st.floats(0.2, 4.0))
+
+
+@settings(max_examples=RUNS, deadline=None, derandomize=not LONG, suppress_health_check=list(HealthCheck))
+@given(**CELL_DRAWS)
+def cells_case(seed, log_scale, log_offset, u, log_far):
+    _cells(seed, log_scale, log_offset, u, log_far, "linear")
+
+
+@settings(max_examples=RUNS, deadline=None, derandomize=not LONG, suppress_health_check=list(HealthCheck))
+@given(**CELL_DRAWS)
+def cells_walk_case(seed, log_scale, log_offset, u, log_far):
+    """The voxel walk (``search: voxels``) under the same draws."""
+    _cells(seed, log_scale, log_offset, u, log_far, "voxels")
 
 
 if __name__ == "__main__":
     implicit_case()
     cells_case()
+    cells_walk_case()
     print(json.dumps(worst))
     sys.exit(0)
