@@ -371,12 +371,14 @@ def _pair_step(batch: _Batch, ids, m2, e2, lin, st):
 
 
 def _lane_test(batch: _Batch, na, rows, prim):
-    """t (Q, G) of a step's pairs (packet ``rows``, primitive ``prim``), on the smallest of
-    q/4, q/2, q lanes that holds the step's ``na`` pairs (a switch: one branch runs; a block's
-    last step is often part-full, and the step's cost is its lanes). Each branch is its own
-    program, so t is materialised once. ``batch.one_lane``: q lanes alone (one copy of the test)."""
+    """t (Q, G) of a step's pairs (packet ``rows``, primitive ``prim``), on q/2 lanes where the
+    step's ``na`` pairs fit, else q (a switch: one branch runs; a block's last step is often
+    part-full, and the step's cost is its lanes). Each branch is its own program, so t is
+    materialised once. ``batch.one_lane``: q lanes alone (one copy of the test). A third size,
+    q/4, was dropped: its copy of the pair test cost 0.15-0.4 s of compile on Table 1's scenes
+    for about 5 % of the cacti's cast time (docs/performance.md, Scale)."""
     q = batch.q
-    sizes = [m for m in (q // 4, q // 2) if m >= 16 and not batch.one_lane] + [q]
+    sizes = [m for m in (q // 2,) if m >= 16 and not batch.one_lane] + [q]
     if len(sizes) > 1:
         return jax.lax.switch(sum((na > m).astype(jnp.int32) for m in sizes[:-1]), [_lanes(batch, m, rows, prim) for m in sizes])
     return fenced(na >= 0, _lanes(batch, q, rows, prim))  # (a switch of one branch is inlined)
