@@ -5,6 +5,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from . import checks
+
 BUILTIN = ("checker", "brick", "gravel", "grass")
 
 
@@ -29,9 +31,22 @@ def load_texture(name: str, path: str = "object.texture") -> np.ndarray:
             raise ValueError(f"{path}: cannot read image {name!r} (or name one of {', '.join(BUILTIN)}): {e}") from None
     if img.ndim == 2:
         img = np.stack([img] * 3, -1)
-    img = img[..., :3]
+    img = finite_texels(img[..., :3], path, name)
     img = img / (255.0 if img.max() > 1.0 else 1.0)
     return img**2.2  # sRGB-ish to linear
+
+
+def finite_texels(img: np.ndarray, path: str, name: str) -> np.ndarray:
+    """``img`` (H, W, ...) if every texel is finite, else a ``ValueError`` naming the key, the
+    file, and the bad texels by (row, column) with their values and count: a float image (TIFF,
+    EXR, HDR) holding a NaN or an infinity would otherwise become a silent colour or height."""
+    a = np.asarray(img, np.float64)
+    bad = ~np.all(np.isfinite(a.reshape(a.shape[0], a.shape[1], -1)), axis=-1)
+    if not bad.any():
+        return img
+    rc = np.argwhere(bad)
+    vals = [a[r, c] for r, c in rc[:checks.SHOW]]
+    raise ValueError("\n".join(checks.at(f"{path} ({name!r})", "not finite", rc, vals, "texels", count=len(rc))))
 
 
 def bilinear_wrap(tex, uv, size=None):

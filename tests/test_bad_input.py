@@ -45,8 +45,13 @@ JOINTS6 = "[[0,0,0],[0,1,0],[0,2,0],[0,3,0],[0,4,0],[0,5,0]]"
 BALL = "[{center: [0, 0, 0], radius: 1}]"
 BAD_OBJ = "v 0 0 0\nv nan 0 0\nv 0 1 0\nv 1 0 0\nf 1 2 3\nf 1 3 4\n"
 
-# (id, experiment body, the exact error lines); MESH in a body is the path of an OBJ holding BAD_OBJ
+# (id, experiment body, the exact error lines); MESH in a body is the path of an OBJ holding BAD_OBJ,
+# TEX of a float TIFF holding a NaN and an infinity (written in the test)
 TABLE = [
+    ("frusta_texture_nan", _body(FRUSTA[:-1] + ", texture: TEX}"),
+     ["object.texture ('TEX'): 2 texels: not finite (indices (1, 2): [nan, 0.5, 0.5], (3, 0): [0.5, inf, 0.5])"]),
+    ("relief_map_nan", _body(FRUSTA[:-1] + ", relief: {map: TEX}}"),
+     ["object.relief.map ('TEX'): 2 texels: not finite (indices (1, 2): [nan, 0.5, 0.5], (3, 0): [0.5, inf, 0.5])"]),
     ("frusta_joint_nan", _body(_skeleton("[[0,0,0],[.nan,1,0],[0,2,0]]", "[0.3, 0.2, 0.1]", "[-1, 0, 1]")),
      ["object.skeleton.joints[1][0]: Input should be a finite number (got nan)"]),
     ("frusta_radius_negative", _body(_skeleton("[[0,0,0],[0,1,0],[0,2,0]]", "[0.3, -0.2, 0.1]", "[-1, 0, 1]")),
@@ -78,7 +83,7 @@ TABLE = [
     ("cells_base_radius_negative", _body("{type: cells, base: {type: sphere, radius: -1}}"),
      ["object.base.radius: Input should be greater than 0 (got -1)"]),
     ("mesh_vertex_nan", _body("{type: mesh, path: MESH}"),
-     ["object.path: 'MESH' vertex 1 is [nan, 0.0, 0.0] (1 non-finite vertices)"]),
+     ["object.path ('MESH') vertices[1]: not finite (got [nan, 0, 0])"]),
     ("camera_fov_zero", _body(camera="{fov_deg: 0, width: 16, height: 16}"),
      ["camera.fov_deg: Input should be greater than 0 (got 0)"]),
     ("camera_eye_is_target", _body(camera="{eye: [0, 1, 0], target: [0, 1, 0], width: 16, height: 16}"),
@@ -136,12 +141,18 @@ def no_compile(monkeypatch):
 def test_bad_experiment_is_every_problem_in_one_error_before_any_compile(tmp_path, capsys, no_compile, body, lines):
     mesh = tmp_path / "bad.obj"
     mesh.write_text(BAD_OBJ)
+    tex = tmp_path / "bad.tif"
+    texels = np.full((4, 5, 3), 0.5, np.float32)
+    texels[1, 2, 0], texels[3, 0, 1] = np.nan, np.inf
+    import imageio.v3 as iio
+
+    iio.imwrite(tex, texels)
     exp = tmp_path / "exp.yaml"
-    exp.write_text(body.replace("MESH", str(mesh)))
+    exp.write_text(body.replace("MESH", str(mesh)).replace("TEX", str(tex)))
     rc = cli.main(["render", str(exp), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2
-    assert err == ["jskel: error: " + line.replace("MESH", str(mesh)) for line in lines]
+    assert err == ["jskel: error: " + line.replace("MESH", str(mesh)).replace("TEX", str(tex)) for line in lines]
 
 
 def test_rays_every_bad_ray_by_index_and_value():

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..textures import finite_texels
+
 from ._build import FrustaArrays
 
 
@@ -25,6 +27,8 @@ def load_height_map(name: str) -> np.ndarray:
             img = np.asarray(iio.imread(name))
         except Exception as e:  # noqa: BLE001 - any reader failure is a bad config value
             raise ValueError(f"object.relief.map: cannot read image {name!r} (or name one of {', '.join(RELIEF_TEXTURES)}): {e}") from None
+    if img.ndim >= 2 and img.dtype.kind == "f":
+        finite_texels(img, "object.relief.map", name)
     if img.ndim == 3:
         img = img[..., :3].mean(-1)
     if img.dtype != np.uint8:

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import accel
+from .. import accel, checks
 from ..executor import size_bucket
 from ..interface import Built, Preliminary, Representation
 from ..numerics import dot3, safe_div, safe_normalize
@@ -77,13 +77,9 @@ def read_mesh(path: str, where: str = "object.path") -> tuple[np.ndarray, np.nda
     problems = []
     if f.shape[0] == 0:
         problems.append(f"{where}: {path!r} holds no triangles")
-    bad_v = np.where(~np.all(np.isfinite(v), axis=1))[0]
-    if bad_v.size:
-        problems.append(f"{where}: {path!r} vertex {int(bad_v[0])} is {v[bad_v[0]].tolist()} ({bad_v.size} non-finite vertices)")
+    problems += checks.nonfinite(f"{where} ({path!r}) vertices", v, "vertices")
     bad_f = np.where(np.any((f < 0) | (f >= v.shape[0]), axis=1))[0]
-    if bad_f.size:
-        problems.append(f"{where}: {path!r} face {int(bad_f[0])} is {f[bad_f[0]].tolist()}, indices must lie in [0, {v.shape[0]}) "
-                        f"({bad_f.size} such faces)")
+    problems += checks.at(f"{where} ({path!r}) faces", f"index out of [0, {v.shape[0]})", bad_f, f[bad_f], "faces")
     if problems:
         raise ValueError("\n".join(problems))
     # bit-equal vertices become one (STL stores every triangle's own three): the watertight test's
