@@ -66,7 +66,9 @@ def at(field: str, what: str, index, values, noun: str = "entries", count: int |
 def _rows(a) -> np.ndarray:
     """(N, k) float64 view of an (N,) or (N, ...) array-like."""
     a = np.asarray(a, np.float64)
-    return a.reshape(a.shape[0] if a.ndim else 1, -1)
+    if a.ndim == 0:
+        return a.reshape(1, 1)
+    return a.reshape(a.shape[0], int(np.prod(a.shape[1:], dtype=np.int64)))  # (0, k) too: -1 cannot infer k from 0 rows
 
 
 def nonfinite(field: str, a, noun: str = "entries") -> list[str]:
