@@ -7,9 +7,12 @@ form (float64 NumPy, written here): a frusta cylinder with flat caps, an implici
 kernel (1 - r^2/R^2)^2 = T gives the radius R sqrt(1 - sqrt(T))), a mesh box, a cell object
 whose one cell is a box of tile-map voxels. On a convex object, a ray that starts outside the
 supporting plane at the hit and goes outward never meets the object again, so the truth of the
-first test is exact: zero hits. Float32, objects scaled by 1e-3 .. 1e3 and moved by up to 1e5
-of their size, seen by cameras up to 1e5 sizes away (a seeded grid; one compile per
-representation, the same shapes throughout).
+first test is exact: zero hits. Float32, objects scaled by 1e-10 .. 1e10 and moved by up to 1e5
+of their size, seen by cameras up to 1e5 sizes away (a seeded grid of scales and shifts, then
+hypothesis over 20 decades of scale; one compile per representation, the same shapes
+throughout). The fuzz also runs each representation's other tracers (``VARIANTS``: the cells'
+voxel walk and refraction mode, whose secondary offset differs, and the implicit naive and
+bisection methods).
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from jskel import interface, registry
 from jskel.rays import Rays, make_rays
 
 N = 256
-SCALES = (1e-3, 1.0, 1e3)
+SCALES = (1e-10, 1e-3, 1.0, 1e3, 1e10)
 SHIFTS = (0.0, 1e5)  # the object's translation and the camera's distance, in object sizes
 BOX = np.array([1.0, 0.6, 0.8])  # the mesh box's extents
 T_ISO = 0.5  # the implicit ball's threshold
@@ -34,8 +37,16 @@ TILE = np.zeros((16, 16, 16), np.int64)
 TILE[4:12, 3:13, 5:11] = 1  # the cell object's one cell: a box of voxels
 
 
+#: other tracers of a representation held to the same properties in the fuzz (name:variant -> overrides)
+VARIANTS = {"cells:voxels": {"search": "voxels"}, "cells:refraction": {"mode": "refraction"},
+            "implicit:bisection": {"method": "bisection"}, "implicit:naive": {"method": "naive"}}
+
+
 def _raw(name, tmp, s, shift):
-    """The object section of ``name`` at scale ``s`` moved by ``shift`` sizes (world units)."""
+    """The object section of ``name`` (a representation, or one of its ``VARIANTS``) at scale
+    ``s`` moved by ``shift`` sizes (world units)."""
+    if name in VARIANTS:
+        return {**_raw(name.split(":")[0], tmp, s, shift), **VARIANTS[name]}
     off = (shift * s * np.array([0.6, -0.8, 0.3])).tolist()
     if name == "frusta":
         return {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 1, 0]], "radii": [0.3, 0.3], "parents": [-1, 0],
@@ -128,7 +139,7 @@ class Case:
     (by default 4, or ``shift``), their hits, the truth at each hit."""
 
     def __init__(self, name, tmp, s, shift, seed, distance=None):
-        self.rep = registry.get(name)
+        self.rep = registry.get(name.split(":")[0])
         self.built = self.rep.build(self.rep.Config.model_validate(_raw(name, tmp, s, shift)), np.float32)
         self.obj = interface.Object.of(self.rep, self.built)
         self.anchor, self.size = np.asarray(self.built.anchor), s
@@ -142,7 +153,7 @@ class Case:
         self.rays = make_rays(cam - self.anchor, d / np.linalg.norm(d, axis=1, keepdims=True))
         self.hit = _np(_cast(self.obj, self.rays))
         self.got = np.isfinite(self.hit.t)
-        self.faces, self.within = _truth(name, self.built, s, shift)
+        self.faces, self.within = _truth(name.split(":")[0], self.built, s, shift)
         self.rng = rng
 
     def world(self, p32):
@@ -242,11 +253,18 @@ def test_a_surface_just_beyond_the_offset_is_still_found(name, s, shift, tmp_pat
     _check_found_beyond(_case(name, tmp_path_factory, s, shift), f"{name} at scale {s}, shift {shift}")
 
 
+@pytest.fixture(params=registry.names() + list(VARIANTS))
+def fuzz_name(request):
+    return request.param
+
+
 @settings(max_examples=6, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
-@given(log_scale=st.floats(-3, 3), log_shift=st.floats(-2, 5), log_distance=st.floats(0.5, 5), seed=st.integers(0, 2**31 - 1))
-def test_fuzzed_scale_shift_and_distance(name, log_scale, log_shift, log_distance, seed, tmp_path_factory):
-    """Both properties at log-uniform scales (1e-3..1e3), translations (1e-2..1e5 sizes) and
-    camera distances (3..1e5 sizes) that hypothesis draws (derandomized: the same examples in CI)."""
+@given(log_scale=st.floats(-10, 10), log_shift=st.floats(-2, 5), log_distance=st.floats(0.5, 5), seed=st.integers(0, 2**31 - 1))
+def test_fuzzed_scale_shift_and_distance(fuzz_name, log_scale, log_shift, log_distance, seed, tmp_path_factory):
+    """Both properties at log-uniform scales (1e-10..1e10), translations (1e-2..1e5 sizes) and
+    camera distances (3..1e5 sizes) that hypothesis draws (derandomized: the same examples in CI),
+    for every representation and each of its ``VARIANTS``."""
+    name = fuzz_name
     s, shift = 10.0**log_scale, 10.0**log_shift
     c = Case(name, tmp_path_factory.mktemp(name), s, shift, seed, distance=10.0**log_distance)
     label = f"{name} at scale {s:.3g}, shift {shift:.3g}, distance {10.0**log_distance:.3g}"

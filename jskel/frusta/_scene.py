@@ -75,7 +75,23 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
                     (cfg.bin_packet, cfg.bin_candidates, cfg.bin_pairs, cfg.bin_group, float(cfg.bin_walk_ratio)))
     info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size),
                 accel=static.accel, traversal=static.traversal if static.accel == "bvh" else None)  # what ``auto`` chose
-    return Built(scene, static, anchor, (lo, hi), info, primitives=int(s))
+    return Built(scene, static, anchor, (lo, hi), info, primitives=int(s), surface_tolerance=_tolerance(cfg, arrays, relief_ids, dtype))
+
+
+def _tolerance(cfg: FrustaConfig, arrays: FrustaArrays, relief_ids, dtype) -> float:
+    """How far a returned hit may lie from the surface (``Built.surface_tolerance``, which
+    ``jskel.spawn`` offsets secondary rays by): a side root is accepted up to 32 eps (h + r1 + r2)
+    past a cutting plane (``_intersect._segment_t``'s slab slack), and a relief hit lies within
+    its last bisection bracket, at most the segment's bounding diameter through the shell over
+    ``steps`` 2^``bisection``. Without the slack a ray spawned along a cap at a grazing angle met
+    the side's cone just past the cap's plane (``tests/test_spawn.py``)."""
+    ext = arrays.h + arrays.r1 + arrays.r2
+    tol = 32.0 * float(np.finfo(dtype).eps) * float(np.max(ext)) if ext.size else 0.0
+    rel = cfg.relief
+    if rel is not None and relief_ids.size:
+        span = arrays.h[relief_ids] + 2.0 * (np.maximum(arrays.r1[relief_ids], arrays.r2[relief_ids]) + rel.thickness)
+        tol = max(tol, float(np.max(span)) / rel.steps * 0.5**rel.bisection)
+    return tol
 
 
 def _relief_ids(rel, s: int) -> np.ndarray:

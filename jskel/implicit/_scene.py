@@ -131,8 +131,11 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
                 block=cfg.block_size, block_capacity=cfg.block_capacity or (16 if cfg.cull == "tree" else 32), cull=cfg.cull)
     static = Static(q, kinds, textured)
     info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_bound": fmax}
-    # width of the last bisection bracket: how far a returned hit may lie from F = T
-    tol = float((cfg.eps if cfg.method == "lipschitz" else cfg.step) * 0.5 ** cfg.bisection)
+    # width of the last bisection bracket: how far a returned hit may lie from F = T; the
+    # bisection method's first bracket (the entry into the first sphere of influence to the
+    # nearest inside point) spans at most the model's box, not a step
+    first = {"lipschitz": cfg.eps, "naive": cfg.step}.get(cfg.method, float(np.linalg.norm(np.asarray(hi) - np.asarray(lo))))
+    tol = float(first * 0.5**cfg.bisection)
     return Built(scene, static, anchor, (lo, hi), info, primitives=int(p), surface_tolerance=tol)
 
 
