@@ -20,6 +20,12 @@ References, float64, independent of jskel:
 * implicit: one ball, whose surface (1 - r^2/R^2)^2 = T (Rouiller 2011, Sec. 3) is the sphere of
   radius R sqrt(1 - sqrt(T)): ray-sphere in closed form;
 * mesh: an icosphere (80 faces), Moller-Trumbore on every face;
+* relief (frusta with a height field in a shell, Bhagvat et al. 2009, Sec. 3): a collinear chain
+  of 2 tapered segments under a constant height map, whose relief surface is the frustum of
+  radii r + h T (closed by the same cutting planes) against ``tests/reference.py``; the march
+  steps 1/64 of the shell's chord and bisects 8 times, so ``tol_t`` is the last bracket of the
+  longest chord, and a chord through the relief shorter than a step may be stepped over only
+  with ``graze``;
 * cells: one cell that is a box of tile-map voxels (as in tests/test_spawn.py), ray-box slabs;
   the linear search (Nurnberg 2011, Sec. 3.2) steps 1/256 of the tile and bisects the step that
   crosses, so ``tol_t`` is a quarter step and ``delta`` one step (a corner chord shorter than a
@@ -53,6 +59,9 @@ T_ISO = 0.5
 JOINTS = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.3, 1.8, 0.0], [0.3, 2.5, 0.4]])
 RADII = np.array([0.3, 0.26, 0.2, 0.12])
 PARENTS = [-1, 0, 1, 2]
+R_JOINTS = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 2.0, 0.0]])
+R_RADII = np.array([0.5, 0.45, 0.4])
+R_LEVEL, R_THICK, R_STEPS, R_BIS = 128, 0.1, 64, 8  # the constant height (of 255), shell thickness (sizes), march
 TILE = np.zeros((16, 16, 16), np.int64)
 TILE[4:12, 3:13, 5:11] = 1  # the cell object's one cell: a box of voxels
 _cast = jax.jit(interface.intersect)
@@ -85,6 +94,14 @@ def _raw(name, tmp, s, off, method="lipschitz", seed=0):
     if name == "frusta":
         return {"type": "frusta", "skeleton": {"joints": JOINTS.tolist(), "radii": RADII.tolist(), "parents": PARENTS,
                                                "scale": s, "offset": off.tolist()}}
+    if name == "relief":
+        import imageio.v3 as iio
+
+        path = tmp / "level.png"
+        iio.imwrite(path, np.full((8, 8), R_LEVEL, np.uint8))
+        return {"type": "frusta", "skeleton": {"joints": R_JOINTS.tolist(), "radii": R_RADII.tolist(), "parents": [-1, 0, 1],
+                                               "scale": s, "offset": off.tolist()},
+                "relief": {"map": str(path), "thickness": R_THICK * s, "steps": R_STEPS, "bisection": R_BIS}}
     if name == "implicit":
         return {"type": "implicit", "threshold": T_ISO, "balls": [{"center": off.tolist(), "radius": s}],
                 "step": 0.02 * s, "eps": 1e-3 * s, "method": method}
@@ -152,6 +169,10 @@ def _reference(name, built, s, off, seed=0):
         return (lambda O, D: ref.intersect(segs, O, D)[0]), 1e-4 * s, 1e-4 * s
     if name == "implicit":
         return _sphere(off, s * np.sqrt(1 - np.sqrt(T_ISO))), 4e-3 * s, 1e-3 * s
+    if name == "relief":
+        segs = ref.segments(R_JOINTS * s + off, (R_RADII + R_LEVEL / 255 * R_THICK) * s, [-1, 0, 1])
+        chord = (2.0 + 2 * (R_RADII.max() + R_THICK)) * s  # the longest chord through one segment's shell, a bound
+        return (lambda O, D: ref.intersect(segs, O, D)[0]), chord / R_STEPS * 0.5**R_BIS + 1e-4 * s, 1e-4 * s
     if name == "mesh":
         v, f = _icosphere()
         return _triangles(v * s + off, f), 1e-4 * s, 1e-4 * s
@@ -190,7 +211,7 @@ def _agrees(got, t_hit, t, tol):
 def _check(name, tmp, log_scale, log_shift, seed, method="lipschitz"):
     s = 10.0**log_scale
     off = s * 10.0**log_shift * np.array([0.6, -0.8, 0.3])
-    rep = registry.get("implicit" if name == "implicit_blend" else name)
+    rep = registry.get({"implicit_blend": "implicit", "relief": "frusta"}.get(name, name))
     built = rep.build(rep.Config.model_validate(_raw(name, tmp, s, off, method, seed)), np.float32)
     anchor = np.asarray(built.anchor, np.float64)
     lo, hi = (np.asarray(b, np.float64) for b in built.bounds)
@@ -278,3 +299,17 @@ def test_blended_primitives_hit_within_tolerance_or_flag(method, log_scale, log_
     centres' projections and the tube's, and a ray may pass a blend between them (Fig. 7) or
     a crossing before the one it brackets (Sec. 4.2.2): those must carry flags."""
     _check("implicit_blend", tmp_path_factory.mktemp(method), log_scale, log_shift, seed, method)
+
+
+@settings(max_examples=8, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(log_scale=st.floats(-10, 10), log_shift=st.floats(-2, 5), seed=st.integers(0, 2**31 - 1))
+def test_relief_hits_within_tolerance_or_flags(log_scale, log_shift, seed, tmp_path_factory):
+    """Frusta with relief (a constant height map: the surface is the frustum of radii r + h T),
+    through the shell's march and bisection (Bhagvat et al. 2009, Sec. 3)."""
+    _check("relief", tmp_path_factory.mktemp("relief"), log_scale, log_shift, seed)
+
+
+@pytest.mark.parametrize("log_scale", [-10.0, 10.0])
+def test_relief_at_the_extremes(log_scale, tmp_path_factory):
+    """The relief at 1e-10 and 1e10 with the object 1e5 sizes away."""
+    _check("relief", tmp_path_factory.mktemp("relief"), log_scale, 5.0, 7)

@@ -10,9 +10,9 @@ supporting plane at the hit and goes outward never meets the object again, so th
 first test is exact: zero hits. Float32, objects scaled by 1e-10 .. 1e10 and moved by up to 1e5
 of their size, seen by cameras up to 1e5 sizes away (a seeded grid of scales and shifts, then
 hypothesis over 20 decades of scale; one compile per representation, the same shapes
-throughout). The fuzz also runs each representation's other tracers (``VARIANTS``: the cells'
-voxel walk and refraction mode, whose secondary offset differs, and the implicit naive and
-bisection methods).
+throughout). The fuzz also runs each representation's other tracers (``VARIANTS``: the frusta
+cylinder with a relief shell under a constant height map, the cells' voxel walk and refraction
+mode, whose secondary offset differs, and the implicit naive and bisection methods).
 """
 
 from __future__ import annotations
@@ -39,12 +39,20 @@ TILE[4:12, 3:13, 5:11] = 1  # the cell object's one cell: a box of voxels
 
 #: other tracers of a representation held to the same properties in the fuzz (name:variant -> overrides)
 VARIANTS = {"cells:voxels": {"search": "voxels"}, "cells:refraction": {"mode": "refraction"},
-            "implicit:bisection": {"method": "bisection"}, "implicit:naive": {"method": "naive"}}
+            "implicit:bisection": {"method": "bisection"}, "implicit:naive": {"method": "naive"},
+            "frusta:relief": {}}  # relief under a constant height map: the cylinder of radius 0.3 + h T (``_raw``)
+RELIEF_H, RELIEF_T = 128 / 255, 0.1  # the relief variant's constant height and shell thickness (sizes)
 
 
 def _raw(name, tmp, s, shift):
     """The object section of ``name`` (a representation, or one of its ``VARIANTS``) at scale
     ``s`` moved by ``shift`` sizes (world units)."""
+    if name == "frusta:relief":
+        import imageio.v3 as iio
+
+        iio.imwrite(tmp / "level.png", np.full((8, 8), 128, np.uint8))
+        relief = {"map": str(tmp / "level.png"), "thickness": RELIEF_T * s, "steps": 64, "bisection": 8}
+        return {**_raw("frusta", tmp, s, shift), "relief": relief}
     if name in VARIANTS:
         return {**_raw(name.split(":")[0], tmp, s, shift), **VARIANTS[name]}
     off = (shift * s * np.array([0.6, -0.8, 0.3])).tolist()
@@ -80,8 +88,8 @@ def _truth(name, built, s, shift):
     outward normal of a supporting plane there, the object's width along it, p's distance from
     the surface; ``within(q, n)``: does a ray from q along n meet the surface across the object."""
     c = shift * s * np.array([0.6, -0.8, 0.3])
-    if name == "frusta":  # cylinder: axis +y from c, length s, radius 0.3 s, flat caps
-        r, L = 0.3 * s, s
+    if name.startswith("frusta"):  # cylinder: axis +y from c, length s, radius 0.3 s (+ h T with relief), flat caps
+        r, L = (0.3 + (RELIEF_H * RELIEF_T if name == "frusta:relief" else 0.0)) * s, s
 
         def faces(p):
             y = p[:, 1] - c[1]
@@ -153,7 +161,7 @@ class Case:
         self.rays = make_rays(cam - self.anchor, d / np.linalg.norm(d, axis=1, keepdims=True))
         self.hit = _np(_cast(self.obj, self.rays))
         self.got = np.isfinite(self.hit.t)
-        self.faces, self.within = _truth(name.split(":")[0], self.built, s, shift)
+        self.faces, self.within = _truth(name if name == "frusta:relief" else name.split(":")[0], self.built, s, shift)
         self.rng = rng
 
     def world(self, p32):
