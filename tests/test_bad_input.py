@@ -4,12 +4,15 @@ rows with several problems that come in one error. Each experiment row runs the 
 (``jskel render``) with compilation made to fail, so every problem is found before anything is
 traced: exit code 2, one ``jskel: error:`` line per problem, each naming the field path, the
 index and the value. The array entry points (``make_rays``, ``load_points``, ``fit_points``)
-raise one ValueError the same way."""
+raise one ValueError the same way. Hypothesis draws corrupted skeletons (any set of joints
+not finite, any set of radii negative) whose every problem must be named at once."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from jskel import cli, executor
 from jskel.config import ConfigError
@@ -209,6 +212,47 @@ def test_skeleton_arrays_every_problem_at_once(no_compile):
         "object.skeleton.radii[2]: negative radius (got -0.1)",
         "object.skeleton.joints[3]: zero-length segment (got 2 -> 3 at [0, 2, 0])",
     ]
+
+
+def _named(field, what, idx, arr, noun):
+    """The documented lines for entries ``idx`` of ``arr`` with one problem (written here, in the
+    form docs/numerics.md gives: one entry by its index and value; more, their count and the
+    first five)."""
+    def v(x):
+        a = np.ravel(np.asarray(x, np.float64))
+        return f"{a[0]:.6g}" if a.size == 1 else "[" + ", ".join(f"{y:.6g}" for y in a) + "]"
+
+    if not idx:
+        return []
+    if len(idx) == 1:
+        return [f"{field}[{idx[0]}]: {what} (got {v(arr[idx[0]])})"]
+    shown = ", ".join(f"{i}: {v(arr[i])}" for i in idx[:5])
+    return [f"{field}: {len(idx)} {noun}: {what} (indices {shown}{', ...' if len(idx) > 5 else ''})"]
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(n=st.integers(3, 14), data=st.data())
+def test_every_corrupted_joint_and_radius_is_named_at_once(n, data):
+    """Class 4 by hypothesis: a straight chain of ``n`` joints, then a drawn set of joints given
+    a NaN or an infinity in a drawn coordinate and a drawn set of radii made negative: one
+    ConfigError before anything compiles, naming every one of them (the index and the value;
+    past five, the count and the first five), joints first."""
+    from jskel import frusta
+
+    joints = np.stack([np.zeros(n), np.arange(n, dtype=np.float64), np.zeros(n)], 1)
+    radii = np.full(n, 0.2)
+    bad_j = sorted(data.draw(st.sets(st.integers(0, n - 1), max_size=n), "joints"))
+    bad_r = sorted(data.draw(st.sets(st.integers(0, n - 1), max_size=n), "radii"))
+    assume(bad_j or bad_r)
+    for i in bad_j:
+        joints[i, data.draw(st.integers(0, 2))] = data.draw(st.sampled_from([np.nan, np.inf, -np.inf]))
+    for i in bad_r:
+        radii[i] = -data.draw(st.floats(1e-6, 1e6))
+    want = (_named("object.skeleton.joints", "not finite", bad_j, joints, "joints")
+            + _named("object.skeleton.radii", "negative radius", bad_r, radii, "joints"))
+    with pytest.raises(ConfigError) as e:
+        frusta.frusta_from_skeleton(joints, radii, list(range(-1, n - 1)))
+    assert e.value.lines == want
 
 
 def test_a_cell_colour_map_names_every_bad_texel(tmp_path):

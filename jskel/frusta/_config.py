@@ -117,7 +117,8 @@ def explicit_problems(data: dict) -> list[str]:
     kids = np.nonzero((p >= 0) & (p != np.arange(n)))[0]
     fin = np.all(np.isfinite(j), axis=1)
     extent = float(np.max(np.ptp(j[fin], axis=0))) if fin.sum() > 1 else 0.0
-    length = np.linalg.norm(j[kids] - j[p[kids]], axis=1)
+    with np.errstate(invalid="ignore"):  # inf - inf of non-finite joints, which their own check names
+        length = np.linalg.norm(j[kids] - j[p[kids]], axis=1)
     zero = kids[length <= checks.REL_LENGTH * (extent or 1.0)]
     thin = kids[(r[kids] == 0) & (r[p[kids]] == 0)]
 

@@ -127,8 +127,8 @@ def _continuations(joints: np.ndarray, parents: np.ndarray):
     ns = ends.shape[0]
     incoming = -np.ones(nj, np.int64)
     incoming[ends] = np.arange(ns)
-    axis = joints[ends] - joints[starts]
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore"):  # non-finite joints: their own check names them
+        axis = joints[ends] - joints[starts]
         axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
     continuation = -np.ones(nj, np.int64)
     best = np.full(nj, -np.inf)
