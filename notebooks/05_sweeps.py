@@ -5,7 +5,8 @@
 # `python -m jskel sweep FILE --out DIR` writes `results.csv` (one row per setting: the varied
 # values, warm median seconds, error metrics against a reference). This notebook loads the
 # committed sweeps in `docs/` and plots error against time for the relief march, the implicit
-# tracers and the cell objects' linear search, with each Pareto front.
+# tracers and the cell objects' linear search (with the exact voxel walk as one more point), with
+# each Pareto front.
 
 # %%
 import csv
@@ -16,7 +17,7 @@ import numpy as np
 
 ROOT = next(p for p in [Path.cwd(), *Path.cwd().parents] if (p / "experiments").is_dir())
 SWEEPS = {"relief steps": "sweep_relief_steps_cpu", "implicit method and step": "sweep_implicit_steps_cpu",
-          "cells step": "sweep_cells_steps_cpu"}
+          "cells step and voxel walk": "sweep_cells_steps_cpu"}
 
 
 def pareto(t, e):
