@@ -7,7 +7,8 @@ Hit distances through each representation's *batch* intersection (``interface.in
 path renders and fits take), one check per (representation, mode) on 8 rays that hit, in the
 object's parameters and the ray origins at once (one random direction through all of them):
 
-* frusta: the block scan (``accel: blocks``) in every float field of the segments; the BVH's
+* frusta: brute force (``accel: none``, the reference path) and the block scan (``accel:
+  blocks``) in every float field of the segments; the BVH's
   bins, packets and per-ray walks in every float field of the segments with the BVH built again
   from them (its packed rows are a cache of those fields); bins again in the joints and radii
   through the device rebuild (``frusta._device``) that makes both. Relief in both marches (a
@@ -213,7 +214,7 @@ def wanted(name):
 # frusta: a branching tree of 6 segments
 TREE = {"joints": [[0, 0, 0], [0, 1, 0], [0.3, 2, 0.1], [-0.4, 1.8, 0.2], [0.5, 3, 0.3], [0.1, 2.9, -0.3]],
         "radii": [0.3, 0.25, 0.2, 0.15, 0.1, 0.08], "parents": [-1, 0, 1, 1, 2, 2]}
-for name, accel, trav, free in (("blocks", "blocks", "auto", None), ("bins", "bvh", "bins", segment_free),
+for name, accel, trav, free in (("none", "none", "auto", None), ("blocks", "blocks", "auto", None), ("bins", "bvh", "bins", segment_free),
                                 ("packets", "bvh", "packets", segment_free), ("walks", "bvh", "walks", segment_free),
                                 ("skeleton", "bvh", "bins", skeleton_free)):
     if wanted(f"frusta_{name}"):
