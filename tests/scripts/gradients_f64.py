@@ -30,6 +30,12 @@ object's parameters and the ray origins at once (one random direction through al
 * mesh, packets and per-ray walks, in every float leaf (t moves with the vertices of the winning
   triangle only).
 
+Then the same batch checks under hypothesis (issue 29, class 3): the frusta tree (blocks), the
+cell torus (first hit) and the icosphere (walks) scaled by 1e-3 .. 1e3 and moved 1e-2 .. 1e3
+of their size, three drawn examples each, through one compiled program per object
+(``keyed_program``); cell hits within 1e-3 of a voxel edge, where t is not differentiable, are
+left out.
+
 And the fitting's signed point-to-frusta distance (issue 10) against joints, radii and the point.
 
 Run only when named (``OPT_IN``; ``python tests/scripts/gradients_f64.py render_implicit``): a
@@ -306,6 +312,116 @@ if wanted("render_implicit"):
     assert 8 <= rows.size < t.size, rows.size  # hits and misses: the balls inside the image
     run(args, rows, "render_implicit")
     checked["render_implicit"] = int(rows.size)
+
+# hypothesis over scales and shifts (issue 29, class 3): the same batch checks on objects
+# scaled by 1e-3 .. 1e3 and moved 1e-2 .. 1e3 of their size, their rays with them, finite
+# differences at 1e-6 of the size. One compiled program per (representation, static options,
+# params tree): every drawn example has the same shapes and reuses it.
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from jskel.rays import Rays  # noqa: E402
+
+_PROGRAMS: dict = {}
+
+
+def keyed_program(rep, static, tree, floats):
+    """``both(args, fixed, v, u) -> (t, J v, J^T u)`` of the batch's t in ``args`` = (the params'
+    float leaves ``floats``, the ray origins), with ``fixed`` = (every leaf, directions, t_min,
+    t_max) held: one jitted function per key, so new values compile nothing."""
+    key = (rep.name, static, tree, tuple(floats))
+    if key not in _PROGRAMS:
+        def g(theta, o, leaves, d, a, b):
+            mixed = list(leaves)
+            for i, v in zip(floats, theta):
+                mixed[i] = v
+            return intersect(Object(tree.unflatten(mixed), static, rep.name), Rays(o, d, a, b)).t
+
+        @jax.jit
+        def both(args, fixed, v, u):
+            y, lin = jax.linearize(lambda th, o: g(th, o, *fixed), *args)
+            return y, lin(*v), jax.linear_transpose(lin, *args)(u)
+
+        _PROGRAMS[key] = both
+    return _PROGRAMS[key]
+
+
+def scaled_check(name, raw, origins, directions, s, n=8):
+    """``check_jvp`` and ``check_vjp`` of the first ``n`` hit rays' t in every float leaf of the
+    params and the ray origins, at finite-difference steps of 1e-6 ``s``."""
+    rep = registry.get(raw["type"])
+    b = rep.build(rep.Config.model_validate(raw), np.float64)
+    d = np.asarray(directions, float)
+    rays = make_rays(np.asarray(origins) - b.anchor, d / np.linalg.norm(d, axis=1, keepdims=True), dtype=np.float64)
+    leaves, tree = jax.tree_util.tree_flatten(b.params)
+    floats = [i for i, a in enumerate(leaves) if jnp.issubdtype(a.dtype, jnp.floating)]
+    both = keyed_program(rep, b.static, tree, floats)
+    args = ([leaves[i] for i in floats], rays.origins)
+    fixed = (leaves, rays.directions, rays.t_min, rays.t_max)
+    zero = jax.tree_util.tree_map(jnp.zeros_like, args)
+    nothing = jnp.zeros_like(rays.t_min)
+    t = np.asarray(both(args, fixed, zero, nothing)[0])
+    ok = np.isfinite(t)
+    if rep.name == "cells":  # t is piecewise: the crossed voxel face. Keep hits 1e-3 voxel from its edges
+        vox = b.info["tile_size"] / 16
+        u = (np.asarray(rays.origins) + np.where(ok, t, 0)[:, None] * np.asarray(rays.directions) - np.asarray(b.params.lo)) / vox
+        near = np.sort(np.abs(u - np.round(u)), axis=1)  # the crossed face's axis first (nearest an integer)
+        ok &= near[:, 1] > 1e-3
+    rows = np.nonzero(ok)[0][:n]
+    assert rows.size == n, (name, rows.size)
+
+    def f(*a):
+        return both(a, fixed, zero, nothing)[0][rows]
+
+    def f_jvp(a, v):
+        y, jv, _ = both(a, fixed, v, nothing)
+        return y[rows], jv[rows]
+
+    def f_vjp(*a):
+        return f(*a), lambda u: both(a, fixed, zero, nothing.at[rows].set(u))[2]
+
+    check_jvp(f, f_jvp, args, eps=1e-6 * s, err_msg=name)
+    check_vjp(f, f_vjp, args, eps=1e-6 * s, err_msg=name)
+    checked[name] = checked.get(name, 0) + 1
+
+
+def scaled_raw(kind, s, off):
+    """The object ``kind`` (``fuzz_frusta``, ``fuzz_cells``, ``fuzz_mesh``) at scale ``s``, moved to ``off``."""
+    if kind == "fuzz_frusta":
+        return {"type": "frusta", "skeleton": {**TREE, "scale": s, "offset": off.tolist()}, "accel": "blocks"}
+    if kind == "fuzz_cells":
+        return {"type": "cells", "base": {"type": "torus", "major": s, "minor": 0.45 * s, "center": off.tolist()}, "tiles": 6,
+                "bisection": 40, "cache": str(TMP / "cells"), "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}}
+    return {"type": "mesh", "path": str(sphere), "traversal": "walks", "scale": s, "offset": off.tolist()}
+
+
+def scaled_checks(kind):
+    """Hypothesis' drawn scales, shifts and rays for the object ``kind`` (derandomized: the same
+    examples in CI)."""
+
+    @settings(max_examples=3, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck))
+    @given(log_scale=st.floats(-3, 3), log_shift=st.floats(-2, 3), seed=st.integers(0, 2**31 - 1))
+    def one(log_scale, log_shift, seed):
+        s = 10.0**log_scale
+        off = s * 10.0**log_shift * np.array([0.6, -0.8, 0.3])
+        r = np.random.default_rng(seed)
+        if kind == "fuzz_cells":  # from outside and above, aimed at the tube
+            ang = r.uniform(0, 2 * np.pi, 16)
+            ring = np.stack([np.cos(ang), np.zeros(16), np.sin(ang)], 1)
+            o, d = 3.0 * ring + [0.1, 2.0, 0.3], -2.0 * ring - [0.1, 2.0, 0.3]
+        elif kind == "fuzz_frusta":
+            o, d = down(48, (-0.3, 0.0), (0.3, 2.9), 4.0, r)
+        else:
+            o, d = down(16, (-0.7, -0.7), (0.7, 0.7), 3.0, r)
+        scaled_check(kind, scaled_raw(kind, s, off), off + s * o, d, s)
+
+    one()
+
+
+for kind in ("fuzz_frusta", "fuzz_cells", "fuzz_mesh"):
+    if wanted(kind):
+        scaled_checks(kind)
+
 
 # fitting (issue 10): the signed point-to-frusta distance against joints, radii and the point,
 # at random points and at hard ones where the distance is smooth in the argument checked
