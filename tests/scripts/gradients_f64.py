@@ -34,7 +34,8 @@ Then the same batch checks under hypothesis (issue 29, class 3): the frusta tree
 cell torus (first hit) and the icosphere (walks) scaled by 1e-3 .. 1e3 and moved 1e-2 .. 1e3
 of their size, three drawn examples each, through one compiled program per object
 (``keyed_program``); cell hits within 1e-3 of a voxel edge, where t is not differentiable, are
-left out.
+left out. And four of the implicit grid's balls (the Lipschitz march) the same way, each
+primitive moved whole as ``implicit_free`` moves it (a program per example).
 
 And the fitting's signed point-to-frusta distance (issue 10) against joints, radii and the point.
 
@@ -77,7 +78,7 @@ def checker(g):
         y, lin = jax.linearize(g, *a)
         return y, lin(*v), jax.linear_transpose(lin, *a)(u)
 
-    def run(args, rows=None, name="", only=None):
+    def run(args, rows=None, name="", only=None, eps=1e-6):
         zero = jax.tree_util.tree_map(jnp.zeros_like, args)
         shape = jax.eval_shape(g, *args)
         nothing = jnp.zeros(shape.shape, shape.dtype)
@@ -105,8 +106,8 @@ def checker(g):
             return f(*a), vjp
 
         mine = args if only is None else (args[only],)
-        check_jvp(f, f_jvp, mine, eps=1e-6, err_msg=name)
-        check_vjp(f, f_vjp, mine, eps=1e-6, err_msg=name)
+        check_jvp(f, f_jvp, mine, eps=eps, err_msg=name)
+        check_vjp(f, f_vjp, mine, eps=eps, err_msg=name)
 
     return run, both
 
@@ -125,7 +126,7 @@ def float_leaves(params):
     return [leaves[i] for i in floats], params_of
 
 
-def check_batch(name, raw, origins, directions, free=lambda b, cfg: float_leaves(b.params), n=8):
+def check_batch(name, raw, origins, directions, free=lambda b, cfg: float_leaves(b.params), n=8, eps=1e-6):
     """Forward and reverse mode of the first ``n`` hit rays' t through the batch intersection,
     in the parameters ``free(built, cfg)`` makes free and the ray origins. Returns (built, rays)."""
     rep = registry.get(raw["type"])
@@ -143,7 +144,7 @@ def check_batch(name, raw, origins, directions, free=lambda b, cfg: float_leaves
     t = np.asarray(both(args, *jax.tree_util.tree_map(jnp.zeros_like, (args, rays.t_min)))[0])
     rows = np.nonzero(np.isfinite(t))[0][:n]
     assert rows.size == n, (name, rows.size)
-    run(args, rows, name)
+    run(args, rows, name, eps=eps)
     checked[name] = n
     return b, rays
 
@@ -392,6 +393,10 @@ def scaled_raw(kind, s, off):
     if kind == "fuzz_cells":
         return {"type": "cells", "base": {"type": "torus", "major": s, "minor": 0.45 * s, "center": off.tolist()}, "tiles": 6,
                 "bisection": 40, "cache": str(TMP / "cells"), "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}}
+    if kind == "fuzz_implicit":  # a 2 x 2 block of the grid's balls, the Lipschitz march
+        return {"type": "implicit", "threshold": 0.5, "method": "lipschitz", "step": 0.01 * s, "eps": 1e-3 * s, "bisection": 40,
+                "balls": [{"center": (np.asarray(q["center"]) * s + off).tolist(), "radius": q["radius"] * s}
+                          for q in BALLS if q["center"][0] < 1.0 and q["center"][1] < 1.0]}
     return {"type": "mesh", "path": str(sphere), "traversal": "walks", "scale": s, "offset": off.tolist()}
 
 
@@ -411,6 +416,12 @@ def scaled_checks(kind):
             o, d = 3.0 * ring + [0.1, 2.0, 0.3], -2.0 * ring - [0.1, 2.0, 0.3]
         elif kind == "fuzz_frusta":
             o, d = down(48, (-0.3, 0.0), (0.3, 2.9), 4.0, r)
+        elif kind == "fuzz_implicit":  # each primitive moved whole (``implicit_free``): a program per example
+            o, d = down(32, (-0.2, -0.2), (1.1, 1.1), 3.0, r)
+            check_batch("fuzz_implicit_example", scaled_raw(kind, s, off), off + s * o, d, free=implicit_free, eps=1e-6 * s)
+            checked.pop("fuzz_implicit_example")
+            checked[kind] = checked.get(kind, 0) + 1
+            return
         else:
             o, d = down(16, (-0.7, -0.7), (0.7, 0.7), 3.0, r)
         scaled_check(kind, scaled_raw(kind, s, off), off + s * o, d, s)
@@ -418,7 +429,7 @@ def scaled_checks(kind):
     one()
 
 
-for kind in ("fuzz_frusta", "fuzz_cells", "fuzz_mesh"):
+for kind in ("fuzz_frusta", "fuzz_implicit", "fuzz_cells", "fuzz_mesh"):
     if wanted(kind):
         scaled_checks(kind)
 
