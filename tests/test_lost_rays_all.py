@@ -171,7 +171,7 @@ def _reference(name, built, s, off, seed=0):
         return _sphere(off, s * np.sqrt(1 - np.sqrt(T_ISO))), 4e-3 * s, 1e-3 * s
     if name == "relief":
         segs = ref.segments(R_JOINTS * s + off, (R_RADII + R_LEVEL / 255 * R_THICK) * s, [-1, 0, 1])
-        chord = (2.0 + 2 * (R_RADII.max() + R_THICK)) * s  # the longest chord through one segment's shell, a bound
+        chord = (2.0 + 2 * (R_RADII.max() + R_THICK)) * s  # a bound of any chord through the chain's shell
         return (lambda O, D: ref.intersect(segs, O, D)[0]), chord / R_STEPS * 0.5**R_BIS + 1e-4 * s, 1e-4 * s
     if name == "mesh":
         v, f = _icosphere()
