@@ -28,7 +28,6 @@ removed until the rest fit; the entry just stored is kept even when it alone is 
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import hashlib
 import os
@@ -332,48 +331,3 @@ def compiled_for(fn, args, mesh, compile_: Callable):
         # comparator and the executable no longer serializes (`LessThan` is not serializable)
         _store(path, key, compiled, mesh)
     return compiled
-
-
-@dataclasses.dataclass(frozen=True)
-class Bound:
-    """``fn`` with its static arguments ``static`` (positions and values) and XLA's compiler
-    ``options``: the name a stored executable of :class:`StoredJit` is keyed by (``fn_name``
-    spells the values out)."""
-
-    fn: Callable
-    static: tuple
-    options: tuple = ()
-
-
-class StoredJit:
-    """``jax.jit(fn, static_argnums=..., **jit_kw)`` whose executables are stored and loaded
-    as the executor's are (:func:`compiled_for`): a warm process neither traces nor compiles
-    a build's jitted pieces (the frusta's float64 geometry, the BVH). Static arguments are
-    hashable values named in the key; the others are arrays. Without a directory in use it is
-    the plain jitted function. Executables are kept in memory per (static values, the other
-    arguments' tree, shapes and dtypes, x64), at most :data:`KEEP` of them."""
-
-    KEEP = 16
-
-    def __init__(self, fn: Callable, static_argnums: tuple = (), **jit_kw):
-        self.fn, self.static = fn, tuple(static_argnums)
-        self.options = tuple(sorted((jit_kw.get("compiler_options") or {}).items()))
-        self.jitted = jax.jit(fn, static_argnums=self.static, **jit_kw)
-        self._mem: collections.OrderedDict = collections.OrderedDict()
-
-    def __call__(self, *args):
-        if _state["dir"] is None:
-            return self.jitted(*args)
-        static = tuple((i, args[i]) for i in self.static)
-        dyn = tuple(a for i, a in enumerate(args) if i not in self.static)
-        leaves, tree = jax.tree_util.tree_flatten(dyn)
-        key = (static, tree, tuple((np.shape(x), str(jax.numpy.result_type(x))) for x in leaves), bool(jax.config.jax_enable_x64))
-        compiled = self._mem.get(key)
-        if compiled is None:
-            compiled = compiled_for(Bound(self.fn, static, self.options), dyn, None, lambda: self.jitted.lower(*args).compile())
-            self._mem[key] = compiled
-            while len(self._mem) > self.KEEP:
-                self._mem.popitem(last=False)
-        else:
-            self._mem.move_to_end(key)
-        return compiled(*dyn)

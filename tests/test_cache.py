@@ -70,18 +70,18 @@ def _render(out: Path, env: dict) -> dict:
     return json.loads((out / "run.json").read_text())["programs"]
 
 
-# the default experiment's programs: the frusta's float64 geometry, the BVH over its 30
-# segments, and the render (one program: intersection, shading and every AOV it writes); no
-# conversion of host data, no statistic, no program of an AOV it does not write
-DEFAULT_PROGRAMS = {"jit(frusta_fields)", "jit(build_bvh)", "jit(scene_call)"}
+# the default experiment's one program: the render (intersection, shading and every AOV it
+# writes); no conversion of host data, no statistic, no program of an AOV it does not write; the
+# build's float64 geometry and BVH are evaluated by NumPy (``jskel.host_eval``), not compiled
+DEFAULT_PROGRAMS = {"jit(scene_call)"}
 
 
 def test_a_second_process_loads_what_the_first_compiled(tmp_path):
     """Two CLI renders of the default experiment with the same fresh cache directory
     (``JSKEL_CACHE_DIR``, JAX's own variable unset): the first loads nothing and compiles
-    exactly its three programs (:data:`DEFAULT_PROGRAMS`, by name), storing each as an
-    executable (``jskel.executables``); the second traces and compiles none of them and hands
-    none to XLA: it loads the three executables. The directories are created private, and the
+    exactly its programs (:data:`DEFAULT_PROGRAMS`, by name), storing each as an executable
+    (``jskel.executables``); the second traces and compiles none of them and hands none to XLA:
+    it loads the stored executables. The directories are created private, and the
     two images and AOVs are equal bit for bit."""
     env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "JSKEL_EXECUTABLES")}
     env["JSKEL_CACHE_DIR"] = str(tmp_path / "cache")

@@ -4,9 +4,9 @@ One set of functions from joints, radii and a fixed topology to every frame-depe
 the frusta: the axes, the cutting planes at the joints, the caps, and the u-aligned frames with
 their twist offsets. Three callers share it:
 
-* the host build (``_build.build_frusta``) runs it jitted in float64 under a scoped
-  ``jax.enable_x64(True)`` (no global switch), on the topology padded to a power of two so
-  skeletons of similar size share one executable;
+* the host build (``_build.build_frusta``) has NumPy evaluate its jaxpr in float64
+  (``jskel.host_eval``), traced under a scoped ``jax.enable_x64(True)`` (no global switch), on
+  the topology padded to a power of two so skeletons of similar size share one trace;
 * the device rebuild (``_device.rebuilder``) runs it in the working dtype on every animation
   frame;
 * the fit's signed distance (``jskel.fit``) takes the axes and cutting planes

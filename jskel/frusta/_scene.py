@@ -12,14 +12,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..accel import nearest_tangent
-from ..executables import StoredJit
+from ..host_eval import HostFn
 from ..executor import size_bucket
 from ..numerics import on_device
 from ..interface import Built, Object, Preliminary, Representation
 from ..rays import FLAG_GRAZE, Hit, Rays
 from ..textures import bilinear_wrap, load_texture
 from ._accel import build_bvh, winner_ts
-from ._build import _HOST_OPTS, FrustaArrays, _bucket, piece_bounds
+from ._build import FrustaArrays, _bucket, piece_bounds
 from ._config import FrustaConfig
 from ._dispatch import AUTO_BVH_SEGMENTS, _plain_search, _relief_search, _stats_batch, traversal_of
 from ._edits import host_frusta
@@ -115,8 +115,7 @@ def _plain_group(cfg: FrustaConfig, arrays: FrustaArrays, ids, anchor, dtype):
     accel = cfg.accel if cfg.accel != "auto" else ("bvh" if ids.size >= AUTO_BVH_SEGMENTS else "blocks")
     plain, block = make_group(arrays, ids, anchor, cfg.block, dtype, spheres=accel != "bvh")
     if accel == "bvh":
-        build_fn = _build_small_bvh_jit if plain.frusta.h.shape[0] <= SMALL_BVH else _build_bvh_jit
-        plain = plain._replace(bvh=build_fn(plain.frusta, cfg.leaf))
+        plain = plain._replace(bvh=jax.tree_util.tree_map(on_device, _build_bvh_host(plain.frusta, cfg.leaf)))
     return plain, block
 
 
@@ -144,13 +143,11 @@ def _relief_quality(rel, arrays: FrustaArrays, ids) -> ReliefQuality:
     return ReliefQuality(uv, rel.early_exit, rel.v_mode)
 
 
-# stored: a warm process loads them untraced. Up to SMALL_BVH rows the tree is built by a
-# program compiled without XLA's backend optimisation (as the host geometry is): it compiles in
-# about two thirds of the time and runs in milliseconds there, while on tens of thousands of rows
-# it runs several times longer than the optimised program, which larger trees keep
-SMALL_BVH = 1024
-_build_bvh_jit = StoredJit(build_bvh, static_argnums=(1,))
-_build_small_bvh_jit = StoredJit(build_bvh, static_argnums=(1,), compiler_options=_HOST_OPTS)
+# the tree of a build, evaluated by NumPy (``jskel.host_eval``): XLA:CPU compiled it in 0.22 s
+# (30 segments, backend level 0) to 0.37 s (4,176, optimised), NumPy takes 0.004-0.05 s after a
+# 0.04 s trace (2026-12-04, 2-core Intel Xeon with AVX-512); the device rebuild of an animated
+# frame runs the same ``build_bvh`` inside its program
+_build_bvh_host = HostFn(build_bvh, static_argnums=(1,))
 
 
 def _nearest_hit(a: Hit, b: Hit) -> Hit:
