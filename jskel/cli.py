@@ -20,6 +20,7 @@ import numpy as np
 
 from .cache import use_compilation_cache
 from .config import ConfigError
+from . import registry
 from .devices import use_host_devices
 from .distributed import init_from_env
 from .measure.files import X64, load_experiment, read_model
@@ -43,7 +44,8 @@ def _frames(spec: str) -> list[float]:
 
 def cmd_render_frames(args, exp, obj) -> int:
     """Render an animation: numbered images and AOVs, animation.gif, one run.json."""
-    if not exp.is_scene and "frame" not in type(obj).model_fields:
+    rep = None if exp.is_scene else registry.get(obj.type)
+    if rep is not None and not rep.animated:
         raise ConfigError([f"--frames: object.type {obj.type!r} has no animation"])
     frames = _frames(args.frames)
     out = Path(args.out)
@@ -52,7 +54,7 @@ def cmd_render_frames(args, exp, obj) -> int:
         if exp.is_scene:  # a scene's frame poses every animated shape and moves objects with a motion
             e, o = exp.model_copy(update={"frame": f}), obj
         else:
-            e, o = exp, obj.model_copy(update={"frame": f})
+            e, o = exp, rep.at_frame(obj, f)
         res = render(e, o, progress=args.progress)
         tag = f"{int(round(f)):04d}" if float(f).is_integer() else f"{f:09.3f}"
         sub = out / f"frame_{tag}"
@@ -129,15 +131,12 @@ def cmd_fit(args) -> int:
 
 
 def cmd_export(args) -> int:
-    """``jskel export EXPERIMENT --out mesh.ply``: the frusta object as a triangle mesh
-    (``jskel.frusta.export_mesh``)."""
-    from . import frusta
-
-    frusta.mesh_format(args.out, "--out")  # the extension, before loading anything
+    """``jskel export EXPERIMENT --out mesh.ply``: the object as a triangle mesh (its
+    representation's ``export_mesh``: the frusta tessellated, ``jskel.frusta.export_mesh``)."""
     exp, obj = load_experiment(args.experiment, args.set)
-    if exp.is_scene or not isinstance(obj, frusta.FrustaConfig):
-        raise ConfigError([f"object.type: export writes a single skeleton object (got {'a scene' if exp.is_scene else repr(obj.type)})"])
-    info = frusta.export_mesh(args.out, obj, args.level, "--out")
+    if exp.is_scene:
+        raise ConfigError(["object.type: export writes a single skeleton object (got a scene)"])
+    info = registry.get(obj.type).export_mesh(obj, args.out, args.level, "--out")
     print(f"jskel: exported {info['segments']} segments at level {info['level']}: {info['faces']} triangles -> {info['path']}")
     return 0
 

@@ -90,6 +90,7 @@ class OwnMaterial(NamedTuple):
     last_env: bool = False
     local_once: bool = False
     tint: bool = False
+    asked_by: str = ""  # the section's setting that asks for it, as an error names it ("mode: 'reflection'")
 
 
 class Preliminary(NamedTuple):
@@ -126,6 +127,10 @@ class Representation:
     #: the object carries what its escaping rays see (:meth:`environment`); a single object's
     #: render shows it where a ray misses, instead of the experiment's environment
     own_environment: ClassVar[bool] = False
+
+    #: the section has an animation frame: its ``frame`` field poses it (``--frames``, a scene's
+    #: ``frame``; :meth:`at_frame`)
+    animated: ClassVar[bool] = False
 
     def __init_subclass__(cls, module: str | None = None, **kw):
         """``class _X(Representation, module=__name__)``: the module's own functions named as
@@ -186,6 +191,22 @@ class Representation:
         """Does a ray starting inside the surface get its exit as the hit? Only such objects
         may be transparent in a scene (analytic tracers; marching ones search entries only)."""
         return False
+
+    def at_frame(self, cfg: BaseModel, frame: float) -> BaseModel:
+        """``cfg`` posed at animation ``frame``: an :attr:`animated` section with its ``frame``
+        field set to it; any other section as it is."""
+        return cfg.model_copy(update={"frame": float(frame)}) if self.animated else cfg
+
+    def skeleton(self, cfg: BaseModel):
+        """(joints (J, 3), radii (J,), parents (J,)), float64 world units, of a section whose
+        surface is skinned on a skeleton of line segments, at its frame: what the tools that
+        take a skeleton read (the latency benchmark's edits, the curve peers); None without one."""
+        return None
+
+    def export_mesh(self, cfg: BaseModel, path, level: int = 2, field: str = "path") -> dict:
+        """Write the section's surface as a triangle mesh to ``path`` (``jskel export``); the
+        representations that can say so. A ValueError naming ``object.type`` otherwise."""
+        raise ValueError(f"object.type: export writes a skeleton object's mesh; {self.name!r} objects have no mesh export")
 
     def own_material(self, cfg: BaseModel) -> OwnMaterial | None:
         """The material a single object's section asks for (its own reflection, bounces), shaded

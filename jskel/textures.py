@@ -70,3 +70,33 @@ def bilinear_wrap(tex, uv, size=None):
         + (1 - fx) * fy * at(y0 + 1, x0)
         + fx * fy * at(y0 + 1, x0 + 1)
     )
+
+
+RELIEF_TEXTURES = ("brick", "gravel", "grass")
+
+
+def load_height_map(name: str, field: str = "object.relief.map") -> np.ndarray:
+    """An 8-bit height map (a frusta relief's, an implicit displacement's): a scikit-image
+    texture photograph by name, or an image file; a ValueError naming ``field`` otherwise."""
+    if name in RELIEF_TEXTURES:
+        import skimage.data
+
+        img = np.asarray(getattr(skimage.data, name)())
+    else:
+        import imageio.v3 as iio
+
+        try:
+            img = np.asarray(iio.imread(name))
+        except Exception as e:  # noqa: BLE001 - any reader failure is a bad config value
+            raise ValueError(f"{field}: cannot read image {name!r} (or name one of {', '.join(RELIEF_TEXTURES)}): {e}") from None
+    if img.ndim >= 2 and img.dtype.kind == "f":
+        finite_texels(img, field, name)
+    if img.ndim == 3:
+        img = img[..., :3].mean(-1)
+    if img.dtype != np.uint8:
+        img = img.astype(np.float64)
+        hi = img.max()
+        img = np.round(255.0 * img / (hi if hi > 1.0 else 1.0))
+    if img.ndim != 2 or min(img.shape) < 2:
+        raise ValueError(f"{field}: need a 2D image of at least 2x2 texels (got shape {img.shape})")
+    return np.clip(img, 0, 255).astype(np.uint8)

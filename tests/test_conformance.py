@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jskel import registry
+from jskel import interface, registry
 from jskel.config import ConfigError, validate
 from jskel.rays import Rays, make_rays
 
@@ -105,21 +105,24 @@ class Case:
         lo, hi = (np.asarray(b, np.float64) for b in self.built.bounds)
         self.o, self.d, self.t_min, self.t_max, self.away = _rays(np.random.default_rng(7), lo, hi)
         self.rays = make_rays(self.o - self.built.anchor, self.d, self.t_min, self.t_max)
-        self.fn = jax.jit(self.queries(self.rep, self.built.static))
-        out = self.fn(self.built.params, self.rays)
+        self.obj = interface.Object.of(self.rep, self.built)
+        out = QUERIES(self.obj, self.rays)
         self.batch, self.one, self.pre, self.two, self.occ = jax.tree_util.tree_map(np.asarray, out)
         self.derivs = None  # (jitted jvp and vjp, primals, ...): built by the first derivative test
 
-    @staticmethod
-    def queries(rep, static):
-        def fn(params, rays: Rays):
-            batch = rep.intersect_batch(params, static, rays)
-            one = jax.vmap(lambda o, d, a, b: rep.intersect_one(params, static, o, d, a, b))(*rays)
-            pre = rep.cast(params, static, rays)
-            two = rep.surface(params, static, rays, pre)
-            return batch, one, (pre.t, pre.prim), two, rep.occluded(params, static, rays)
 
-        return fn
+
+def _queries(obj: interface.Object, rays: Rays):
+    """Every query of the interface's module-level functions on one object: the batch, ``vmap``
+    of one ray, the two stages, ``occluded``."""
+    pre = interface.cast(obj, rays)
+    return (interface.intersect(obj, rays), interface.intersect_each(obj, rays), (pre.t, pre.prim),
+            interface.surface(obj, rays, pre), interface.occluded(obj, rays))
+
+
+# one jit for every representation: the Object's tree structure (representation and static
+# options) keys its programs, as a user's ``jax.jit(interface.intersect)`` is keyed
+QUERIES = jax.jit(_queries)
 
 
 _CASES: dict = {}
@@ -185,18 +188,22 @@ def test_occluded_agrees_with_the_cast_and_stops_at_t_max(case):
     short = np.where(hit, case.t_min + 0.5 * (np.where(hit, case.batch.t, 0.0) - case.t_min), case.t_max)
     rays = make_rays(case.o - case.built.anchor, case.d, case.t_min, short)
     # nothing lies nearer than the nearest hit, so no ray is blocked before it (same shapes: no compile)
-    occ = np.asarray(case.fn(case.built.params, rays)[4])
+    occ = np.asarray(QUERIES(case.obj, rays)[4])
     scale = float(np.max(case.built.bounds[1] - case.built.bounds[0]))
     ahead = hit & (np.where(hit, case.batch.t, 0.0) > case.t_min + 1e-3 * scale)  # (a hit at t_min leaves no room)
     assert ahead.sum() > 20 and not np.any(occ[ahead])
 
 
 def test_new_values_of_the_same_shapes_do_not_compile_again(case):
-    before = case.fn._cache_size()
-    params = jax.tree_util.tree_map(lambda a: a * 1 if jnp.issubdtype(a.dtype, jnp.floating) else a, case.built.params)
+    """Every float parameter scaled by 1 + 2^-6 and the rays moved: the same program answers
+    (the jit's cache does not grow), and the new values are used (the hits' t change)."""
+    params = jax.tree_util.tree_map(lambda a: a * (1 + 2**-6) if jnp.issubdtype(a.dtype, jnp.floating) else a, case.built.params)
     moved = make_rays(case.o - case.built.anchor + 1e-3, case.d, case.t_min, case.t_max)
-    jax.block_until_ready(case.fn(params, moved))
-    assert case.fn._cache_size() == before == 1
+    before = QUERIES._cache_size()
+    t = np.asarray(QUERIES(interface.Object(params, case.obj.static, case.obj.rep), moved)[0].t)
+    assert QUERIES._cache_size() == before
+    both = np.isfinite(t) & np.isfinite(case.batch.t)
+    assert both.sum() > 20 and np.mean(t[both] != case.batch.t[both]) > 0.5
 
 
 def _derivatives(case):

@@ -82,3 +82,44 @@ def test_every_registered_representation_is_a_final_subclass_of_the_base():
         assert rep.name == name
         assert getattr(type(rep), "__final__", False), f"{name}: mark the class typing.final"
         assert rep.Config.model_fields["type"].annotation.__args__ == (name,)
+
+
+# the fit is the frusta's fitter (Bhagvat et al.'s skeleton, fitted to point clouds): it works on
+# frusta params by design, so it may name their classes
+NAMES_CLASSES_OF = {"fit": {"frusta"}}
+
+
+def _class_names(name: str) -> set[str]:
+    import importlib
+
+    mod = importlib.import_module(f"jskel.{name}")
+    return {n for n in getattr(mod, "__all__", ()) if isinstance(getattr(mod, n, None), type)}
+
+
+def test_no_representation_class_is_used_outside_its_folder():
+    """A representation's classes (its package's exported types: its config, params, payload)
+    imported (``from ..frusta import FrustaConfig``) or read as an attribute (``frusta.FrustaConfig``)
+    outside its folder: the CLI, the benches and the peers ask the interface instead
+    (``Representation.skeleton``, ``export_mesh``, ``animated``)."""
+    classes = {name: _class_names(name) for name in registry.names()}
+    found = []
+    for p in _sources():
+        here = _folder(p)
+        allowed = NAMES_CLASSES_OF.get(here, set()) | {here}
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module is not None:
+                target = node.module.split(".")[-1]
+                if target in classes and target not in allowed:
+                    found += [f"{p.relative_to(PKG)}:{node.lineno}: {a.name}" for a in node.names if a.name in classes[target]]
+            elif (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in classes
+                  and node.value.id not in allowed and node.attr in classes[node.value.id]):
+                found.append(f"{p.relative_to(PKG)}:{node.lineno}: {node.value.id}.{node.attr}")
+    assert found == [], found
+
+
+def test_animated_is_declared_where_a_section_has_a_frame():
+    """``Representation.animated`` (what ``--frames`` and a scene's ``frame`` ask) is declared by
+    exactly the representations whose sections have a ``frame`` field (:meth:`at_frame` sets it)."""
+    for name in registry.names():
+        rep = registry.get(name)
+        assert rep.animated == ("frame" in rep.Config.model_fields), name

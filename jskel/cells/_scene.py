@@ -357,8 +357,9 @@ class _Cells(Representation, module=__name__):
         if cfg.bounces == 0 or cfg.mode == "first_hit":
             return None
         if cfg.mode == "reflection":
-            return OwnMaterial(reflectivity=cfg.reflectivity, bounces=cfg.bounces, last_local=True)
-        return OwnMaterial(transparency=REFRACTED, ior=cfg.ior, bounces=cfg.bounces, tint=True, local_once=True, last_env=True)
+            return OwnMaterial(reflectivity=cfg.reflectivity, bounces=cfg.bounces, last_local=True, asked_by=f"mode: {cfg.mode!r}")
+        return OwnMaterial(transparency=REFRACTED, ior=cfg.ior, bounces=cfg.bounces, tint=True, local_once=True, last_env=True,
+                           asked_by=f"mode: {cfg.mode!r}")
 
     @staticmethod
     def environment(p, static, direction):

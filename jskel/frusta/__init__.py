@@ -17,7 +17,7 @@ from ._scene import FrustaPayload as FrustaPayload
 from ._pack import FrustaScene as FrustaScene
 from ._pack import Group as Group
 from ._intersect import Quality as Quality
-from ._maps import RELIEF_TEXTURES as RELIEF_TEXTURES
+from ..textures import RELIEF_TEXTURES as RELIEF_TEXTURES
 from ._scene import REPRESENTATION as REPRESENTATION
 from ._relief import ReliefMaps as ReliefMaps
 from ._relief import ReliefQuality as ReliefQuality
@@ -47,7 +47,7 @@ from ._scene import inside as inside
 from ._scene import intersect as intersect
 from ._scene import intersect_batch as intersect_batch
 from ._scene import intersect_one as intersect_one
-from ._maps import load_height_map as load_height_map
+from ..textures import load_height_map as load_height_map
 from ._pack import make_group as make_group
 from ._build import minor_semi_axis as minor_semi_axis
 from ._maps import relief_memory as relief_memory

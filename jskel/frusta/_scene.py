@@ -17,16 +17,17 @@ from ..executor import size_bucket
 from ..numerics import on_device
 from ..interface import Built, Object, Preliminary, Representation
 from ..rays import FLAG_GRAZE, Hit, Rays
-from ..textures import bilinear_wrap, load_texture
+from ..textures import bilinear_wrap, load_height_map, load_texture
 from ._accel import build_bvh, winner_ts
 from ._build import FrustaArrays, _bucket, piece_bounds
 from ._config import FrustaConfig
 from ._dispatch import AUTO_BVH_SEGMENTS, _plain_search, _relief_search, _stats_batch, traversal_of
-from ._edits import host_frusta
+from ._edits import host_frusta, skeleton_arrays
+from ._export import export_mesh
 from ._intersect import Quality
 from ._intersect import inside_one as _inside_one
 from ._intersect import _finish, _segment_t, nearest_one
-from ._maps import load_height_map, relief_memory
+from ._maps import relief_memory
 from ._pack import FrustaScene, Static, make_group
 from ._relief import ReliefMaps, ReliefQuality, texel_slopes
 from ._relief import make_relief_finish, make_relief_t
@@ -319,6 +320,17 @@ class _Frusta(Representation, module=__name__):
 
     name = "frusta"
     Config = FrustaConfig
+    animated = True
+
+    @staticmethod
+    def skeleton(cfg):
+        """The skeleton's joints, radii and parents at the section's frame (its edits applied)."""
+        return skeleton_arrays(cfg.skeleton, cfg.frame)[:3]
+
+    @staticmethod
+    def export_mesh(cfg, path, level: int = 2, field: str = "path") -> dict:
+        """The frusta tessellated at ``level`` (``_export.export_mesh``)."""
+        return export_mesh(path, cfg, level, field)
 
     @staticmethod
     def exits_from_inside(cfg) -> bool:

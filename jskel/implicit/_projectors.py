@@ -55,12 +55,9 @@ def displace_params(cfg: ImplicitConfig, anchor, dtype) -> Displace:
         amp, freq = (0.0, 1.0) if dc is None else (dc.amplitude, dc.frequency)
         return Displace(on_device(amp, dtype), on_device(freq, dtype), on_device(np.zeros((1, 1)), dtype), on_device(z3, dtype),
                         on_device([1.0, 0, 0], dtype), on_device([0, 1.0, 0], dtype), on_device(np.ones(2), dtype), on_device(0.0, dtype))
-    from ..frusta import load_height_map
+    from ..textures import load_height_map
 
-    try:
-        hmap = load_height_map(dc.map).astype(np.float64) / 255.0
-    except ValueError as e:
-        raise ValueError(str(e).replace("object.relief.map", "object.displace.map")) from None
+    hmap = load_height_map(dc.map, "object.displace.map").astype(np.float64) / 255.0
     pc = dc.projector
     ax = _unit(pc.axis, "object.displace.projector.axis")
     up = _unit(np.asarray(pc.up, np.float64) - np.dot(pc.up, ax) * ax, "object.displace.projector.up (it is parallel to the axis)")

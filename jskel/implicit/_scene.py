@@ -279,6 +279,7 @@ class _Implicit(Representation, module=__name__):
 
     name = "implicit"
     Config = ImplicitConfig
+    animated = True  # its bones posed at ``frame`` (``_anim``)
 
 
 REPRESENTATION = _Implicit()

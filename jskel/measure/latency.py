@@ -182,11 +182,12 @@ def changes(exp, obj) -> dict[str, list[str]]:
     skeleton written out as arrays: none, a radius, the camera, the image size, one more segment."""
     import numpy as np
 
-    from ..frusta import FrustaConfig, skeleton_arrays
+    from .. import registry
 
-    if exp.is_scene or not isinstance(obj, FrustaConfig):
+    sk = None if exp.is_scene else registry.get(obj.type).skeleton(obj)
+    if sk is None:
         raise ValueError(f"latency.rerender: {exp.name} is not a single skeleton object")
-    j, r, p = skeleton_arrays(obj.skeleton, obj.frame)[:3]
+    j, r, p = sk
     base = [_skeleton_set(j, r, p), "render.progress=false"]
     r2 = r.copy()
     r2[len(r) // 2] *= 1.2

@@ -16,7 +16,8 @@ import time
 
 import numpy as np
 
-from ..frusta import host_frusta, load_height_map
+from ..frusta import host_frusta
+from ..textures import load_height_map
 from ..implicit import expand, primitives
 from ..measure.timing import median_of, warm_runs
 from ..mesh import read_mesh

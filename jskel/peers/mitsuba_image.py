@@ -22,14 +22,15 @@ def prepare(exp, obj, folder: Path, variant: str = "scalar_rgb") -> tuple[list[s
 
     if importlib.util.find_spec("mitsuba") is None:
         return None, "mitsuba is not installed (pip install -e '.[peers]')"
-    from ..frusta import FrustaConfig, skeleton_arrays
+    from .. import registry
     from .skeleton import curve_points
 
-    if exp.is_scene or not isinstance(obj, FrustaConfig):
+    sk = None if exp.is_scene else registry.get(obj.type).skeleton(obj)
+    if sk is None:
         return None, "not a single skeleton object"
     if exp.camera.frame == "auto":
         return None, "camera.frame is auto (the peer needs the camera placed by hand)"
-    j, r, p = skeleton_arrays(obj.skeleton, obj.frame)[:3]
+    j, r, p = sk
     folder.mkdir(parents=True, exist_ok=True)
     pts = curve_points(j, r, p)
     (folder / "curves.txt").write_text("\n\n".join("\n".join(" ".join(f"{x:.9g}" for x in q) for q in c) for c in pts) + "\n")

@@ -135,10 +135,9 @@ def object_transform(o, frame: float):
     return float(o.transform.scale), euler_xyz(e), t
 
 
-def _shape_at(shape, frame: float):
-    if frame != 0.0 and "frame" in type(shape).model_fields:
-        return shape.model_copy(update={"frame": shape.frame + frame})
-    return shape
+def _shape_at(shape, rep, frame: float):
+    """``shape`` moved on by the scene's ``frame`` where it is animated (``rep.animated``)."""
+    return rep.at_frame(shape, shape.frame + frame) if frame != 0.0 and rep.animated else shape
 
 
 def _check_shape(i: int, o, shape, rep):
@@ -147,9 +146,10 @@ def _check_shape(i: int, o, shape, rep):
         raise ValueError(
             f"objects[{i}].material.transparency: {o.material.transparency} on a {shape.type} object, whose tracer "
             "searches for the first entry only (a transparent object must report the exit of a ray from inside: plain frusta do)")
-    if rep.own_material(shape) is not None:
+    own = rep.own_material(shape)
+    if own is not None:
         raise ValueError(
-            f"objects[{i}].shape.mode: {getattr(shape, 'mode', '?')!r}; in a scene an object is shaded by its material "
+            f"objects[{i}].shape.{own.asked_by}; in a scene an object is shaded by its material "
             "(material.reflectivity / transparency), not by effects of its own: give mode: first_hit")
 
 
@@ -209,7 +209,7 @@ def place_objects(exp, shapes, dtype) -> list[Placed]:
     for i, (o, shape) in enumerate(zip(exp.objects, shapes)):
         rep = registry.get(shape.type)
         _check_shape(i, o, shape, rep)
-        built = rep.build(_shape_at(shape, exp.frame), dtype)
+        built = rep.build(_shape_at(shape, rep, exp.frame), dtype)
         s, r, t = object_transform(o, exp.frame)
         placed.append(Placed(o.name or f"objects[{i}]", rep, built, s, r, t, o.material))
     return placed
