@@ -91,6 +91,62 @@ def test_collect_finds_every_leaf_the_ray_meets_and_flags_more_than_it_keeps():
         assert np.all(slots[i][k[i]:] == -1)
 
 
+def test_an_any_hit_walk_answers_whether_and_stops_at_its_first_hit():
+    """``accel.nearest(..., any_hit=True)`` (shadow rays) over 400 spheres: whether each ray meets
+    a sphere in ``(t_min, t_max]`` equals a float64 NumPy test of every sphere (rays within 1e-4
+    of a sphere's silhouette or of their window's ends left out), the hit it returns lies on a
+    sphere in the window, and it tests no more leaves than the nearest-hit walk on any ray and
+    fewer in all."""
+    rng = np.random.default_rng(11)
+    p, leaf = 400, 4
+    c = rng.uniform(-1, 1, size=(p, 3))
+    r = rng.uniform(0.03, 0.12, size=p)
+    bvh = accel.build(jnp.float32(c - r[:, None]), jnp.float32(c + r[:, None]), jnp.ones(p, bool), leaf)
+    cj, rj = jnp.float32(c), jnp.float32(r)
+
+    def leaf_fn(slots, o, d, t_min, t_hi):
+        ids = bvh.order[slots]
+        i = jnp.maximum(ids, 0)
+        oc = o - cj[i]
+        b, q = jnp.sum(oc * d, -1), jnp.sum(oc * oc, -1) - rj[i] ** 2
+        disc = b * b - q
+        root = jnp.sqrt(jnp.maximum(disc, 0.0))
+        t = jnp.where(-b - root > t_min, -b - root, -b + root)
+        t = jnp.where((ids >= 0) & (disc >= 0) & (t > t_min) & (t <= t_hi), t, jnp.inf)
+        k = jnp.argmin(t)
+        return accel.Best(t[k], jnp.zeros((), t.dtype), jnp.int32(0), jnp.where(jnp.isfinite(t[k]), ids[k], -1))
+
+    init = accel.Best(jnp.float32(jnp.inf), jnp.float32(0.0), jnp.int32(0), jnp.int32(-1))
+    walks = {a: jax.jit(jax.vmap(lambda o, d, lo, hi, a=a: accel.nearest(bvh, leaf_fn, leaf, o, d, lo, hi, init, any_hit=a)))
+             for a in (False, True)}
+    n = 1024
+    O = rng.uniform(-1.5, 1.5, size=(n, 3))
+    D = rng.normal(size=(n, 3))
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    t_min = rng.uniform(0.0, 0.5, n)
+    t_max = np.where(rng.uniform(size=n) < 0.5, np.inf, t_min + rng.uniform(0.1, 1.5, n))
+    args = (jnp.float32(O), jnp.float32(D), jnp.float32(t_min), jnp.float32(t_max))
+    (near, _, near_leaves), (first, _, first_leaves) = (jax.tree_util.tree_map(np.asarray, walks[a](*args)) for a in (False, True))
+    oc = O[:, None] - c[None]
+    b = np.sum(oc * D[:, None], -1)
+    disc = b * b - (np.sum(oc * oc, -1) - r**2)
+    root = np.sqrt(np.maximum(disc, 0.0))
+    roots = np.stack([-b - root, -b + root], -1)
+    within = (disc[..., None] >= 0) & (roots > t_min[:, None, None]) & (roots <= t_max[:, None, None])
+    truth = np.any(within, (1, 2))
+    edge = np.any(np.abs(disc) < 1e-4, 1) | np.any(np.abs(roots - t_min[:, None, None]) < 1e-4, (1, 2)) | np.any(
+        np.abs(roots - t_max[:, None, None]) < 1e-4, (1, 2))
+    assert truth[~edge].sum() > 100 and (~truth[~edge]).sum() > 100
+    # (a walk starts its best t at t_max: a hit is a primitive found)
+    np.testing.assert_array_equal((first.idx >= 0)[~edge], truth[~edge])
+    np.testing.assert_array_equal((near.idx >= 0)[~edge], truth[~edge])
+    hit = (first.idx >= 0) & ~edge
+    k = first.idx[hit]
+    on = np.abs(np.linalg.norm(O[hit] + first.t[hit, None] * D[hit] - c[k], axis=1) - r[k])
+    assert np.all(on < 1e-4) and np.all(first.t[hit] >= near.t[hit] - 1e-6)
+    assert np.all(first_leaves <= near_leaves) and first_leaves.sum() < 0.9 * near_leaves.sum()
+
+
 def _random_skeleton(rng, n):
     j, r, p = random_tree(rng, n)
     return j, r, p.tolist()

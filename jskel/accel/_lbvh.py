@@ -169,7 +169,7 @@ def descend(node, trail, row, meets: Callable, pop_fn: Callable = pop):
     return jnp.where(anyhit, near, pn), jnp.where(anyhit, (trail << jnp.uint32(1)) | (hl & hr).astype(jnp.uint32), pt)
 
 
-def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Best):
+def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Best, any_hit: bool = False):
     """Nearest hit of one ray. ``leaf_fn(slot_ids (leaf,), o, d, t_min, t_max) -> Best`` of a
     leaf's primitives (slot ids index ``bvh.order``); returns (Best, nodes visited, leaves
     tested).
@@ -182,7 +182,10 @@ def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Be
     int32 (depth <= 31): nothing overflows and nothing is scattered under vmap. Near first lets
     the box tests prune against the best hit so far. While-while (Aila and Laine 2009): the inner
     loop walks internal nodes until the ray reaches a leaf, the outer loop tests that leaf, so
-    under vmap the costly leaf test runs once per outer step for all lanes."""
+    under vmap the costly leaf test runs once per outer step for all lanes.
+
+    ``any_hit`` (static): stop at the first leaf that holds a hit (shadow rays: whether the ray
+    meets anything in ``(t_min, t_max]``, not where it meets it first); the Best is that hit."""
     n_leaves = bvh.lo.shape[0] // 2
     inv_d = _inv_d(d)
 
@@ -217,8 +220,10 @@ def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Be
         start = jnp.where(root, 1, 0)  # the root is the only leaf
     else:
         start = jnp.where(root, 1, 0)
-    st = (start.astype(jnp.int32), jnp.uint32(0), init._replace(t=jnp.minimum(init.t, t_max)), jnp.int32(0), jnp.int32(0))
-    node, trail, best, visits, leaves = jax.lax.while_loop(lambda st: st[0] > 0, outer, st)
+    t0 = jnp.minimum(init.t, t_max)
+    st = (start.astype(jnp.int32), jnp.uint32(0), init._replace(t=t0), jnp.int32(0), jnp.int32(0))
+    go = (lambda st: (st[0] > 0) & ~(st[2].t < t0)) if any_hit else (lambda st: st[0] > 0)
+    node, trail, best, visits, leaves = jax.lax.while_loop(go, outer, st)
     return best, visits, leaves
 
 

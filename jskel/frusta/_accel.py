@@ -115,13 +115,14 @@ def miss_is_inf(t, idx):
     return jnp.where(idx >= 0, t, jnp.asarray(jnp.inf, t.dtype))
 
 
-def nearest_bvh(f: FrustaParams, fb: FrustaBVH, leaf: int, o, d, t_min, t_max):
-    """(t, s, code, idx, visits, leaves) of one ray through the tree; idx indexes ``f``."""
+def nearest_bvh(f: FrustaParams, fb: FrustaBVH, leaf: int, o, d, t_min, t_max, any_hit: bool = False):
+    """(t, s, code, idx, visits, leaves) of one ray through the tree; idx indexes ``f``; with
+    ``any_hit`` the first hit the walk finds (``accel.nearest``)."""
 
     def leaf_fn(slots, o, d, t_min, t_hi):
         return _leaf_best(f, fb, leaf, slots, o, d, t_min, t_hi)
 
-    best, visits, leaves = nearest(fb.tree, leaf_fn, leaf, o, d, t_min, t_max, _init(o.dtype))
+    best, visits, leaves = nearest(fb.tree, leaf_fn, leaf, o, d, t_min, t_max, _init(o.dtype), any_hit)
     return miss_is_inf(best.t, best.idx), best.s, best.code, best.idx, visits, leaves
 
 
@@ -141,11 +142,11 @@ def nearest_packets(f: FrustaParams, fb: FrustaBVH, leaf: int, packet: int, orig
     return map_groups(lambda *xs: one(xs), g, origins, directions, t_min, t_max)
 
 
-def nearest_groups(f: FrustaParams, bvh, leaf: int, group: int, origins, directions, t_min, t_max):
+def nearest_groups(f: FrustaParams, bvh, leaf: int, group: int, origins, directions, t_min, t_max, any_hit: bool = False):
     """:func:`nearest_bvh` over a batch in groups of ``group`` rays (``lax.map`` over groups,
     vmap within one): a vmapped while loop runs until its slowest ray ends, so small groups of
     coherent rays waste the fewest lanes."""
-    one = jax.vmap(lambda o, d, a, b: nearest_bvh(f, bvh, leaf, o, d, a, b))
+    one = jax.vmap(lambda o, d, a, b: nearest_bvh(f, bvh, leaf, o, d, a, b, any_hit))
     return map_groups(one, group, origins, directions, t_min, t_max)
 
 

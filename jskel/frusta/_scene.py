@@ -18,7 +18,7 @@ from ..numerics import on_device
 from ..interface import Built, Object, Preliminary, Representation
 from ..rays import FLAG_GRAZE, Hit, Rays
 from ..textures import bilinear_wrap, load_height_map, load_texture
-from ._accel import build_bvh, winner_ts
+from ._accel import build_bvh, nearest_groups, winner_ts
 from ._build import FrustaArrays, _bucket, piece_bounds
 from ._config import FrustaConfig
 from ._dispatch import AUTO_BVH_SEGMENTS, _plain_search, _relief_search, _stats_batch, traversal_of
@@ -247,6 +247,17 @@ def surface(scene: FrustaScene, static: Static, rays: Rays, pre: Preliminary) ->
     for h in hits[1:]:
         out = _nearest_hit(out, h)
     return out if pre.payload.relief is None else _relief_flags(out, pre.payload.relief[4])
+
+
+def occluded(scene: FrustaScene, static: Static, rays: Rays):
+    """(N,) bool: does each ray meet a segment in ``(t_min, t_max]`` (shadow rays)? Plain
+    segments cast by per-ray walks (``traversal: walks``) stop at the first leaf that holds a hit
+    (``accel.nearest``'s ``any_hit``); the other traversals and relief answer from
+    :func:`cast`'s nearest t."""
+    if scene.relief is None and scene.plain is not None and static.accel == "bvh" and static.traversal == "walks":
+        g = scene.plain
+        return jnp.isfinite(nearest_groups(g.frusta, g.bvh, static.leaf, static.group, *rays, any_hit=True)[0])
+    return jnp.isfinite(cast(scene, static, rays).t)
 
 
 def intersect_batch(scene: FrustaScene, static: Static, rays: Rays) -> Hit:

@@ -144,9 +144,10 @@ def _leaf_best(p: MeshParams, slots, o, d, t_min, t_hi):
     return accel.Best(t[k], jnp.zeros((), t.dtype), jnp.int32(0), jnp.where(jnp.isfinite(t[k]), ids[k], -1))
 
 
-def _nearest_one(p: MeshParams, static: Static, o, d, t_min, t_max):
+def _nearest_one(p: MeshParams, static: Static, o, d, t_min, t_max, any_hit: bool = False):
     init = accel.Best(jnp.asarray(jnp.inf, o.dtype), jnp.zeros((), o.dtype), jnp.int32(0), jnp.int32(-1))
-    best, _, _ = accel.nearest(p.bvh, lambda s, o_, d_, a_, b_: _leaf_best(p, s, o_, d_, a_, b_), static.leaf, o, d, t_min, t_max, init)
+    leaf_fn = lambda s, o_, d_, a_, b_: _leaf_best(p, s, o_, d_, a_, b_)  # noqa: E731
+    best, _, _ = accel.nearest(p.bvh, leaf_fn, static.leaf, o, d, t_min, t_max, init, any_hit)
     return jnp.where(best.idx >= 0, best.t, jnp.inf), best.idx  # the walk starts its best t at t_max
 
 
@@ -187,6 +188,16 @@ def cast(p: MeshParams, static: Static, rays: Rays) -> Preliminary:
     data-dependent length, which ``jax.grad`` cannot reverse)."""
     t, idx = accel.nearest_tangent(_search(static), winner_t)(p, rays)
     return Preliminary(t, jnp.where(jnp.isfinite(t), idx, -1).astype(jnp.int32), None)
+
+
+def occluded(p: MeshParams, static: Static, rays: Rays):
+    """(N,) bool: does each ray meet a triangle in ``(t_min, t_max]`` (shadow rays)? Per-ray
+    walks stop at the first leaf that holds a hit (``accel.nearest``'s ``any_hit``); packets
+    answer from :func:`cast`'s nearest t."""
+    if static.packet > 0:
+        return jnp.isfinite(cast(p, static, rays).t)
+    one = jax.vmap(lambda o, d, a, b: _nearest_one(p, static, o, d, a, b, any_hit=True))
+    return jnp.isfinite(accel.map_groups(one, static.group, *rays)[0])
 
 
 def _surface_one(p: MeshParams, static: Static, o, d, t, idx) -> Hit:
