@@ -232,6 +232,53 @@ def test_rays_near_tangent_hit_the_reference_or_carry_a_flag(method):
     assert np.any(flag) and np.any(ok & ~flag)
 
 
+_SADDLES: dict = {}
+
+
+def _saddle_rays(gap: float):
+    """Two balls of R = 1 whose blend at the origin is ``T + gap``, rays along z passing 1e-6 ..
+    1e-2 from it in x and y (seeded), and the float64 march's first roots on them (computed once)."""
+    if gap not in _SADDLES:
+        rng = np.random.default_rng(int(17 + 1e6 * abs(gap)))
+        s = np.sqrt(1.0 - np.sqrt((T + gap) / 2.0))
+        off = 10.0 ** rng.uniform(-6, -2, (CHUNK, 2)) * rng.choice([-1.0, 1.0], (CHUNK, 2))
+        O = np.stack([off[:, 0], off[:, 1], np.full(CHUNK, -3.0)], 1)
+        D = np.tile([0.0, 0.0, 1.0], (CHUNK, 1))
+        balls = [((-s, 0, 0), 1.0), ((s, 0, 0), 1.0)]
+        anchor = implicit_model(balls).anchor
+        r = make_rays(O - anchor, D)  # the rays as the tracer gets them (float32)
+        Of, Df = np.asarray(r.origins, np.float64), np.asarray(r.directions, np.float64)
+        t_ref = np_first_root(Of, Df, *arrays([(np.array(c) - anchor, rad) for c, rad in balls]), n=65536, batch=4)
+        _SADDLES[gap] = balls, O, D, t_ref
+    return _SADDLES[gap]
+
+
+@pytest.mark.parametrize("method", ["lipschitz", "naive", "bisection"])
+def test_rays_through_a_saddle_of_the_field_hit_the_reference_or_carry_a_flag(method):
+    """A saddle (issue 29, class 1): two balls of R = 1 at x = +-s blend at the origin with
+    F = 2 (1 - s^2)^2, a minimum along x and a maximum across it. Three pairs of balls put that
+    value at T - 1e-3, T - 1e-6 and T + 1e-4; rays along z pass 1e-6 .. 1e-2 (log-uniform, either
+    side) from the saddle in x and y, so the field along each peaks within a hair of T on either
+    side. Each ray hits within tolerance of the float64 march or carries a flag, never a silent
+    miss or a wrong hit; the set holds rays of both outcomes, and the Lipschitz march and the
+    bisection decide more than half a chunk of the hits without a flag."""
+    ok_all, flag_all, hits_ref = [], [], []
+    for gap in (-1e-3, -1e-6, 1e-4):
+        balls, O, D, t_ref = _saddle_rays(gap)
+        hit, _, _ = cast(implicit_model(balls, method=method, step=0.05), O, D)
+        both = np.isfinite(hit.t) & np.isfinite(t_ref)
+        close = np.abs(np.where(both, hit.t, 0) - np.where(both, t_ref, 0)) <= 2e-3
+        ok_all.append((~np.isfinite(hit.t) & ~np.isfinite(t_ref)) | (both & close))
+        flag_all.append(hit.flags != 0)
+        hits_ref.append(np.isfinite(t_ref))
+    ok, flag, ref = (np.concatenate(x) for x in (ok_all, flag_all, hits_ref))
+    assert 0.1 < ref.mean() < 0.9
+    assert not np.any(~ok & ~flag), np.nonzero(~ok & ~flag)[0]
+    assert np.any(flag)
+    if method != "naive":  # (the naive march's step, 0.05, is longer than every chord here: it flags them all)
+        assert np.sum(ok & ~flag & ref) > CHUNK // 2
+
+
 def test_step_cap_and_overflow_are_flagged():
     O, D = np.array([[0.0, 0.3, -3.0]]), np.array([[0.0, 0.0, 1.0]])
     capped, _, _ = cast(implicit_model([((0, 0, 0), 1.0)], steps=2), O, D)
