@@ -31,10 +31,14 @@ object's parameters and the ray origins at once (one random direction through al
   triangle only).
 
 Then the same batch checks under hypothesis (issue 29, class 3): the frusta tree (blocks), the
-cell torus (first hit) and the icosphere (walks) scaled by 1e-3 .. 1e3 and moved 1e-2 .. 1e3
-of their size, three drawn examples each, through one compiled program per object
-(``keyed_program``); cell hits within 1e-3 of a voxel edge, where t is not differentiable, are
-left out. And four of the implicit grid's balls (the Lipschitz march) the same way, each
+relief cylinder (the fixed march), the cell torus (first hit) and the icosphere (walks) scaled
+by 1e-10 .. 1e10 and moved 1e-2 .. 1e3 of their size, three drawn examples each and both ends
+of the range moved 1e3 sizes away, through one compiled program per object (``keyed_program``).
+Every argument is stepped in its own unit (``leaf_scales``: s for lengths and positions, 1 for
+unit vectors and ratios), and only rays whose t is smooth within the step are checked
+(``smooth``: a kink of t, at a silhouette, a cutting plane, a texel or voxel edge, makes
+finite differences disagree with themselves); cell hits within 1e-3 of a voxel edge are left
+out besides. And four of the implicit grid's balls (the Lipschitz march) the same way, each
 primitive moved whole as ``implicit_free`` moves it (a program per example).
 
 And the fitting's signed point-to-frusta distance (issue 10) against joints, radii and the point.
@@ -126,9 +130,11 @@ def float_leaves(params):
     return [leaves[i] for i in floats], params_of
 
 
-def check_batch(name, raw, origins, directions, free=lambda b, cfg: float_leaves(b.params), n=8, eps=1e-6, record=True):
+def check_batch(name, raw, origins, directions, free=lambda b, cfg: float_leaves(b.params), n=8, eps=1e-6, record=True, unit=None):
     """Forward and reverse mode of the first ``n`` hit rays' t through the batch intersection,
-    in the parameters ``free(built, cfg)`` makes free and the ray origins. Returns (built, rays)."""
+    in the parameters ``free(built, cfg)`` makes free and the ray origins. With ``unit`` (the
+    scaled checks: the object's size s) the origins are in units of s and only rays whose t is
+    smooth within the step (:func:`smooth`) are checked. Returns (built, rays)."""
     rep = registry.get(raw["type"])
     cfg = rep.Config.model_validate(raw)
     b = rep.build(cfg, np.float64)
@@ -136,13 +142,18 @@ def check_batch(name, raw, origins, directions, free=lambda b, cfg: float_leaves
     rays = make_rays(np.asarray(origins) - b.anchor, d / np.linalg.norm(d, axis=1, keepdims=True), dtype=np.float64)
     theta, params_of = free(b, cfg)
 
+    w = 1.0 if unit is None else unit
+
     def t_all(th, o):
-        return intersect(Object(params_of(th), b.static, rep.name), rays._replace(origins=o)).t
+        return intersect(Object(params_of(th), b.static, rep.name), rays._replace(origins=o * w)).t
 
     run, both = checker(t_all)
-    args = (theta, rays.origins)
-    t = np.asarray(both(args, *jax.tree_util.tree_map(jnp.zeros_like, (args, rays.t_min)))[0])
-    rows = np.nonzero(np.isfinite(t))[0][:n]
+    args = (theta, rays.origins / w)
+    value = lambda a: np.asarray(both(a, *jax.tree_util.tree_map(jnp.zeros_like, (a, rays.t_min)))[0])  # noqa: E731
+    ok = np.isfinite(value(args))
+    if unit is not None:
+        ok &= smooth(value, args, eps, name)
+    rows = np.nonzero(ok)[0][:n]
     assert rows.size == n, (name, rows.size)
     run(args, rows, name, eps=eps)
     if record:
@@ -188,6 +199,17 @@ def skeleton_free(b, cfg):
     return (jnp.asarray(joints - b.anchor), jnp.asarray(radii)), params_of
 
 
+def implicit_free_in(s):
+    """:func:`implicit_free` with the shift in units of ``s`` (the radii's factor and the
+    threshold have none): a step of 1e-6 moves each by 1e-6 of its own size."""
+
+    def free(b, cfg):
+        th, params_of = implicit_free(b, cfg)
+        return (th[0] / s, th[1], th[2]), lambda t: params_of((t[0] * s, t[1], t[2]))
+
+    return free
+
+
 def implicit_free(b, cfg):
     """A ball is a segment of length 0, whose field is not differentiable in its two ends apart:
     each primitive moves as a whole (one shift of both ends), its radii scale together, and the
@@ -231,13 +253,13 @@ for name, accel, trav, free in (("none", "none", "auto", None), ("blocks", "bloc
                     o, d, **({"free": free} if free else {}))
 
 # relief: a cylinder with a brick height field in a shell, both marches
+RELIEF_CYLINDER = {"joints": [[0, 0, 0], [0, 1.5, 0]], "radii": [0.5, 0.45], "parents": [-1, 0]}
+RELIEF = {"map": "brick", "thickness": 0.1, "scale": [2.0, 1.0], "steps": 64, "bisection": 40, "uv": "exact"}
 for early in (False, True):
     if wanted(f"relief_{'early' if early else 'fixed'}"):
         o, d = down(32, (-0.2, 0.3), (0.2, 1.2), 3.0, rng, (0.03, -0.05))
         check_batch(f"relief_{'early' if early else 'fixed'}",
-                    {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 1.5, 0]], "radii": [0.5, 0.45], "parents": [-1, 0]},
-                     "relief": {"map": "brick", "thickness": 0.1, "scale": [2.0, 1.0], "steps": 64, "bisection": 40, "uv": "exact",
-                                "early_exit": early}}, o, d)
+                    {"type": "frusta", "skeleton": RELIEF_CYLINDER, "relief": {**RELIEF, "early_exit": early}}, o, d)
 
 # implicit: a 6 x 4 grid of balls. The Lipschitz march (the tree's leaves) and the bisection
 # (Morton blocks) cull in blocks of 4 with two blocks kept per ray: rays along the rows meet more
@@ -319,7 +341,7 @@ if wanted("render_implicit"):
 # scaled by 1e-3 .. 1e3 and moved 1e-2 .. 1e3 of their size, their rays with them, finite
 # differences at 1e-6 of the size. One compiled program per (representation, static options,
 # params tree): every drawn example has the same shapes and reuses it.
-from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import HealthCheck, example, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from jskel.rays import Rays  # noqa: E402
@@ -348,17 +370,63 @@ def keyed_program(rep, static, tree, floats):
     return _PROGRAMS[key]
 
 
-def scaled_check(name, raw, origins, directions, s, n=8):
+def smooth(t_of, args, h, name, tries=2):
+    """(N,) bool: the rays whose t is smooth within 4 ``h`` of ``args`` along ``tries`` random
+    directions of every argument: central differences at steps h and 4 h agree to 1e-7 of the
+    derivative (plus 1e-6). A ray within the finite-difference step of a kink of t (a silhouette,
+    a cutting plane, a voxel edge) fails it and is left out of the check, which then compares
+    derivatives only where finite differences can; the derivatives themselves are not used here."""
+    keep = None
+    r = np.random.default_rng(zlib.crc32(name.encode()))
+    for _ in range(tries):
+        v = jax.tree_util.tree_map(lambda a: jnp.asarray(r.normal(size=np.shape(a)), jnp.result_type(a)), args)
+        at = lambda k: t_of(jax.tree_util.tree_map(lambda a, b: a + k * b, args, v))  # noqa: E731
+        with np.errstate(invalid="ignore"):  # (inf - inf on misses)
+            d1 = (at(h) - at(-h)) / (2 * h)
+            d4 = (at(4 * h) - at(-4 * h)) / (8 * h)
+            good = np.isfinite(d1) & np.isfinite(d4) & (np.abs(d1 - d4) <= 1e-6 * (1.0 + np.abs(d1)))
+        keep = good if keep is None else keep & good
+    return keep
+
+
+def leaf_scales(rep, at_s, at_1):
+    """Each float leaf's unit: the median ratio |x_s / x_1| over its entries that the scale
+    changes, between the object built at scale s (``at_s``) and at scale 1 (``at_1``), both
+    unmoved: s for lengths and positions, 1 for leaves it leaves alone (unit vectors, ratios,
+    angles, colours; padding rows hold fixed placeholders and are not counted); None for a leaf
+    that is 0 at both scales (a plane offset at its own joint, a twist of 0), which has no unit
+    to step in and is held fixed (the checks at scale 1 step it). A finite-difference step of
+    1e-6 s moved a unit vector by 1e-6 s, 0.035 at s = 3.5e4: far outside the linear range
+    there; and a relief's bottom-plane offsets (0) by 1e-6 at s = 1e-3, a thousandth of the
+    object."""
+    a, b = (jax.tree_util.tree_leaves(rep.build(rep.Config.model_validate(r), np.float64).params) for r in (at_s, at_1))
+    out = []
+    for x, y in zip(a, b):
+        if jnp.issubdtype(x.dtype, jnp.floating):
+            x, y = np.asarray(x, np.float64).ravel(), np.asarray(y, np.float64).ravel()
+            moved = np.isfinite(x) & np.isfinite(y) & (y != 0) & (x != y)
+            nonzero = np.any(np.isfinite(x) & (x != 0)) or np.any(np.isfinite(y) & (y != 0))
+            out.append(float(np.median(np.abs(x[moved] / y[moved]))) if moved.any() else (1.0 if nonzero else None))
+    return out
+
+
+def scaled_check(name, raw, origins, directions, s, units, n=8):
     """``check_jvp`` and ``check_vjp`` of the first ``n`` hit rays' t in every float leaf of the
-    params and the ray origins, at finite-difference steps of 1e-6 ``s``."""
+    params and the ray origins, each argument in its own unit (``units``, from
+    :func:`leaf_scales`; the origins in s), at finite-difference steps of 1e-6 of that unit."""
     rep = registry.get(raw["type"])
     b = rep.build(rep.Config.model_validate(raw), np.float64)
     d = np.asarray(directions, float)
     rays = make_rays(np.asarray(origins) - b.anchor, d / np.linalg.norm(d, axis=1, keepdims=True), dtype=np.float64)
     leaves, tree = jax.tree_util.tree_flatten(b.params)
     floats = [i for i, a in enumerate(leaves) if jnp.issubdtype(a.dtype, jnp.floating)]
-    both = keyed_program(rep, b.static, tree, floats)
-    args = ([leaves[i] for i in floats], rays.origins)
+    floats, units = zip(*[(i, u) for i, u in zip(floats, units) if u is not None])
+    program = keyed_program(rep, b.static, tree, list(floats))
+    unit = ([jnp.asarray(u, jnp.float64) for u in units], jnp.asarray(s, jnp.float64))
+    scale = lambda a: jax.tree_util.tree_map(lambda x, w: x * w, a, unit)  # noqa: E731
+    # arguments in units: x = unit * a, so J_a v = J_x (unit v), J_a^T u = unit (J_x^T u)
+    both = lambda a, fixed, v, u: (lambda y, jv, jt: (y, jv, scale(jt)))(*program(scale(a), fixed, scale(v), u))  # noqa: E731
+    args = ([leaves[i] / w for i, w in zip(floats, unit[0])], rays.origins / s)
     fixed = (leaves, rays.directions, rays.t_min, rays.t_max)
     zero = jax.tree_util.tree_map(jnp.zeros_like, args)
     nothing = jnp.zeros_like(rays.t_min)
@@ -369,6 +437,7 @@ def scaled_check(name, raw, origins, directions, s, n=8):
         u = (np.asarray(rays.origins) + np.where(ok, t, 0)[:, None] * np.asarray(rays.directions) - np.asarray(b.params.lo)) / vox
         near = np.sort(np.abs(u - np.round(u)), axis=1)  # the crossed face's axis first (nearest an integer)
         ok &= near[:, 1] > 1e-3
+    ok &= smooth(lambda a: np.asarray(both(a, fixed, zero, nothing)[0]), args, 1e-6, name)
     rows = np.nonzero(ok)[0][:n]
     assert rows.size == n, (name, rows.size)
 
@@ -382,15 +451,19 @@ def scaled_check(name, raw, origins, directions, s, n=8):
     def f_vjp(*a):
         return f(*a), lambda u: both(a, fixed, zero, nothing.at[rows].set(u))[2]
 
-    check_jvp(f, f_jvp, args, eps=1e-6 * s, err_msg=name)
-    check_vjp(f, f_vjp, args, eps=1e-6 * s, err_msg=name)
+    check_jvp(f, f_jvp, args, eps=1e-6, err_msg=name)
+    check_vjp(f, f_vjp, args, eps=1e-6, err_msg=name)
     checked[name] = checked.get(name, 0) + 1
 
 
 def scaled_raw(kind, s, off):
-    """The object ``kind`` (``fuzz_frusta``, ``fuzz_cells``, ``fuzz_mesh``) at scale ``s``, moved to ``off``."""
+    """The object ``kind`` (``fuzz_frusta``, ``fuzz_relief``, ``fuzz_implicit``, ``fuzz_cells``, ``fuzz_mesh``) at
+    scale ``s``, moved to ``off``."""
     if kind == "fuzz_frusta":
         return {"type": "frusta", "skeleton": {**TREE, "scale": s, "offset": off.tolist()}, "accel": "blocks"}
+    if kind == "fuzz_relief":  # the relief check's cylinder and brick shell, the fixed march
+        return {"type": "frusta", "skeleton": {**RELIEF_CYLINDER, "scale": s, "offset": off.tolist()},
+                "relief": {**RELIEF, "thickness": 0.1 * s, "early_exit": False}}
     if kind == "fuzz_cells":
         return {"type": "cells", "base": {"type": "torus", "major": s, "minor": 0.45 * s, "center": off.tolist()}, "tiles": 6,
                 "bisection": 40, "cache": str(TMP / "cells"), "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}}
@@ -406,8 +479,11 @@ def scaled_checks(kind):
     examples in CI)."""
 
     @settings(max_examples=3, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck))
-    @given(log_scale=st.floats(-3, 3), log_shift=st.floats(-2, 3), seed=st.integers(0, 2**31 - 1))
+    @given(log_scale=st.floats(-10, 10), log_shift=st.floats(-2, 3), seed=st.integers(0, 2**31 - 1))
+    @example(log_scale=-10.0, log_shift=3.0, seed=1)  # both ends of 20 decades, moved 1e3 sizes away
+    @example(log_scale=10.0, log_shift=3.0, seed=2)
     def one(log_scale, log_shift, seed):
+        drawn.setdefault(kind, []).append(round(log_scale, 2))
         s = 10.0**log_scale
         off = s * 10.0**log_shift * np.array([0.6, -0.8, 0.3])
         r = np.random.default_rng(seed)
@@ -417,21 +493,27 @@ def scaled_checks(kind):
             o, d = 3.0 * ring + [0.1, 2.0, 0.3], -2.0 * ring - [0.1, 2.0, 0.3]
         elif kind == "fuzz_frusta":
             o, d = down(48, (-0.3, 0.0), (0.3, 2.9), 4.0, r)
+        elif kind == "fuzz_relief":
+            o, d = down(32, (-0.2, 0.3), (0.2, 1.2), 3.0, r, (0.03, -0.05))
         elif kind == "fuzz_implicit":  # each primitive moved whole (``implicit_free``): a program per example
             o, d = down(32, (-0.2, -0.2), (1.1, 1.1), 3.0, r)
-            check_batch(kind, scaled_raw(kind, s, off), off + s * o, d, free=implicit_free, eps=1e-6 * s, record=False)
+            check_batch(kind, scaled_raw(kind, s, off), off + s * o, d, free=implicit_free_in(s), record=False, unit=s)
             checked[kind] = checked.get(kind, 0) + 1
             return
         else:
             o, d = down(16, (-0.7, -0.7), (0.7, 0.7), 3.0, r)
-        scaled_check(kind, scaled_raw(kind, s, off), off + s * o, d, s)
+        units = leaf_scales(registry.get(scaled_raw(kind, 1.0, 0 * off)["type"]), scaled_raw(kind, s, 0 * off), scaled_raw(kind, 1.0, 0 * off))
+        scaled_check(kind, scaled_raw(kind, s, off), off + s * o, d, s, units)
 
     one()
 
 
-for kind in ("fuzz_frusta", "fuzz_implicit", "fuzz_cells", "fuzz_mesh"):
+drawn: dict = {}  # each kind's log10 scales, in the order checked (printed to stderr)
+for kind in ("fuzz_frusta", "fuzz_relief", "fuzz_implicit", "fuzz_cells", "fuzz_mesh"):
     if wanted(kind):
         scaled_checks(kind)
+if drawn:
+    print(json.dumps({"drawn_log_scales": drawn}), file=sys.stderr)
 
 
 # fitting (issue 10): the signed point-to-frusta distance against joints, radii and the point,
