@@ -78,12 +78,12 @@ def max_bytes(env=None) -> int:
 
 
 def evict(folder: Path, limit: int, keep: Path | None = None) -> list[Path]:
-    """Remove the least recently used entries of ``folder`` (``.jx`` executables and ``.jxs``
-    shapes, oldest modification time first) until they take at most ``limit`` bytes; ``keep``
+    """Remove the least recently used entries of ``folder`` (``.jx`` executables, ``.jxs``
+    shapes and ``.jxv`` host values, oldest modification time first) until they take at most ``limit`` bytes; ``keep``
     is never removed. Returns the entries removed (one another process removed first is
     skipped)."""
     entries = []
-    for p in (q for q in folder.iterdir() if q.suffix in (".jx", ".jxs")):  # executables, shapes
+    for p in (q for q in folder.iterdir() if q.suffix in (".jx", ".jxs", ".jxv")):  # executables, shapes, values
         try:
             st = p.stat()
         except FileNotFoundError:
@@ -277,16 +277,14 @@ def _write(path: Path, body: bytes) -> bool:
     return True
 
 
-def eval_shape(fn, *args):
-    """``jax.eval_shape(fn, *args)`` kept beside the executables (same key, safety and cap): a
-    warm process reads the output's shapes and dtypes instead of tracing ``fn`` (a render asks
-    whether a representation's hits carry flags this way)."""
+def _memo(tag: str, key: str | None, compute: Callable):
+    """``compute()``, kept in the directory in use under ``key`` (with the executables' safety,
+    digest and cap): a later call with the same key reads it back instead of computing it."""
     d = _state["dir"]
-    key = None if d is None else entry_key(fn, args)
-    if key is None:
-        return jax.eval_shape(fn, *args)
-    key = hashlib.sha256(f"eval_shape {key}".encode()).hexdigest()
-    path = d / f"{key}.jxs"
+    if d is None or key is None:
+        return compute()
+    key = hashlib.sha256(f"{tag} {key}".encode()).hexdigest()
+    path = d / f"{key}.jx{tag[0]}"
     try:
         body = _read(path)
         if body is not None:
@@ -295,11 +293,34 @@ def eval_shape(fn, *args):
                 raise ValueError("holds another entry")
             _touch(path)
             return out
-    except Exception as e:  # noqa: BLE001 - whatever is wrong with an entry, trace instead
-        _warn(f"stored shapes {path} {e if isinstance(e, ValueError) else type(e).__name__}; tracing again")
-    out = jax.eval_shape(fn, *args)
+    except Exception as e:  # noqa: BLE001 - whatever is wrong with an entry, compute instead
+        _warn(f"stored {tag} {path} {e if isinstance(e, ValueError) else type(e).__name__}; computing it again")
+    out = compute()
     _write(path, pickle.dumps((key, out), protocol=pickle.HIGHEST_PROTOCOL))
     return out
+
+
+def eval_shape(fn, *args):
+    """``jax.eval_shape(fn, *args)`` kept beside the executables (same key, safety and cap): a
+    warm process reads the output's shapes and dtypes instead of tracing ``fn`` (a render asks
+    whether a representation's hits carry flags this way)."""
+    key = None if _state["dir"] is None else entry_key(fn, args)
+    return _memo("shapes", key, lambda: jax.eval_shape(fn, *args))
+
+
+def stored_value(fn, args, compute: Callable):
+    """``compute()``, the value of ``fn`` on ``args`` (host arrays), kept beside the executables
+    and keyed as they are plus a digest of every argument's bytes: a warm process that builds the
+    same object reads the build's host results (the frusta's geometry and BVH) back instead of
+    evaluating them. NumPy arrays in, NumPy arrays out."""
+    key = None if _state["dir"] is None else entry_key(fn, args)
+    if key is not None:
+        h = hashlib.sha256(key.encode())
+        for x in jax.tree_util.tree_leaves(args):
+            a = np.ascontiguousarray(x)
+            h.update(f"{a.dtype.str}{a.shape}".encode() + a.tobytes())
+        key = h.hexdigest()
+    return _memo("values", key, compute)
 
 
 def compiled_for(fn, args, mesh, compile_: Callable):

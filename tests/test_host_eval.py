@@ -130,3 +130,61 @@ def test_the_frusta_build_hands_xla_no_program(rng):
         {"type": "frusta", "skeleton": {"joints": (j * 0.99).tolist(), "radii": r.tolist(), "parents": p.tolist()}, "accel": "bvh"}))
     after = program_counts()
     assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]
+
+
+@pytest.fixture
+def store(tmp_path):
+    from jskel import executables
+
+    before = executables._state["dir"]
+    d = executables.use_dir(tmp_path / "x")
+    yield d
+    executables._state["dir"] = before
+
+
+def _traced(calls):
+    def fn(a, b):
+        calls.append(1)
+        return {"sum": a + b, "scaled": a * jnp.sum(b)}
+
+    fn.__qualname__ = fn.__name__ = "traced_for_test"  # a module-level name: stored values need a stable key
+    return fn
+
+
+def test_a_value_is_stored_and_read_back_untraced_and_new_values_compute(store, rng):
+    """With a cache directory in use, a fresh HostFn (a new process's) reads the result of the
+    same arguments back without tracing, bit for bit; other argument values are computed (and
+    equal NumPy's arithmetic written here)."""
+    calls = []
+    a, b = rng.normal(size=5), rng.normal(size=5)
+    first = HostFn(_traced(calls))(a, b)
+    again = HostFn(_traced(calls))(a, b)
+    assert len(calls) == 1 and len(list(store.glob("*.jxv"))) == 1
+    for k in ("sum", "scaled"):
+        np.testing.assert_array_equal(first[k], again[k])
+    other = HostFn(_traced(calls))(a, b + 1.0)
+    assert len(calls) == 2
+    np.testing.assert_allclose(other["scaled"], a * np.sum(b + 1.0), rtol=1e-6)
+
+
+def test_a_slow_evaluation_is_compiled_when_asked_again(monkeypatch, rng):
+    """An evaluation over ``COMPILE_AFTER_S`` hands XLA the program the next time (counted by
+    ``jskel.cache``), which gives what NumPy gave; a fast one never does."""
+    from jskel import host_eval
+    from jskel.cache import count_programs, program_counts
+
+    count_programs()
+    a, b = rng.normal(size=7).astype(np.float32), rng.normal(size=7).astype(np.float32)
+    fast = HostFn(_traced([]))
+    for _ in range(3):
+        n0 = program_counts()["compiled"] + program_counts()["loaded"]
+        fast(a, b)
+        assert program_counts()["compiled"] + program_counts()["loaded"] == n0
+    monkeypatch.setattr(host_eval, "COMPILE_AFTER_S", -1.0)
+    slow = HostFn(_traced([]))
+    by_numpy = slow(a, b)
+    n0 = program_counts()["compiled"] + program_counts()["loaded"]
+    by_xla = slow(a, b)
+    assert program_counts()["compiled"] + program_counts()["loaded"] == n0 + 1
+    for k in ("sum", "scaled"):
+        np.testing.assert_allclose(by_xla[k], by_numpy[k], rtol=1e-6)

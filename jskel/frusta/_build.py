@@ -84,8 +84,11 @@ def _bucket(n: int) -> int:
 # The build runs its geometry once on a few dozen to a few thousand rows: XLA:CPU compiled it in
 # 0.66 s at backend level 0 (1,646 StableHLO ops), NumPy evaluates its jaxpr in 0.03 s on the
 # saguaro and 0.7 s on a 4,176-segment neuron (its depth levels run one after another), after a
-# trace of 0.1 s (``jskel.host_eval``; 2026-12-04, 2-core Intel Xeon with AVX-512)
-_fields_host = HostFn(frusta_fields)
+# trace of 0.1 s (``jskel.host_eval``; 2026-12-04, 2-core Intel Xeon with AVX-512). Where its
+# evaluation is slow and asked for again, XLA compiles it at backend level 0 without LLVM's
+# expensive passes (it runs once per build: optimising it buys nothing)
+_HOST_OPTS = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+_fields_host = HostFn(frusta_fields, compiler_options=_HOST_OPTS)
 
 
 def _axes_and_planes_of(joints, radii, topo, r1):
@@ -98,7 +101,7 @@ def _axes_and_planes_of(joints, radii, topo, r1):
     return c1, m, h, r2, n, p, medial_normal(m[a], m)[0], kind
 
 
-_axes_and_planes = HostFn(_axes_and_planes_of)
+_axes_and_planes = HostFn(_axes_and_planes_of, compiler_options=_HOST_OPTS)
 
 
 def _match_minor_axes(joints, radii, ptopo, topo: Topology, info: dict, tol: float, iters: int):
