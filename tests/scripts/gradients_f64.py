@@ -9,8 +9,9 @@ object's parameters and the ray origins at once (one random direction through al
 
 * frusta: brute force (``accel: none``, the reference path) and the block scan (``accel:
   blocks``) in every float field of the segments; the BVH's
-  bins, packets and per-ray walks in every float field of the segments with the BVH built again
-  from them (its packed rows are a cache of those fields); bins again in the joints and radii
+  bins, packets, per-ray walks and the Pallas kernel's walk (``traversal: kernel``, in Pallas'
+  interpret mode on the CPU: the GPU's kernel body, not its Triton lowering) in every float field
+  of the segments with the BVH built again from them (its packed rows are a cache of those fields); bins again in the joints and radii
   through the device rebuild (``frusta._device``) that makes both. Relief in both marches (a
   fixed ``fori_loop``, and the ``while_loop`` that stops at the batch's last bracket). Loops of
   data-dependent length are never differentiated: ``accel.nearest_tangent`` differentiates the
@@ -246,7 +247,7 @@ TREE = {"joints": [[0, 0, 0], [0, 1, 0], [0.3, 2, 0.1], [-0.4, 1.8, 0.2], [0.5, 
         "radii": [0.3, 0.25, 0.2, 0.15, 0.1, 0.08], "parents": [-1, 0, 1, 1, 2, 2]}
 for name, accel, trav, free in (("none", "none", "auto", None), ("blocks", "blocks", "auto", None), ("bins", "bvh", "bins", segment_free),
                                 ("packets", "bvh", "packets", segment_free), ("walks", "bvh", "walks", segment_free),
-                                ("skeleton", "bvh", "bins", skeleton_free)):
+                                ("kernel", "bvh", "kernel", segment_free), ("skeleton", "bvh", "bins", skeleton_free)):
     if wanted(f"frusta_{name}"):
         o, d = down(48, (-0.3, 0.0), (0.3, 2.9), 4.0, rng)
         check_batch(f"frusta_{name}", {"type": "frusta", "skeleton": TREE, "accel": accel, "traversal": trav, "packet": 4, "group": 8},
