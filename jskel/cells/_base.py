@@ -126,6 +126,19 @@ def filled_voxels(v: np.ndarray, f: np.ndarray, pitch: float):
     return ndimage.binary_fill_holes(grid), origin
 
 
+def _inside_points(obj, xs):
+    """(N,) bool inside test of ``obj`` (an ``interface.Object``) at points ``xs`` (N, 3), in
+    groups of 4,096: an inside test that loops (a mesh's BVH walks) runs each vmapped group until
+    its slowest point ends."""
+    one = lambda x: obj.representation.inside(obj.params, obj.static, x)  # noqa: E731
+    return accel.map_groups(jax.vmap(one), 4096, xs)
+
+
+# one module-level jit: the Object's tree structure (representation, static options) keys its
+# programs, so base objects of the same kind and shapes share one (a closure per build compiled anew)
+_inside_jit = jax.jit(_inside_points)
+
+
 def _object_inside(b, c: np.ndarray):
     """:func:`base_inside` of another representation's object (``base.object``): its own
     inside test, jitted over point batches."""
@@ -141,10 +154,10 @@ def _object_inside(b, c: np.ndarray):
     except Exception as e:  # noqa: BLE001 - reported with its path
         first = str(e).splitlines()
         raise ValueError(f"object.base.object: {first[1] if len(first) > 1 else first[0]}") from None
+    from ..interface import Object
+
     built = rep.build(ocfg, np.float32)
-    # in groups of 4,096 points: an inside test that loops (a mesh's BVH walks) runs each vmapped
-    # group until its slowest point ends
-    fn = jax.jit(lambda xs: accel.map_groups(jax.vmap(lambda x: rep.inside(built.params, built.static, x)), 4096, xs))
+    obj = Object.of(rep, built)
     anchor = built.anchor
 
     def inside(p):
@@ -153,7 +166,7 @@ def _object_inside(b, c: np.ndarray):
             q = p[i : i + (1 << 18)]
             pad = (1 << 18) - len(q)
             x = np.concatenate([q, np.repeat(q[-1:], pad, 0)]) - anchor - c
-            out[i : i + len(q)] = np.asarray(fn(np.float32(x)))[: len(q)]
+            out[i : i + len(q)] = np.asarray(_inside_jit(obj, np.float32(x)))[: len(q)]
         return out
 
     lo, hi = (np.asarray(v, np.float64) + c for v in built.bounds)
