@@ -201,6 +201,31 @@ def test_fit_points_names_the_bad_point_before_compiling(no_compile):
     assert str(e.value) == "points[5]: not finite (got [nan, 0, 1])"
 
 
+def test_fit_many_names_every_bad_cloud_point_and_start_before_compiling(monkeypatch):
+    """``fit_many`` (B clouds, B starts): a non-finite point of cloud 1, a non-finite joint of
+    start 0 and a negative radius of start 2, in one error before its solver is compiled; a
+    batch whose fits diverge names each cloud that did (non-finite, or above its start's loss)."""
+    from jskel.fit import _fit, fit_many
+
+    monkeypatch.setattr(_fit, "_solve_clouds", None)  # (reaching the compile fails on None)
+    clouds = np.random.default_rng(1).normal(size=(3, 40, 3))
+    clouds[1, 7] = [0, np.inf, 1]
+    j = np.array([[[0, 0, 0], [0, 1, 0], [0, 2, 0]]] * 3, float)
+    r = np.full((3, 3), 0.2)
+    j[0, 2] = [np.nan, 2, 0]
+    r[2, 1] = -0.1
+    with pytest.raises(ValueError) as e:
+        fit_many(clouds, j, r, [-1, 0, 1], SolverConfig())
+    assert e.value.lines == ["clouds[1][7]: not finite (got [0, inf, 1])", "init.skeleton[0].joints[2]: not finite (got [nan, 2, 0])",
+                             "init.skeleton[2].radii[1]: negative radius (got -0.1)"]
+    with pytest.raises(ValueError) as e:
+        _fit._raise_diverged(SolverConfig(name="gauss_newton"), np.array([1.0, 2.0, 3.0, 1.0]), np.array([0.5, np.nan, 4.0, 0.2]),
+                             np.array([True, True, True, False]))
+    assert str(e.value) == ("solver.name: gauss_newton diverged on 3 of 4 clouds: clouds[1] (loss 2 -> nan), clouds[2] (loss 3 -> 4), "
+                            "clouds[3] (loss 1 -> 0.2) (try lm, a smaller learning_rate or more points)")
+    _fit._raise_diverged(SolverConfig(), np.array([1.0, 2.0]), np.array([0.5, 2.0]), np.array([True, True]))  # none diverged
+
+
 def test_skeleton_arrays_every_problem_at_once(no_compile):
     from jskel import frusta
 

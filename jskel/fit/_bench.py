@@ -165,7 +165,13 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
             starts = [perturbed(j, r, p, b.perturb, rng) for _ in range(bsz)]
             s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter, learning_rate=b.learning_rate)
             t0 = time.perf_counter()
-            jj, rr, losses, secs, comp = fit_many(clouds, np.stack([a for a, _ in starts]), np.stack([c for _, c in starts]), p, s)
+            try:
+                jj, rr, losses, secs, comp = fit_many(clouds, np.stack([a for a, _ in starts]), np.stack([c for _, c in starts]), p, s)
+            except ValueError as e:  # a diverged fit in the batch: a row that says so
+                row = {"solver": name, "batch": bsz, "points": b.batch_points, "segments": b.batch_segments, "error": str(e), **common}
+                emit(row)
+                rows.append(row)
+                continue
             row = {"solver": name, "batch": bsz, "points": b.batch_points, "segments": b.batch_segments, "compile_s": round(comp, 3),
                    "seconds": round(secs, 4), "fits_per_s": round(bsz / secs, 3),
                    "joint_error_max_of_length_worst": round(float(max(np.max(np.linalg.norm(x - j, axis=1)) for x in jj)

@@ -295,17 +295,47 @@ def _stepped(pr: Problem, key: SolverKey, s: SolverConfig, x0, pts):
     return x, st, history, it, converged, compile_s, first_at
 
 
+def _checked_batch(clouds, j0, r0, parents):
+    """The topology of :func:`fit_many`'s starts, after every problem of its inputs, at once
+    (``ValueError``): each cloud's non-finite points by cloud and index (``clouds[b]``) and each
+    start's bad joints or radii (``init.skeleton[b]``), as :func:`fit_points` names them."""
+    lines = []
+    for i, c in enumerate(clouds):
+        lines += checks.nonfinite(f"clouds[{i}]", c, f"of {len(c)} points")
+    seg = None
+    for i, (j, r) in enumerate(zip(j0, r0)):
+        try:
+            got = segments_of(j, r, parents, f"init.skeleton[{i}]")
+            seg = got if seg is None else seg
+        except ValueError as e:
+            lines += getattr(e, "lines", [str(e)])
+    checks.raise_all(lines)
+    return seg
+
+
+def _raise_diverged(s: SolverConfig, start, end, finite):
+    """ValueError naming every cloud of a batch whose fit diverged: to a non-finite loss or
+    skeleton, or to a loss above its start's (as :func:`fit_points` refuses one)."""
+    bad = [f"clouds[{i}] (loss {a:.4g} -> {z:.4g})" for i, (a, z, f) in enumerate(zip(start, end, finite))
+           if not (f and np.isfinite(z) and z <= a)]
+    if bad:
+        raise ValueError(f"solver.name: {s.name} diverged on {len(bad)} of {len(end)} clouds: {', '.join(bad)} "
+                         "(try lm, a smaller learning_rate or more points)")
+
+
 def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32):
     """Fit one topology to B clouds at once (B, N, 3), each from its own start (B, J, 3) and
     (B, J) or one shared start: every cloud is normalised on the host, then the solver's whole
     run is mapped over the batch in one compiled call (:func:`over_batch`: in lockstep under
     ``vmap``, the batch running until its slowest fit stops, or for L-BFGS one after another).
-    Returns (joints (B,J,3), radii (B,J), final losses (B,), seconds, compile seconds)."""
+    Returns (joints (B,J,3), radii (B,J), final losses (B,), seconds, compile seconds). Every
+    bad input is one ValueError naming the cloud or start and index, before any compile; a fit
+    that diverges (non-finite, or its loss above its start's) is a ValueError naming its cloud."""
     clouds = np.asarray(clouds, np.float64)
     b = clouds.shape[0]
     j0 = np.broadcast_to(np.asarray(joints0, np.float64), (b,) + np.shape(joints0)[-2:])
     r0 = np.broadcast_to(np.asarray(radii0, np.float64), (b,) + np.shape(radii0)[-1:])
-    seg = segments_of(j0[0], r0[0], parents, "init.skeleton")
+    seg = _checked_batch(clouds, j0, r0, parents)
     pr = problem_of(seg, s)
     nzs = [normaliser_of(c) for c in clouds]
     pts = jnp.asarray(np.stack([nz.points(c) for nz, c in zip(nzs, clouds)]), dtype)
@@ -318,6 +348,8 @@ def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32
     xs = solve(x0, pts)
     xs.block_until_ready()
     seconds = time.perf_counter() - t0
-    losses = np.asarray(jax.vmap(lambda x, p: loss(x, p, pr))(xs, pts))
+    of_each = jax.vmap(lambda x, p: loss(x, p, pr))
+    losses = np.asarray(of_each(xs, pts))
+    _raise_diverged(s, np.asarray(of_each(x0, pts)), losses, np.all(np.isfinite(np.asarray(xs)), axis=-1))
     out = [nz.world(x, pr) for nz, x in zip(nzs, np.asarray(xs))]
     return np.stack([o[0] for o in out]), np.stack([o[1] for o in out]), losses, seconds, compile_s
