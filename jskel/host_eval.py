@@ -39,29 +39,19 @@ def _rule(*names):
     return put
 
 
-def _unary(name, fn):
-    _RULES[name] = lambda x, **_: fn(x)
-
-
-def _binary(name, fn):
-    _RULES[name] = lambda x, y, **_: fn(x, y)
-
-
-for _n, _f in dict(neg=np.negative, abs=np.abs, sqrt=np.sqrt, sin=np.sin, cos=np.cos, tan=np.tan, exp=np.exp,
-                   log=np.log, log1p=np.log1p, expm1=np.expm1, floor=np.floor, ceil=np.ceil, sign=np.sign,
-                   tanh=np.tanh, is_finite=np.isfinite, square=np.square, exp2=np.exp2, asin=np.arcsin,
-                   acos=np.arccos, atan=np.arctan, copy=np.copy, copy_p=np.copy, cbrt=np.cbrt).items():
-    _unary(_n, _f)
-_unary("rsqrt", lambda x: 1 / np.sqrt(x))
-_unary("logistic", lambda x: 1 / (1 + np.exp(-x)))
-_unary("not", np.invert)  # logical on bool, bitwise on integers: as lax.bitwise_not
-for _n, _f in dict(add=np.add, sub=np.subtract, mul=np.multiply, max=np.maximum, min=np.minimum, pow=np.power,
-                   atan2=np.arctan2, nextafter=np.nextafter, eq=np.equal, ne=np.not_equal, lt=np.less,
-                   le=np.less_equal, gt=np.greater, ge=np.greater_equal, shift_left=np.left_shift,
-                   shift_right_arithmetic=np.right_shift, xor=np.bitwise_xor).items():
-    _binary(_n, _f)
-_RULES["and"] = lambda x, y, **_: np.bitwise_and(x, y)
-_RULES["or"] = lambda x, y, **_: np.bitwise_or(x, y)
+_UNARY = dict(neg=np.negative, abs=np.abs, sqrt=np.sqrt, sin=np.sin, cos=np.cos, tan=np.tan, exp=np.exp, log=np.log,
+              log1p=np.log1p, expm1=np.expm1, floor=np.floor, ceil=np.ceil, sign=np.sign, tanh=np.tanh, is_finite=np.isfinite,
+              square=np.square, exp2=np.exp2, asin=np.arcsin, acos=np.arccos, atan=np.arctan, copy=np.copy, copy_p=np.copy,
+              cbrt=np.cbrt, rsqrt=lambda x: 1 / np.sqrt(x), logistic=lambda x: 1 / (1 + np.exp(-x)),
+              **{"not": np.invert})  # (``not``: logical on bool, bitwise on integers, as lax.bitwise_not)
+_BINARY = dict(add=np.add, sub=np.subtract, mul=np.multiply, max=np.maximum, min=np.minimum, pow=np.power, atan2=np.arctan2,
+               nextafter=np.nextafter, eq=np.equal, ne=np.not_equal, lt=np.less, le=np.less_equal, gt=np.greater,
+               ge=np.greater_equal, shift_left=np.left_shift, shift_right_arithmetic=np.right_shift, xor=np.bitwise_xor,
+               **{"and": np.bitwise_and, "or": np.bitwise_or})
+for _n, _f in _UNARY.items():
+    _RULES[_n] = (lambda f: lambda x, **_: f(x))(_f)
+for _n, _f in _BINARY.items():
+    _RULES[_n] = (lambda f: lambda x, y, **_: f(x, y))(_f)
 
 
 @_rule("div")
@@ -271,15 +261,9 @@ def _scatter(combine):
     return rule
 
 
-def _set(out, where, values):
-    out[where] = values
-
-
-_RULES["scatter"] = _scatter(_set)
-_RULES["scatter-add"] = _scatter(np.add.at)
-_RULES["scatter-mul"] = _scatter(np.multiply.at)
-_RULES["scatter-min"] = _scatter(np.minimum.at)
-_RULES["scatter-max"] = _scatter(np.maximum.at)
+for _n, _f in {"scatter": lambda out, where, values: out.__setitem__(where, values), "scatter-add": np.add.at,
+               "scatter-mul": np.multiply.at, "scatter-min": np.minimum.at, "scatter-max": np.maximum.at}.items():
+    _RULES[_n] = _scatter(_f)
 
 
 @_rule("sort")

@@ -157,6 +157,13 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                        "culling_exact_fraction": round(culling_exact_fraction(pts, res.joints, res.radii, p, b.candidates), 5), **common}
                 emit(row)
                 rows.append(row)
+    return rows + _batch_rows(b, common, emit)
+
+
+def _batch_rows(b: FitBench, common: dict, emit) -> list[dict]:
+    """The batched fits' rows (``fit_many``, ``b.batch_solvers`` at each ``b.batch`` size), each
+    emitted as measured; a batch with a diverged fit is a row naming it."""
+    rows = []
     j, r, p = bent_chain(b.batch_segments, b.seed)
     for name in b.batch_solvers:
         for bsz in b.batch:
