@@ -203,6 +203,21 @@ def _starts(indices, index_map, rank):
     return out
 
 
+def _window_index(starts, window, sizes):
+    """Index arrays, one per operand dimension, of every element of the windows at ``starts``
+    (each (B...) or 0): (B..., *sizes) where a dimension is one of ``window`` (sized ``sizes``
+    in that order), (B..., 1, ...) where it is not."""
+    nw = len(window)
+    idx = []
+    for d, st in enumerate(starts):
+        i = st.reshape(st.shape + (1,) * nw)
+        if d in window:
+            j = window.index(d)
+            i = i + np.arange(sizes[j]).reshape([-1 if k == j else 1 for k in range(nw)])
+        idx.append(i)
+    return idx
+
+
 @_rule("gather")
 def _gather(x, indices, *, dimension_numbers, slice_sizes, mode, fill_value=None, **_):
     dn = dimension_numbers
@@ -215,14 +230,7 @@ def _gather(x, indices, *, dimension_numbers, slice_sizes, mode, fill_value=None
     starts = [np.clip(s, 0, n - k) for s, n, k in zip(starts, x.shape, slice_sizes)]
     window = [d for d in range(x.ndim) if d not in dn.collapsed_slice_dims]
     nb, nw = indices.ndim - 1, len(window)
-    idx = []
-    for d in range(x.ndim):
-        i = starts[d].reshape(starts[d].shape + (1,) * nw)
-        if d in window:
-            j = window.index(d)
-            i = i + np.arange(slice_sizes[d]).reshape([-1 if k == j else 1 for k in range(nw)])
-        idx.append(i)
-    g = x[tuple(idx)]
+    g = x[tuple(_window_index(starts, window, [slice_sizes[d] for d in window]))]
     if "FILL" in str(mode):
         g = np.where(ok.reshape(ok.shape + (1,) * nw), g, _fill_of(x.dtype, fill_value))
     batch = iter(range(nb))
@@ -246,13 +254,7 @@ def _scatter(combine):
         for d in dn.inserted_window_dims:
             ok &= (starts[d] >= 0) & (starts[d] < x.shape[d])
         nw = len(window)
-        idx = []
-        for d in range(x.ndim):
-            i = starts[d].reshape(starts[d].shape + (1,) * nw)
-            if d in window:
-                j = window.index(d)
-                i = i + np.arange(sizes[j]).reshape([-1 if k == j else 1 for k in range(nw)])
-            idx.append(np.broadcast_to(i, u.shape))
+        idx = [np.broadcast_to(i, u.shape) for i in _window_index(starts, window, sizes)]
         keep = np.broadcast_to(ok.reshape(ok.shape + (1,) * nw), u.shape)
         out = np.array(x)
         combine(out, tuple(i[keep] for i in idx), u[keep])

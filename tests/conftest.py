@@ -107,3 +107,15 @@ def assert_hits_agree(a, b, rtol: float = 0.0):
     same = a.prim == b.prim
     assert np.all(same[~h])
     assert np.all(same[h] | (np.abs(a.t[h] - b.t[h]) <= rtol * a.t[h]))  # another id only on a tie
+
+
+@pytest.fixture
+def store(tmp_path):
+    """A fresh private directory of stored executables and values in use for the test
+    (``jskel.executables``), the previous one restored after."""
+    from jskel import executables
+
+    before = executables._state["dir"]
+    d = executables.use_dir(tmp_path / "x")
+    yield d
+    executables._state["dir"] = before

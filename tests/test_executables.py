@@ -29,15 +29,6 @@ def _compile():
     return jax.jit(_affine).lower(*ARGS).compile()
 
 
-@pytest.fixture
-def store(tmp_path):
-    """A fresh private directory in use for the test, the previous one restored after."""
-    before = executables._state["dir"]
-    d = executables.use_dir(tmp_path / "x")
-    yield d
-    executables._state["dir"] = before
-
-
 def _get():
     """(output, loaded?, compiled?) of one request for ``_affine``."""
     n0 = dict(executables._counts)

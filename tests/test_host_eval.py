@@ -132,16 +132,6 @@ def test_the_frusta_build_hands_xla_no_program(rng):
     assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]
 
 
-@pytest.fixture
-def store(tmp_path):
-    from jskel import executables
-
-    before = executables._state["dir"]
-    d = executables.use_dir(tmp_path / "x")
-    yield d
-    executables._state["dir"] = before
-
-
 def _traced(calls):
     def fn(a, b):
         calls.append(1)
