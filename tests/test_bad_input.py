@@ -280,6 +280,92 @@ def test_every_corrupted_joint_and_radius_is_named_at_once(n, data):
     assert e.value.lines == want
 
 
+BAD_FLOATS = st.sampled_from([np.nan, np.inf, -np.inf])
+
+
+@settings(max_examples=30, deadline=None, derandomize=True)
+@given(nb=st.integers(1, 6), nt=st.integers(1, 4), data=st.data())
+def test_every_corrupted_implicit_primitive_is_named_at_once(nb, nt, data):
+    """Class 4 by hypothesis, implicit surfaces: ``nb`` balls and ``nt`` tubes, then a drawn set of
+    centre coordinates made NaN or infinite, a drawn set of ball radii made 0 or negative and a
+    drawn set of tubes given coinciding ends: one ConfigError naming every one (the field's
+    index and the value as given), the balls' in order, then the tubes'."""
+    from jskel.config import validate
+
+    balls = [{"center": [float(i), 0.0, 0.0], "radius": 0.5} for i in range(nb)]
+    tubes = [{"a": [float(i), 2.0, 0.0], "b": [float(i), 3.0, 0.5], "radius_a": 0.3, "radius_b": 0.2} for i in range(nt)]
+    bad_c = sorted(data.draw(st.sets(st.tuples(st.integers(0, nb - 1), st.integers(0, 2)), max_size=4), "centres"))
+    bad_r = sorted(data.draw(st.sets(st.integers(0, nb - 1), max_size=nb), "radii"))
+    bad_t = sorted(data.draw(st.sets(st.integers(0, nt - 1), max_size=nt), "tubes"))
+    assume(bad_c or bad_r or bad_t)
+    for i, k in bad_c:
+        balls[i]["center"][k] = data.draw(BAD_FLOATS)
+    for i in bad_r:
+        balls[i]["radius"] = data.draw(st.sampled_from([0.0, -0.5, -1.0, -2.5, -1e-06]))
+    for i in bad_t:
+        tubes[i]["b"] = list(tubes[i]["a"])
+    want = []
+    for i in range(nb):  # per field, as validated: a ball's centre coordinates, then its radius
+        want += [f"object.balls[{i}].center[{k}]: Input should be a finite number (got {balls[i]['center'][k]!r})" for j, k in bad_c if j == i]
+        want += [f"object.balls[{i}].radius: Input should be greater than 0 (got {balls[i]['radius']!r})"] if i in bad_r else []
+    want += [f"object.tubes[{i}].b: coincides with a; a tube needs a length (got [{i}, 2, 0])" for i in bad_t]
+    raw = {"object": {"type": "implicit", "balls": balls, "tubes": tubes}, "camera": {"eye": [0, 1, 5], "target": [0, 1, 0], "width": 16, "height": 16}}
+    with pytest.raises(ConfigError) as e:
+        validate(raw)
+    assert e.value.lines == want
+
+
+@settings(max_examples=20, deadline=None, derandomize=True)
+@given(n=st.integers(4, 12), data=st.data())
+def test_every_corrupted_mesh_vertex_is_named_at_once(n, data, tmp_path_factory):
+    """Class 4 by hypothesis, meshes: a fan of ``n`` vertices written as OBJ with a drawn set of
+    them given a NaN or an infinity in a drawn coordinate: one error naming the file and every
+    bad vertex (its index and value; past five, the count and the first five)."""
+    from jskel import registry
+
+    v = np.stack([np.cos(np.arange(n)), np.sin(np.arange(n)), np.zeros(n)], 1).round(3)
+    v[0] = 0.0
+    bad = sorted(data.draw(st.sets(st.integers(0, n - 1), min_size=1, max_size=n), "vertices"))
+    for i in bad:
+        v[i, data.draw(st.integers(0, 2))] = data.draw(BAD_FLOATS)
+    path = tmp_path_factory.mktemp("mesh") / "fan.obj"
+    path.write_text("".join(f"v {float(x)!r} {float(y)!r} {float(z)!r}\n" for x, y, z in v) + "".join(f"f 1 {i + 1} {i + 2}\n" for i in range(1, n - 1)))
+    rep = registry.get("mesh")
+    with pytest.raises(ValueError) as e:
+        rep.build(rep.Config.model_validate({"type": "mesh", "path": str(path)}))
+    assert getattr(e.value, "lines", [str(e.value)]) == _named(f"object.path ({str(path)!r}) vertices", "not finite", bad, v, "vertices")
+
+
+@settings(max_examples=30, deadline=None, derandomize=True)
+@given(n=st.integers(2, 40), data=st.data())
+def test_every_corrupted_ray_and_cloud_point_is_named_at_once(n, data):
+    """Class 4 by hypothesis, rays and point clouds: ``n`` rays with a drawn set of origins given
+    a NaN or an infinity, a drawn set of directions given one and another set made zero, and a
+    cloud of ``n`` points with a drawn set corrupted the same way: ``make_rays`` and ``fit_points``
+    name every one (origins, directions not finite, directions zero; the cloud's points), before
+    anything compiles."""
+    rng = np.random.default_rng(n)
+    o, d = rng.normal(size=(n, 3)).round(3), np.tile([0.0, 0.0, 1.0], (n, 1))
+    bad_o = sorted(data.draw(st.sets(st.integers(0, n - 1), max_size=n), "origins"))
+    bad_d = sorted(data.draw(st.sets(st.integers(0, n - 1), max_size=n), "directions"))
+    zero = sorted(set(data.draw(st.sets(st.integers(0, n - 1), max_size=n), "zero")) - set(bad_d))
+    assume(bad_o or bad_d or zero)
+    for i in bad_o:
+        o[i, data.draw(st.integers(0, 2))] = data.draw(BAD_FLOATS)
+    for i in bad_d:
+        d[i, data.draw(st.integers(0, 2))] = data.draw(BAD_FLOATS)
+    d[zero] = 0.0
+    with pytest.raises(ConfigError) as e:
+        make_rays(o, d)
+    assert e.value.lines == (_named("rays.origins", "not finite", bad_o, o, "rays") + _named("rays.directions", "not finite", bad_d, d, "rays")
+                             + _named("rays.directions", "is the zero vector", zero, d, "rays"))
+    if bad_o:  # the same corruption as a cloud of points to fit
+        pts = np.concatenate([o, rng.normal(size=(40, 3)).round(3)])
+        with pytest.raises(ValueError) as e:
+            fit_points(pts, [[0, 0, 0], [0, 1, 0]], [0.2, 0.2], [-1, 0], SolverConfig())
+        assert str(e.value) == "\n".join(_named("points", "not finite", bad_o, pts, f"of {len(pts)} points"))
+
+
 def test_a_cell_colour_map_names_every_bad_texel(tmp_path):
     from jskel import cells
 
