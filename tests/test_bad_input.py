@@ -315,6 +315,32 @@ def test_every_corrupted_implicit_primitive_is_named_at_once(nb, nt, data):
     assert e.value.lines == want
 
 
+@settings(max_examples=30, deadline=None, derandomize=True)
+@given(kind=st.sampled_from(["sphere", "torus"]), data=st.data())
+def test_every_corrupted_cell_base_value_is_named_at_once(kind, data):
+    """Class 4 by hypothesis, cell objects: a sphere or torus base shape with a drawn set of centre
+    coordinates made NaN or infinite and a drawn set of its sizes (radius; major and minor)
+    made 0 or negative: one ConfigError naming every one (the field and the value as given), in
+    the section's field order (centre, major, minor, radius)."""
+    from jskel.config import validate
+
+    base = {"type": kind, "center": [0.0, 0.0, 0.0], **({"radius": 1.0} if kind == "sphere" else {"major": 1.0, "minor": 0.4})}
+    sizes = ["radius"] if kind == "sphere" else ["major", "minor"]
+    bad_c = sorted(data.draw(st.sets(st.integers(0, 2), max_size=3), "centre"))
+    bad_s = [k for k in sizes if data.draw(st.booleans(), k)]
+    assume(bad_c or bad_s)
+    for k in bad_c:
+        base["center"][k] = data.draw(BAD_FLOATS)
+    for k in bad_s:
+        base[k] = data.draw(st.sampled_from([0.0, -0.4, -1.0, -3.5]))
+    want = [f"object.base.center[{k}]: Input should be a finite number (got {base['center'][k]!r})" for k in bad_c]
+    want += [f"object.base.{k}: Input should be greater than 0 (got {base[k]!r})" for k in ("major", "minor", "radius") if k in bad_s]
+    raw = {"object": {"type": "cells", "base": base}, "camera": {"eye": [0, 1, 5], "target": [0, 1, 0], "width": 16, "height": 16}}
+    with pytest.raises(ConfigError) as e:
+        validate(raw)
+    assert e.value.lines == want
+
+
 @settings(max_examples=20, deadline=None, derandomize=True)
 @given(n=st.integers(4, 12), data=st.data())
 def test_every_corrupted_mesh_vertex_is_named_at_once(n, data, tmp_path_factory):
