@@ -342,8 +342,8 @@ class HostCall:
 
 
 #: a program whose NumPy evaluation took longer than this is compiled by XLA when its process
-#: asks for it again (a notebook editing a large skeleton): a 4,176-segment neuron's geometry
-#: took 0.68 s by NumPy per build, its compile 0.64 s once (2026-12-04, 2-core Intel Xeon)
+#: asks for it again (a notebook editing a large skeleton): a deep skeleton's geometry runs its
+#: depth levels one after another, which NumPy does at a per-equation cost XLA's loop does not pay
 COMPILE_AFTER_S = 0.2
 
 

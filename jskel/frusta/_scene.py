@@ -144,10 +144,10 @@ def _relief_quality(rel, arrays: FrustaArrays, ids) -> ReliefQuality:
     return ReliefQuality(uv, rel.early_exit, rel.v_mode)
 
 
-# the tree of a build, evaluated by NumPy (``jskel.host_eval``): XLA:CPU compiled it in 0.22 s
-# (30 segments, backend level 0) to 0.37 s (4,176, optimised), NumPy takes 0.004-0.05 s after a
-# 0.04 s trace (2026-12-04, 2-core Intel Xeon with AVX-512); the device rebuild of an animated
-# frame runs the same ``build_bvh`` inside its program
+# the tree of a build, evaluated by NumPy (``jskel.host_eval``): XLA:CPU compiled it in 0.25 s
+# (30 segments, backend level 0) to 0.37 s (4,176, optimised; run.json's ``programs.by_name`` of
+# ``JSKEL_CACHE=off python -m jskel render``, at 301e769, 2026-12-04, 2-core Intel Xeon); the
+# device rebuild of an animated frame runs the same ``build_bvh`` inside its program
 _build_bvh_host = HostFn(build_bvh, static_argnums=(1,))
 
 
