@@ -87,6 +87,22 @@ def ray_mesh(devices=None):
     return jax.sharding.Mesh(np.array(devs), ("rays",))
 
 
+def compiler_options(args, mesh=None) -> dict:
+    """The XLA options a program over ``args`` compiles with: on CPU devices, those the
+    arguments ask for (an argument with a ``compiler_options()`` method, as ``interface.Object``
+    and a scene have; the first one asking wins a key), else none. The executable's keys need
+    no more: the options follow from the static configuration and jskel's source."""
+    devs = jax.local_devices() if mesh is None else list(mesh.devices.flat)
+    if devs[0].platform != "cpu":
+        return {}
+    out: dict = {}
+    for a in args:
+        ask = getattr(a, "compiler_options", None)
+        if callable(ask):
+            out = {**ask(), **out}
+    return out
+
+
 def compile_batch_fn(batch_fn: Callable, example_args, mesh=None) -> tuple[Callable, float]:
     """AOT-compile ``jax.jit(batch_fn)`` for ``example_args``; returns (compiled, seconds).
 
@@ -114,7 +130,7 @@ def compile_batch_fn(batch_fn: Callable, example_args, mesh=None) -> tuple[Calla
         # an unsharded run compiles for one chunk, so the results are equal bit for bit
         fn = jax.jit(_named(batch_fn, jax.shard_map(batch_fn, mesh=mesh, in_specs=(P(), P("rays")), out_specs=P("rays"), check_vma=False)))
     # from disk when a previous process stored it (no trace, no compile), else traced, compiled and stored
-    compiled = executables.compiled_for(batch_fn, example_args, mesh, lambda: fn.lower(*example_args).compile())
+    compiled = executables.compiled_for(batch_fn, example_args, mesh, lambda: fn.lower(*example_args).compile(compiler_options(example_args, mesh) or None))
     _COMPILED[key] = compiled
     while len(_COMPILED) > COMPILED_KEEP:
         _COMPILED.popitem(last=False)

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Hashable, NamedTuple
+from typing import Any, ClassVar, Hashable, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -131,6 +131,11 @@ class Representation:
     #: the section has an animation frame: its ``frame`` field poses it (``--frames``, a scene's
     #: ``frame``; :meth:`at_frame`)
     animated: ClassVar[bool] = False
+
+    #: XLA options its programs compile with on the CPU (``executor.compiler_options``; a
+    #: program of several objects takes the options none of them contradicts). Each is a
+    #: measured choice, stated where a representation sets it
+    cpu_compiler_options: ClassVar[Mapping[str, Any]] = {}
 
     def __init_subclass__(cls, module: str | None = None, **kw):
         """``class _X(Representation, module=__name__)``: the module's own functions named as
@@ -277,6 +282,24 @@ class Object:
         from . import registry  # (the registry imports representations lazily, which import this module)
 
         return registry.get(self.rep)
+
+    def compiler_options(self) -> dict:
+        """The XLA options its programs compile with on the CPU (``cpu_compiler_options``)."""
+        return agreed_options([self.rep])
+
+
+def agreed_options(reps) -> dict:
+    """The CPU compiler options of a program over objects of the representations ``reps``
+    (registered names): every option some of them set, except one they set to different values
+    (it keeps XLA's default)."""
+    from . import registry
+
+    out, clash = {}, set()
+    for name in dict.fromkeys(reps):
+        for k, v in registry.get(name).cpu_compiler_options.items():
+            clash |= {k} if out.get(k, v) != v else set()
+            out.setdefault(k, v)
+    return {k: v for k, v in out.items() if k not in clash}
 
 
 def intersect(obj: Object, rays: Rays) -> Hit:

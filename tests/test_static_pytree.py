@@ -120,3 +120,39 @@ def test_a_scene_of_one_reuses_its_program_for_new_values_and_keys_on_its_static
     got = np.asarray(again.out["hit"].t, np.float64)
     np.testing.assert_array_equal(np.isfinite(got), hit)
     np.testing.assert_allclose(got[hit], t[hit], atol=2e-5)
+
+
+def test_a_program_compiles_with_the_cpu_options_its_representations_agree_on(monkeypatch):
+    """``Representation.cpu_compiler_options`` reach XLA through the executor: an object's own,
+    a scene's the union of its objects' except a key they set differently (XLA's default then);
+    the call that compiles passes them (recorded here instead of compiling)."""
+    from jskel import executor, registry
+    from jskel.render._scene import Scene
+
+    frusta, implicit = registry.get("frusta"), registry.get("implicit")
+    assert frusta.cpu_compiler_options == {"xla_cpu_use_fusion_emitters": False} and implicit.cpu_compiler_options == {}
+    b = _cylinder()
+    obj = frusta_object(b)
+    assert executor.compiler_options((obj, None)) == {"xla_cpu_use_fusion_emitters": False}
+    assert interface.agreed_options(["implicit", "frusta", "implicit"]) == {"xla_cpu_use_fusion_emitters": False}
+    monkeypatch.setattr(type(implicit), "cpu_compiler_options", {"xla_cpu_use_fusion_emitters": True, "xla_cpu_enable_fast_math": False})
+    assert interface.agreed_options(["frusta", "implicit"]) == {"xla_cpu_enable_fast_math": False}
+    scene = Scene(None, type("Static", (), {"reps": ("frusta", "implicit", "frusta")})())
+    assert executor.compiler_options((scene, None)) == {"xla_cpu_enable_fast_math": False}
+    seen = []
+
+    class Recorded(Exception):
+        pass
+
+    def compile_(self, compiler_options=None):
+        seen.append(compiler_options)
+        raise Recorded
+
+    monkeypatch.setattr(jax.stages.Lowered, "compile", compile_)
+    x, rays = _rays(b)
+    fresh = interface.Object(b.params, b.static._replace(group=b.static.group // 8), "frusta")  # a static no test compiled
+    try:
+        map_chunks(interface.intersect_each, fresh, rays, chunk=CHUNK, progress=False)
+    except Recorded:
+        pass
+    assert seen == [{"xla_cpu_use_fusion_emitters": False}]

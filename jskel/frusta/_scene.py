@@ -332,6 +332,14 @@ class _Frusta(Representation, module=__name__):
     name = "frusta"
     Config = FrustaConfig
     animated = True
+    #: XLA:CPU's elemental emitters instead of its MLIR fusion emitters. Render programs compiled
+    #: both ways (``tests/scripts/first_image_programs.py EXP --sets fusion,elemental`` and the
+    #: reverse order, process CPU seconds; 2026-12-04, the 2-core Intel Xeon, jax 0.10.2):
+    #: default 2.2-2.3 -> 1.2-1.3 s, palm 3.9 -> 2.4-2.7 s, scene_cacti 9.0-9.2 -> 6.1-6.8 s,
+    #: scene_effects 7.6-7.7 -> 5.3-5.9 s, their runs 12-27 % faster to 3 % slower
+    #: (docs/performance.md). The implicit and cell objects keep the default: theirs ran 15-24 %
+    #: slower with it
+    cpu_compiler_options = {"xla_cpu_use_fusion_emitters": False}
 
     @staticmethod
     def skeleton(cfg):

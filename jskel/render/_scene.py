@@ -307,6 +307,13 @@ class Scene:
     def tree_unflatten(cls, static, children):
         return cls(children[0], static)
 
+    def compiler_options(self) -> dict:
+        """The XLA options its program compiles with on the CPU: those its objects'
+        representations agree on (``interface.agreed_options``)."""
+        from ..interface import agreed_options
+
+        return agreed_options(self.static.reps)
+
 
 def scene_call(scene: Scene, rays: Rays) -> dict:
     """``scene_batch(scene.static)(scene.params, rays)``: the executor's batch function of

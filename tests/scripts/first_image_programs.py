@@ -15,7 +15,8 @@ render's own arguments (median wall seconds of ``--runs``).
 ``default`` is the CLI's embedded experiment (README's first command); any experiment file will
 do. Option sets: ``O3`` (XLA:CPU's defaults, stated), ``O0`` (``xla_backend_optimization_level``
 0), ``noexp`` (``xla_llvm_disable_expensive_passes``), ``O0noexp`` (both: what the frusta build
-compiles with, ``frusta._build._HOST_OPTS``).
+compiles with, ``frusta._build._HOST_OPTS``), ``fusion`` and ``elemental`` (XLA:CPU's MLIR fusion
+emitters, its default, or its elemental emitters: ``Representation.cpu_compiler_options``).
 """
 import argparse
 import collections
@@ -35,6 +36,8 @@ SETS = {
     "O0": {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": False},
     "noexp": {"xla_backend_optimization_level": 3, "xla_llvm_disable_expensive_passes": True},
     "O0noexp": {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True},
+    "fusion": {"xla_cpu_use_fusion_emitters": True, "xla_backend_optimization_level": 3},
+    "elemental": {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 3},
 }
 _seen: list[dict] = []
 
