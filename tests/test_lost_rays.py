@@ -91,10 +91,10 @@ def arrays(balls, tubes=()):
     return a, b, ra, rb
 
 
-def cast(built, O, D, name="implicit"):
+def cast(built, O, D, name="implicit", t_max=np.inf):
     """Rays (float64 world) relative to the anchor as the tracer gets them (float32); returns the
     NumPy Hit and those rays in float64 (the exact rays traced, for the reference)."""
-    r = make_rays(np.asarray(O, np.float64) - built.anchor, D)
+    r = make_rays(np.asarray(O, np.float64) - built.anchor, D, t_max=t_max)
     out = whole_chunks(intersect_each, Object(built.params, built.static, name), r, CHUNK)
     return out, np.asarray(r.origins, np.float64) + built.anchor, np.asarray(r.directions, np.float64)
 
@@ -230,6 +230,30 @@ def test_rays_near_tangent_hit_the_reference_or_carry_a_flag(method):
     flag = hit.flags != 0
     assert not np.any(~ok & ~flag), (delta[~ok & ~flag], hit.t[~ok & ~flag], t_ref[~ok & ~flag])
     assert np.any(flag) and np.any(ok & ~flag)
+
+
+@pytest.mark.parametrize("method", ["lipschitz", "naive", "bisection"])
+def test_a_surface_just_before_the_rays_far_end_is_found(method):
+    """A ray whose window ends ``delta`` past a lone ball's surface (1e-6 .. 1e-2, log-uniform,
+    seeded; the step is 0.05 and eps 1e-3, so the march's next sample lies beyond t_max) hits it
+    at the closed-form t, 3 - sqrt(rho^2 - y^2), or carries a flag; one ending ``delta`` before
+    it misses. The march once tested no sample in its last step's piece, and read a crossing
+    there as excluded because the field is 0 past the primitives' reach, which t_max cut short:
+    a silent miss (found by ``jskel.refine``'s short recasts)."""
+    rng = np.random.default_rng(11)
+    y = rng.uniform(0.0, 0.9 * RHO, CHUNK)
+    delta = 10.0 ** rng.uniform(-6, -2, CHUNK)
+    t0 = 3.0 - np.sqrt(RHO**2 - y**2)
+    after = np.arange(CHUNK) % 4 != 0  # a quarter end before the surface
+    O = np.stack([np.zeros(CHUNK), y, np.full(CHUNK, -3.0)], 1)
+    D = np.tile([0.0, 0.0, 1.0], (CHUNK, 1))
+    built = implicit_model([((0, 0, 0), 1.0)], method=method, step=0.05)
+    hit, _, _ = cast(built, O, D, t_max=np.where(after, t0 + delta, t0 - delta))
+    found = after & np.isfinite(hit.t) & (np.abs(hit.t - t0) <= 1e-3)
+    silent = after & ~found & (hit.flags == 0)
+    assert not np.any(silent), (np.sum(silent), delta[silent][:4], hit.t[silent][:4])
+    assert np.mean(found[after]) > 0.9
+    assert not np.any(np.isfinite(hit.t[~after]))
 
 
 _SADDLES: dict = {}
