@@ -8,7 +8,9 @@ origins") bounds the error of the position with gamma(n) = n u / (1 - n u) (Sec.
 the origin along the normal, to the side of the new direction, by that bound projected on the
 normal, then one float further. Here the bound is the error of ``o + t d`` (every tracer reports
 its position that way, or nearer) plus the representation's own tolerance, a fact of its
-``Built`` (:func:`surface_offset`), so no representation is named. The renderer's integrator
+``Built`` (:func:`surface_offset`), so no representation is named. :func:`refine` recomputes
+hits from near (one more cast through the object), for rays from far away whose positions' error
+would otherwise set the offset. The renderer's integrator
 (``render/_scene.py``) spawns every shadow, reflection and refraction ray through
 :func:`spawn_rays`; docs/numerics.md states the bound and its test (``tests/test_spawn.py``).
 """
@@ -71,12 +73,60 @@ def spawn(source, rays: Rays, hit: Hit, directions, t_max=np.inf) -> Rays:
     away it is about 0.2 of the size in float32 (the positions there are good to ~1e-2 of it).
     pbrt's own term, gamma(n) |p|, bounds a point recomputed on the surface; ``o + t d``'s
     error follows |o| + |t d|, and such hits lie far beyond gamma(16) |p| off the surface
-    (docs/numerics.md, ``tests/test_spawn.py``), so the term stays.
+    (docs/numerics.md, ``tests/test_spawn.py``), so the term stays; :func:`refine` recomputes
+    the hits from near first, and the offset from its near rays is about 1e-3 of the size there.
     Rays of misses are empty (origin 0, t_min = 0 > t_max = -1) and hit nothing; so are rays
     whose direction is zero or not finite (direction +z instead), which :func:`spawn_flags`
     marks with ``FLAG_BAD_DIRECTION`` and :func:`checked_spawn` reports. Pure, jit- and
     grad-friendly: the origins differentiate as the hit positions do."""
     return spawn_rays(rays, hit.t, hit.position, hit.normal, jnp.asarray(directions), surface_offset(source), t_max)
+
+
+#: the cosine below which :func:`refine` treats a ray as grazing: its step back (four times
+#: the position's error along the ray) stops growing there, so a grazing hit may keep its own
+#: position (no refined hit in the window)
+REFINE_COS_FLOOR = 1.0 / 64.0
+
+
+def refine(source, obj, rays: Rays, hit: Hit) -> tuple[Rays, Hit]:
+    """The hits recomputed from near, so that their positions' error follows the object's size
+    instead of the rays' distance: (near rays, refined hits), to hand to :func:`spawn`.
+
+    pbrt-v4 recomputes a hit on the surface in the object's frame (a sphere's reprojection, a
+    triangle's barycentric sum: Sec. 6.8.2-6.8.5), so its spawn offset bounds gamma(n) |p|. Here
+    every representation's hit is ``o + t d``, good to about gamma (|o| + |t d|): for rays from
+    1e5 object sizes away, a tenth of the size, which :func:`spawn`'s offset must cover. This
+    casts each hit's ray again through ``obj`` (an ``interface.Object``, the one the hits came
+    from; ``source`` its ``Built`` or a number, as :func:`spawn` takes) from the point 4 e
+    before the hit along it, e its position's error along the ray (the bound :func:`spawn`
+    uses, with the surface's own part, over the cosine between ray and normal, floored at
+    :data:`REFINE_COS_FLOOR`); the new hit is kept where it lies within 2 e of that distance and
+    its normal is on the same side as the old one. Its position is then good to about gamma
+    (|p| + 8 e) plus the tracer's own tolerance, and so is the offset :func:`spawn` computes from
+    the near rays (``tests/test_spawn.py``: at 1e5 sizes, below 1e-3 of the size). Elsewhere
+    (misses, grazing rays, a recast that found another part of the object first) the hit and
+    ray stay as they were. One more cast per ray; the renderer does not call it (its rays start
+    at the camera, near the scene, or at a spawned origin). Pure and jit-friendly."""
+    from .interface import intersect
+
+    dtype = hit.position.dtype
+    got = jnp.isfinite(hit.t)
+    dn = jnp.linalg.norm(rays.directions, axis=-1)
+    u = rays.directions / jnp.where(dn > 0, dn, 1.0)[:, None]
+    p = jnp.where(got[:, None], hit.position, 0.0)
+    o = jnp.where(jnp.isfinite(rays.origins), rays.origins, 0.0)
+    tt = jnp.where(got, hit.t, 0.0)[:, None]
+    err = gamma(SPAWN_GAMMA_N, dtype) * (jnp.abs(o) + jnp.abs(tt * rays.directions) + jnp.abs(p))
+    err_n = jnp.sum(jnp.abs(hit.normal) * err, axis=-1) + jnp.asarray(surface_offset(source), dtype)
+    cos = jnp.abs(jnp.sum(u * hit.normal, axis=-1))
+    e = err_n / jnp.maximum(cos, REFINE_COS_FLOOR)
+    back = 4.0 * e
+    near = Rays(p - back[:, None] * u, u, jnp.zeros_like(back), jnp.where(got, 6.0 * e, -1.0))
+    again = intersect(obj, near)
+    keep = got & (jnp.abs(again.t - back) <= 2.0 * e) & (jnp.sum(again.normal * hit.normal, axis=-1) > 0)
+    pick = lambda a, b: jnp.where(keep.reshape(keep.shape + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
+    rays_out = Rays(pick(near.origins, rays.origins), pick(u, rays.directions), pick(near.t_min, rays.t_min), pick(near.t_max, rays.t_max))
+    return rays_out, jax.tree_util.tree_map(pick, again, hit)
 
 
 def bad_directions(directions):
@@ -133,4 +183,4 @@ def checked_spawn(source, rays: Rays, hit: Hit, directions, t_max=np.inf) -> Ray
     return _checked_spawn_rays(rays, hit.t, hit.position, hit.normal, jnp.asarray(directions), surface_offset(source), t_max)
 
 
-__all__ = ["SPAWN_GAMMA_N", "bad_directions", "checked_spawn", "gamma", "spawn", "spawn_flags", "spawn_rays", "surface_offset"]
+__all__ = ["REFINE_COS_FLOOR", "SPAWN_GAMMA_N", "bad_directions", "refine", "checked_spawn", "gamma", "spawn", "spawn_flags", "spawn_rays", "surface_offset"]
