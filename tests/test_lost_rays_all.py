@@ -26,6 +26,9 @@ References, float64, independent of jskel:
   steps 1/64 of the shell's chord and bisects 8 times, so ``tol_t`` is the last bracket of the
   longest chord, and a chord through the relief shorter than a step may be stepped over only
   with ``graze``;
+* relief on a varying map: one tapered segment under test_relief's smooth height map (bumps with
+  no closed form) against that test's float64 march (4,096 samples of the shell's chord, then 40
+  bisections), within one march step (a crossing stepped over carries ``graze``);
 * cells: one cell that is a box of tile-map voxels (as in tests/test_spawn.py), ray-box slabs;
   the linear search (Nurnberg 2011, Sec. 3.2) steps 1/256 of the tile and bisects the step that
   crosses, so ``tol_t`` is a quarter step and ``delta`` one step (a corner chord shorter than a
@@ -50,6 +53,8 @@ from jskel.rays import FLAG_NAMES, make_rays
 
 import implicit_reference as iref
 import reference as ref
+from test_relief import _ref_march as ref_march
+from test_relief import _smooth_map as smooth_map
 from triangles import moller_trumbore
 
 N = 256  # rays per example: one shape, one compile per representation
@@ -62,6 +67,7 @@ PARENTS = [-1, 0, 1, 2]
 R_JOINTS = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 2.0, 0.0]])
 R_RADII = np.array([0.5, 0.45, 0.4])
 R_LEVEL, R_THICK, R_STEPS, R_BIS = 128, 0.1, 64, 8  # the constant height (of 255), shell thickness (sizes), march
+M_H, M_RADII, M_THICK = 2.0, (0.5, 0.4), 0.15  # relief_map: one segment along +y (sizes), under test_relief's smooth map
 TILE = np.zeros((16, 16, 16), np.int64)
 TILE[4:12, 3:13, 5:11] = 1  # the cell object's one cell: a box of voxels
 _cast = jax.jit(interface.intersect)
@@ -102,6 +108,14 @@ def _raw(name, tmp, s, off, method="lipschitz", seed=0):
         return {"type": "frusta", "skeleton": {"joints": R_JOINTS.tolist(), "radii": R_RADII.tolist(), "parents": [-1, 0, 1],
                                                "scale": s, "offset": off.tolist()},
                 "relief": {"map": str(path), "thickness": R_THICK * s, "steps": R_STEPS, "bisection": R_BIS}}
+    if name == "relief_map":
+        import imageio.v3 as iio
+
+        path = tmp / "smooth.png"
+        iio.imwrite(path, smooth_map())
+        return {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, M_H, 0]], "radii": list(M_RADII), "parents": [-1, 0],
+                                               "scale": s, "offset": off.tolist()},
+                "relief": {"map": str(path), "thickness": M_THICK * s, "steps": R_STEPS, "bisection": R_BIS, "scale": [1, 1], "uv": "exact"}}
     if name == "implicit":
         return {"type": "implicit", "threshold": T_ISO, "balls": [{"center": off.tolist(), "radius": s}],
                 "step": 0.02 * s, "eps": 1e-3 * s, "method": method}
@@ -173,6 +187,14 @@ def _reference(name, built, s, off, seed=0):
         segs = ref.segments(R_JOINTS * s + off, (R_RADII + R_LEVEL / 255 * R_THICK) * s, [-1, 0, 1])
         chord = (2.0 + 2 * (R_RADII.max() + R_THICK)) * s  # a bound of any chord through the chain's shell
         return (lambda O, D: ref.intersect(segs, O, D)[0]), chord / R_STEPS * 0.5**R_BIS + 1e-4 * s, 1e-4 * s
+    if name == "relief_map":  # test_relief's float64 march of the same map, in the segment's unit frame
+        def march(O, D):  # from 10 sizes before the segment's centre (the reference's exit search reaches 100)
+            n = np.linalg.norm(D, axis=1)
+            Ou, Du = (O - off) / s, D / n[:, None]
+            t0 = np.maximum(np.sum(([0.0, 0.5 * M_H, 0.0] - Ou) * Du, 1) - 10.0, 0.0)
+            return (t0 + ref_march(smooth_map(), *M_RADII, M_H, M_THICK, Ou + t0[:, None] * Du, Du)[0]) * s / n
+        chord = np.hypot(M_H, 2 * (max(M_RADII) + M_THICK)) * s  # the longest chord through the shell
+        return march, chord / R_STEPS + 1e-4 * s, 1e-4 * s
     if name == "mesh":
         v, f = _icosphere()
         return _triangles(v * s + off, f), 1e-4 * s, 1e-4 * s
@@ -211,7 +233,7 @@ def _agrees(got, t_hit, t, tol):
 def _check(name, tmp, log_scale, log_shift, seed, method="lipschitz"):
     s = 10.0**log_scale
     off = s * 10.0**log_shift * np.array([0.6, -0.8, 0.3])
-    rep = registry.get({"implicit_blend": "implicit", "relief": "frusta"}.get(name, name))
+    rep = registry.get({"implicit_blend": "implicit", "relief": "frusta", "relief_map": "frusta"}.get(name, name))
     built = rep.build(rep.Config.model_validate(_raw(name, tmp, s, off, method, seed)), np.float32)
     anchor = np.asarray(built.anchor, np.float64)
     lo, hi = (np.asarray(b, np.float64) for b in built.bounds)
@@ -307,6 +329,16 @@ def test_relief_hits_within_tolerance_or_flags(log_scale, log_shift, seed, tmp_p
     """Frusta with relief (a constant height map: the surface is the frustum of radii r + h T),
     through the shell's march and bisection (Bhagvat et al. 2009, Sec. 3)."""
     _check("relief", tmp_path_factory.mktemp("relief"), log_scale, log_shift, seed)
+
+
+@settings(max_examples=6, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(log_scale=st.floats(-10, 10), log_shift=st.floats(-2, 5), seed=st.integers(0, 2**31 - 1))
+def test_relief_on_a_varying_height_map_hits_within_tolerance_or_flags(log_scale, log_shift, seed, tmp_path_factory):
+    """A tapered segment under test_relief's smooth height map (0.5 + 0.45 sin 2 pi u cos 2 pi v,
+    bumps that cast no closed form), against that test's float64 march (4,096 samples of the
+    shell's chord, 40 bisections; u = atan2(x, z) / 2 pi, v = y / H), within one march step:
+    a crossing stepped over is missed or found late only with ``graze``."""
+    _check("relief_map", tmp_path_factory.mktemp("relief_map"), log_scale, log_shift, seed)
 
 
 @pytest.mark.parametrize("log_scale", [-10.0, 10.0])
