@@ -11,7 +11,6 @@ will do.
 from __future__ import annotations
 
 import collections
-import sys
 import time
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
@@ -21,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import executables
+from .progress import quiet
 from .call_layout import Layout, call_rays, output_buffers, write_call
 from .call_layout import pad_to as _pad_to
 from .rays import Rays
@@ -265,7 +265,8 @@ def map_chunks(
     (ahead of time; its seconds are reported apart from the run); a batch smaller than one
     chunk is padded to :func:`batch_bucket`'s size, so similar sizes share a program. Chunks are dispatched one
     ahead of the host copy so the device is not idle while the host gathers results. The
-    progress bar (tqdm) is shown only on a terminal unless ``progress`` forces it.
+    progress bar (tqdm) is shown on a terminal or in a notebook, never in CI
+    (``jskel.progress.quiet``), unless ``progress`` says otherwise.
 
     Returns NumPy arrays of leading size ``rays.size`` with the structure of ``batch_fn``'s
     output. ``devices``: None or one device runs unsharded; a list of devices (or ``"all"``,
@@ -293,7 +294,7 @@ def map_chunks(
     compiled, compile_s = compile_batch_fn(plan.batch_fn, (params, first), mesh)
     if plan.memory is not None:
         compile_s += plan.memory["seconds"]  # the tries compiled (the chosen size among them)
-    disable = (not sys.stderr.isatty()) if progress is None else (not progress)
+    disable = quiet() if progress is None else (not progress)
     t0 = time.perf_counter()
     if mesh is not None:
         # replicated once per call of map_chunks, not once per compiled call: parameters living

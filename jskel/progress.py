@@ -1,6 +1,7 @@
-"""Progress bars for long host work (fits, cell membership): shown on a terminal and in a
-notebook (``tqdm.auto``), never in CI or when standard error is not a terminal, as the
-executor's render bar (``executor.map_chunks``)."""
+"""Progress bars for long host work (fits, cell membership, renders, sweeps): shown on a
+terminal and in a notebook (``tqdm.auto``), never in CI, nor where standard error is neither a
+terminal nor a notebook's; the executor's render bar (``executor.map_chunks``) and the sweep's
+follow :func:`quiet` too."""
 
 from __future__ import annotations
 
@@ -8,9 +9,18 @@ import os
 import sys
 
 
+def in_notebook() -> bool:
+    """Whether this process is a Jupyter kernel: its standard error is not a terminal
+    (ipykernel's stream says so), yet ``tqdm.auto`` shows its bars there as widgets."""
+    ipython = sys.modules.get("IPython")
+    shell = None if ipython is None else ipython.get_ipython()
+    return shell is not None and hasattr(shell, "kernel")
+
+
 def quiet() -> bool:
-    """Whether to hide progress: standard error is not a terminal, or ``CI`` is set."""
-    return not sys.stderr.isatty() or bool(os.environ.get("CI"))
+    """Whether to hide progress: ``CI`` is set, or standard error is not a terminal outside a
+    notebook."""
+    return bool(os.environ.get("CI")) or not (sys.stderr.isatty() or in_notebook())
 
 
 def bar(total: int, desc: str, unit: str):

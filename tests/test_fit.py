@@ -245,6 +245,8 @@ def test_fit_command_writes_a_file_jskel_renders(tmp_path, capsys):
     assert info["truth"]["joint_error_max_of_length"] < 0.02 and info["truth"]["radius_error_max_rel"] < 0.05
     assert info["history"][-1] < info["history"][0] and (tmp_path / "out" / "fit.png").stat().st_size > 10_000
     assert info["plane_margin_min"] > 0.05  # every shared plane cuts ellipses, as the renderer needs
+    # the programs the process handed to XLA so far (the fit's own update at least, compiled or loaded)
+    assert info["programs"]["compiled"] + info["programs"]["loaded"] >= 1 and "jit(_update)" in info["programs"]["by_name"]
     fitted = tmp_path / "out" / "fitted.yaml"
     sk, swc = yaml.safe_load(fitted.read_text())["object"]["skeleton"], read_swc(tmp_path / "out" / "fitted.swc")
     np.testing.assert_array_equal(swc.joints, sk["joints"])  # the same float64 values through both files
@@ -319,6 +321,34 @@ def test_a_diverging_solver_is_an_error_not_a_result(noisy_branch):
     pts, _ = noisy_branch
     with pytest.raises(ValueError, match=r"solver\.name: adam diverged"):
         fit_points(pts, BENT, BENT_R, CHAIN, SolverConfig(name="adam", loss="cauchy", learning_rate=5.0, maxiter=40))
+
+
+def test_a_fit_shows_its_iterations_and_loss_as_it_runs(noisy_branch, monkeypatch):
+    """The stepping loop's bar (``jskel.progress.bar``, shown where ``progress.quiet`` allows):
+    one bar of ``maxiter`` steps, advanced once per iteration, its last postfix the last loss."""
+    from jskel import progress
+
+    seen = []
+
+    class Bar:
+        def __init__(self, total, desc, unit):
+            self.total, self.desc, self.n, self.post = total, desc, 0, None
+            seen.append(self)
+
+        def update(self, n):
+            self.n += n
+
+        def set_postfix(self, refresh=True, **kw):
+            self.post = kw
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(progress, "bar", Bar)
+    pts, _ = noisy_branch
+    res = fit_points(pts, BENT, BENT_R, CHAIN, SolverConfig(name="adam", loss="cauchy", learning_rate=1e-3, maxiter=6))
+    assert len(seen) == 1 and seen[0].total == 6 and seen[0].desc == "fit (adam)"
+    assert seen[0].n == res.iterations and seen[0].post == {"loss": f"{res.history[-1]:.4g}"}
 
 
 def test_jitted_distance_of_a_long_chain_is_zero_on_its_surface():

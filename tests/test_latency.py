@@ -33,11 +33,11 @@ def test_a_fits_first_iteration_is_timed_from_the_process_start(tmp_path):
     """A fake fit process sleeps 0.5 s, notes the time as its first iteration's, sleeps again and
     writes fit.json: the row's ``first_iteration_s`` is those first 0.5 s (and process start-up)."""
     out = tmp_path / "o"
-    fit = {"compile_s": 2.5, "seconds": 1.5, "iterations": 9}
+    fit = {"compile_s": 2.5, "seconds": 1.5, "iterations": 9, "programs": {"compiled": 3, "loaded": 1}}
     code = (f"import json, os, time; time.sleep(0.5); f = dict({fit!r}, first_iteration_at=time.time()); time.sleep(0.6); "
             f"os.makedirs({str(out)!r}); open({str(out / 'fit.json')!r}, 'w').write(json.dumps(f))")
     row = timed_process([sys.executable, "-c", code], process_env(tmp_path / "c"), out, 60)
-    assert row["compile_s"] == 2.5 and row["fit_s"] == 1.5 and row["iterations"] == 9
+    assert row["compile_s"] == 2.5 and row["fit_s"] == 1.5 and row["iterations"] == 9 and (row["compiled"], row["loaded"]) == (3, 1)
     assert 0.5 <= row["first_iteration_s"] <= row["outputs_s"] - 0.55
 
 

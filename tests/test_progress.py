@@ -47,3 +47,23 @@ def test_membership_reports_its_tiles_as_it_measures_them():
     far = np.linalg.norm(np.maximum(np.abs(c), np.abs(c + size)), axis=-1)
     crossed = int(np.sum((near < 0.3) & (far >= 0.3)))
     assert crossed > 0 and sum(done) >= crossed and sum(done) <= n ** 3
+
+
+def test_bars_show_in_a_notebook_whose_stream_is_not_a_terminal(monkeypatch):
+    """ipykernel's standard error says it is no terminal; a kernel still shows ``tqdm.auto``'s
+    widgets, so the bars are on there (outside CI), and off in a plain IPython shell."""
+    import types
+
+    class _Pipe(_Tty):
+        def isatty(self):
+            return False
+
+    monkeypatch.setattr(sys, "stderr", _Pipe())
+    monkeypatch.delenv("CI", raising=False)
+    shell = types.SimpleNamespace()
+    monkeypatch.setitem(sys.modules, "IPython", types.SimpleNamespace(get_ipython=lambda: shell))
+    assert progress.quiet() and not progress.in_notebook()  # a terminal-less shell without a kernel
+    shell.kernel = object()
+    assert progress.in_notebook() and not progress.quiet()
+    monkeypatch.setenv("CI", "true")
+    assert progress.quiet()

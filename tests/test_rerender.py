@@ -1,6 +1,6 @@
 """Exploring without recompiling (issue 27): after a first render, a change of a radius, of the
 camera pose, of the image size within a bucket, of the skeleton's segment count within a
-bucket or of the samples per pixel renders with no program handed to XLA (none compiled, none loaded from the persistent
+bucket, of the samples per pixel, of the light or of the material renders with no program handed to XLA (none compiled, none loaded from the persistent
 cache: ``jskel.cache.program_counts``), and every re-render casts the changed experiment, checked
 against the independent float64 reference (``tests/reference.py``, Bhagvat et al. 2009 Sec. 2).
 
@@ -36,7 +36,7 @@ GROWN = (np.vstack([JOINTS, [[0.4, 3.9, 0.3], [1.7, 2.9, 0.2]]]), np.append(RADI
 SMALL, LARGER = (64, 48), (80, 60)
 
 
-def _experiment(joints=JOINTS, radii=RADII, parents=PARENTS, eye=(4.0, 2.5, 6.0), size=SMALL, spp=1):
+def _experiment(joints=JOINTS, radii=RADII, parents=PARENTS, eye=(4.0, 2.5, 6.0), size=SMALL, spp=1, extra=None):
     raw = {
         "name": "rerender",
         "object": {"type": "frusta", "accel": "bvh",
@@ -44,6 +44,9 @@ def _experiment(joints=JOINTS, radii=RADII, parents=PARENTS, eye=(4.0, 2.5, 6.0)
         "camera": {"eye": list(eye), "target": [0.1, 1.6, -0.1], "up": [0, 1, 0], "fov_deg": 40, "width": size[0], "height": size[1]},
         "render": {"chunk": 256, "chunks_per_call": 16, "progress": False, "spp": spp},
     }
+    for key, value in (extra or {}).items():  # "object.color": ... sets a key of a section
+        section, _, name = key.rpartition(".")
+        (raw.setdefault(section, {}) if section else raw)[name] = value
     return config.validate(raw)
 
 
@@ -90,6 +93,12 @@ CHANGES = {
     "segments": lambda: (dict(joints=GROWN[0], radii=GROWN[1], parents=GROWN[2]), GROWN),
     # twice the rays (24 chunks, two calls of 16): the first sample's hits are the pixel centres'
     "samples": lambda: (dict(spp=2), (JOINTS, RADII, PARENTS)),
+    # the one default light's direction, colour and intensity (its kind and shadows kept)
+    "light": lambda: (dict(extra={"lights": [{"direction": [-0.5, 0.7, 0.4], "color": [1.0, 0.9, 0.8], "intensity": 0.8}]}),
+                      (JOINTS, RADII, PARENTS)),
+    # the object's colour and the shading's terms
+    "material": lambda: (dict(extra={"object.color": [0.6, 0.3, 0.2], "shading.ambient": 0.3, "shading.specular": 0.5,
+                                     "shading.shininess": 16.0}), (JOINTS, RADII, PARENTS)),
 }
 
 
@@ -275,3 +284,18 @@ def test_a_model_grown_within_its_bucket_renders_without_a_program(tmp_path, kin
         programs.append(got)
         _assert_model_hits(res, exp, t_ref, amb, tol)
     assert programs[1] == 0, f"{kind}: {programs[1]} programs compiled or loaded for the grown model"
+
+
+def test_an_implicit_threshold_and_step_lengths_render_without_a_program():
+    """The 6 balls at another threshold (0.1 -> 0.16: a smaller surface radius), march step and
+    tolerance (lengths, traced): no program handed to XLA after the first render, and the hits
+    are the new threshold's spheres (float64 closed form)."""
+    c, _ = _balls(6)
+    programs = []
+    for T, step, eps in ((BALL_T, 0.02, 1e-3), (0.16, 0.035, 5e-4)):
+        exp, obj = _model_experiment({"type": "implicit", "threshold": T, "method": "lipschitz", "step": step, "eps": eps,
+                                      "balls": [{"center": x.tolist(), "radius": 0.6} for x in c]})
+        res, got = _programs(exp, obj)
+        programs.append(got)
+        _assert_model_hits(res, exp, *_spheres_f64(c, 0.6 * np.sqrt(1 - np.sqrt(T)), *_unit_rays(exp)), 2e-3)
+    assert programs[1] == 0, f"{programs[1]} programs compiled or loaded for a new threshold and step lengths"

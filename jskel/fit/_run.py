@@ -11,6 +11,7 @@ import jax
 import numpy as np
 
 from .. import frusta, skeletons
+from ..cache import program_counts
 from ._config import FitFile
 from ._fit import FitResult, fit_points
 from ._measures import measures
@@ -167,6 +168,7 @@ def fit_info(cfg: FitFile, res: FitResult, how: str, pinfo: dict, points: np.nda
         "plane_margin_min": margin,
         "culling_exact_fraction": exact,
         "dtype": cfg.dtype,
+        "programs": program_counts(),  # this process's so far: compiled by XLA, loaded from the persistent cache
     }
 
 

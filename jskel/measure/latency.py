@@ -87,7 +87,8 @@ def _newest(folder: Path, since: float) -> float | None:
 
 
 def reported(folder: Path, t0: float | None = None) -> dict:
-    """The seconds and program counts a jskel process wrote in ``folder`` (run.json, fit.json);
+    """The seconds and program counts a jskel process wrote in ``folder`` (run.json, fit.json, a
+    sweep's results.csv: summed over its settings);
     a fit's ``first_iteration_s``: from ``t0`` (``time.time()`` when the process was started)
     to its first iteration done."""
     row = {}
@@ -98,8 +99,17 @@ def reported(folder: Path, t0: float | None = None) -> dict:
     if (folder / "fit.json").exists():
         f = json.loads((folder / "fit.json").read_text())
         row.update({"compile_s": round(f["compile_s"], 4), "fit_s": round(f["seconds"], 4), "iterations": f["iterations"]})
+        row.update({k: f["programs"][k] for k in ("compiled", "loaded")} if "programs" in f else {})
         if f.get("first_iteration_at") is not None and t0 is not None:
             row["first_iteration_s"] = round(f["first_iteration_at"] - t0, 4)
+    if (folder / "results.csv").exists():  # a sweep's rows: the programs each setting compiled and loaded
+        import csv
+
+        with (folder / "results.csv").open(newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        for k in ("compiled", "loaded"):
+            row[k] = sum(int(r[k]) for r in rows) if rows and all(r.get(k) not in (None, "") for r in rows) else None
+        row["compile_s"] = round(sum(float(r["compile_s"]) for r in rows), 4) if rows else None
     return row
 
 

@@ -15,7 +15,6 @@ import csv
 import json
 import multiprocessing as mp
 import os
-import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -29,6 +28,8 @@ from tqdm.auto import tqdm
 from ..config import ConfigError, StrictModel
 from ..peers.mesh_studies import embree_mesh
 from ..peers.study import StudyOptions
+from ..cache import count_programs, program_counts
+from ..progress import quiet
 from ..render import render
 from .files import beside, load_experiment, provenance, read_model
 from .grid import Range, expand, keys_of, overrides_of, setting_key
@@ -153,10 +154,15 @@ def load_sweep(path, overrides: list[str], exp_overrides: list[str] = ()):
 
 def measure(exp, obj, ref, sweep: SweepFile) -> dict:
     """Time one setting (``timing.render_runs``) and score it against ``ref`` (or None)."""
+    count_programs()
+    before = program_counts()
     first, warm = render_runs(exp, obj, sweep.runs, sweep.warmup)
+    after = program_counts()
     s = spread([w["render_s"] for w in warm])
     run = first.run
-    row = {"compile_s": run["compile_s"], "time_median_s": s.median, "time_min_s": s.min, "time_max_s": s.max,
+    row = {"compile_s": run["compile_s"], "compiled": after["compiled"] - before["compiled"],
+           # loaded: from JAX's persistent cache or as a stored executable (neither traced nor compiled)
+           "loaded": after["loaded"] - before["loaded"] + after["executables"]["loaded"] - before["executables"]["loaded"], "time_median_s": s.median, "time_min_s": s.min, "time_max_s": s.max,
            "runs": sweep.runs, "rays": run["rays"], "rays_per_s": run["rays"] / s.median if s.median > 0 else None,
            "hit_fraction": run["hit_fraction"], "device": run["device"], "jax": run["jax"], "dtype": exp.render.dtype,
            "memory_bytes": run["params_bytes"]}
@@ -242,7 +248,10 @@ def _todo(sweep: SweepFile, jobs: list, done: dict) -> list[int]:
 def _append(path: Path, cols: list[str], rows_iter, total: int, initial: int, progress: bool | None):
     """Append rows to ``results.csv`` as they finish (header first in a new file)."""
     new_file = not path.exists()
-    disable = (not sys.stderr.isatty()) if progress is None else (not progress)
+    if not new_file:  # a file written before a column was added keeps its own columns
+        with path.open(newline="") as f:
+            cols = next(csv.reader(f), None) or cols
+    disable = quiet() if progress is None else (not progress)
     with path.open("a", newline="") as f, tqdm(total=total, initial=initial, desc="settings", unit="setting", disable=disable) as bar:
         w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
         if new_file:
