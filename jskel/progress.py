@@ -1,4 +1,4 @@
-"""Progress bars for long host work (fits, cell membership, renders, sweeps): shown on a
+"""Progress bars for long host work (fits, cell membership, builds, renders, sweeps): shown on a
 terminal and in a notebook (``tqdm.auto``), never in CI, nor where standard error is neither a
 terminal nor a notebook's; the executor's render bar (``executor.map_chunks``) and the sweep's
 follow :func:`quiet` too."""
@@ -23,9 +23,10 @@ def quiet() -> bool:
     return bool(os.environ.get("CI")) or not (sys.stderr.isatty() or in_notebook())
 
 
-def bar(total: int, desc: str, unit: str):
+def bar(total: int, desc: str, unit: str, delay: float = 0.0):
     """A ``tqdm.auto`` bar of ``total`` steps (elapsed time and rate are tqdm's own), disabled
-    where :func:`quiet` says so; use it as a context manager and call ``update(n)``."""
+    where :func:`quiet` says so, shown once ``delay`` seconds have passed (work that ends sooner
+    shows none); use it as a context manager and call ``update(n)``."""
     from tqdm.auto import tqdm
 
-    return tqdm(total=total, desc=desc, unit=unit, disable=quiet(), leave=False)
+    return tqdm(total=total, desc=desc, unit=unit, disable=quiet(), leave=False, delay=delay)

@@ -67,3 +67,36 @@ def test_bars_show_in_a_notebook_whose_stream_is_not_a_terminal(monkeypatch):
     assert progress.in_notebook() and not progress.quiet()
     monkeypatch.setenv("CI", "true")
     assert progress.quiet()
+
+
+def test_builds_report_each_object_after_a_delay(monkeypatch):
+    """A scene's build advances one bar per object built and a single object's one bar; both
+    wait ``BUILD_BAR_DELAY_S`` before they show, so a quick build shows none."""
+    from jskel import config
+    from jskel.render import _build
+
+    made = []
+
+    class Bar:
+        def __init__(self, total, desc, unit, delay=0.0):
+            self.total, self.desc, self.delay, self.n = total, desc, delay, 0
+            made.append(self)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def update(self, n):
+            self.n += n
+
+    monkeypatch.setattr(progress, "bar", Bar)
+    seg = {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 1, 0]], "radii": [0.2, 0.2], "parents": [-1, 0]}}
+    exp, shapes = config.validate({"objects": [{"name": "a", "shape": seg}, {"name": "b", "shape": seg}]})
+    _build.place_objects(exp, shapes, np.float32)
+    exp1, obj = config.validate({"object": seg})
+    _build.build_single(exp1, obj, np.float32)
+    assert [(b.total, b.n, b.desc, b.delay) for b in made] == [(2, 2, "build", _build.BUILD_BAR_DELAY_S),
+                                                               (1, 1, "build (frusta)", _build.BUILD_BAR_DELAY_S)]
+    assert _build.BUILD_BAR_DELAY_S >= 0.5

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from .. import registry
+from .. import progress, registry
 from ..numerics import euler_xyz, on_device
 from ..shading import Lights, lights_from_config
 
@@ -203,15 +203,22 @@ def assemble(exp, placed: list[Placed], origin, dtype, single: bool = False, own
     return params, static, info
 
 
+#: a build shows a progress bar (``jskel.progress``) once it has taken this long: a large
+#: skeleton, mesh or cell precompute; the seconds most builds take show none
+BUILD_BAR_DELAY_S = 1.0
+
+
 def place_objects(exp, shapes, dtype) -> list[Placed]:
     """Build every object of a scene (``objects:``) and place it (host)."""
     placed = []
-    for i, (o, shape) in enumerate(zip(exp.objects, shapes)):
-        rep = registry.get(shape.type)
-        _check_shape(i, o, shape, rep)
-        built = rep.build(_shape_at(shape, rep, exp.frame), dtype)
-        s, r, t = object_transform(o, exp.frame)
-        placed.append(Placed(o.name or f"objects[{i}]", rep, built, s, r, t, o.material))
+    with progress.bar(len(shapes), "build", "object", delay=BUILD_BAR_DELAY_S) as bar:
+        for i, (o, shape) in enumerate(zip(exp.objects, shapes)):
+            rep = registry.get(shape.type)
+            _check_shape(i, o, shape, rep)
+            built = rep.build(_shape_at(shape, rep, exp.frame), dtype)
+            s, r, t = object_transform(o, exp.frame)
+            placed.append(Placed(o.name or f"objects[{i}]", rep, built, s, r, t, o.material))
+            bar.update(1)
     return placed
 
 
@@ -239,7 +246,9 @@ def build_single(exp, obj, dtype):
 
     rep = registry.get(obj.type)
     own = rep.own_material(obj)
-    built = rep.build(obj, dtype)
+    with progress.bar(1, f"build ({obj.type})", "object", delay=BUILD_BAR_DELAY_S) as bar:
+        built = rep.build(obj, dtype)
+        bar.update(1)
     mat = MaterialConfig() if own is None else MaterialConfig(reflectivity=own.reflectivity, transparency=own.transparency, ior=own.ior)
     p = Placed("object", rep, built, 1.0, np.eye(3), np.zeros(3), mat)
     params, static, _ = assemble(exp, [p], built.anchor, dtype, single=True, own=own)
