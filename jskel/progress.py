@@ -14,7 +14,7 @@ def in_notebook() -> bool:
     (ipykernel's stream says so), yet ``tqdm.auto`` shows its bars there as widgets."""
     ipython = sys.modules.get("IPython")
     shell = None if ipython is None else ipython.get_ipython()
-    return shell is not None and hasattr(shell, "kernel")
+    return getattr(shell, "kernel", None) is not None
 
 
 def quiet() -> bool:

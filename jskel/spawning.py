@@ -125,7 +125,7 @@ def refine(source, obj, rays: Rays, hit: Hit) -> tuple[Rays, Hit]:
     again = intersect(obj, near)
     keep = got & (jnp.abs(again.t - back) <= 2.0 * e) & (jnp.sum(again.normal * hit.normal, axis=-1) > 0)
     pick = lambda a, b: jnp.where(keep.reshape(keep.shape + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-    rays_out = Rays(pick(near.origins, rays.origins), pick(u, rays.directions), pick(near.t_min, rays.t_min), pick(near.t_max, rays.t_max))
+    rays_out = Rays(*(pick(a, b) for a, b in zip(near, rays)))
     return rays_out, jax.tree_util.tree_map(pick, again, hit)
 
 
@@ -183,4 +183,4 @@ def checked_spawn(source, rays: Rays, hit: Hit, directions, t_max=np.inf) -> Ray
     return _checked_spawn_rays(rays, hit.t, hit.position, hit.normal, jnp.asarray(directions), surface_offset(source), t_max)
 
 
-__all__ = ["REFINE_COS_FLOOR", "SPAWN_GAMMA_N", "bad_directions", "refine", "checked_spawn", "gamma", "spawn", "spawn_flags", "spawn_rays", "surface_offset"]
+__all__ = ["REFINE_COS_FLOOR", "SPAWN_GAMMA_N", "bad_directions", "checked_spawn", "gamma", "refine", "spawn", "spawn_flags", "spawn_rays", "surface_offset"]

@@ -449,6 +449,40 @@ def test_cells_part_stepped_over_between_samples_is_flagged(tmp_path):
     assert np.all(np.abs(hit.t[got] - near[got]) <= size / 24)  # the hits: within one step of the box
 
 
+@pytest.mark.parametrize("search", ["linear", "voxels"])
+def test_cells_surface_just_before_the_rays_far_end_is_found(tmp_path, search):
+    """The box cell above (steps of 1/24 tile, 2/3 of a voxel), rays across its face x = lo whose
+    window ends ``delta`` past that face (1e-4 .. 0.5 of a step: the linear search's next sample
+    lies beyond t_max): each hits within one step of the float64 slab entry, or carries a
+    flag; a window ending before the face misses. The linear search once stopped at its last
+    sample inside the window and left the piece up to t_max unsearched: a silent miss."""
+    tile = np.zeros((16, 16, 16), np.int64)
+    tile[4:12, 3:13, 5:11] = 1
+    np.save(tmp_path / "tile.npy", tile)
+    cfg = {"type": "cells", "base": {"type": "sphere", "radius": 1.0}, "tiles": 1, "steps_per_tile": 24,
+           "tile_map": {"type": "file", "path": str(tmp_path / "tile.npy")}, "cache": None, "search": search}
+    built = cells.build(cells.CellsConfig.model_validate(cfg))
+    size = built.info["tile_size"]
+    vox, step = size / 16, size / 24
+    blo, bhi = built.bounds[0] + vox * np.array([4, 3, 5]), built.bounds[0] + vox * np.array([12, 13, 11])
+    rng = np.random.default_rng(17)
+    P = rng.uniform(blo + vox, bhi - vox, (CHUNK, 3))
+    P[:, 0] = blo[0]  # on the face; tilted rays, so that no sample lands on it
+    D = np.stack([np.ones(CHUNK), rng.uniform(-0.3, 0.3, CHUNK), rng.uniform(-0.3, 0.3, CHUNK)], 1)
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    t_face = np.full(CHUNK, 0.6 * size)
+    O = P - t_face[:, None] * D
+    delta = step * 10.0 ** rng.uniform(-4, np.log10(0.5), CHUNK)
+    after = np.arange(CHUNK) % 4 != 0
+    r = make_rays(np.asarray(O, np.float64) - built.anchor, D, t_max=np.where(after, t_face + delta, t_face - delta))
+    hit = whole_chunks(intersect_each, Object(built.params, built.static, "cells"), r, CHUNK)
+    found = after & np.isfinite(hit.t) & (np.abs(hit.t - t_face) <= step)
+    silent = after & ~found & (hit.flags == 0)
+    assert not np.any(silent), (np.sum(silent), (delta / step)[silent][:4], hit.t[silent][:4])
+    assert np.mean(found[after]) > 0.9
+    assert not np.any(np.isfinite(hit.t[~after]))
+
+
 # ---------------------------------------------------------------- the renderer keeps them
 
 

@@ -135,7 +135,7 @@ class March(NamedTuple):
     stepped: jnp.ndarray  # a voxel between two samples was a target the samples missed, or may be (FLAG_GRAZE)
 
 
-def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -> March:
+def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions, cut=False) -> March:
     """Linear search from t_start for the first sample whose INSIDE-ness equals ``want_inside``
     (True: Alg. 3.1 / 3.2, looking for an inside cell; False: Alg. 3.3, leaving one; a Python
     bool or a traced one per ray), then bisection. Tiles with no INSIDE part (looking for one,
@@ -145,7 +145,11 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
     it and reported in ``floored``. Between two consecutive samples on the starting side the
     ray may cross voxels no sample lands in (a part thinner than the step, the resolution of
     Sec. 5.3): :func:`between` finds them, the march looks them up (one lookup an iteration, as
-    its samples) and reports a target among them in ``stepped``."""
+    its samples) and reports a target among them in ``stepped``. ``cut`` (per ray): t_max cut the
+    window short of the object's box, so the last sample is t_end itself and the window is
+    searched to its end. At the box's own exit the samples stop at the last one inside, as
+    Alg. 3.1 steps: a last sample on the box's face made 3 of 129 outward rays spawned from a
+    refraction-mode cell hit it again (``tests/test_spawn.py``'s fuzz), a cause not traced."""
     h, floored = _step(p, o, d, t_start, t_end)
     inv = safe_div(1.0, d, jnp.inf)  # once a ray, for the tiles' exits
     vr = voxel_ray(p, o, d)
@@ -154,12 +158,17 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
         code, tile, ok = membership_at(p, o + t * d)
         return ((code == INSIDE) == want_inside), tile, ok
 
+    t_clamp = jnp.where(cut, t_end, jnp.inf)
+
+    def t_at(k):  # sample k; where t_max cut the window, the last one is t_end itself
+        return jnp.minimum(t_start + k.astype(o.dtype) * h, t_clamp)
+
     def body(st):
         k, found, evals, stepped, pend, k_next, had = st
-        t = t_start + k.astype(o.dtype) * h
+        t = t_at(k)
         # the voxels between this sample and the one before (evaluated, or in a tile a skip
         # passed over: on the starting side); pend 1, 2: this iteration looks up the pend-th
-        c, mid0, mid1 = between(p, vr, o, d, t_start + (k - 1).astype(o.dtype) * h, t)
+        c, mid0, mid1 = between(p, vr, o, d, t_at(k - 1), t)
         probe = pend > 0
         found_here, tile, ok = is_target(jnp.where(probe, jnp.where(pend == 2, mid1, mid0), t))
         hit = ~probe & found_here
@@ -186,11 +195,12 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions) -
 
     def cond(st):
         k, found, evals = st[:3]
-        return (~found) & (evals < p.max_steps) & (t_start + k.astype(o.dtype) * h <= t_end)
+        # sample k lies in the window (clamped to t_end where cut) and the one before it short of t_end
+        return (~found) & (evals < p.max_steps) & (t_at(k) <= t_end) & ((k == 0) | (t_at(k - 1) < t_end))
 
     false, zero = jnp.asarray(False), jnp.int32(0)
     k, found, evals, stepped, _, _, _ = jax.lax.while_loop(cond, body, (zero, false, zero, false, zero, zero, false))
-    a, b = _refine(lambda t: is_target(t)[0], t_start, k, h, p.bisection)
+    a, b = _refine(lambda t: is_target(t)[0], t_start, t_clamp, k, h, p.bisection)
     inf = jnp.asarray(jnp.inf, o.dtype)
     return March(jnp.where(found, b, inf), jnp.where(found, a, inf), evals, found, floored, stepped)
 
@@ -211,12 +221,12 @@ def position_spacing(o, d, t_start, t_end):
     return ulp_floor(far, safe_div(jnp.max(jnp.abs(o)), safe_sqrt(jnp.sum(d * d)), 0.0))
 
 
-def _refine(is_target, t_start, k, h, n):
+def _refine(is_target, t_start, t_clamp, k, h, n):
     """The last linear bracket [t_(k-1), t_k] ([t_start, t_start] at k = 0) after ``n`` halvings
     (:func:`_bisect`). The march's t carries no derivative (the surface's comes from the crossed
     voxel face, ``differentiable_root``), and a loop of a traced length cannot be reversed."""
-    t_in = t_start + k.astype(h.dtype) * h
-    t_prev = jnp.where(k > 0, t_start + (k - 1).astype(h.dtype) * h, t_start)
+    t_in = jnp.minimum(t_start + k.astype(h.dtype) * h, t_clamp)
+    t_prev = jnp.where(k > 0, jnp.minimum(t_start + (k - 1).astype(h.dtype) * h, t_clamp), t_start)
     return _bisect(is_target, *jax.lax.stop_gradient((t_prev, t_in)), n)
 
 
