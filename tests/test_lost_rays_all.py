@@ -71,6 +71,14 @@ M_H, M_RADII, M_THICK = 2.0, (0.5, 0.4), 0.15  # relief_map: one segment along +
 TILE = np.zeros((16, 16, 16), np.int64)
 TILE[4:12, 3:13, 5:11] = 1  # the cell object's one cell: a box of voxels
 _cast = jax.jit(interface.intersect)
+#: each representation's other tracers, held to the same property (name:mode -> the section's overrides):
+#: the frusta chain by brute force and through a BVH by each CPU traversal (the Pallas kernel's walk
+#: is checked against them in test_accel), the mesh's per-ray walks, the implicit block culling,
+#: a cell object's two-sided refraction cast, the relief march's early exit
+MODES = {"frusta:none": {"accel": "none"}, "frusta:bins": {"accel": "bvh", "traversal": "bins"},
+         "frusta:packets": {"accel": "bvh", "traversal": "packets"}, "frusta:walks": {"accel": "bvh", "traversal": "walks"},
+         "mesh:walks": {"traversal": "walks"}, "implicit:blocks": {"cull": "blocks"}, "cells:refraction": {"mode": "refraction"},
+         "relief:early": {"relief": {"early_exit": True}}}
 
 
 def _icosphere():
@@ -230,11 +238,19 @@ def _agrees(got, t_hit, t, tol):
     return (~got & ~np.isfinite(t)) | (got & np.isfinite(t) & (np.abs(np.where(got, t_hit, 0) - np.where(np.isfinite(t), t, 0)) <= tol))
 
 
+def _with(raw: dict, overrides: dict) -> dict:
+    """``raw`` with a mode's ``overrides`` (a ``relief`` entry merged into the relief's section)."""
+    out = {**raw, **{k: v for k, v in overrides.items() if k != "relief"}}
+    return {**out, "relief": {**raw["relief"], **overrides["relief"]}} if "relief" in overrides else out
+
+
 def _check(name, tmp, log_scale, log_shift, seed, method="lipschitz"):
     s = 10.0**log_scale
     off = s * 10.0**log_shift * np.array([0.6, -0.8, 0.3])
+    name, _, mode = name.partition(":")  # "frusta:bins": the frusta under MODES["frusta:bins"]
     rep = registry.get({"implicit_blend": "implicit", "relief": "frusta", "relief_map": "frusta"}.get(name, name))
-    built = rep.build(rep.Config.model_validate(_raw(name, tmp, s, off, method, seed)), np.float32)
+    raw = _with(_raw(name, tmp, s, off, method, seed), MODES[f"{name}:{mode}"] if mode else {})
+    built = rep.build(rep.Config.model_validate(raw), np.float32)
     anchor = np.asarray(built.anchor, np.float64)
     lo, hi = (np.asarray(b, np.float64) for b in built.bounds)
     O, D = _rays(np.random.default_rng(seed), lo, hi, s)
@@ -263,7 +279,7 @@ def _check(name, tmp, log_scale, log_shift, seed, method="lipschitz"):
               "max_dt_sizes": float(np.max(np.abs(hit.t[both] - t_ref[both]), initial=0.0) / s),
               "silent_miss": int(np.sum(silent)), "wrong_hit": int(np.sum(wrong)), "ref_hits": int(np.sum(np.isfinite(t_ref))),
               "by_flag": {n: int(np.sum((flags & b) != 0)) for b, n in FLAG_NAMES.items() if np.any(flags & b)}}
-    label = f"{name} ({method}) at scale {s:.3g}, shift {10.0**log_shift:.3g} sizes, seed {seed}: {counts}"
+    label = f"{name}{':' + mode if mode else ''} ({method}) at scale {s:.3g}, shift {10.0**log_shift:.3g} sizes, seed {seed}: {counts}"
     print(label)
     assert not np.any(silent | wrong), (label, Ow[silent | wrong][:3], Dr[silent | wrong][:3], hit.t[silent | wrong][:3],
                                         t_ref[silent | wrong][:3])
@@ -339,6 +355,19 @@ def test_relief_on_a_varying_height_map_hits_within_tolerance_or_flags(log_scale
     shell's chord, 40 bisections; u = atan2(x, z) / 2 pi, v = y / H), within one march step:
     a crossing stepped over is missed or found late only with ``graze``."""
     _check("relief_map", tmp_path_factory.mktemp("relief_map"), log_scale, log_shift, seed)
+
+
+@pytest.fixture(params=sorted(MODES))
+def mode(request):
+    return request.param
+
+
+@settings(max_examples=4, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(log_scale=st.floats(-10, 10), log_shift=st.floats(-2, 5), seed=st.integers(0, 2**31 - 1))
+def test_each_representations_other_tracers_hit_within_tolerance_or_flag(mode, log_scale, log_shift, seed, tmp_path_factory):
+    """:data:`MODES`: every other tracer of a representation against the same float64 reference
+    as its default, over the same 20 decades of scale and shifts to 1e5 sizes."""
+    _check(mode, tmp_path_factory.mktemp(mode.replace(":", "_")), log_scale, log_shift, seed)
 
 
 @pytest.mark.parametrize("log_scale", [-10.0, 10.0])
