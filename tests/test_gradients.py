@@ -33,7 +33,8 @@ def test_hit_distances_have_the_derivatives_finite_differences_give():
     batch |= {f"implicit_{m}": 8 for m in ("lipschitz", "bisection", "naive")} | {"cells_first_hit": 8, "cells_refraction": 8, "cells_voxels": 8}
     batch |= {"mesh_packets": 8, "mesh_walks": 8}
     # hypothesis' three examples and the two ends, at scales 1e-10 .. 1e10
-    scaled = {f"fuzz_{k}": 5 for k in ("frusta", "relief", "implicit", "cells", "mesh")}
+    scaled = {f"fuzz_{k}": 5 for k in ("frusta", "relief", "implicit", "cells", "mesh", "frusta_bins", "implicit_bisection",
+                                       "cells_voxels", "mesh_packets")}
     assert checked == batch | scaled | {"fit_distance_random": 6, "fit_distance_hard": 4}
 
 

@@ -35,7 +35,9 @@ Then the same batch checks under hypothesis (issue 29, class 3): the frusta tree
 relief cylinder (the fixed march), the cell torus (first hit) and the icosphere (walks) scaled
 by 1e-10 .. 1e10 and moved 1e-2 .. 1e5 of their size, their rays starting 3 .. 1e5 sizes away
 (log-uniform), three drawn examples each and both ends of the range moved 1e5 sizes away with
-rays from 1e5 sizes, through one compiled program per object (``keyed_program``). t is checked
+rays from 1e5 sizes, through one compiled program per object (``keyed_program``); and the
+same for the frusta tree through the BVH's bins, the implicit bisection method, the cells' voxel
+walk and the mesh's packets (``SCALED_MODES``). t is checked
 in units of the size (derivatives of order 1 at every scale, so the tolerances mean the same),
 with steps that grow as the cube root of the rays' distance (t's rounding against curvature).
 Every argument is stepped in its own unit (``leaf_scales``: s for lengths and positions, 1 for
@@ -463,9 +465,19 @@ def scaled_check(name, raw, origins, directions, s, units, n=8, h=1e-6):
     checked[name] = checked.get(name, 0) + 1
 
 
+#: the other modes checked at scale: (the object they take, its section's overrides)
+SCALED_MODES = {"fuzz_frusta_bins": ("fuzz_frusta", {"accel": "bvh", "traversal": "bins"}),
+                "fuzz_implicit_bisection": ("fuzz_implicit", {"method": "bisection"}),
+                "fuzz_cells_voxels": ("fuzz_cells", {"search": "voxels"}),
+                "fuzz_mesh_packets": ("fuzz_mesh", {"traversal": "packets"})}
+
+
 def scaled_raw(kind, s, off):
-    """The object ``kind`` (``fuzz_frusta``, ``fuzz_relief``, ``fuzz_implicit``, ``fuzz_cells``, ``fuzz_mesh``) at
-    scale ``s``, moved to ``off``."""
+    """The object ``kind`` (``fuzz_frusta``, ``fuzz_relief``, ``fuzz_implicit``, ``fuzz_cells``, ``fuzz_mesh``, or
+    one of :data:`SCALED_MODES`) at scale ``s``, moved to ``off``."""
+    if kind in SCALED_MODES:
+        base, overrides = SCALED_MODES[kind]
+        return {**scaled_raw(base, s, off), **overrides}
     if kind == "fuzz_frusta":
         return {"type": "frusta", "skeleton": {**TREE, "scale": s, "offset": off.tolist()}, "accel": "blocks"}
     if kind == "fuzz_relief":  # the relief check's cylinder and brick shell, the fixed march
@@ -491,18 +503,19 @@ def scaled_checks(kind):
     @example(log_scale=10.0, log_shift=5.0, log_back=5.0, seed=2)
     def one(log_scale, log_shift, log_back, seed):
         drawn.setdefault(kind, []).append(round(log_scale, 2))
+        base = SCALED_MODES.get(kind, (kind,))[0]  # the object, and so the rays
         s = 10.0**log_scale
         off = s * 10.0**log_shift * np.array([0.6, -0.8, 0.3])
         r = np.random.default_rng(seed)
-        if kind == "fuzz_cells":  # from outside and above, aimed at the tube
+        if base == "fuzz_cells":  # from outside and above, aimed at the tube
             ang = r.uniform(0, 2 * np.pi, 16)
             ring = np.stack([np.cos(ang), np.zeros(16), np.sin(ang)], 1)
             o, d = 3.0 * ring + [0.1, 2.0, 0.3], -2.0 * ring - [0.1, 2.0, 0.3]
-        elif kind == "fuzz_frusta":
+        elif base == "fuzz_frusta":
             o, d = down(48, (-0.3, 0.0), (0.3, 2.9), 4.0, r)
-        elif kind == "fuzz_relief":
+        elif base == "fuzz_relief":
             o, d = down(96, (-0.2, 0.3), (0.2, 1.2), 3.0, r, (0.03, -0.05))
-        elif kind == "fuzz_implicit":
+        elif base == "fuzz_implicit":
             o, d = down(96, (-0.2, -0.2), (1.1, 1.1), 3.0, r)
         else:
             o, d = down(16, (-0.7, -0.7), (0.7, 0.7), 3.0, r)
@@ -510,7 +523,7 @@ def scaled_checks(kind):
         o = o - back * d / np.linalg.norm(d, axis=1, keepdims=True)
         # t's rounding grows with the distance: the step that balances it against the curvature
         h = 1e-6 * max(1.0, (1.0 + back / 4.0) ** (1.0 / 3.0))
-        if kind == "fuzz_implicit":  # each primitive moved whole (``implicit_free``): a program per example
+        if base == "fuzz_implicit":  # each primitive moved whole (``implicit_free``): a program per example
             check_batch(kind, scaled_raw(kind, s, off), off + s * o, d, free=implicit_free_in(s), eps=h, record=False, unit=s)
             checked[kind] = checked.get(kind, 0) + 1
             return
@@ -521,7 +534,7 @@ def scaled_checks(kind):
 
 
 drawn: dict = {}  # each kind's log10 scales, in the order checked (printed to stderr)
-for kind in ("fuzz_frusta", "fuzz_relief", "fuzz_implicit", "fuzz_cells", "fuzz_mesh"):
+for kind in ("fuzz_frusta", "fuzz_relief", "fuzz_implicit", "fuzz_cells", "fuzz_mesh", *SCALED_MODES):
     if wanted(kind):
         scaled_checks(kind)
 if drawn:
