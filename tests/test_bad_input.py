@@ -129,6 +129,21 @@ TABLE = [
                                                  "[0.3, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2]", "[-1, 0, 1, 2, 3, 4, 5, 6]")),
      ["object.skeleton.joints: 6 joints: zero-length segment (indices 2: 1 -> 2 at [0, 1, 0], 3: 2 -> 3 at [0, 1, 0], "
       "4: 3 -> 4 at [0, 1, 0], 5: 4 -> 5 at [0, 1, 0], 6: 5 -> 6 at [0, 1, 0], ...)"]),
+    # a scene: each object's placement, motion and material, every bad value by object index
+    ("scene_placements_and_materials",
+     "objects:\n"
+     f"  - {{name: a, shape: {FRUSTA}, transform: {{scale: 0, translate: [.nan, 0, 0], rotate_deg: [0, .inf, 0]}},\n"
+     "     material: {reflectivity: -0.5, color: [.nan, 1, 1], transparency: 2}}\n"
+     f"  - {{name: b, shape: {_implicit(BALL)}, motion: {{translate: [.nan, 0, 0]}}, material: {{ior: 0}}}}\n"
+     f"camera: {CAMERA}\n",
+     ["objects[0].transform.translate[0]: Input should be a finite number (got nan)",
+      "objects[0].transform.rotate_deg[1]: Input should be a finite number (got inf)",
+      "objects[0].transform.scale: Input should be greater than 0 (got 0)",
+      "objects[0].material.color[0]: Input should be a finite number (got nan)",
+      "objects[0].material.reflectivity: Input should be greater than or equal to 0 (got -0.5)",
+      "objects[0].material.transparency: Input should be less than or equal to 1 (got 2)",
+      "objects[1].material.ior: Input should be greater than 0 (got 0)",
+      "objects[1].motion.translate[0]: Input should be a finite number (got nan)"]),
 ]
 
 
