@@ -350,6 +350,28 @@ def test_no_reflective_material_compiles_no_reflection_work():
     assert f_off < f_on
 
 
+def test_a_scene_render_hands_each_program_to_xla_once():
+    """Nothing compiled twice in a process: a scene of two cylinders and a blob with shadows, at a
+    lane count no other test uses (a static key of its own), hands XLA each program it needs
+    once by name (``jskel.cache.program_counts``, counted around the render), and the same
+    render again hands it none."""
+    from jskel.cache import count_programs, program_counts
+
+    raw = {"objects": [{"shape": cylinder(-2, 0, 0.5, 2)}, {"shape": BLOB}, {"shape": cylinder(2, 0, 0.3, 3)}],
+           "camera": CAM2, "lights": [{"direction": [0.3, 0.9, 0.5]}], "render": {"lanes": 96}}
+    count_programs()
+
+    def handed(raw):
+        before = program_counts()["by_name"]
+        run(raw)
+        after = program_counts()["by_name"]
+        return {k: n - before.get(k, [0])[0] for k, (n, _) in after.items() if n != before.get(k, [0])[0]}
+
+    first = handed(raw)
+    assert first and all(n == 1 for n in first.values()), first
+    assert handed(raw) == {}
+
+
 def test_objects_of_one_shape_are_traced_once():
     """Objects of one representation, options and param shapes share one traced copy of their
     hit code (``render._hits.groups``): a scene of three cylinders, the middle one an implicit
