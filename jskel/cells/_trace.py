@@ -142,14 +142,9 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions, c
     Alg. 3.2 rows 11-16) or with INSIDE parts only (leaving, Alg. 3.3 rows 12-15) are jumped
     over to the first sample past their exit (bitwise the same samples). A step below
     ``rays.ulp_floor`` of the interval's far end (where t + h would round back to t) is raised to
-    it and reported in ``floored``. Between two consecutive samples on the starting side the
-    ray may cross voxels no sample lands in (a part thinner than the step, the resolution of
-    Sec. 5.3): :func:`between` finds them, the march looks them up (one lookup an iteration, as
-    its samples) and reports a target among them in ``stepped``. ``cut`` (per ray): t_max cut the
-    window short of the object's box, so the last sample is t_end itself and the window is
-    searched to its end. At the box's own exit the samples stop at the last one inside, as
-    Alg. 3.1 steps: a last sample on the box's face made 3 of 129 outward rays spawned from a
-    refraction-mode cell hit it again (``tests/test_spawn.py``'s fuzz), a cause not traced."""
+    it and reported in ``floored``. Voxels crossed between two samples on the starting side (a
+    part thinner than the step, Sec. 5.3: :func:`between`) are looked up, a target among them
+    reported in ``stepped``. ``cut``: the last sample is t_end (:func:`_clamp`)."""
     h, floored = _step(p, o, d, t_start, t_end)
     inv = safe_div(1.0, d, jnp.inf)  # once a ray, for the tiles' exits
     vr = voxel_ray(p, o, d)
@@ -158,10 +153,8 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions, c
         code, tile, ok = membership_at(p, o + t * d)
         return ((code == INSIDE) == want_inside), tile, ok
 
-    t_clamp = jnp.where(cut, t_end, jnp.inf)
-
-    def t_at(k):  # sample k; where t_max cut the window, the last one is t_end itself
-        return jnp.minimum(t_start + k.astype(o.dtype) * h, t_clamp)
+    def t_at(k):  # sample k
+        return jnp.minimum(t_start + k.astype(o.dtype) * h, _clamp(t_end, cut))
 
     def body(st):
         k, found, evals, stepped, pend, k_next, had = st
@@ -195,14 +188,22 @@ def march(p: CellParams, o, d, t_start, t_end, want_inside, opt: TraceOptions, c
 
     def cond(st):
         k, found, evals = st[:3]
-        # sample k lies in the window (clamped to t_end where cut) and the one before it short of t_end
         return (~found) & (evals < p.max_steps) & (t_at(k) <= t_end) & ((k == 0) | (t_at(k - 1) < t_end))
 
     false, zero = jnp.asarray(False), jnp.int32(0)
     k, found, evals, stepped, _, _, _ = jax.lax.while_loop(cond, body, (zero, false, zero, false, zero, zero, false))
-    a, b = _refine(lambda t: is_target(t)[0], t_start, t_clamp, k, h, p.bisection)
+    a, b = _refine(lambda t: is_target(t)[0], t_start, _clamp(t_end, cut), k, h, p.bisection)
     inf = jnp.asarray(jnp.inf, o.dtype)
     return March(jnp.where(found, b, inf), jnp.where(found, a, inf), evals, found, floored, stepped)
+
+
+def _clamp(t_end, cut):
+    """The t the march's samples are clamped to: t_end where t_max ended the window inside the
+    object's box (the window is searched to its end: a part just before t_max was a silent
+    miss), else none. At the box's own exit the samples stop at the last one inside, as Alg. 3.1
+    steps: a last sample on the box's face made 3 of 129 outward rays spawned from a
+    refraction-mode cell hit it again (``tests/test_spawn.py``'s fuzz; the cause not traced)."""
+    return jnp.where(cut, t_end, jnp.inf)
 
 
 def _step(p: CellParams, o, d, t_start, t_end):

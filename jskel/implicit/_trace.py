@@ -299,9 +299,9 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality, de
 
 
 def _bisection_method(cand: Candidates, g, tune: Tuning, o, d, t_min, t_max, q: Quality):
-    """Alg. 2 from the Sec. 4.2.1 inside points, and the window's end (t_max may cut it inside
-    the surface, before every centre): the nearest candidate point with F > T is the inside end
-    of the bracket, the entry into the first sphere of influence the outside end.
+    """Alg. 2 from the Sec. 4.2.1 inside points and the window's end (t_max may cut it inside the
+    surface): the nearest one with F > T is the bracket's inside end, the entry into the first
+    sphere of influence its outside end.
     Where no candidate point is inside, the ray is a miss only if :func:`field_bound` is below
     T; otherwise the field may still cross (the Fig. 7 case: two primitives that just blend,
     Sec. 4.2.2) and the miss carries ``NO_BRACKET``. A hit whose bracket may hold an earlier
@@ -315,10 +315,7 @@ def _bisection_method(cand: Candidates, g, tune: Tuning, o, d, t_min, t_max, q: 
     tin = _inside_points(sub, o, d)
     ok = sub.valid & (tin > t_min) & (tin <= t_max) & (tin >= t_lo) & (tin <= t_hi)
     inside = ok & (jax.vmap(g)(jnp.where(ok, tin, t_lo)) > 0)
-    # the window's end is one more point: t_max may cut it inside the surface, before every
-    # centre (beyond the primitives' reach the field is 0, never inside)
-    end_ok = anyc & jnp.isfinite(t_hi)
-    end_in = end_ok & (g(jnp.where(end_ok, t_hi, 0.0)) > 0)
+    end_in = anyc & jnp.isfinite(t_hi) & (g(jnp.where(jnp.isfinite(t_hi), t_hi, 0.0)) > 0)
     t_in = jnp.minimum(jnp.min(jnp.where(inside, tin, inf)), jnp.where(end_in, t_hi, inf))
     found = anyc & jnp.isfinite(t_in)
     start = jnp.where(found, t_lo, 0.0)  # a miss bisects [0, 0]: finite, masked after
@@ -342,10 +339,9 @@ def _march(cand: Candidates, g, tune: Tuning, o, d, q: Quality):
     least ``eps``) over [t_lo, t_hi], then bisection of the last bracket. Every step is at least
     :func:`jskel.rays.ulp_floor` of t (a smaller one would not move the sample: the march would
     stall into the step cap) and a ray whose tolerance that floor raised carries
-    ``FLOAT_SPACING``. Between two samples outside, a crossing needs
-    (T - F_k) + (T - F_k+1) <= L (t_k+1 - t_k) (|grad F| <= L; F = 0 past t_hi closes the last
-    interval). The last sample is t_hi itself, so a window cut short by t_max is searched to its
-    end. A miss where that held anywhere carries ``GRAZE`` (the bound cannot exclude a
+    ``FLOAT_SPACING``. The last sample is t_hi itself (t_max may cut the window where F > 0).
+    Between two samples outside, a crossing needs (T - F_k) + (T - F_k+1) <= L (t_k+1 - t_k)
+    (|grad F| <= L). A miss where that held anywhere carries ``GRAZE`` (the bound cannot exclude a
     crossing shorter than the step: a graze of the surface or a chord stepped over); so does a
     hit where it held while the field was falling (a graze before the crossing found), but not
     the steps of an approach, where F rises towards T. The step cap sets ``STEP_CAP``."""
@@ -356,7 +352,7 @@ def _march(cand: Candidates, g, tune: Tuning, o, d, q: Quality):
     # the step and the tolerance are lengths in space; t counts lengths of d (any non-zero length)
     tol = safe_div(tune.step if q.method == "naive" else tune.eps, safe_sqrt(dot3(d, d)), 0.0)
 
-    # march state: (i, t_prev, t, g(t_prev), found, near, grazed, floored); the sample at t is tested each iteration
+    # state: (i, t_prev, t, g(t_prev), found, near, grazed, floored); the sample at t tested each iteration
     def visit(st):
         i, tp, t, gp, found, near, grazed, floored = st
         gv = g(t)
@@ -366,10 +362,7 @@ def _march(cand: Candidates, g, tune: Tuning, o, d, q: Quality):
         near, grazed = near | pair, grazed | (pair & (gv < gp))
         want = tol if q.method == "naive" else jnp.maximum(safe_div(-gv, L, 0.0), tol)
         floor = ulp_floor(t, scale)
-        step = t + jnp.maximum(want, floor)
-        # the last sample is t_hi itself: a window cut short by t_max (where the field need not
-        # be 0) is sampled to its end, never stepped over (tests/test_lost_rays.py)
-        nt = jnp.where(live, jnp.where(t < t_hi, jnp.minimum(step, t_hi), step), t)
+        nt = jnp.where(live, jnp.minimum(t + jnp.maximum(want, floor), jnp.where(t < t_hi, t_hi, jnp.inf)), t)  # t_hi sampled
         floored = floored | (live & (floor > want)) | (live & ~(nt > t))  # raised, or no advance at all
         return i + 1, jnp.where(live, t, tp), nt, jnp.where(live, gv, gp), found | hit, near, grazed, floored
 
