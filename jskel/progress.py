@@ -5,8 +5,10 @@ follow :func:`quiet` too."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
+import threading
 
 
 def in_notebook() -> bool:
@@ -23,10 +25,27 @@ def quiet() -> bool:
     return bool(os.environ.get("CI")) or not (sys.stderr.isatty() or in_notebook())
 
 
-def bar(total: int, desc: str, unit: str, delay: float = 0.0):
+def bar(total: int, desc: str, unit: str):
     """A ``tqdm.auto`` bar of ``total`` steps (elapsed time and rate are tqdm's own), disabled
-    where :func:`quiet` says so, shown once ``delay`` seconds have passed (work that ends sooner
-    shows none); use it as a context manager and call ``update(n)``."""
+    where :func:`quiet` says so; use it as a context manager and call ``update(n)``."""
     from tqdm.auto import tqdm
 
-    return tqdm(total=total, desc=desc, unit=unit, disable=quiet(), leave=False, delay=delay)
+    return tqdm(total=total, desc=desc, unit=unit, disable=quiet(), leave=False)
+
+
+@contextlib.contextmanager
+def notice_after(delay: float, message: str):
+    """Say ``jskel: MESSAGE ...`` on standard error once the work inside has taken ``delay``
+    seconds (a timer thread; where :func:`quiet` allows): a long build says what it is doing
+    while it runs, a short one says nothing. (A delayed tqdm bar shows only at an update, so a
+    one-step build would show its bar after it ended.)"""
+    timer = None
+    if not quiet():
+        timer = threading.Timer(delay, lambda: print(f"jskel: {message} ...", file=sys.stderr, flush=True))
+        timer.daemon = True
+        timer.start()
+    try:
+        yield
+    finally:
+        if timer is not None:
+            timer.cancel()

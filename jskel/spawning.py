@@ -105,7 +105,8 @@ def refine(source, obj, rays: Rays, hit: Hit) -> tuple[Rays, Hit]:
     (|p| + 8 e) plus the tracer's own tolerance, and so is the offset :func:`spawn` computes from
     the near rays (``tests/test_spawn.py``: at 1e5 sizes, below 1e-3 of the size). Elsewhere
     (misses, grazing rays, a recast that found another part of the object first) the hit and
-    ray stay as they were. One more cast per ray; the renderer does not call it (its rays start
+    ray stay as they were. The recast stays within the ray's own window (t_min, t_max), and a
+    kept hit carries the first cast's flags as well as its own. One more cast per ray; the renderer does not call it (its rays start
     at the camera, near the scene, or at a spawned origin). Pure and jit-friendly."""
     from .interface import intersect
 
@@ -120,13 +121,18 @@ def refine(source, obj, rays: Rays, hit: Hit) -> tuple[Rays, Hit]:
     err_n = jnp.sum(jnp.abs(hit.normal) * err, axis=-1) + jnp.asarray(surface_offset(source), dtype)
     cos = jnp.abs(jnp.sum(u * hit.normal, axis=-1))
     e = err_n / jnp.maximum(cos, REFINE_COS_FLOOR)
-    back = 4.0 * e
-    near = Rays(p - back[:, None] * u, u, jnp.zeros_like(back), jnp.where(got, 6.0 * e, -1.0))
+    # within the ray's own window: never back past its start (a surface t_min excluded) nor on past its end
+    back = jnp.minimum(4.0 * e, jnp.maximum(tt[:, 0] - rays.t_min, 0.0) * dn)
+    end = back + jnp.minimum(2.0 * e, jnp.maximum(rays.t_max - tt[:, 0], 0.0) * dn)
+    near = Rays(p - back[:, None] * u, u, jnp.zeros_like(back), jnp.where(got, end, -1.0))
     again = intersect(obj, near)
     keep = got & (jnp.abs(again.t - back) <= 2.0 * e) & (jnp.sum(again.normal * hit.normal, axis=-1) > 0)
     pick = lambda a, b: jnp.where(keep.reshape(keep.shape + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-    rays_out = Rays(*(pick(a, b) for a, b in zip(near, rays)))
-    return rays_out, jax.tree_util.tree_map(pick, again, hit)
+    # a kept hit carries what the first cast could not decide as well as its own flags
+    flags = None if hit.flags is None and again.flags is None else (
+        (0 if hit.flags is None else hit.flags) | (0 if again.flags is None else jnp.where(keep, again.flags, 0)))
+    out = Hit(*(pick(a, b) for a, b in zip(again[:5], hit[:5])), flags)
+    return Rays(*(pick(a, b) for a, b in zip(near, rays))), out
 
 
 def bad_directions(directions):

@@ -73,3 +73,19 @@ def test_the_rerender_changes_change_one_thing_each():
     assert len(j4) == len(j) + 1 and np.array_equal(j4[:-1], j) and p4[-1] == len(j) - 1 and np.isclose(r4[-1], 0.8 * r[-1])
     for e, *_ in got.values():
         assert e.render.progress is False
+
+
+def test_a_sweeps_rows_are_summed_and_a_peers_empty_cells_skipped(tmp_path):
+    """A sweep's results.csv: its settings' compile seconds and program counts summed; a peer's
+    row leaves those cells empty and is skipped, not an error."""
+    import csv
+
+    from jskel.measure.latency import reported
+
+    with (tmp_path / "results.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["setting", "compile_s", "compiled", "loaded"])
+        w.writeheader()
+        w.writerows([{"setting": "a", "compile_s": 2.5, "compiled": 2, "loaded": 0},
+                     {"setting": "b", "compile_s": 0.25, "compiled": 0, "loaded": 1},
+                     {"setting": "peer", "compile_s": "", "compiled": "", "loaded": ""}])
+    assert reported(tmp_path) == {"compiled": 2, "loaded": 1, "compile_s": 2.75}

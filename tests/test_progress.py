@@ -69,34 +69,37 @@ def test_bars_show_in_a_notebook_whose_stream_is_not_a_terminal(monkeypatch):
     assert progress.quiet()
 
 
-def test_builds_report_each_object_after_a_delay(monkeypatch):
-    """A scene's build advances one bar per object built and a single object's one bar; both
-    wait ``BUILD_BAR_DELAY_S`` before they show, so a quick build shows none."""
+def test_a_long_build_says_what_it_builds_and_a_short_one_nothing(monkeypatch, capsys):
+    """``progress.notice_after``: its line once the work has taken the delay (a timer thread),
+    nothing for work that ends sooner or where bars are quiet; every object a scene builds, and
+    a single object, is built inside one, with ``BUILD_NOTICE_S``."""
+    import time
+
     from jskel import config
     from jskel.render import _build
 
-    made = []
+    monkeypatch.setattr(progress, "quiet", lambda: False)
+    with progress.notice_after(0.05, "building x"):
+        time.sleep(0.4)
+    with progress.notice_after(5.0, "building y"):
+        pass
+    monkeypatch.setattr(progress, "quiet", lambda: True)
+    with progress.notice_after(0.0, "building z"):
+        time.sleep(0.2)
+    assert capsys.readouterr().err == "jskel: building x ...\n"
+    said = []
 
-    class Bar:
-        def __init__(self, total, desc, unit, delay=0.0):
-            self.total, self.desc, self.delay, self.n = total, desc, delay, 0
-            made.append(self)
+    @__import__("contextlib").contextmanager
+    def notice(delay, message):
+        said.append((delay, message))
+        yield
 
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-        def update(self, n):
-            self.n += n
-
-    monkeypatch.setattr(progress, "bar", Bar)
+    monkeypatch.setattr(progress, "notice_after", notice)
     seg = {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 1, 0]], "radii": [0.2, 0.2], "parents": [-1, 0]}}
-    exp, shapes = config.validate({"objects": [{"name": "a", "shape": seg}, {"name": "b", "shape": seg}]})
+    exp, shapes = config.validate({"objects": [{"name": "a", "shape": seg}, {"shape": seg}]})
     _build.place_objects(exp, shapes, np.float32)
     exp1, obj = config.validate({"object": seg})
     _build.build_single(exp1, obj, np.float32)
-    assert [(b.total, b.n, b.desc, b.delay) for b in made] == [(2, 2, "build", _build.BUILD_BAR_DELAY_S),
-                                                               (1, 1, "build (frusta)", _build.BUILD_BAR_DELAY_S)]
-    assert _build.BUILD_BAR_DELAY_S >= 0.5
+    d = _build.BUILD_NOTICE_S
+    assert said == [(d, "building a (frusta, 1 of 2)"), (d, "building objects[1] (frusta, 2 of 2)"), (d, "building the object (frusta)")]
+    assert 0.5 <= d <= 2.0

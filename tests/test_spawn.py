@@ -443,3 +443,32 @@ def test_the_integrator_marks_a_reflection_ray_of_no_direction():
     np.testing.assert_array_equal(np.asarray(nq.pixel)[:3], [0, 2, 3])
     want = np.asarray(d, np.float64)[[0, 2, 3]] * [1.0, 1.0, -1.0]
     np.testing.assert_allclose(np.asarray(nq.rays.directions)[:3], want, rtol=1e-6)
+
+
+def test_refine_keeps_the_rays_window_and_its_flags(tmp_path):
+    """Two parallel squares (a mesh), z = 0 and z = -0.1; rays from 1e5 above whose window starts
+    halfway between the squares hit the second. The recast from near stays in the ray's window
+    (it would otherwise start above z = 0, about 0.2 back, and find the square t_min excluded),
+    so the refined hits lie on z = -0.1; a flag the first cast set stays set."""
+    from jskel.rays import FLAG_GRAZE
+    from jskel.spawning import surface_offset
+
+    path = tmp_path / "two.obj"
+    quad = lambda z, k: [f"v -1 -1 {z}", f"v 1 -1 {z}", f"v 1 1 {z}", f"v -1 1 {z}", f"f {k} {k + 1} {k + 2}", f"f {k} {k + 2} {k + 3}"]  # noqa: E731
+    path.write_text("\n".join(quad(0.0, 1) + quad(-0.1, 5)) + "\n")
+    rep = registry.get("mesh")
+    built = rep.build(rep.Config.model_validate({"type": "mesh", "path": str(path)}), np.float32)
+    obj = interface.Object.of(rep, built)
+    rng = np.random.default_rng(9)
+    xy = rng.uniform(-0.8, 0.8, (N, 2))
+    O = np.concatenate([xy, np.full((N, 1), 1e5)], 1) - built.anchor
+    rays = make_rays(O, np.tile([0.0, 0.0, -1.0], (N, 1)), t_min=1e5 + 0.05)  # float32 spacing there: 0.008
+    hit = jax.tree_util.tree_map(jnp.asarray, _np(_cast(obj, rays)))
+    z = np.asarray(hit.position)[:, 2] + built.anchor[2]
+    assert np.all(np.abs(z + 0.1) < 0.05)  # the case: the second square, its position good to ~1e-2
+    hit = hit._replace(flags=jnp.where(jnp.arange(N) % 2 == 0, FLAG_GRAZE, 0).astype(jnp.int32))  # (a mesh sets none)
+    near, refined = _refine(jnp.float32(surface_offset(built)), obj, rays, hit)
+    z = np.asarray(refined.position, np.float64)[:, 2] + built.anchor[2]
+    moved = np.any(np.asarray(near.origins) != np.asarray(rays.origins), axis=1)
+    assert np.mean(moved) > 0.9 and np.all(np.abs(z + 0.1) < 1e-4), np.max(np.abs(z + 0.1))
+    np.testing.assert_array_equal(np.asarray(refined.flags), np.where(np.arange(N) % 2 == 0, FLAG_GRAZE, 0))

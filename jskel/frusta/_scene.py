@@ -337,8 +337,9 @@ class _Frusta(Representation, module=__name__):
     #: reverse order, process CPU seconds; 2026-12-04, the 2-core Intel Xeon, jax 0.10.2):
     #: default 2.2-2.3 -> 1.2-1.3 s, palm 3.9 -> 2.4-2.7 s, scene_cacti 9.0-9.2 -> 6.1-6.8 s,
     #: scene_effects 7.6-7.7 -> 5.3-5.9 s, their runs 12-27 % faster to 3 % slower
-    #: (docs/performance.md). The implicit and cell objects keep the default: theirs ran 15-24 %
-    #: slower with it
+    #: (docs/performance.md). Implicit and cell objects alone keep the default (theirs ran 15-24 %
+    #: slower with it); in a scene with frusta they take the frusta's (``agreed_options``), as
+    #: scene_cacti's mirror ball and scene_effects' cell object do in the runs above
     cpu_compiler_options = {"xla_cpu_use_fusion_emitters": False}
 
     @staticmethod

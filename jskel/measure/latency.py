@@ -107,9 +107,11 @@ def reported(folder: Path, t0: float | None = None) -> dict:
 
         with (folder / "results.csv").open(newline="") as fh:
             rows = list(csv.DictReader(fh))
-        for k in ("compiled", "loaded"):
-            row[k] = sum(int(r[k]) for r in rows) if rows and all(r.get(k) not in (None, "") for r in rows) else None
-        row["compile_s"] = round(sum(float(r["compile_s"]) for r in rows), 4) if rows else None
+        for k in ("compiled", "loaded"):  # as run.json counts them (a peer's rows have none: empty cells)
+            got = [int(r[k]) for r in rows if r.get(k) not in (None, "")]
+            row[k] = sum(got) if got else None
+        secs = [float(r["compile_s"]) for r in rows if r.get("compile_s") not in (None, "")]
+        row["compile_s"] = round(sum(secs), 4) if secs else None
     return row
 
 

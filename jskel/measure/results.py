@@ -31,9 +31,10 @@ def read_done(path: Path) -> dict[str, dict]:
 
 def columns(sweep, keys: list[str]) -> list[str]:
     """The columns of results.csv: varied keys, peer columns, timings (with the programs a
-    setting compiled and loaded from the persistent cache), metrics, environment."""
+    setting's measurement, its reference's render included, handed to XLA or read back:
+    ``sweep.programs_since``), metrics, environment."""
     peer = ["peer.level", "triangles", "peer_build_s"] if sweep.peer else []
-    return (keys + peer + ["compile_s", "compiled", "loaded", "time_median_s", "time_min_s", "time_max_s", "runs", "rays", "rays_per_s"]
+    return (keys + peer + ["compile_s", "compiled", "loaded", "executables_loaded", "time_median_s", "time_min_s", "time_max_s", "runs", "rays", "rays_per_s"]
             + list(sweep.metrics) + ["hit_fraction", "device", "jax", "dtype", "setting"])
 
 

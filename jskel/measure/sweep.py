@@ -154,15 +154,10 @@ def load_sweep(path, overrides: list[str], exp_overrides: list[str] = ()):
 
 def measure(exp, obj, ref, sweep: SweepFile) -> dict:
     """Time one setting (``timing.render_runs``) and score it against ``ref`` (or None)."""
-    count_programs()
-    before = program_counts()
     first, warm = render_runs(exp, obj, sweep.runs, sweep.warmup)
-    after = program_counts()
     s = spread([w["render_s"] for w in warm])
     run = first.run
-    row = {"compile_s": run["compile_s"], "compiled": after["compiled"] - before["compiled"],
-           # loaded: from JAX's persistent cache or as a stored executable (neither traced nor compiled)
-           "loaded": after["loaded"] - before["loaded"] + after["executables"]["loaded"] - before["executables"]["loaded"], "time_median_s": s.median, "time_min_s": s.min, "time_max_s": s.max,
+    row = {"compile_s": run["compile_s"], "time_median_s": s.median, "time_min_s": s.min, "time_max_s": s.max,
            "runs": sweep.runs, "rays": run["rays"], "rays_per_s": run["rays"] / s.median if s.median > 0 else None,
            "hit_fraction": run["hit_fraction"], "device": run["device"], "jax": run["jax"], "dtype": exp.render.dtype,
            "memory_bytes": run["params_bytes"]}
@@ -174,6 +169,15 @@ def measure(exp, obj, ref, sweep: SweepFile) -> dict:
     return row
 
 
+def programs_since(before: dict) -> dict:
+    """The programs handed to XLA since ``before`` (``program_counts()``), as run.json counts
+    them: ``compiled``, ``loaded`` from JAX's persistent cache, and ``executables_loaded``
+    (stored executables read back: neither traced nor handed to XLA)."""
+    after = program_counts()
+    return {"compiled": after["compiled"] - before["compiled"], "loaded": after["loaded"] - before["loaded"],
+            "executables_loaded": after["executables"]["loaded"] - before["executables"]["loaded"]}
+
+
 def _reference(rj, refs: dict):
     """The render of reference job ``rj`` (key, (exp, obj)), rendered once per key into ``refs``."""
     if rj[0] not in refs:
@@ -183,7 +187,10 @@ def _reference(rj, refs: dict):
 
 def measure_setting(sweep: SweepFile, setting: dict, job, rj, refs: dict) -> dict:
     """One row: the setting measured against its reference (or none)."""
+    count_programs()
+    before = program_counts()
     row = measure(*job, None if rj is None else _reference(rj, refs), sweep)
+    row.update(programs_since(before))
     row.update(setting)
     row["setting"] = setting_key(setting)
     return row

@@ -203,22 +203,22 @@ def assemble(exp, placed: list[Placed], origin, dtype, single: bool = False, own
     return params, static, info
 
 
-#: a build shows a progress bar (``jskel.progress``) once it has taken this long: a large
-#: skeleton, mesh or cell precompute; the seconds most builds take show none
-BUILD_BAR_DELAY_S = 1.0
+#: a build says what it is building (``jskel.progress.notice_after``) once it has taken this
+#: long: a large skeleton, mesh or cell precompute; the fractions of a second most take say nothing
+BUILD_NOTICE_S = 1.0
 
 
 def place_objects(exp, shapes, dtype) -> list[Placed]:
     """Build every object of a scene (``objects:``) and place it (host)."""
     placed = []
-    with progress.bar(len(shapes), "build", "object", delay=BUILD_BAR_DELAY_S) as bar:
-        for i, (o, shape) in enumerate(zip(exp.objects, shapes)):
-            rep = registry.get(shape.type)
-            _check_shape(i, o, shape, rep)
+    for i, (o, shape) in enumerate(zip(exp.objects, shapes)):
+        rep = registry.get(shape.type)
+        _check_shape(i, o, shape, rep)
+        name = o.name or f"objects[{i}]"
+        with progress.notice_after(BUILD_NOTICE_S, f"building {name} ({shape.type}, {i + 1} of {len(shapes)})"):
             built = rep.build(_shape_at(shape, rep, exp.frame), dtype)
-            s, r, t = object_transform(o, exp.frame)
-            placed.append(Placed(o.name or f"objects[{i}]", rep, built, s, r, t, o.material))
-            bar.update(1)
+        s, r, t = object_transform(o, exp.frame)
+        placed.append(Placed(name, rep, built, s, r, t, o.material))
     return placed
 
 
@@ -246,9 +246,8 @@ def build_single(exp, obj, dtype):
 
     rep = registry.get(obj.type)
     own = rep.own_material(obj)
-    with progress.bar(1, f"build ({obj.type})", "object", delay=BUILD_BAR_DELAY_S) as bar:
+    with progress.notice_after(BUILD_NOTICE_S, f"building the object ({obj.type})"):
         built = rep.build(obj, dtype)
-        bar.update(1)
     mat = MaterialConfig() if own is None else MaterialConfig(reflectivity=own.reflectivity, transparency=own.transparency, ior=own.ior)
     p = Placed("object", rep, built, 1.0, np.eye(3), np.zeros(3), mat)
     params, static, _ = assemble(exp, [p], built.anchor, dtype, single=True, own=own)
