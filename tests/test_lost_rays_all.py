@@ -72,11 +72,12 @@ TILE = np.zeros((16, 16, 16), np.int64)
 TILE[4:12, 3:13, 5:11] = 1  # the cell object's one cell: a box of voxels
 _cast = jax.jit(interface.intersect)
 #: each representation's other tracers, held to the same property (name:mode -> the section's overrides):
-#: the frusta chain by brute force and through a BVH by each CPU traversal (the Pallas kernel's walk
-#: is checked against them in test_accel), the mesh's per-ray walks, the implicit block culling,
+#: the frusta chain by brute force and through a BVH by each traversal (the Pallas kernel's walk in
+#: Pallas' interpret mode on the CPU), the mesh's per-ray walks, the implicit block culling,
 #: a cell object's two-sided refraction cast, the relief march's early exit
 MODES = {"frusta:none": {"accel": "none"}, "frusta:bins": {"accel": "bvh", "traversal": "bins"},
          "frusta:packets": {"accel": "bvh", "traversal": "packets"}, "frusta:walks": {"accel": "bvh", "traversal": "walks"},
+         "frusta:kernel": {"accel": "bvh", "traversal": "kernel"},
          "mesh:walks": {"traversal": "walks"}, "implicit:blocks": {"cull": "blocks"}, "cells:refraction": {"mode": "refraction"},
          "relief:early": {"relief": {"early_exit": True}}}
 

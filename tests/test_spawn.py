@@ -11,7 +11,7 @@ first test is exact: zero hits. Float32, objects scaled by 1e-10 .. 1e10 and mov
 of their size, seen by cameras up to 1e5 sizes away (a seeded grid of scales and shifts, then
 hypothesis over 20 decades of scale; one compile per representation, the same shapes
 throughout). The fuzz also runs each representation's other tracers (``VARIANTS``: the frusta
-cylinder through a BVH by each CPU traversal and with a relief shell under a constant height
+cylinder through a BVH by each traversal (the Pallas kernel's in interpret mode) and with a relief shell under a constant height
 map, the mesh's per-ray walks, the cells' voxel walk and refraction mode, whose secondary offset
 differs, and the implicit naive and bisection methods). Hits
 recomputed from near (``jskel.refine``) are held to both properties too, with an offset of 1e-3
@@ -44,7 +44,8 @@ TILE[4:12, 3:13, 5:11] = 1  # the cell object's one cell: a box of voxels
 VARIANTS = {"cells:voxels": {"search": "voxels"}, "cells:refraction": {"mode": "refraction"},
             "implicit:bisection": {"method": "bisection"}, "implicit:naive": {"method": "naive"},
             "frusta:bins": {"accel": "bvh", "traversal": "bins"}, "frusta:packets": {"accel": "bvh", "traversal": "packets"},
-            "frusta:walks": {"accel": "bvh", "traversal": "walks"}, "mesh:walks": {"traversal": "walks"},
+            "frusta:walks": {"accel": "bvh", "traversal": "walks"}, "frusta:kernel": {"accel": "bvh", "traversal": "kernel"},
+            "mesh:walks": {"traversal": "walks"},
             "frusta:relief": {}}  # relief under a constant height map: the cylinder of radius 0.3 + h T (``_raw``)
 RELIEF_H, RELIEF_T = 128 / 255, 0.1  # the relief variant's constant height and shell thickness (sizes)
 
