@@ -110,15 +110,12 @@ def refine(source, obj, rays: Rays, hit: Hit) -> tuple[Rays, Hit]:
     at the camera, near the scene, or at a spawned origin). Pure and jit-friendly."""
     from .interface import intersect
 
-    dtype = hit.position.dtype
     got = jnp.isfinite(hit.t)
     dn = jnp.linalg.norm(rays.directions, axis=-1)
     u = rays.directions / jnp.where(dn > 0, dn, 1.0)[:, None]
     p = jnp.where(got[:, None], hit.position, 0.0)
-    o = jnp.where(jnp.isfinite(rays.origins), rays.origins, 0.0)
     tt = jnp.where(got, hit.t, 0.0)[:, None]
-    err = gamma(SPAWN_GAMMA_N, dtype) * (jnp.abs(o) + jnp.abs(tt * rays.directions) + jnp.abs(p))
-    err_n = jnp.sum(jnp.abs(hit.normal) * err, axis=-1) + jnp.asarray(surface_offset(source), dtype)
+    err_n = _offset_bound(rays, tt, p, hit.normal, surface_offset(source))
     cos = jnp.abs(jnp.sum(u * hit.normal, axis=-1))
     e = err_n / jnp.maximum(cos, REFINE_COS_FLOOR)
     # within the ray's own window: never back past its start (a surface t_min excluded) nor on past its end
@@ -147,6 +144,15 @@ def spawn_flags(directions):
     return jnp.where(bad_directions(directions), FLAG_BAD_DIRECTION, 0).astype(jnp.int32)
 
 
+def _offset_bound(rays: Rays, tt, p, normal, surface):
+    """(N,) the bound on a hit position's error projected on its normal, plus the surface's own
+    part: gamma(SPAWN_GAMMA_N) x sum_i |n_i| (|o_i| + |t d_i| + |p_i|) + ``surface`` (t (N, 1)
+    and p (N, 3) zero on misses; non-finite origins count as 0)."""
+    o = jnp.where(jnp.isfinite(rays.origins), rays.origins, 0.0)
+    err = gamma(SPAWN_GAMMA_N, p.dtype) * (jnp.abs(o) + jnp.abs(tt * rays.directions) + jnp.abs(p))
+    return jnp.sum(jnp.abs(normal) * err, axis=-1) + jnp.asarray(surface, p.dtype)
+
+
 def spawn_rays(rays: Rays, t, position, normal, directions, surface, t_max=np.inf) -> Rays:
     """:func:`spawn` from a hit's fields t (N,), position and normal (N, 3); ``surface`` () or
     (N,) the surface part of the offset in the rays' units (a scene's per-object value)."""
@@ -155,9 +161,7 @@ def spawn_rays(rays: Rays, t, position, normal, directions, surface, t_max=np.in
     hit = jnp.isfinite(t) & ~bad
     p = jnp.where(hit[:, None], position, 0.0)
     tt = jnp.where(hit, t, 0.0)[:, None]
-    o = jnp.where(jnp.isfinite(rays.origins), rays.origins, 0.0)
-    err = gamma(SPAWN_GAMMA_N, dtype) * (jnp.abs(o) + jnp.abs(tt * rays.directions) + jnp.abs(p))
-    off = jnp.sum(jnp.abs(normal) * err, axis=-1) + jnp.asarray(surface, dtype)
+    off = _offset_bound(rays, tt, p, normal, surface)
     side = jnp.where(jnp.sum(normal * directions, axis=-1) < 0, -1.0, 1.0).astype(dtype)
     push = side[:, None] * normal
     q = p + off[:, None] * push
