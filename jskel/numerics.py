@@ -98,7 +98,7 @@ def line_dist2(oc, d, tc):
     cancels catastrophically for a far origin (in float32, a sphere 70 units away was misjudged
     by 1 % of its radius)."""
     e = oc - tc[..., None] * d
-    return jnp.sum(e * e, axis=-1)
+    return dot3(e, e)
 
 
 def differentiable_root(g, t):

@@ -246,8 +246,10 @@ class ImplicitConfig(StrictModel):
     """Scale of the model about the origin."""
     offset: Vec3 = (0.0, 0.0, 0.0)
     """Translation after ``scale``, world units."""
-    method: Literal["naive", "bisection", "lipschitz"] = "lipschitz"
-    """Root search: constant steps (Alg. 1), inside points (Alg. 2), or Lipschitz steps (guaranteed)."""
+    method: Literal["naive", "bisection", "lipschitz", "exact"] = "lipschitz"
+    """Root search: constant steps (Alg. 1), inside points (Alg. 2), Lipschitz steps (guaranteed), or
+    exact (the first root of the field's polynomial on each interval between primitives'
+    breakpoints; sums of kernels only: no ``csg``, no ``displace``)."""
     step: Pos = 0.02
     """``naive``: march step, world units."""
     eps: Pos = 1e-3
@@ -293,4 +295,7 @@ class ImplicitConfig(StrictModel):
         for i, p in enumerate(self.projectors):
             if p.texture is None and self.texture is None:
                 raise ValueError(f"projectors[{i}]: has no texture and the model has none")
+        if self.method == "exact" and (self.csg is not None or self.displace is not None):
+            which = " and ".join(k for k in ("csg", "displace") if getattr(self, k) is not None)
+            raise ValueError(f"method: 'exact' traces sums of kernels; {which} is set (use method: lipschitz)")
         return self

@@ -127,15 +127,19 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     prim_id = np.full(n + 1, -1, np.int32)
     prim_id[:p] = order
     scene = ImplicitScene(prims, tune, on_device(cfg.color, dtype), skin_of(rig, anchor, dtype), projs, *tex, on_device(prim_id))
-    q = Quality(cfg.method, cfg.capacity, early_exit=cfg.early_exit, shape=shape,
+    tubes = bool(np.any(a != b))
+    q = Quality(cfg.method, cfg.capacity, early_exit=cfg.early_exit, shape=shape, tubes=tubes,
+                degree=8 if np.any((ra != rb) & np.any(a != b, axis=1)) else 4,
                 block=cfg.block_size, block_capacity=cfg.block_capacity or (16 if cfg.cull == "tree" else 32), cull=cfg.cull)
     static = Static(q, kinds, textured)
     info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_bound": fmax}
     # width of the last bisection bracket: how far a returned hit may lie from F = T; the
     # bisection method's first bracket (the entry into the first sphere of influence to the
     # nearest inside point) spans at most the model's box, not a step
-    first = {"lipschitz": cfg.eps, "naive": cfg.step}.get(cfg.method, float(np.linalg.norm(np.asarray(hi) - np.asarray(lo))))
-    tol = float(first * 0.5**cfg.bisection)
+    size = float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
+    first = {"lipschitz": cfg.eps, "naive": cfg.step}.get(cfg.method, size)
+    # exact: rounding of t, a few ulps of the model's size (the window's t is within a few sizes)
+    tol = 64 * float(np.finfo(dtype).eps) * size if cfg.method == "exact" else float(first * 0.5**cfg.bisection)
     return Built(scene, static, anchor, (lo, hi), info, primitives=int(p), surface_tolerance=tol)
 
 
@@ -179,9 +183,10 @@ def skin_of(rig, anchor, dtype) -> Skin:
 def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min, t_max, deferred: bool = False):
     """First hit of one ray; (u, v) from the projector applied at the rest-pose position.
     ``deferred`` (``bisection``): (hit, (candidates, origin, direction, Certify job)) with the
-    certifying march left to :func:`intersect_batch`."""
+    certifying march left to :func:`intersect_batch`; (``exact``): the last is whether the ray
+    is uncertified, its march left to the batch."""
     q = static.quality
-    cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity, q.block, q.block_capacity, q.cull)
+    cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity, q.block, q.block_capacity, q.cull, q.method != "exact")
     out = trace_one(cand, scene.tune, origin, direction, t_min, t_max, q, deferred)
     t, flags = out[:2]
     pos, n, prim = surface_one(cand, scene.tune, origin, direction, t, q)
@@ -200,6 +205,8 @@ def intersect_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int
     whose bounds left a piece open: as a ``while_loop`` under vmap it would last as long as the
     batch's slowest ray for every ray."""
     q = static.quality
+    if q.method == "exact":
+        return _exact_batch(scene, static, rays, lanes)
     deferred = q.method == "bisection"
 
     def one(st: Static, defer: bool):
@@ -227,6 +234,49 @@ def intersect_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int
 
     need = job[3].undecided | job[3].earlier
     return hits._replace(flags=hits.flags | compact_map(march, need, job, jnp.zeros_like(hits.flags), lanes))
+
+
+def _exact_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int) -> Hit:
+    """``exact``: every ray culled; the intervals of the rays with candidates solved in rounds
+    over the rays still searching (``_exact.rounds``); the surface of the rays that hit; then
+    the rays whose culling overflowed traced again with flat culling and, in a model with
+    tapered tubes, the rays it could not certify (two tapered axis pieces on one interval) by
+    the Lipschitz march. Each stage after culling runs on its rays only, gathered into dense
+    sub-batches (``wavefront.compact_map``): on a camera's rays most miss every candidate."""
+    from . import _exact
+
+    q = static.quality
+    tune = scene.tune
+    cand = jax.vmap(lambda o, d, a, b: cull(scene.prims, o, d, a, b, q.capacity, q.block, q.block_capacity, q.cull, False))(*rays)
+    st = _exact.rounds(cand, tune, rays.origins, rays.directions, q, lanes)
+    inf = jnp.full(rays.t_min.shape, jnp.inf, rays.t_min.dtype)
+    flags = jnp.where(cand.overflow, OVERFLOW, 0)
+    zero3 = jnp.zeros_like(rays.origins)
+    miss = jax.vmap(masked_hit)(inf, zero3, zero3, zero3[:, :2], jnp.zeros_like(flags), flags)
+
+    def done(sub):
+        c, s, o, d, f = sub
+
+        def one(c, s, o, d, f):
+            t = _exact.finish(c.sub, o, d, s.t, tune, q)
+            pos, n, prim = surface_one(c, tune, o, d, t, q)
+            return masked_hit(t, pos, n, choose_uv(scene, static, pos)[1], scene.prim_id[prim], f)
+
+        return jax.vmap(one)(c, s, o, d, f)
+
+    found = jnp.isfinite(st.t)
+    hits = compact_map(done, found, (cand, st, rays.origins, rays.directions, flags), miss, lanes)
+    unc = st.unc
+
+    def again(st_: Static):
+        return lambda sub: jax.vmap(lambda o, d, a, b: intersect_one(scene, st_, o, d, a, b))(*sub)
+
+    if blocks_used(scene.prims.a.shape[0], q.block, q.block_capacity):
+        hits = compact_map(again(static._replace(quality=q._replace(block=0))), (hits.flags & OVERFLOW) != 0, rays, hits, lanes)
+        unc = unc & ((hits.flags & OVERFLOW) == 0)
+    if q.degree == 4:  # no tapered tube: every interval is a quartic, every ray certified
+        return hits
+    return compact_map(again(static._replace(quality=q._replace(method="lipschitz"))), unc, rays, hits, lanes)
 
 
 def choose_uv(scene: ImplicitScene, static: Static, pos):

@@ -86,13 +86,15 @@ class Quality(NamedTuple):
     """Static options: changing one recompiles. (Step length, eps, the step cap and the bisection
     count are traced: see ``Tuning``.)"""
 
-    method: str = "lipschitz"  # naive | bisection | lipschitz
+    method: str = "lipschitz"  # naive | bisection | lipschitz | exact
     capacity: int = 32  # candidate list per ray
     block: int = 16  # primitives per culling block (0: test every primitive)
     block_capacity: int = 16  # blocks kept per ray
     cull: str = "tree"  # tree: walk the shared BVH (jskel.accel) | blocks: test every block sphere
     early_exit: bool = True
     shape: Shape = Shape()
+    tubes: bool = True  # exact: the model has segments (a != b): their axis pieces and s cuts break intervals
+    degree: int = 4  # exact: 4 (balls and constant tubes), 8 (a tube tapers: one tapered piece per interval)
 
 
 class Tuning(NamedTuple):
@@ -183,24 +185,32 @@ def influence_tree(prims: Prims, block: int) -> accel.BVH:
     return accel.build(c - r[:, None], c + r[:, None], prims.valid, block)
 
 
-def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_capacity: int = 0, how: str = "tree") -> Candidates:
+def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_capacity: int = 0, how: str = "tree",
+         nearest: bool = True) -> Candidates:
     """Candidates of one ray (Sec. 4.2: discard primitives whose influence the ray misses),
     through the block level first when the model has more blocks than ``block_capacity``:
     ``how="blocks"`` tests every block sphere and keeps the ``block_capacity`` nearest met;
     ``how="tree"`` walks the shared BVH (:func:`influence_tree`) for the leaves met
-    (``accel.collect``). Either way more blocks than kept sets ``OVERFLOW``."""
+    (``accel.collect``). Either way more blocks than kept sets ``OVERFLOW``. ``nearest``: keep
+    the candidates ordered by their spheres' entries (the marches); the exact tracer needs no
+    order."""
     p = prims.a.shape[0]
     ids = None
     block_overflow = jnp.asarray(False)
     if how == "tree" and blocks_used(p, block, block_capacity):
         bvh = influence_tree(prims, block)
         leaves, _, block_overflow = accel.collect(bvh, o, d, t_min, t_max, block_capacity)
-        slots = (jnp.maximum(leaves, 0)[:, None] * block + jnp.arange(block, dtype=jnp.int32)[None, :]).reshape(-1)
-        ids = bvh.order[slots]
-        ok = (ids >= 0) & jnp.repeat(leaves >= 0, block)
-        ids = jnp.maximum(ids, 0)
-        prims = jax.tree_util.tree_map(lambda x: x[ids], prims)
-        prims = prims._replace(valid=prims.valid & ok)
+        # the spheres of the leaves' primitives only, a leaf's rows contiguous in the tree's
+        # order (one slice of block x 5 values per leaf, not five gathers per primitive); the
+        # candidates' whole records are gathered after, C of them
+        c, r = influence_spheres(prims)
+        order = jnp.maximum(bvh.order, 0)  # bvh.order is -1 for padding and invalid primitives
+        rows = jnp.concatenate([c, r[:, None], jnp.ones_like(r)[:, None]], 1)
+        table = jnp.where((bvh.order >= 0)[:, None], rows[order], 0.0).reshape(-1, block, 5)
+        got = table[jnp.maximum(leaves, 0)].reshape(-1, 5)
+        ids = order.reshape(-1, block)[jnp.maximum(leaves, 0)].reshape(-1)
+        ok = jnp.repeat(leaves >= 0, block) & (got[:, 4] > 0)
+        return _kept(prims, ids, got[:, :3], got[:, 3], ok, o, d, t_min, t_max, capacity, block_overflow, nearest)
     elif blocks_used(p, block, block_capacity):
         cb, rb, vb = block_spheres(prims, block)
         b0, _, bhit = _sphere_interval(cb, rb, o, d, t_min, t_max)
@@ -208,17 +218,30 @@ def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_
         bidx, bok = _nearest(bhit, b0, block_capacity)
         block_overflow = jnp.sum(bhit.astype(jnp.int32)) > block_capacity
         ids = (bidx[:, None] * block + jnp.arange(block)[None, :]).reshape(-1)
-        prims = jax.tree_util.tree_map(lambda x: x[ids], prims)
-        prims = prims._replace(valid=prims.valid & jnp.repeat(bok, block))
+        c, r = influence_spheres(prims)
+        return _kept(prims, ids, c[ids], r[ids], prims.valid[ids] & jnp.repeat(bok, block), o, d, t_min, t_max, capacity, block_overflow, nearest)
     c, r = influence_spheres(prims)
+    return _kept(prims, ids, c, r, prims.valid, o, d, t_min, t_max, capacity, block_overflow, nearest)
+
+
+def _kept(prims: Prims, ids, c, r, valid, o, d, t_min, t_max, capacity: int, block_overflow, nearest: bool) -> Candidates:
+    """The :class:`Candidates` among the primitives ``ids`` of ``prims`` (all of them where
+    ``ids`` is None), whose influence spheres are (c, r) and ``valid``: those the ray crosses,
+    the ``capacity`` nearest kept (by their sphere's entry), or with ``nearest`` False the
+    first ``capacity`` in the primitives' order (a ray with more overflows either way)."""
+    p = prims.a.shape[0]
     t0, t1, hit = _sphere_interval(c, r, o, d, t_min, t_max)
-    hit = prims.valid & hit
+    hit = valid & hit
     count = jnp.sum(hit.astype(jnp.int32))
-    n = prims.a.shape[0]
-    idx, ok = _nearest(hit, t0, min(capacity, n))  # fewer entries than the capacity cannot overflow
-    idx = jnp.where(ok, idx, n)
-    sub = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])[idx], prims)
-    gid = idx if ids is None else jnp.where(ok, ids[jnp.minimum(idx, n - 1)], p)
+    n = c.shape[0]
+    if nearest:
+        idx, ok = _nearest(hit, t0, min(capacity, n))  # fewer entries than the capacity cannot overflow
+    else:  # the first met in the tree's (Morton) order: no sort (top_k) per ray
+        idx, _ = accel.first_set(accel.pack_bits(hit), min(capacity, n))
+        ok = jnp.arange(idx.shape[0]) < count
+        idx = jnp.minimum(idx, n - 1)
+    gid = jnp.where(ok, idx, p) if ids is None else jnp.where(ok, ids[idx], p)
+    sub = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])[gid], prims)
     inf = jnp.asarray(jnp.inf, o.dtype)
     t_lo = jnp.min(jnp.where(hit, t0, inf))
     t_hi = jnp.max(jnp.where(hit, t1, -inf))
@@ -278,8 +301,9 @@ def certify(sub: Prims, tune: Tuning, q: Quality, o, d, job: Certify):
 def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality, deferred: bool = False):
     """(t, flags) of the first hit of one ray over its culled candidates; t = inf on a miss.
     Flags (``jskel.rays``): OVERFLOW from culling; the tracer's own in :func:`_bisection_method`
-    and :func:`_march`. ``deferred`` (``bisection`` only): (t, flags, :class:`Certify`) without
-    the certifying march, for a batch to run :func:`certify` on only the rays that need it."""
+    and :func:`_march`. ``deferred`` (``bisection``): (t, flags, :class:`Certify`) without
+    the certifying march, for a batch to run :func:`certify` on only the rays that need it;
+    (``exact``): (t, flags, uncertified) without the Lipschitz march of an uncertified ray."""
     sub, T = cand.sub, tune.threshold
 
     def g(t):
@@ -293,6 +317,19 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality, de
         own = certify(sub, tune, q, o, d, job)
     elif q.method in ("naive", "lipschitz"):
         t, own = _march(cand, g, tune, o, d, q)
+    elif q.method == "exact":
+        from ._exact import trace_exact
+
+        t, flags, unc = trace_exact(cand, tune, o, d, q)
+        if deferred or q.degree == 4:  # degree 4: no tapered tube, every ray certified
+            return (t, flags, unc) if deferred else (t, flags)
+        # a ray the polynomial cannot certify (two tapered axis pieces on an interval) marches
+        lip = q._replace(method="lipschitz")
+        def marched():
+            tm, fm = _march(cand, g, tune, o, d, lip)
+            return tm, jnp.asarray(fm, jnp.int32)
+
+        t, own = jax.lax.cond(unc, marched, lambda: (t, jnp.int32(0)))
     else:  # pragma: no cover - validated in config
         raise ValueError(f"object.method: unknown method {q.method!r}")
     return t, flags | own
