@@ -78,3 +78,31 @@ def first_root(O, D, a, b, ra, rb, T, n=512, batch=1000):
         t_out[sl] = np.where(found & (k > 0), t, np.where(found, l, np.inf))
         slope[sl] = np.abs(g)
     return t_out, margin, slope
+
+
+def first_root_near(O, D, a, b, ra, rb, T, h):
+    """:func:`first_root` for models of many primitives: each ray sums only the primitives
+    whose sphere of influence its line crosses (a kernel is 0 outside it, so F is the same),
+    sampled every ``h`` at most along its interval (so that a chord or a bump between two
+    samples is shorter than h wherever the ray is long). Returns (t, margin, slope) as
+    :func:`first_root`."""
+    N = O.shape[0]
+    c = 0.5 * (a + b)
+    rad = 0.5 * np.linalg.norm(b - a, axis=1) + np.maximum(ra, rb)
+    t_out, margin, slope = np.full(N, np.inf), np.full(N, np.inf), np.zeros(N)
+    step = 256
+    for i in range(0, N, step):
+        sl = slice(i, min(i + step, N))
+        oc = c[None] - O[sl, None]
+        tc = np.sum(oc * D[sl, None], -1)
+        d2 = np.sum(oc * oc, -1) - tc * tc
+        near = d2 < rad[None] ** 2 * 1.0001
+        for j, row in zip(range(sl.start, sl.stop), near):
+            idx = np.nonzero(row)[0]
+            if idx.size == 0:
+                continue
+            lo, hi = interval(O[j:j + 1], D[j:j + 1], a[idx], b[idx], ra[idx], rb[idx])
+            n = int(np.clip(np.ceil((hi[0] - lo[0]) / h), 64, 1 << 16)) if hi[0] > lo[0] else 64
+            t, m, s = first_root(O[j:j + 1], D[j:j + 1], a[idx], b[idx], ra[idx], rb[idx], T, n=n)
+            t_out[j], margin[j], slope[j] = t[0], m[0], s[0]
+    return t_out, margin, slope

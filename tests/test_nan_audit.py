@@ -111,7 +111,7 @@ def test_relief_hard_rays_raise_no_nan(debug_nans):
     _check_derivatives(t_of, rays, hitm)
 
 
-@pytest.mark.parametrize("method", ["lipschitz", "bisection", "naive"])
+@pytest.mark.parametrize("method", ["lipschitz", "bisection", "naive", "exact"])
 def test_implicit_hard_rays_raise_no_nan(debug_nans, method):
     cfg = implicit.ImplicitConfig.model_validate({
         "type": "implicit", "threshold": 0.5, "method": method, "step": 0.02, "eps": 1e-3, "capacity": 8,
@@ -178,3 +178,38 @@ def test_cells_modes_through_the_integrator_raise_no_nan(debug_nans, tmp_path, m
                "render": {"progress": False}}
         res = render(*validate(raw))
         assert np.all(np.isfinite(res.rgb)) and res.run["effects"]["bounces"] == 2
+
+
+@pytest.mark.parametrize("method", ["lipschitz", "bisection", "naive", "exact"])
+def test_implicit_tracers_compute_no_masked_nan(debug_nans, method):
+    """Op by op (``jax.disable_jit``), ``jax_debug_nans`` checks every operation, not only a
+    jitted program's outputs: a NaN masked by a ``where`` raises too. Two balls that pinch off
+    (at +-sqrt(1/2), R = 1, T = 1/2), a ray past the pinch (0, 3, 0.3) down -y and a ray that
+    meets no candidate: the cast, and the gradient of t in the centres, radii and threshold.
+    (The marches once formed L (t_hi - t) with t_hi = -inf and L = 0 for a ray without
+    candidates, and sampled the field at t = inf; the bisection formed its inside points'
+    positions at t = inf.)"""
+    cfg = implicit.ImplicitConfig.model_validate({
+        "type": "implicit", "threshold": 0.5, "method": method, "eps": 1e-3, "step": 0.02, "bisection": 4, "steps": 256,
+        "balls": [{"center": [float(np.sqrt(0.5)), 0, 0], "radius": 1.0}, {"center": [-float(np.sqrt(0.5)), 0, 0], "radius": 1.0}]})
+    b = implicit.build(cfg)
+    p0 = b.params
+
+    def t_of(a, ra, T, o, d):
+        sc = p0._replace(prims=p0.prims._replace(a=a, b=a, ra=ra, rb=ra), tune=p0.tune._replace(threshold=T))
+        t = implicit.intersect_one(sc, b.static, o, d, 0.0, jnp.inf).t
+        return jnp.where(jnp.isfinite(t), t, 0.0)
+
+    args = (p0.prims.a, p0.prims.ra, p0.tune.threshold)
+    for o, d in (([0, 3, 0.3], [0, -1, 0]), ([5, 5, 5], [1, 0, 0])):
+        o = jnp.asarray(np.array(o, float) - b.anchor, jnp.float32)
+        d = jnp.asarray(d, jnp.float32)
+        # op by op, JAX checks an operation's output when it first compiles it (jax 0.10.2:
+        # a second ray through the same operations raised nothing): clear its caches first
+        jax.clear_caches()
+        with jax.disable_jit():
+            assert t_of(*args, o, d) == 0.0  # both miss: the pinch is F = T at one point only
+        jax.clear_caches()
+        with jax.disable_jit():
+            g = jax.grad(t_of, argnums=(0, 1, 2))(*args, o, d)
+        assert all(np.all(np.isfinite(np.asarray(x))) for x in g)

@@ -256,7 +256,7 @@ def step(ray: Ray, st: State, degree: int) -> State:
     c, unc = interval_poly(ray.sub, ray.o, ray.d, ta, jnp.where(go, tb, ta + 1), ray.T, degree)
     start_in = _horner(c, -jnp.ones_like(ta)) >= 0  # the ray starts inside, or the last interval ended at a root
     u = jnp.where(start_in, -1.0, first_root(c))
-    t = jnp.where(go & jnp.isfinite(u), 0.5 * (ta + tb) + 0.5 * (tb - ta) * u, inf)
+    t = jnp.where(go & jnp.isfinite(u), 0.5 * (ta + tb) + 0.5 * (tb - ta) * jnp.where(jnp.isfinite(u), u, 0.0), inf)
     t = jnp.where(st.live, t, st.t)
     unc = st.unc | (go & unc)
     return State(jnp.where(go, tb, st.ta), t, go & ~jnp.isfinite(t) & ~unc & (tb < ray.t_hi), unc)
@@ -281,7 +281,9 @@ def finish(sub: Prims, o, d, t, tune, q):
 def trace_exact(cand, tune, o, d, q):
     """(t, flags, uncertified) of one ray over its culled candidates (``_trace.Candidates``):
     t = inf on a miss; the flags of culling (an overflow)."""
-    st = march(prepare(cand, tune, o, d, q), start(cand), q.degree)
+    # the march only finds where the root lies (its loop has no reverse mode): finish differentiates
+    c0, tune0, o0, d0 = jax.lax.stop_gradient((cand, tune, o, d))
+    st = march(prepare(c0, tune0, o0, d0, q), start(c0), q.degree)
     return finish(cand.sub, o, d, st.t, tune, q), jnp.where(cand.overflow, FLAG_OVERFLOW, 0), st.unc
 
 

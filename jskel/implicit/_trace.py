@@ -269,7 +269,7 @@ def _inside_points(sub: Prims, o, d):
     tp = safe_div(dot3(sub.a - o, n), dot3(d, n), jnp.inf)
 
     def dist_to_seg(t):
-        x = o + t[..., None] * d
+        x = o + jnp.where(jnp.isfinite(t), t, 0.0)[..., None] * d  # inf * 0 is a NaN, even masked after
         s = jnp.clip(safe_div(dot3(x - sub.a, ab), dot3(ab, ab), 0.0), 0.0, 1.0)
         e = x - sub.a - s[..., None] * ab
         return jnp.where(jnp.isfinite(t), dot3(e, e), jnp.inf)
@@ -351,7 +351,7 @@ def _bisection_method(cand: Candidates, g, tune: Tuning, o, d, t_min, t_max, q: 
     sub, t_lo, t_hi, anyc = cand.sub, cand.t_lo, cand.t_hi, cand.any
     tin = _inside_points(sub, o, d)
     ok = sub.valid & (tin > t_min) & (tin <= t_max) & (tin >= t_lo) & (tin <= t_hi)
-    inside = ok & (jax.vmap(g)(jnp.where(ok, tin, t_lo)) > 0)
+    inside = ok & (jax.vmap(g)(jnp.where(ok, tin, 0.0)) > 0)  # not t_lo: inf without candidates, a NaN point
     end_in = anyc & jnp.isfinite(t_hi) & (g(jnp.where(jnp.isfinite(t_hi), t_hi, 0.0)) > 0)
     t_in = jnp.minimum(jnp.min(jnp.where(inside, tin, inf)), jnp.where(end_in, t_hi, inf))
     found = anyc & jnp.isfinite(t_in)
@@ -383,7 +383,10 @@ def _march(cand: Candidates, g, tune: Tuning, o, d, q: Quality):
     hit where it held while the field was falling (a graze before the crossing found), but not
     the steps of an approach, where F rises towards T. The step cap sets ``STEP_CAP``."""
     inf = jnp.asarray(jnp.inf, o.dtype)
-    sub, t_lo, t_hi, anyc = cand.sub, cand.t_lo, cand.t_hi, cand.any
+    sub, anyc = cand.sub, cand.any
+    # a ray without candidates (t_lo = inf, t_hi = -inf) marches nothing from 0: no sample at
+    # infinity, whose point is a NaN wherever d has a zero component, even masked after
+    t_lo, t_hi = jnp.where(anyc, cand.t_lo, 0.0), jnp.where(anyc, cand.t_hi, -1.0)
     L = lipschitz_total(sub, q.shape, tune.disp) * safe_sqrt(dot3(d, d))
     scale = safe_div(jnp.max(jnp.abs(o)), safe_sqrt(dot3(d, d)), 0.0)  # the origin, in units of t
     # the step and the tolerance are lengths in space; t counts lengths of d (any non-zero length)
@@ -414,7 +417,10 @@ def _march(cand: Candidates, g, tune: Tuning, o, d, q: Quality):
         i, tp, t, gp, found, near, grazed, floored = jax.lax.fori_loop(0, tune.steps, lambda _, st: visit(st), init)
     found = found & anyc
     capped = (~found) & anyc & (t <= t_hi)  # stopped by the step cap before leaving the interval
-    tail = (t > t_hi) & (tp <= t_hi) & (tune.threshold - gp <= L * (t_hi - tp))  # up to T and back to 0 by t_hi
+    # up to T and back to 0 by t_hi; (t_hi - tp) only where finite: a ray without candidates
+    # has t_hi = -inf, tp = inf and L = 0, whose product was a NaN masked after
+    back = (t > t_hi) & (tp <= t_hi)
+    tail = back & (tune.threshold - gp <= L * jnp.where(back, t_hi - tp, 0.0))
     grazed = anyc & (grazed | (~found & (near | tail)))
     flags = jnp.where(capped, STEP_CAP, 0) | jnp.where(grazed, GRAZE, 0) | jnp.where(anyc & floored, FLOAT_SPACING, 0)
     first_sample = tp == t  # inside already at the first sample: nothing to bisect

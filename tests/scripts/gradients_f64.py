@@ -274,7 +274,7 @@ for early in (False, True):
 # derivatives in a program without the retrace, whose derivative the other two check (in
 # float64 the retrace made this check 26 s of CPU against 7 s flat, one-off, 2026-12-03)
 BALLS = [{"center": [0.9 * i, 0.9 * j, 0.0], "radius": 0.6} for i in range(6) for j in range(4)]
-for method, cull in (("lipschitz", "tree"), ("bisection", "blocks"), ("naive", None)):
+for method, cull in (("lipschitz", "tree"), ("bisection", "blocks"), ("naive", None), ("exact", "tree")):
     name = f"implicit_{method}"
     if not wanted(name):
         continue
