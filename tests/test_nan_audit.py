@@ -190,7 +190,7 @@ def test_implicit_tracers_compute_no_masked_nan(debug_nans, method):
     candidates, and sampled the field at t = inf; the bisection formed its inside points'
     positions at t = inf.)"""
     cfg = implicit.ImplicitConfig.model_validate({
-        "type": "implicit", "threshold": 0.5, "method": method, "eps": 1e-3, "step": 0.02, "bisection": 4, "steps": 256,
+        "type": "implicit", "threshold": 0.5, "method": method, "eps": 1e-2, "step": 0.05, "bisection": 2, "steps": 256,
         "balls": [{"center": [float(np.sqrt(0.5)), 0, 0], "radius": 1.0}, {"center": [-float(np.sqrt(0.5)), 0, 0], "radius": 1.0}]})
     b = implicit.build(cfg)
     p0 = b.params

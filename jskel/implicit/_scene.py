@@ -243,11 +243,14 @@ def _exact_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int) -
     tapered tubes, the rays it could not certify (two tapered axis pieces on one interval) by
     the Lipschitz march. Each stage after culling runs on its rays only, gathered into dense
     sub-batches (``wavefront.compact_map``): on a camera's rays most miss every candidate."""
-    from . import _exact
+    from . import _exact, _pairs
 
     q = static.quality
     tune = scene.tune
-    cand = jax.vmap(lambda o, d, a, b: cull(scene.prims, o, d, a, b, q.capacity, q.block, q.block_capacity, q.cull, False))(*rays)
+    if q.cull == "tree" and blocks_used(scene.prims.a.shape[0], q.block, q.block_capacity) and _pairs.usable(q.block):
+        cand = _pairs.cull_batch(scene.prims, rays, q.capacity, q.block, q.block_capacity, lanes)
+    else:
+        cand = jax.vmap(lambda o, d, a, b: cull(scene.prims, o, d, a, b, q.capacity, q.block, q.block_capacity, q.cull, False))(*rays)
     st = _exact.rounds(cand, tune, rays.origins, rays.directions, q, lanes)
     inf = jnp.full(rays.t_min.shape, jnp.inf, rays.t_min.dtype)
     flags = jnp.where(cand.overflow, OVERFLOW, 0)
