@@ -237,20 +237,26 @@ def intersect_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int
 
 
 def _exact_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int) -> Hit:
-    """``exact``: every ray culled; the intervals of the rays with candidates solved in rounds
-    over the rays still searching (``_exact.rounds``); the surface of the rays that hit; then
-    the rays whose culling overflowed traced again with flat culling and, in a model with
-    tapered tubes, the rays it could not certify (two tapered axis pieces on one interval) by
-    the Lipschitz march. Each stage after culling runs on its rays only, gathered into dense
+    """``exact``: every ray culled (by (ray, leaf) pairs through the tree, ``_pairs``), the rays
+    whose block list overflowed culled again flat; the intervals of the rays with candidates
+    solved in rounds over the rays still searching (``_exact.rounds``); the surface of the rays
+    that hit; then, in a model with tapered tubes, the rays it could not certify (two tapered
+    axis pieces on one interval) by the Lipschitz march. Each stage after culling runs on its rays only, gathered into dense
     sub-batches (``wavefront.compact_map``): on a camera's rays most miss every candidate."""
     from . import _exact, _pairs
 
     q = static.quality
     tune = scene.tune
-    if q.cull == "tree" and blocks_used(scene.prims.a.shape[0], q.block, q.block_capacity) and _pairs.usable(q.block):
+    def culled(block: int):
+        return jax.vmap(lambda o, d, a, b: cull(scene.prims, o, d, a, b, q.capacity, block, q.block_capacity, q.cull, False))
+
+    blocks = blocks_used(scene.prims.a.shape[0], q.block, q.block_capacity)
+    if q.cull == "tree" and blocks and _pairs.usable(q.block):
         cand = _pairs.cull_batch(scene.prims, rays, q.capacity, q.block, q.block_capacity, lanes)
     else:
-        cand = jax.vmap(lambda o, d, a, b: cull(scene.prims, o, d, a, b, q.capacity, q.block, q.block_capacity, q.cull, False))(*rays)
+        cand = culled(q.block)(*rays)
+    if blocks:  # rays that met more blocks than kept: culled again flat, then traced with the rest
+        cand = compact_map(lambda sub: culled(0)(*sub), cand.overflow, rays, cand, lanes)
     st = _exact.rounds(cand, tune, rays.origins, rays.directions, q, lanes)
     inf = jnp.full(rays.t_min.shape, jnp.inf, rays.t_min.dtype)
     flags = jnp.where(cand.overflow, OVERFLOW, 0)
@@ -269,17 +275,10 @@ def _exact_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int) -
 
     found = jnp.isfinite(st.t)
     hits = compact_map(done, found, (cand, st, rays.origins, rays.directions, flags), miss, lanes)
-    unc = st.unc
-
-    def again(st_: Static):
-        return lambda sub: jax.vmap(lambda o, d, a, b: intersect_one(scene, st_, o, d, a, b))(*sub)
-
-    if blocks_used(scene.prims.a.shape[0], q.block, q.block_capacity):
-        hits = compact_map(again(static._replace(quality=q._replace(block=0))), (hits.flags & OVERFLOW) != 0, rays, hits, lanes)
-        unc = unc & ((hits.flags & OVERFLOW) == 0)
     if q.degree == 4:  # no tapered tube: every interval is a quartic, every ray certified
         return hits
-    return compact_map(again(static._replace(quality=q._replace(method="lipschitz"))), unc, rays, hits, lanes)
+    lip = static._replace(quality=q._replace(method="lipschitz", block=0 if blocks else q.block))
+    return compact_map(lambda sub: jax.vmap(lambda o, d, a, b: intersect_one(scene, lip, o, d, a, b))(*sub), st.unc, rays, hits, lanes)
 
 
 def choose_uv(scene: ImplicitScene, static: Static, pos):

@@ -224,6 +224,15 @@ def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_
     return _kept(prims, ids, c, r, prims.valid, o, d, t_min, t_max, capacity, block_overflow, nearest)
 
 
+def _words(mask):
+    """``accel.pack_bits`` of one ray's mask as a sum of its set bits' values (disjoint bits: the
+    same words); XLA on the CPU vectorises the sum, while the shift-or reduce took 1.4 ms of the
+    gecko's 9.5 ms batch of 4,096 rays (one-off profile, 2026-12-06)."""
+    n = mask.shape[0]
+    w = jnp.pad(mask, (0, -n % 32)).reshape(-1, 32)
+    return jnp.sum(jnp.where(w, jnp.uint32(1) << jnp.arange(32, dtype=jnp.uint32), jnp.uint32(0)), axis=1, dtype=jnp.uint32)
+
+
 def _kept(prims: Prims, ids, c, r, valid, o, d, t_min, t_max, capacity: int, block_overflow, nearest: bool) -> Candidates:
     """The :class:`Candidates` among the primitives ``ids`` of ``prims`` (all of them where
     ``ids`` is None), whose influence spheres are (c, r) and ``valid``: those the ray crosses,
@@ -237,7 +246,7 @@ def _kept(prims: Prims, ids, c, r, valid, o, d, t_min, t_max, capacity: int, blo
     if nearest:
         idx, ok = _nearest(hit, t0, min(capacity, n))  # fewer entries than the capacity cannot overflow
     else:  # the first met in the tree's (Morton) order: no sort (top_k) per ray
-        idx, _ = accel.first_set(accel.pack_bits(hit), min(capacity, n))
+        idx, _ = accel.first_set(_words(hit), min(capacity, n))
         ok = jnp.arange(idx.shape[0]) < count
         idx = jnp.minimum(idx, n - 1)
     gid = jnp.where(ok, idx, p) if ids is None else jnp.where(ok, ids[idx], p)
