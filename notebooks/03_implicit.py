@@ -54,7 +54,7 @@ plt.show()
 # crossing; the Lipschitz march cannot step over a surface (Sec. 4 and `jskel/implicit/_trace.py`);
 # the exact tracer solves the field's polynomial on each interval between the primitives'
 # breakpoints (`jskel/implicit/_exact.py`), with no step to choose. Red: pixels the reference
-# (Lipschitz, tiny eps, float64) hits and the method misses; each title gives the render's time,
+# (Lipschitz, tiny eps) hits and the method misses; each title gives the render's time,
 # warm (a second render of the same program).
 
 # %%
@@ -62,8 +62,7 @@ cam = {"eye": [0.5, 1.5, 6.0], "target": [0.0, 0.5, 0.0], "fov_deg": 40, "width"
 def trace(**kw):
     return render(*validate({"object": {**model, **kw}, "camera": cam}), progress=False)
 
-ref = render(*validate({"object": {**model, "method": "lipschitz", "eps": 1e-4}, "camera": cam, "render": {"dtype": "float64"}}),
-             progress=False)
+ref = trace(method="lipschitz", eps=1e-4)
 methods = {"naive, step 0.3": dict(method="naive", step=0.3, bisection=8),
            "bisection (Alg. 2)": dict(method="bisection", bisection=12),
            "lipschitz, eps 1e-3": dict(method="lipschitz", eps=1e-3),
