@@ -18,7 +18,7 @@ import implicit_reference as iref
 import reference as ref
 from conftest import whole_chunks
 from jskel import implicit
-from jskel.interface import Object, intersect_each
+from jskel.interface import Object, intersect, intersect_each
 from jskel.rays import FLAG_OVERFLOW, make_rays
 
 T = 0.5
@@ -32,8 +32,10 @@ def build(raw: dict):
 
 
 def cast(built, O, D):
+    """The batch intersection (``implicit.intersect_batch``: culling by (ray, leaf) pairs, the
+    rounds, the compacted retraces), as renders call it."""
     rays = make_rays(np.asarray(O) - built.anchor, D)
-    return whole_chunks(intersect_each, Object(built.params, built.static, "implicit"), rays)
+    return whole_chunks(intersect, Object(built.params, built.static, "implicit"), rays)
 
 
 def rays_through(prims, n, seed, spread=1.2):
@@ -177,3 +179,30 @@ def test_exact_refuses_csg_and_displacement_by_name():
         implicit.ImplicitConfig.model_validate({**base, "csg": {"group": "g"}})
     with pytest.raises(ValueError, match=r"displace is set"):
         implicit.ImplicitConfig.model_validate({**base, "displace": {"type": "noise"}})
+
+
+def test_rays_that_overflow_their_block_list_are_culled_again_flat():
+    """200 balls in a thin slab culled in blocks of 4 with 4 kept a ray and room for 100
+    candidates (more than the 16 slots a block list tests: the two lists differ in width):
+    rays along the slab meet more blocks than kept, are culled again over every ball, and agree
+    with the reference like the rest."""
+    rng = np.random.default_rng(12)
+    c = rng.uniform(-3, 3, (200, 3))
+    c[:, 1] *= 0.1
+    balls = [{"center": x.tolist(), "radius": 0.5} for x in c]
+    built, prims = build({"balls": balls, "capacity": 100, "block_size": 4, "block_capacity": 4})
+    O, D = rays_through(prims, 400, 13)
+    along = np.stack([np.full(64, -10.0), rng.uniform(-0.3, 0.3, 64), rng.uniform(-3, 3, 64)], 1)
+    O = np.vstack([O, along])
+    D = np.vstack([D, np.tile([1.0, 0.0, 0.0], (64, 1))])
+    hit, _, _ = agree(built, prims, O, D)
+    assert not np.any(hit.flags[-64:])
+    one = whole_chunks(intersect_each, Object(built.params, built.static, "implicit"), make_rays(O - built.anchor, D))
+    assert np.any(one.flags[-64:] & FLAG_OVERFLOW)  # one ray at a time, the block list overflows
+
+
+def test_exact_needs_both_tube_radii_by_name():
+    cfg = implicit.ImplicitConfig.model_validate({"type": "implicit", "method": "exact", "tubes": [
+        {"a": [0, 0, 0], "b": [1, 0, 0], "radius_a": 0.5, "radius_b": 0.0}]})
+    with pytest.raises(ValueError, match=r"object.tubes\[0\].radius_b: the exact method needs both tube radii > 0"):
+        implicit.build(cfg)

@@ -24,7 +24,9 @@ apply). CSG and displacement are not sums of such pieces: config refuses ``exact
 
 Each interval's polynomial is formed in a local variable u in [-1, 1] about the interval's
 midpoint, from each piece's distance written about that point: its coefficients are O(1) per
-primitive whatever the ray's length or the model's size, so float32 keeps its digits.
+primitive whatever the interval's length or the model's size (the midpoint o + m d itself is
+rounded at the ray's distance, as every tracer's sample point is). Tubes need both radii > 0
+(the build says so by name): a tapering piece's R^4 at a zero end leaves the product no digits.
 
 Every function here is one ray's, vmapped by the caller; loops are ``lax`` loops of static or
 traced length.
@@ -43,7 +45,8 @@ from ..rays import FLAG_OVERFLOW
 from ._bounds import _kernel_bounds, _supports
 from ._field import Prims, shaped_field
 
-NEWTON = 12  # Newton-bisection steps per bracket: float32 converges in 4-6 from a bracket of u in [-1, 1]
+NEWTON = 12  # Newton-bisection steps per bracket, no stopping test: Newton converges in float32 in a few
+# steps once near; a bracket where every step leaves it ends 2^-12 of its width wide
 
 
 def breakpoints(sub: Prims, o, d, tubes: bool):
@@ -98,7 +101,8 @@ def _mul(p, q):
 def interval_poly(sub: Prims, o, d, ta, tb, threshold, degree: int):
     """Coefficients (degree + 1,) in u in [-1, 1] (t = m + h u, m and h the midpoint and half
     width of [ta, tb]) of a polynomial with the sign of F(t) - T on the interval, and whether it
-    is uncertified (two or more tapered axis pieces live on it). Each candidate's piece is the
+    is uncertified: two or more tapered axis pieces live on it (``degree`` 8), or one (``degree``
+    4, chosen by the build for a model without tapering tubes). Each candidate's piece is the
     one its projection parameter s selects at the midpoint; it is live where r^2 < R^2 there
     (the breakpoints make both constant on the interval, up to rounding at an end where the
     kernel is 0 with its derivative)."""
@@ -253,7 +257,9 @@ def step(ray: Ray, st: State, degree: int) -> State:
     ta, tb, _ = jax.lax.while_loop(skip, advance, (st.ta, *nxt(st.ta)))
     # the candidates' bounds on the whole line below T: a certain miss (``_bounds.field_bound``)
     go = st.live & (ta < ray.t_hi) & (jnp.sum(ray.kb) >= lowT)
-    c, unc = interval_poly(ray.sub, ray.o, ray.d, ta, jnp.where(go, tb, ta + 1), ray.T, degree)
+    # a lane that is done (a padded sub-batch's copy of a ray without candidates: ta = inf) solves
+    # [0, 1] instead: its interval's midpoint and width would be NaN, even masked after
+    c, unc = interval_poly(ray.sub, ray.o, ray.d, jnp.where(go, ta, 0.0), jnp.where(go, tb, 1.0), ray.T, degree)
     start_in = _horner(c, -jnp.ones_like(ta)) >= 0  # the ray starts inside, or the last interval ended at a root
     u = jnp.where(start_in, -1.0, first_root(c))
     t = jnp.where(go & jnp.isfinite(u), 0.5 * (ta + tb) + 0.5 * (tb - ta) * jnp.where(jnp.isfinite(u), u, 0.0), inf)

@@ -6,8 +6,8 @@ two leaves on average (the blob slabs: 1.8 at 5,000 blobs, ``docs/performance.md
 walk (``accel.collect``) is the same, and the pairs of a ray and a leaf it met are gathered into
 dense sub-batches (``wavefront.compact_map``), each pair testing its leaf's primitives'
 spheres of influence (Rouiller 2011, Sec. 4.2) and returning one word of hit bits; a ray then
-keeps the first ``capacity`` primitives met (``accel.first_set`` over its words), in the
-tree's order. The candidates are those of ``cull(..., nearest=False)``, the ray's window (its
+keeps the first ``capacity`` primitives met (``accel.first_set`` over its words): in the walk's
+order of its leaves, then the tree's (Morton) order within a leaf. The candidates are those of ``cull(..., nearest=False)``, the ray's window (its
 spheres' union) the same."""
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ from ._config import ImplicitConfig
 from ._field import Prims, shaped_field
 from ._primitives import csg_shape, expand, primitives
 from ._projectors import Projector, Skin, displace_params, project, projector_arrays, rest_position
-from ._trace import OVERFLOW, Quality, Tuning, blocks_used, certify, cull, surface_one, trace_one
+from ._trace import NO_BRACKET, OVERFLOW, Quality, Tuning, blocks_used, certify, cull, surface_one, trace_one
 
 
 class ImplicitScene(NamedTuple):
@@ -149,11 +149,13 @@ def _checked_field_max(cfg: ImplicitConfig, a, b, ra, rb) -> float:
     that the surface may exist (``threshold`` below it) and that the lipschitz method's slope bound does
     (both radii of every tube > 0). ValueError names the field."""
     nb = len(cfg.balls) if cfg.procedural is None else 0
-    if cfg.method == "lipschitz":
+    why = {"lipschitz": "its slope bound is 8/(3 sqrt(3) R)",
+           "exact": "a tapering tube's interval is multiplied by R^4, which a zero radius leaves without digits"}
+    if cfg.method in why:
         for i in np.nonzero(np.minimum(ra, rb) <= 0)[0]:
             which = "radius_a" if ra[i] <= 0 else "radius_b"
             where = f"tubes[{i - nb}].{which}" if i - nb < len(cfg.tubes) else f"bones[{i - nb - len(cfg.tubes)}].tube"
-            raise ValueError(f"object.{where}: the lipschitz method needs both tube radii > 0 (its slope bound is 8/(3 sqrt(3) R))")
+            raise ValueError(f"object.{where}: the {cfg.method} method needs both tube radii > 0 ({why[cfg.method]})")
     fmax = _max_field_bound(a, b, ra, rb) * (1.0 + (cfg.displace.amplitude if cfg.displace else 0.0))
     if not cfg.threshold < fmax:
         raise ValueError(f"object.threshold: {cfg.threshold} is not below a bound of the field's maximum ({fmax:.4g}): no surface")
@@ -256,7 +258,9 @@ def _exact_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int) -
     else:
         cand = culled(q.block)(*rays)
     if blocks:  # rays that met more blocks than kept: culled again flat, then traced with the rest
-        cand = compact_map(lambda sub: culled(0)(*sub), cand.overflow, rays, cand, lanes)
+        k = max(cand.ids.shape[1], jax.eval_shape(culled(0), *rays).ids.shape[1])  # lists of either width
+        n = scene.prims.a.shape[0]
+        cand = compact_map(lambda sub: _widened(culled(0)(*sub), k, n), cand.overflow, rays, _widened(cand, k, n), lanes)
     st = _exact.rounds(cand, tune, rays.origins, rays.directions, q, lanes)
     inf = jnp.full(rays.t_min.shape, jnp.inf, rays.t_min.dtype)
     flags = jnp.where(cand.overflow, OVERFLOW, 0)
@@ -275,10 +279,25 @@ def _exact_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int) -
 
     found = jnp.isfinite(st.t)
     hits = compact_map(done, found, (cand, st, rays.origins, rays.directions, flags), miss, lanes)
-    if q.degree == 4:  # no tapered tube: every interval is a quartic, every ray certified
-        return hits
+    if q.degree == 4:  # built without tapering tubes: none to certify, unless traced radii now taper
+        return hits._replace(flags=hits.flags | jnp.where(st.unc, NO_BRACKET, 0))
     lip = static._replace(quality=q._replace(method="lipschitz", block=0 if blocks else q.block))
     return compact_map(lambda sub: jax.vmap(lambda o, d, a, b: intersect_one(scene, lip, o, d, a, b))(*sub), st.unc, rays, hits, lanes)
+
+
+def _widened(cand, k: int, p: int):
+    """Candidates (leading axis N) padded to ``k`` slots with empty ones (not valid, id ``p``:
+    none, as culling marks them): the two cullings keep lists of min(capacity, slots they
+    test) entries."""
+    pad = k - cand.ids.shape[1]
+    if pad == 0:
+        return cand
+
+    def widen(x, fill):
+        return jnp.concatenate([x, jnp.full((x.shape[0], pad) + x.shape[2:], fill, x.dtype)], axis=1)
+
+    sub = cand.sub._replace(**{f: widen(getattr(cand.sub, f), False if f == "valid" else 0) for f in cand.sub._fields})
+    return cand._replace(sub=sub, ids=widen(cand.ids, p))
 
 
 def choose_uv(scene: ImplicitScene, static: Static, pos):

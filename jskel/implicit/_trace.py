@@ -330,8 +330,10 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality, de
         from ._exact import trace_exact
 
         t, flags, unc = trace_exact(cand, tune, o, d, q)
-        if deferred or q.degree == 4:  # degree 4: no tapered tube, every ray certified
-            return (t, flags, unc) if deferred else (t, flags)
+        if deferred:
+            return t, flags, unc
+        if q.degree == 4:  # built without tapering tubes: none to certify, unless traced radii now taper
+            return t, flags | jnp.where(unc, NO_BRACKET, 0)
         # a ray the polynomial cannot certify (two tapered axis pieces on an interval) marches
         lip = q._replace(method="lipschitz")
         def marched():
