@@ -55,7 +55,7 @@ plt.show()
 # the exact tracer solves the field's polynomial on each interval between the primitives'
 # breakpoints (`jskel/implicit/_exact.py`), with no step to choose. Red: pixels the reference
 # (Lipschitz, tiny eps) hits and the method misses; each title gives the render's time,
-# warm (a second render of the same program).
+# warm (a second render of the same program; at CI's reduced size, the first, compile included).
 
 # %%
 cam = {"eye": [0.5, 1.5, 6.0], "target": [0.0, 0.5, 0.0], "fov_deg": 40, "width": W, "height": H}
@@ -69,7 +69,8 @@ methods = {"naive, step 0.3": dict(method="naive", step=0.3, bisection=8),
            "exact": dict(method="exact")}
 fig, axs = plt.subplots(1, 4, figsize=(18, 3.6))
 for a, (name, kw) in zip(axs, methods.items()):
-    trace(**kw)  # the first render compiles
+    if not SMALL:
+        trace(**kw)  # the first render compiles (CI's reduced run times it with its compile)
     t0 = time.perf_counter()
     r = trace(**kw)
     sec = time.perf_counter() - t0
