@@ -11,7 +11,7 @@ import pytest
 
 import reference as ref
 from jskel import implicit
-from jskel.implicit._trace import cull, influence_tree
+from jskel.implicit._cull import cull, influence_tree
 from jskel.rays import make_rays
 from jskel.executor import map_chunks
 

@@ -220,7 +220,7 @@ class State(NamedTuple):
 
 
 def prepare(cand, tune, o, d, q) -> Ray:
-    """The :class:`Ray` of one ray over its culled candidates (``_trace.Candidates``)."""
+    """The :class:`Ray` of one ray over its culled candidates (``_cull.Candidates``)."""
     sub = cand.sub
     enter, leave = _supports(sub, o, d)
     bp = breakpoints(sub, o, d, q.tubes).reshape(-1)
@@ -285,7 +285,7 @@ def finish(sub: Prims, o, d, t, tune, q):
 
 
 def trace_exact(cand, tune, o, d, q):
-    """(t, flags, uncertified) of one ray over its culled candidates (``_trace.Candidates``):
+    """(t, flags, uncertified) of one ray over its culled candidates (``_cull.Candidates``):
     t = inf on a miss; the flags of culling (an overflow)."""
     # the march only finds where the root lies (its loop has no reverse mode): finish differentiates
     c0, tune0, o0, d0 = jax.lax.stop_gradient((cand, tune, o, d))

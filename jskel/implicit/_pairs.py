@@ -1,6 +1,6 @@
 """Culling a batch of rays through the shared BVH by (ray, leaf) pairs (``method: exact``).
 
-``_trace.cull`` gathers and tests every slot of a ray's leaf list (``block_capacity`` leaves of
+``_cull.cull`` gathers and tests every slot of a ray's leaf list (``block_capacity`` leaves of
 ``block`` primitives: 256 sphere tests a ray by default) although a camera ray meets fewer than
 two leaves on average (the blob slabs: 1.8 at 5,000 blobs, ``docs/performance.md``). Here the
 walk (``accel.collect``) is the same, and the pairs of a ray and a leaf it met are gathered into
@@ -19,7 +19,7 @@ from .. import accel
 from ..rays import Rays
 from ..wavefront import compact_map
 from ._field import Prims
-from ._trace import Candidates, _sphere_interval, influence_spheres, influence_tree
+from ._cull import Candidates, _sphere_interval, influence_spheres, influence_tree
 
 
 def usable(block: int) -> bool:
@@ -28,7 +28,7 @@ def usable(block: int) -> bool:
 
 
 def cull_batch(prims: Prims, rays: Rays, capacity: int, block: int, block_capacity: int, lanes: int) -> Candidates:
-    """The :class:`_trace.Candidates` (leading axis N) of every ray of ``rays``."""
+    """The :class:`_cull.Candidates` (leading axis N) of every ray of ``rays``."""
     bvh = influence_tree(prims, block)
     leaves, _, over = jax.vmap(lambda o, d, a, b: accel.collect(bvh, o, d, a, b, block_capacity))(*rays)
     n, s = leaves.shape

@@ -20,7 +20,8 @@ from ._config import ImplicitConfig
 from ._field import Prims, shaped_field
 from ._primitives import csg_shape, expand, primitives
 from ._projectors import Projector, Skin, displace_params, project, projector_arrays, rest_position
-from ._trace import NO_BRACKET, OVERFLOW, Quality, Tuning, blocks_used, certify, cull, surface_one, trace_one
+from ._cull import blocks_used, cull
+from ._trace import NO_BRACKET, OVERFLOW, Quality, Tuning, certify, surface_one, trace_one
 
 
 class ImplicitScene(NamedTuple):
@@ -84,7 +85,7 @@ def _max_field_bound(a, b, ra, rb) -> float:
 def morton_order(points: np.ndarray) -> np.ndarray:
     """Stable order of points (N,3) along a 30-bit Morton curve over their bounding cube (host):
     neighbours in the order are neighbours in space, so blocks of consecutive primitives have
-    tight bounding spheres (``_trace.block_spheres``). One scale for all axes: a thin slab must
+    tight bounding spheres (``_cull.block_spheres``). One scale for all axes: a thin slab must
     not spend the curve's leading bits on its thin axis."""
     lo = points.min(0)
     ext = float(np.max(points.max(0) - lo))
