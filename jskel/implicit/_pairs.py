@@ -19,7 +19,7 @@ from .. import accel
 from ..rays import Rays
 from ..wavefront import compact_map
 from ._field import Prims
-from ._cull import Candidates, _sphere_interval, influence_spheres, influence_tree
+from ._cull import Candidates, _sphere_interval, _words, influence_spheres, influence_tree
 
 
 def usable(block: int) -> bool:
@@ -46,7 +46,7 @@ def cull_batch(prims: Prims, rays: Rays, capacity: int, block: int, block_capaci
             rows = table[:, jnp.maximum(lf, 0)]  # (4, block): this leaf's spheres
             t0, t1, hit = _sphere_interval(rows[:3].T, rows[3], rays.origins[i], rays.directions[i], rays.t_min[i], rays.t_max[i])
             hit = hit & (rows[3] >= 0)
-            word = jnp.sum(jnp.where(hit, jnp.uint32(1) << jnp.arange(block, dtype=jnp.uint32), jnp.uint32(0)), dtype=jnp.uint32)
+            word = _words(hit)[0]  # block <= 32: one word
             inf = jnp.asarray(jnp.inf, t0.dtype)
             return word, jnp.min(jnp.where(hit, t0, inf)), jnp.max(jnp.where(hit, t1, -inf))
 
