@@ -225,8 +225,10 @@ def test_bad_implicit_input_names_the_key():
         validate({"object": {**base, "balls": [{"center": [0, float("nan"), 0], "radius": 1.0}]}})
     with pytest.raises(ValueError, match=r"object\.threshold: 1\.5 is not below"):
         implicit.build(implicit.ImplicitConfig.model_validate({**base, "threshold": 1.5}))
-    with pytest.raises(ValueError, match=r"object\.tubes\[0\]\.radius_b: the lipschitz method"):
-        implicit.build(implicit.ImplicitConfig.model_validate({**base, "tubes": [{"a": [0, 0, 0], "b": [1, 0, 0], "radius_a": 0.5, "radius_b": 0}]}))
+    for method in ("lipschitz", "exact"):  # exact: the default
+        with pytest.raises(ValueError, match=rf"object\.tubes\[0\]\.radius_b: the {method} method"):
+            cone = {**base, "tubes": [{"a": [0, 0, 0], "b": [1, 0, 0], "radius_a": 0.5, "radius_b": 0}]}
+            implicit.build(implicit.ImplicitConfig.model_validate(cone if method == "exact" else {**cone, "method": method}))
 
 
 def test_another_step_cap_or_bisection_count_casts_without_a_program():

@@ -48,20 +48,23 @@ def np_first_root(F, O, D, t0=0.0, t1=6.0, n=3000):
     return out, margin
 
 
-def two_balls(op, **kw):
+def two_balls(op, method="lipschitz", **kw):
     return implicit.ImplicitConfig.model_validate({
-        "type": "implicit", "threshold": T, "method": "lipschitz", "eps": 1e-3, "steps": 4096,
+        "type": "implicit", "threshold": T, "method": method, "eps": 1e-3, "steps": 4096,
         "balls": [{"center": list(A[0]), "radius": A[1], "group": "a"}, {"center": list(B[0]), "radius": B[1], "group": "b"}],
         "csg": {"op": op, "children": [{"group": "a"}, {"group": "b"}]}, **kw})
 
 
-@pytest.mark.parametrize("op", ["sum", "max", "min", "diff"])
-def test_csg_operations_against_numpy(op):
+@pytest.mark.parametrize("op,method", [("sum", "lipschitz"), ("max", "lipschitz"), ("min", "lipschitz"), ("diff", "lipschitz"),
+                                       ("max", "exact"), ("diff", "exact")])
+def test_csg_operations_against_numpy(op, method):
+    """Each operation by the Lipschitz march; union and difference also by ``exact`` (the march
+    from the first point where the sum of both balls reaches T, found exactly)."""
     rng = np.random.default_rng(11)
     O, D = ref.random_rays(rng, [-1.2, -1.2, -1.2], [1.4, 1.2, 1.2], 3000, spread=1.0)
     O = O - 3.0 * D  # start well outside
     t_ref, margin = np_first_root(lambda x: np_csg(op, x), O, D, 0.0, 12.0, 2400)
-    hit = cast(implicit.build(two_balls(op)), O, D)
+    hit = cast(implicit.build(two_balls(op, method)), O, D)
     assert np.all((hit.flags & ~FLAG_GRAZE) == 0) and np.all(np.isfinite(hit.normal))
     clear = margin > 0.005
     assert not np.any(clear & (hit.flags != 0))  # only rays that graze the surface say they might
@@ -93,14 +96,16 @@ def _np_noise(x, freq):
     return acc
 
 
-def test_displacement_keeps_the_lipschitz_guarantee():
+@pytest.mark.parametrize("method", ["lipschitz", "exact"])
+def test_displacement_keeps_the_lipschitz_guarantee(method):
+    """``exact`` marches from the first root of the undisplaced sum at T / (1 + amp)."""
     amp, freq = 0.4, 6.0
     rng = np.random.default_rng(12)
     O, D = ref.random_rays(rng, [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], 2000, spread=0.9)
     O = O - 2.0 * D
     F = lambda x: _f(x, *A) * (1 + amp * _np_noise(x, freq))  # noqa: E731
     t_ref, margin = np_first_root(F, O, D, 0.0, 10.0, 4000)
-    cfg = implicit.ImplicitConfig.model_validate({"type": "implicit", "threshold": T, "method": "lipschitz", "eps": 5e-4,
+    cfg = implicit.ImplicitConfig.model_validate({"type": "implicit", "threshold": T, "method": method, "eps": 5e-4,
         "steps": 8192, "balls": [{"center": list(A[0]), "radius": A[1]}], "displace": {"amplitude": amp, "frequency": freq}})
     hit = cast(implicit.build(cfg), O, D)
     capped = hit.flags != 0  # the guarantee holds where the march finished: flagged rays are reported
@@ -128,7 +133,8 @@ def test_csg_bad_input():
         validate({"object": {**base, "displace": {"amplitude": 1.5}}})
 
 
-def test_image_displacement_keeps_the_lipschitz_guarantee(tmp_path):
+@pytest.mark.parametrize("method", ["lipschitz", "exact"])
+def test_image_displacement_keeps_the_lipschitz_guarantee(tmp_path, method):
     """Fig. 14: a height map through a planar projector displaces the surface; the Lipschitz
     march (bound grown by the map's largest texel slope) finds every hit NumPy finds."""
     import imageio.v3 as iio
@@ -146,7 +152,7 @@ def test_image_displacement_keeps_the_lipschitz_guarantee(tmp_path):
     O, D = ref.random_rays(rng, [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], 2000, spread=0.9)
     O = O - 2.0 * D
     t_ref, margin = np_first_root(F, O, D, 0.0, 10.0, 4000)
-    cfg = implicit.ImplicitConfig.model_validate({"type": "implicit", "threshold": T, "method": "lipschitz", "eps": 5e-4,
+    cfg = implicit.ImplicitConfig.model_validate({"type": "implicit", "threshold": T, "method": method, "eps": 5e-4,
         "steps": 8192, "balls": [{"center": list(A[0]), "radius": A[1]}],
         "displace": {"type": "image", "amplitude": amp, "map": str(path),
                      "projector": {"type": "planar", "origin": [0, 0, 0], "axis": [0, 0, 1], "up": [0, 1, 0], "scale": [su, sv]}}})

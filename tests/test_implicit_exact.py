@@ -173,14 +173,6 @@ def test_tangent_rays_in_closed_form():
     assert np.all(np.abs(hit.t[inside] - t_true) < tol), np.max(np.abs(hit.t[inside] - t_true) / tol)
 
 
-def test_exact_refuses_csg_and_displacement_by_name():
-    base = {"type": "implicit", "method": "exact", "balls": [{"center": [0, 0, 0], "radius": 1.0, "group": "g"}]}
-    with pytest.raises(ValueError, match=r"method: 'exact' traces sums of kernels; csg is set"):
-        implicit.ImplicitConfig.model_validate({**base, "csg": {"group": "g"}})
-    with pytest.raises(ValueError, match=r"displace is set"):
-        implicit.ImplicitConfig.model_validate({**base, "displace": {"type": "noise"}})
-
-
 def test_rays_that_overflow_their_block_list_are_culled_again_flat():
     """200 balls in a thin slab culled in blocks of 4 with 4 kept a ray and room for 100
     candidates (more than the 16 slots a block list tests: the two lists differ in width):

@@ -185,14 +185,14 @@ def test_far_ray_with_a_tolerance_below_the_float_spacing_is_a_flagged_hit():
     steps by a few ulps of t instead (no stall into the step cap) and says so."""
     balls = [((0, 0, 0), 1.0)]
     O, D = np.array([[0.0, 0.1, -1e6], [0.0, 0.1, -3.0]]), np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
-    built = implicit_model(balls, eps=1e-9)
+    built = implicit_model(balls, eps=1e-9, method="lipschitz")
     hit, Of, Df = cast(built, O, D)
     t_ref = np_first_root(Of - built.anchor, Df, *arrays([((0, 0, 0) - built.anchor, 1.0)]))
     assert np.all(hit.flags & FLAG_FLOAT_SPACING) and not np.any(hit.flags & FLAG_STEP_CAP)
     assert np.all(np.isfinite(hit.t))
     np.testing.assert_allclose(hit.t, t_ref, rtol=8 * EPS32, atol=1e-6)
     # a tolerance above the spacing: no flag
-    ok, _, _ = cast(implicit_model(balls, eps=1e-3), O[1:], D[1:])
+    ok, _, _ = cast(implicit_model(balls, eps=1e-3, method="lipschitz"), O[1:], D[1:])
     assert ok.flags[0] == 0 and abs(ok.t[0] - t_ref[1]) < 1e-3
 
 
@@ -232,7 +232,7 @@ def test_rays_near_tangent_hit_the_reference_or_carry_a_flag(method):
     assert np.any(flag) and np.any(ok & ~flag)
 
 
-@pytest.mark.parametrize("method", ["lipschitz", "naive", "bisection"])
+@pytest.mark.parametrize("method", ["lipschitz", "naive", "bisection", "exact"])
 def test_a_surface_just_before_the_rays_far_end_is_found(method):
     """A ray whose window ends ``delta`` past a lone ball's surface (1e-6 .. 1e-2, log-uniform,
     seeded; the step is 0.05 and eps 1e-3, so the march's next sample lies beyond t_max) hits it
@@ -305,7 +305,7 @@ def test_rays_through_a_saddle_of_the_field_hit_the_reference_or_carry_a_flag(me
 
 def test_step_cap_and_overflow_are_flagged():
     O, D = np.array([[0.0, 0.3, -3.0]]), np.array([[0.0, 0.0, 1.0]])
-    capped, _, _ = cast(implicit_model([((0, 0, 0), 1.0)], steps=2), O, D)
+    capped, _, _ = cast(implicit_model([((0, 0, 0), 1.0)], steps=2, method="lipschitz"), O, D)
     assert not np.isfinite(capped.t[0]) and capped.flags[0] & FLAG_STEP_CAP
     over, _, _ = cast(implicit_model(FIG7, capacity=1), np.array([[0.0, 0.0, -3.0]]), D)
     assert over.flags[0] & FLAG_OVERFLOW
@@ -332,7 +332,7 @@ def _fuzz_models(rng, n_models=8, n_rays=CHUNK):
         yield scale, balls, tubes, O, D / np.linalg.norm(D, axis=1, keepdims=True)
 
 
-@pytest.mark.parametrize("method", ["lipschitz", "naive", "bisection"])
+@pytest.mark.parametrize("method", ["lipschitz", "naive", "bisection", "exact"])
 def test_fuzzed_rays_hit_the_float64_reference_or_carry_a_flag(method):
     """Every ray either hits within tolerance of the reference (or misses with it) or carries a
     flag, for every method: the thesis' bisection flags a hit whose bracket may hold an earlier
@@ -494,7 +494,7 @@ def test_render_keeps_the_flags_of_rays_that_miss_and_counts_them_by_name():
     from jskel.config import validate
     from jskel.render import camera_of, render
 
-    exp, obj = validate({"object": {"type": "implicit", "threshold": T, "steps": 1, "balls": [{"center": [0, 0, 0], "radius": 1.0}]},
+    exp, obj = validate({"object": {"type": "implicit", "threshold": T, "method": "lipschitz", "steps": 1, "balls": [{"center": [0, 0, 0], "radius": 1.0}]},
                          "camera": {"eye": [0.0, 0.0, 4.0], "target": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0], "fov_deg": 40,
                                     "width": 16, "height": 12}})
     res = render(exp, obj)

@@ -246,14 +246,16 @@ class ImplicitConfig(StrictModel):
     """Scale of the model about the origin."""
     offset: Vec3 = (0.0, 0.0, 0.0)
     """Translation after ``scale``, world units."""
-    method: Literal["naive", "bisection", "lipschitz", "exact"] = "lipschitz"
+    method: Literal["naive", "bisection", "lipschitz", "exact"] = "exact"
     """Root search: constant steps (Alg. 1), inside points (Alg. 2), Lipschitz steps (guaranteed), or
-    exact (the first root of the field's polynomial on each interval between primitives'
-    breakpoints; sums of kernels only: no ``csg``, no ``displace``)."""
+    exact (default: the first root of the field's polynomial on each interval between primitives'
+    breakpoints, to rounding; with ``csg`` or ``displace``, the Lipschitz march from the first
+    point where the sum of kernels can reach the surface, found exactly)."""
     step: Pos = 0.02
     """``naive``: march step, world units."""
     eps: Pos = 1e-3
-    """``lipschitz``: the smallest step; inside intervals shorter than this may be missed."""
+    """``lipschitz`` (and ``exact`` with ``csg`` or ``displace``): the smallest step; inside
+    intervals shorter than this may be missed."""
     steps: Annotated[int, Field(ge=1, le=1 << 20)] = 2048
     """Most march steps per ray (a ray that runs out is flagged)."""
     bisection: Annotated[int, Field(ge=0, le=64)] = 12
@@ -295,7 +297,4 @@ class ImplicitConfig(StrictModel):
         for i, p in enumerate(self.projectors):
             if p.texture is None and self.texture is None:
                 raise ValueError(f"projectors[{i}]: has no texture and the model has none")
-        if self.method == "exact" and (self.csg is not None or self.displace is not None):
-            which = " and ".join(k for k in ("csg", "displace") if getattr(self, k) is not None)
-            raise ValueError(f"method: 'exact' traces sums of kernels; {which} is set (use method: lipschitz)")
         return self

@@ -20,7 +20,16 @@ tapered one on an interval, F - T has the sign of (S - T) R^4 + N^2 (R > 0 insid
 S the other pieces' quartic), a polynomial of degree eight, isolated the same way. An interval
 with two or more tapered axis pieces cannot be written so; the ray is marked ``uncertified``
 and ``intersect_batch`` traces it again by the guaranteed Lipschitz march (its flags then
-apply). CSG and displacement are not sums of such pieces: config refuses ``exact`` for them.
+apply).
+
+CSG and displacement are not sums of such pieces, but both stay below a sum of them: every CSG
+operation on non-negative group fields (sum, max, min, min(F_l, 2T - F_r)) is at most the sum of
+all kernels S, and a displacement scales the field by 1 + amp n(x) <= 1 + amp (Sec. 6.2). So the
+shaped field is below T wherever S < T / (1 + amp), and the first root of S - T / (1 + amp), found
+exactly as above (:func:`lowered`), is a certified start: before it the ray is outside. From there
+the guaranteed Lipschitz march (``_trace.lipschitz_from``) finds the shaped surface with its
+documented tolerance (``eps``, then bisection); a ray whose sum never reaches the lowered
+threshold is a certain miss and marches nothing.
 
 Each interval's polynomial is formed in a local variable u in [-1, 1] about the interval's
 midpoint, from each piece's distance written about that point: its coefficients are O(1) per
@@ -284,6 +293,30 @@ def finish(sub: Prims, o, d, t, tune, q):
     return jnp.where(found, differentiable_root(g, jnp.where(found, t, 0.0)), t)
 
 
+def plain(shape) -> bool:
+    """The shaped field is the sum of kernels itself (no CSG tree, no displacement)."""
+    return shape.groups == 1 and shape.tree == ("group", 0) and shape.displace == "none"
+
+
+def lowered(tune, q):
+    """``tune`` with the threshold the sum of kernels must reach for the shaped field to reach T
+    (the module's docstring): T itself for a plain sum, T / (1 + amp) under a displacement."""
+    if plain(q.shape):
+        return tune
+    amp = tune.disp.amp if q.shape.displace != "none" else 0.0
+    return tune._replace(threshold=tune.threshold / (1.0 + amp))
+
+
+def march_start(cand, st: State):
+    """Where the Lipschitz march of a shaped field (or of an uncertified ray) starts: a few ulps
+    before the sum's first root at the lowered threshold (its rounding must not start the march
+    past the surface), or the window's start for an uncertified ray."""
+    eps = jnp.finfo(cand.t_lo.dtype).eps
+    t = jnp.where(jnp.isfinite(st.t), st.t, cand.t_lo)
+    span = jnp.where(cand.any, cand.t_hi - cand.t_lo, 0.0)
+    return jnp.where(st.unc | ~jnp.isfinite(st.t), cand.t_lo, jnp.maximum(cand.t_lo, t - 64 * eps * (jnp.abs(t) + span)))
+
+
 def trace_exact(cand, tune, o, d, q):
     """(t, flags, uncertified) of one ray over its culled candidates (``_cull.Candidates``):
     t = inf on a miss; the flags of culling (an overflow)."""
@@ -293,7 +326,7 @@ def trace_exact(cand, tune, o, d, q):
     return finish(cand.sub, o, d, st.t, tune, q), jnp.where(cand.overflow, FLAG_OVERFLOW, 0), st.unc
 
 
-def rounds(cand, tune, o, d, q, lanes: int, per_round: int = 2) -> State:
+def rounds(cand, tune, o, d, q, lanes: int, per_round: int = 1) -> State:
     """:func:`march` over a batch (leading axis N) without padding every ray to the batch's
     longest: in rounds, the rays still searching are gathered into dense sub-batches of
     ``lanes`` (``wavefront.compact_map``), prepared (:func:`prepare`: a ray without candidates

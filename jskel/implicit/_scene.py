@@ -21,7 +21,7 @@ from ._field import Prims, shaped_field
 from ._primitives import csg_shape, expand, primitives
 from ._projectors import Projector, Skin, displace_params, project, projector_arrays, rest_position
 from ._cull import blocks_used, cull
-from ._trace import NO_BRACKET, OVERFLOW, Quality, Tuning, certify, surface_one, trace_one
+from ._trace import NO_BRACKET, OVERFLOW, Quality, Tuning, certify, lipschitz_from, surface_one, trace_one
 
 
 class ImplicitScene(NamedTuple):
@@ -140,7 +140,10 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     size = float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
     first = {"lipschitz": cfg.eps, "naive": cfg.step}.get(cfg.method, size)
     # exact: rounding of t, a few ulps of the model's size (the window's t is within a few sizes)
-    tol = 64 * float(np.finfo(dtype).eps) * size if cfg.method == "exact" else float(first * 0.5**cfg.bisection)
+    # (CSG or displacement: the Lipschitz march's from exact's certified start)
+    exact = cfg.method == "exact" and cfg.csg is None and cfg.displace is None
+    first = cfg.eps if cfg.method == "exact" else first
+    tol = 64 * float(np.finfo(dtype).eps) * size if exact else float(first * 0.5**cfg.bisection)
     return Built(scene, static, anchor, (lo, hi), info, primitives=int(p), surface_tolerance=tol)
 
 
@@ -262,28 +265,34 @@ def _exact_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int) -
         k = max(cand.ids.shape[1], jax.eval_shape(culled(0), *rays).ids.shape[1])  # lists of either width
         n = scene.prims.a.shape[0]
         cand = compact_map(lambda sub: _widened(culled(0)(*sub), k, n), cand.overflow, rays, _widened(cand, k, n), lanes)
-    st = _exact.rounds(cand, tune, rays.origins, rays.directions, q, lanes)
-    inf = jnp.full(rays.t_min.shape, jnp.inf, rays.t_min.dtype)
+    plain = _exact.plain(q.shape)
+    st = _exact.rounds(cand, _exact.lowered(tune, q), rays.origins, rays.directions, q, lanes)
     flags = jnp.where(cand.overflow, OVERFLOW, 0)
+    t = st.t if plain else jnp.full_like(st.t, jnp.inf)  # a shaped field's hit is the march's
+    if plain and q.degree == 4:  # built without tapering tubes: none to certify, unless traced radii now taper
+        flags = flags | jnp.where(st.unc, NO_BRACKET, 0)
+    else:  # the Lipschitz march from the certified start (_exact.march_start), t and flags only
+
+        def marched(sub):
+            c, s, o, d = jax.lax.stop_gradient(sub)  # its t is differentiated by finish below
+            return jax.vmap(lambda c, s, o, d: lipschitz_from(c, tune, o, d, _exact.march_start(c, s), q))(c, s, o, d)
+
+        need = st.unc if plain else jnp.isfinite(st.t) | st.unc
+        t, own = compact_map(marched, need, (cand, st, rays.origins, rays.directions), (t, jnp.zeros_like(flags)), lanes)
+        flags = flags | own
+    inf = jnp.full(rays.t_min.shape, jnp.inf, rays.t_min.dtype)
     zero3 = jnp.zeros_like(rays.origins)
     miss = jax.vmap(masked_hit)(inf, zero3, zero3, zero3[:, :2], jnp.zeros_like(flags), flags)
 
-    def done(sub):
-        c, s, o, d, f = sub
-
-        def one(c, s, o, d, f):
-            t = _exact.finish(c.sub, o, d, s.t, tune, q)
+    def done(sub):  # every hit: t differentiable (implicit-function theorem at the root), its surface
+        def one(c, t, o, d, f):
+            t = _exact.finish(c.sub, o, d, t, tune, q)
             pos, n, prim = surface_one(c, tune, o, d, t, q)
             return masked_hit(t, pos, n, choose_uv(scene, static, pos)[1], scene.prim_id[prim], f)
 
-        return jax.vmap(one)(c, s, o, d, f)
+        return jax.vmap(one)(*sub)
 
-    found = jnp.isfinite(st.t)
-    hits = compact_map(done, found, (cand, st, rays.origins, rays.directions, flags), miss, lanes)
-    if q.degree == 4:  # built without tapering tubes: none to certify, unless traced radii now taper
-        return hits._replace(flags=hits.flags | jnp.where(st.unc, NO_BRACKET, 0))
-    lip = static._replace(quality=q._replace(method="lipschitz", block=0 if blocks else q.block))
-    return compact_map(lambda sub: jax.vmap(lambda o, d, a, b: intersect_one(scene, lip, o, d, a, b))(*sub), st.unc, rays, hits, lanes)
+    return compact_map(done, jnp.isfinite(t), (cand, t, rays.origins, rays.directions, flags), miss, lanes)
 
 
 def _widened(cand, k: int, p: int):

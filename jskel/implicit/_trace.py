@@ -181,23 +181,29 @@ def trace_one(cand: Candidates, tune: Tuning, o, d, t_min, t_max, q: Quality, de
     elif q.method in ("naive", "lipschitz"):
         t, own = _march(cand, g, tune, o, d, q)
     elif q.method == "exact":
-        from ._exact import trace_exact
+        from . import _exact
 
-        t, flags, unc = trace_exact(cand, tune, o, d, q)
+        if not _exact.plain(q.shape):  # a certified start from the sum of kernels, then the march
+            c0, tune0, o0, d0 = jax.lax.stop_gradient((cand, tune, o, d))
+            st = _exact.march(_exact.prepare(c0, _exact.lowered(tune0, q), o0, d0, q), _exact.start(c0), q.degree)
+            go = jnp.isfinite(st.t) | st.unc
+            marched = lambda: _as_flags(lipschitz_from(cand, tune, o, d, _exact.march_start(c0, st), q))  # noqa: E731
+            t, own = jax.lax.cond(go, marched, lambda: (jnp.asarray(jnp.inf, o.dtype), jnp.int32(0)))
+            return t, flags | own
+        t, flags, unc = _exact.trace_exact(cand, tune, o, d, q)
         if deferred:
             return t, flags, unc
         if q.degree == 4:  # built without tapering tubes: none to certify, unless traced radii now taper
             return t, flags | jnp.where(unc, NO_BRACKET, 0)
         # a ray the polynomial cannot certify (two tapered axis pieces on an interval) marches
-        lip = q._replace(method="lipschitz")
-        def marched():
-            tm, fm = _march(cand, g, tune, o, d, lip)
-            return tm, jnp.asarray(fm, jnp.int32)
-
-        t, own = jax.lax.cond(unc, marched, lambda: (t, jnp.int32(0)))
+        t, own = jax.lax.cond(unc, lambda: _as_flags(lipschitz_from(cand, tune, o, d, cand.t_lo, q)), lambda: (t, jnp.int32(0)))
     else:  # pragma: no cover - validated in config
         raise ValueError(f"object.method: unknown method {q.method!r}")
     return t, flags | own
+
+
+def _as_flags(tf):
+    return tf[0], jnp.asarray(tf[1], jnp.int32)
 
 
 def _bisection_method(cand: Candidates, g, tune: Tuning, o, d, t_min, t_max, q: Quality):
@@ -292,6 +298,17 @@ def _march(cand: Candidates, g, tune: Tuning, o, d, q: Quality):
     lo, hi = _bisect(g, tp, t, tune.bisection)
     t_hit = jnp.where(first_sample | (tune.bisection == 0), t, 0.5 * (lo + hi))
     return jnp.where(found, differentiable_root(g, jnp.where(found, t_hit, 0.0)), inf), flags
+
+
+def lipschitz_from(cand: Candidates, tune: Tuning, o, d, t_start, q: Quality):
+    """(t, flags) of the guaranteed Lipschitz march of one ray over its candidates from
+    ``t_start`` (``exact``'s certified start of a shaped field, ``_exact.march_start``)."""
+    sub, T = cand.sub, tune.threshold
+
+    def g(t):
+        return shaped_field(sub, o + t * d, q.shape, T, tune.disp) - T
+
+    return _march(cand._replace(t_lo=t_start), g, tune, o, d, q._replace(method="lipschitz"))
 
 
 def surface_one(cand: Candidates, tune: Tuning, o, d, t, q: Quality):

@@ -291,6 +291,19 @@ for method, cull in (("lipschitz", "tree"), ("bisection", "blocks"), ("naive", N
         first = jax.vmap(lambda o, d, a, c: rep.intersect_one(b.params, b.static, o, d, a, c))(*rays)
         assert np.sum((np.asarray(first.flags) & FLAG_OVERFLOW) != 0) >= 2, "no ray went through the compacted retrace"
 
+# implicit, exact on tubes: a constant-radius tube (its three quartic pieces), a tapering one
+# (the degree-8 axis piece) and a ball where they meet; rays straight down onto the axes
+if wanted("implicit_exact_tubes"):
+    TUBES = [{"a": [0.0, 0.0, 0.0], "b": [1.6, 0.0, 0.0], "radius_a": 0.7, "radius_b": 0.7},
+             {"a": [1.6, 0.0, 0.0], "b": [2.4, 1.2, 0.0], "radius_a": 0.7, "radius_b": 0.4}]
+    s = rng.uniform(0.05, 0.95, 16)
+    ends = np.array([[[0.0, 0.0], [1.6, 0.0]], [[1.6, 0.0], [2.4, 1.2]]])[np.arange(16) % 2]
+    xy = ends[:, 0] + s[:, None] * (ends[:, 1] - ends[:, 0]) + rng.uniform(-0.15, 0.15, (16, 2))
+    o = np.concatenate([xy, np.full((16, 1), 3.0)], 1)
+    raw = {"type": "implicit", "threshold": 0.5, "tubes": TUBES, "balls": [{"center": [1.6, 0.0, 0.0], "radius": 0.6}],
+           "method": "exact", "eps": 1e-3, "bisection": 40}
+    check_batch("implicit_exact_tubes", raw, o, np.tile([0.03, -0.02, -1.0], (16, 1)), free=implicit_free)
+
 # cells: a torus of Voronoi cells, first hit and the two-sided cast of the refraction mode, rays
 # aimed at the tube
 # (and the first hit again through the exact voxel walk, ``search: voxels``)
