@@ -116,7 +116,7 @@ def _shaped(method: str) -> dict:
     return {"method": "exact", "displace": {"type": "noise", "amplitude": 0.2}} if method == "exact+displace" else {"method": method}
 
 
-@pytest.mark.parametrize("method", ["lipschitz", "bisection", "naive", "exact", "exact+displace"])
+@pytest.mark.parametrize("method", ["lipschitz", "bisection", "naive", "exact"])  # exact+displace: op by op below
 def test_implicit_hard_rays_raise_no_nan(debug_nans, method):
     cfg = implicit.ImplicitConfig.model_validate({
         "type": "implicit", "threshold": 0.5, **_shaped(method), "step": 0.02, "eps": 1e-3, "capacity": 8,
