@@ -86,7 +86,7 @@ def _relief_search(static: Static):
         seg_fn = make_relief_t(sc.maps, static.relief)
         g, cap = sc.relief, min(rays.origins.shape[0], 4096)
         return tuple(nearest_batch_compact(g.frusta, g.block_c, g.block_r, enters_shell, seg_fn, *rays, static.relief_block, cap,
-                                           undecided=True))
+                                           undecided=True, seg_c=g.seg_c, seg_r=g.seg_r))
 
     def winner(sc: FrustaScene, rays: Rays, out):
         t, idx = out[0], out[3]

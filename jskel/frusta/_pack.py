@@ -23,6 +23,8 @@ class Group(NamedTuple):
     block_c: jnp.ndarray  # (B,3) bounding sphere centre of each block of segments
     block_r: jnp.ndarray  # (B,) its radius
     bvh: object = None  # accel.BVH over the group's segments when ``accel: bvh``
+    seg_c: jnp.ndarray | None = None  # relief: (S,3) bounding sphere centre of each segment's outer solid
+    seg_r: jnp.ndarray | None = None  # relief: (S,) its radius (-1: padding)
 
 
 class FrustaScene(NamedTuple):
@@ -109,7 +111,14 @@ def make_group(arr: FrustaArrays, ids, anchor, cfg_block: int, dtype, shell=None
     if spheres:  # a sphere per block of the padded rows: the padding blocks' radius -1, met by no ray
         nb = params.h.shape[0] // block
         bc, br = _pad(bc, nb, 0.0), _pad(br, nb, -1.0)
-    return Group(params, on_device(bc, dtype), on_device(br, dtype)), block
+    if shell is None:
+        return Group(params, on_device(bc, dtype), on_device(br, dtype)), block
+    # relief: a sphere per segment too, so a ray's pairs with a block are tested against its
+    # segments' spheres before the costlier shell test (``_intersect.nearest_batch_compact``)
+    sc, sr = block_spheres(sub, anchor, 1)
+    rows = params.h.shape[0]
+    return Group(params, on_device(bc, dtype), on_device(br, dtype), None,
+                 on_device(_pad(sc, rows, 0.0), dtype), on_device(_pad(sr, rows, -1.0), dtype)), block
 
 
 def rim_points(arr: FrustaArrays, n_ang: int = 64) -> np.ndarray:
