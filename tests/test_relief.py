@@ -404,3 +404,131 @@ def test_a_bad_traced_step_or_bisection_count_is_named(tmp_path):
         only_checks(Object(b.params._replace(maps=maps), b.static, "frusta"), rays)
     assert e.value.lines == ["relief.steps[0]: not positive (got 0); 1 of 1 entries",
                              "relief.bisection[0]: negative (got -1); 1 of 1 entries"]
+
+
+# ---------------------------------------------------------------- the exact tracer (method: exact)
+
+
+def _ref_dense(img, r1, r2, H, T, O, D, n=20000, nbis=50):
+    """(t, clear): the float64 first crossing of the relief surface by ``n`` uniform samples of
+    the shell interval and bisection (written here; u and v as :func:`_ref_march`), and whether
+    the reference decides the ray clearly: its gap w - h stays 1e-3 above 0 at every sample before
+    the last 0.02 of t before the crossing (at every sample on a miss) and it crosses at a slope
+    (a graze the tracer may decide either way within rounding is not counted)."""
+    outer = ref.segments([[0, 0, 0], [0, H, 0]], [r1 + T, r2 + T], [-1, 0])
+    t_in, _ = ref.intersect(outer, O, D)
+    t_in = np.where(np.isfinite(t_in) & (ref.inside(outer, O) == 0), t_in, 0.0)
+    t_out = _exit_t(outer, O, D)
+    k = (r2 - r1) / H
+
+    def gap(t, O=O, D=D):
+        if t.ndim == 2:
+            O, D = O[:, None, :], D[:, None, :]
+        P = O + t[..., None] * D
+        w = (np.hypot(P[..., 0], P[..., 2]) - (r1 + k * P[..., 1])) / T
+        return w - _ref_height(img, np.mod(np.arctan2(P[..., 0], P[..., 2]) / (2 * np.pi), 1.0), P[..., 1] / H)
+
+    valid = np.isfinite(t_out) & (t_out > t_in)
+    a, b = np.where(valid, t_in, 0.0), np.where(valid, t_out, 1.0)
+    grid = np.linspace(0, 1, n + 1)[None, :]
+    first, anyb, clear = np.zeros(len(O), int), np.zeros(len(O), bool), np.zeros(len(O), bool)
+    for i in range(0, len(O), 50):
+        sl = slice(i, i + 50)
+        g = gap(a[sl, None] + (b - a)[sl, None] * grid, O[sl], D[sl])
+        bl = g <= 0
+        first[sl], anyb[sl] = np.argmax(bl, axis=1), bl.any(axis=1)
+        step = (b - a)[sl, None] / n
+        m = np.ceil(0.02 / step[:, 0]).astype(int)  # the approach to the root: the last 0.02 of t before it
+        before = np.arange(n + 1)[None, :] < np.where(anyb[sl], first[sl] - m, n + 1)[:, None]
+        j = np.maximum(first[sl], 1)
+        rows = np.arange(g.shape[0])
+        slope = (g[rows, j - 1] - g[rows, j]) / step[:, 0]  # how steeply it crosses
+        clear[sl] = np.all(np.where(before, g > 1e-3, True), axis=1) & (~anyb[sl] | (slope > 1e-2))
+    lo, hi = a + (b - a) * np.maximum(first - 1, 0) / n, a + (b - a) * first / n
+    for _ in range(nbis):
+        mid = 0.5 * (lo + hi)
+        bm = gap(mid) <= 0
+        hi, lo = np.where(bm, mid, hi), np.where(bm, lo, mid)
+    t = np.where(first == 0, a, hi)
+    # a ray that misses the outer solid is decided; one starting below the relief is not compared
+    # (the tracer then reports where it leaves the relief)
+    return np.where(valid & anyb, t, np.inf), ~valid | (clear & ~(anyb & (first == 0)))
+
+
+def _spikes_map():
+    """Ridges one texel wide every 8 texels in u, on the smooth map (the features a march of
+    few steps steps over)."""
+    img = _smooth_map().astype(int)
+    img[:, ::8] = 255
+    return img.astype(np.uint8)
+
+
+@pytest.mark.parametrize("which", ["smooth", "spikes"])
+def test_exact_tracer_finds_the_float64_first_crossing(tmp_path, rng, which):
+    """``method: exact`` against a 20,000-sample float64 march with 50 bisections on the same
+    bilinear field: rays from outside the shell at any angle (grazing the outer frustum
+    included) and from inside it above the relief; on the rays the reference decides clearly,
+    the same hit or miss and t within 64 float32 epsilons of the ray's reach (the segment is 2
+    long)."""
+    r1, r2, H, T = 0.5, 0.4, 2.0, 0.15
+    img = _smooth_map() if which == "smooth" else _spikes_map()
+    n = 1500
+    O, D = ref.random_rays(rng, [-0.7, -0.1, -0.7], [0.7, 2.1, 0.7], n)
+    y = rng.uniform(0.2, 1.8, n // 3)
+    ang = rng.uniform(0, 2 * np.pi, n // 3)
+    rr = r1 + (r2 - r1) * y / H + T * 0.97
+    Oi = np.stack([rr * np.sin(ang), y, rr * np.cos(ang)], 1)  # inside the shell, above the relief
+    Di = rng.normal(size=(n // 3, 3))
+    O, D = np.vstack([O, Oi]), np.vstack([D, Di / np.linalg.norm(Di, axis=1, keepdims=True)])
+    t_ref, clear = _ref_dense(img, r1, r2, H, T, O, D)
+    b = build_relief(tmp_path, img, [[0, 0, 0], [0, H, 0]], [r1, r2], [-1, 0], thickness=T, scale=[1, 1], method="exact")
+    hit = cast(b, O, D, culled=True)
+    assert not np.any(np.isnan(hit.t)) and np.all(np.isfinite(hit.normal))
+    decided = clear
+    assert decided.mean() > 0.8
+    same = np.isfinite(hit.t) == np.isfinite(t_ref)
+    assert np.all(same[decided & (hit.flags == 0)]), np.nonzero(~same & decided)[0][:5]
+    both = decided & np.isfinite(hit.t) & np.isfinite(t_ref)
+    assert both.sum() > 100
+    err = np.abs(hit.t[both] - t_ref[both])
+    assert err.max() <= 64 * np.finfo(np.float32).eps * 4.0, err.max()
+    assert np.mean(hit.flags != 0) < 0.01
+
+
+def test_exact_tracer_pyramid_bounds_every_range(rng):
+    """The min/max pyramid's bound of the cells [x0, x1] x [y0, y1] (x wrapping, y wrapping or
+    clamped) against the least and greatest texel of those cells' bilinear footprints, from
+    NumPy, on a random 37 x 20 map (neither side a power of two) and ranges of every size."""
+    import jax.numpy as jnp
+
+    from jskel.frusta import _relief_exact as rx
+
+    img = rng.integers(0, 256, (20, 37)).astype(np.uint8)
+    H, W = img.shape
+    for mode in ("wrap", "clamp"):
+        mx, mn, levels = rx.pyramid(img, mode)
+        for _ in range(300):
+            x0 = int(rng.integers(-50, 50))
+            nx = int(rng.integers(0, W + 3))
+            y0 = int(rng.integers(-25, 25)) if mode == "wrap" else int(rng.integers(-1, H))
+            ny = int(rng.integers(0, H + 3)) if mode == "wrap" else int(rng.integers(0, H - y0))
+            xs = np.arange(x0, x0 + nx + 1)
+            ys = np.arange(y0, y0 + ny + 1)
+            rows = np.concatenate([ys, ys + 1])
+            rows = np.mod(rows, H) if mode == "wrap" else np.clip(rows, 0, H - 1)
+            cols = np.mod(np.concatenate([xs, xs + 1]), W)
+            block = img[np.ix_(rows, cols)].astype(float) / 255.0
+            yy0, yy1 = (y0, y0 + ny) if mode == "wrap" else (y0 + 1, y0 + ny + 1)
+            lo, hi = rx._pyramid_bounds(jnp.asarray(mx), jnp.asarray(mn), levels, jnp.int32(x0), jnp.int32(x0 + nx),
+                                        jnp.int32(yy0), jnp.int32(yy1), W, H + (mode != "wrap"), mode == "wrap", jnp.asarray(False))
+            assert float(lo) <= block.min() + 1e-7 and float(hi) >= block.max() - 1e-7, (mode, x0, nx, y0, ny)
+
+
+def test_exact_tracer_refuses_a_nonlinear_v_by_name(tmp_path):
+    """The exact traversal bounds v's cells from its ends: v must be linear along the ray."""
+    img = _smooth_map()
+    with pytest.raises(ValueError, match=r"object\.relief\.uv: method exact needs v linear along the ray \(uv: approximate\); uv is exact"):
+        build_relief(tmp_path, img, *SEG, method="exact", uv="exact")
+    bent = ([[0, 0, 0], [0, 1, 0], [0.3, 2, 0]], [0.5, 0.45, 0.4], [-1, 0, 1])
+    with pytest.raises(ValueError, match=r"uv is auto and segments \[0, 1\] have cutting planes that are not parallel"):
+        build_relief(tmp_path, img, *bent, method="exact")

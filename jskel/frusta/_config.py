@@ -167,6 +167,10 @@ class ReliefConfig(StrictModel):
     """Map lookup beyond [0, 1] in v: repeat or clamp."""
     early_exit: bool = False
     """March in a loop that stops once every ray of the batch has found its bracket, instead of exactly ``steps`` steps."""
+    method: Literal["march", "exact"] = "march"
+    """``march``: the paper's uniform steps and bisection (``steps``, ``bisection``); ``exact``: skip through
+    a min/max pyramid of the map and solve the crossing in its bilinear cell to rounding (no step
+    count; needs v linear along the ray: ``uv`` approximate, or auto with parallel cutting planes)."""
     segments: list[Annotated[int, Field(ge=0)]] | None = None
     """Indices of the segments that carry relief; unset: all."""
 

@@ -58,6 +58,8 @@ class ReliefMaps(NamedTuple):
     slope: jnp.ndarray
     steps: jnp.ndarray
     bisection: jnp.ndarray
+    mip_max: jnp.ndarray | None = None  # ``exact``: the height pyramid's maxima, every level flat (uint8)
+    mip_min: jnp.ndarray | None = None  # and its minima (``_relief_exact.pyramid``)
 
 
 def texel_slopes(height) -> np.ndarray:
@@ -75,6 +77,8 @@ class ReliefQuality(NamedTuple):
     uv: str = "approximate"  # or "exact"
     early_exit: bool = False
     v_mode: str = "wrap"  # or "clamp"
+    method: str = "march"  # or "exact" (``_relief_exact``: pyramid skipping, the crossing to rounding)
+    levels: tuple = ()  # ``exact``: the pyramid's (offset, rows, cols) per level
 
 
 def sample_height(maps: ReliefMaps, uu, vv, v_mode: str):
@@ -196,6 +200,18 @@ def _relief_t(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, o, d, t_min
     b0 = first[0] - first[2] <= 0
     inside0 = (~from_outside) & b0  # the march starts below the relief surface
     hit_at_entry = from_outside & b0
+    if q.method == "exact":
+        from ._relief_exact import search
+
+        v_a, v_b = exact_v(seg, e + s_a * d)[0], exact_v(seg, e + s_b * d)[0]
+        found, root, s_und = search(maps, (maps.mip_max, maps.mip_min), q.levels, q.v_mode, seg, e, d, s_a, s_b, v_a, v_b,
+                                    inside0, hit_at_entry, ok)
+        s_hit = jnp.where(hit_at_entry, s_a, differentiable_root(gap, root))
+        t = t0 + s_hit
+        good = ok & found & (t > t_min) & (t <= t_max)
+        code = jnp.where(hit_at_entry, entry, RELIEF)
+        t_und = jnp.where(ok & jnp.isfinite(s_und), t0 + s_und, inf)
+        return jnp.where(good, t, inf), s_hit, code.astype(jnp.int32), t_und
     period = maps.scale[0] * maps.height.shape[1]
     found, lo, hi, s_und = _march(sample, maps.slope, period, inside0, hit_at_entry, first, s_a, s_b, n_steps, q.early_exit)
     lo, hi = _bisect(below, inside0, lo, hi, n_bis)

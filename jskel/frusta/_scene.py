@@ -129,8 +129,13 @@ def _relief_group(cfg: FrustaConfig, arrays: FrustaArrays, ids, anchor, dtype):
     shell[ids] = rel.thickness
     relief, block = make_group(arrays, ids, anchor, cfg.block, dtype, shell)
     height = load_height_map(rel.map)
+    mips = (None, None)
+    if rel.method == "exact":
+        from ._relief_exact import pyramid
+
+        mips = tuple(on_device(a) for a in pyramid(height, rel.v_mode)[:2])
     maps = ReliefMaps(on_device(height), on_device(rel.scale, dtype), on_device(texel_slopes(height), dtype),
-                      on_device(np.int32(rel.steps)), on_device(np.int32(rel.bisection)))
+                      on_device(np.int32(rel.steps)), on_device(np.int32(rel.bisection)), *mips)
     return relief, block, maps, relief_memory(arrays, height, rel.scale, ids)
 
 
@@ -139,10 +144,18 @@ def _relief_quality(rel, arrays: FrustaArrays, ids) -> ReliefQuality:
     relief segment's two cutting planes are parallel (where the paper says it is exact), else
     the exact one."""
     uv = rel.uv
+    par = np.abs(np.sum(arrays.nb[ids] * arrays.nt[ids], -1)) >= 1.0 - 1e-12
     if uv == "auto":
-        par = np.abs(np.sum(arrays.nb[ids] * arrays.nt[ids], -1)) >= 1.0 - 1e-12
         uv = "approximate" if np.all(par) else "exact"
-    return ReliefQuality(uv, rel.early_exit, rel.v_mode)
+    if rel.method != "exact":
+        return ReliefQuality(uv, rel.early_exit, rel.v_mode)
+    if uv == "exact":
+        bent = np.asarray(ids)[~par]
+        why = "is exact" if rel.uv == "exact" else f"is auto and segments {bent[:5].tolist()} have cutting planes that are not parallel"
+        raise ValueError(f"object.relief.uv: method exact needs v linear along the ray (uv: approximate); uv {why}")
+    from ._relief_exact import pyramid_levels
+
+    return ReliefQuality(uv, rel.early_exit, rel.v_mode, "exact", pyramid_levels(load_height_map(rel.map).shape, rel.v_mode))
 
 
 # the tree of a build, evaluated by NumPy (``jskel.host_eval``): XLA:CPU compiled it in 0.25 s

@@ -266,6 +266,10 @@ for early in (False, True):
         o, d = down(32, (-0.2, 0.3), (0.2, 1.2), 3.0, rng, (0.03, -0.05))
         check_batch(f"relief_{'early' if early else 'fixed'}",
                     {"type": "frusta", "skeleton": RELIEF_CYLINDER, "relief": {**RELIEF, "early_exit": early}}, o, d)
+if wanted("relief_exact"):  # the exact traversal's root, through the same implicit-function derivative
+    o, d = down(32, (-0.2, 0.3), (0.2, 1.2), 3.0, rng, (0.03, -0.05))
+    check_batch("relief_exact", {"type": "frusta", "skeleton": RELIEF_CYLINDER,
+                                 "relief": {**RELIEF, "uv": "approximate", "method": "exact"}}, o, d)
 
 # implicit: a 6 x 4 grid of balls. The Lipschitz march (the tree's leaves) and the bisection
 # (Morton blocks) cull in blocks of 4 with two blocks kept per ray: rays along the rows meet more
