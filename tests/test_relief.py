@@ -103,26 +103,36 @@ def _ref_height(img, uu, vv):
     return ((1 - fx) * (1 - fy) * g(y0, x0) + fx * (1 - fy) * g(y0, x0 + 1) + (1 - fx) * fy * g(y0 + 1, x0) + fx * fy * g(y0 + 1, x0 + 1)) / 255.0
 
 
+def _ref_shell(img, r1, r2, H, T, O, D):
+    """(t_in, t_out, gap) of a single segment along +y from the origin (perpendicular planes):
+    the rays' interval in the outer shell (t_in 0 for a ray starting inside it) and the float64
+    gap w - h at t ((N,) or (N, S)): w from Eq. 11-12, u = atan2(x, z) / 2 pi, v = y / H (exact
+    for parallel planes)."""
+    outer = ref.segments([[0, 0, 0], [0, H, 0]], [r1 + T, r2 + T], [-1, 0])
+    t_in, _ = ref.intersect(outer, O, D)
+    t_in = np.where(np.isfinite(t_in) & (ref.inside(outer, O) == 0), t_in, 0.0)
+    k = (r2 - r1) / H
+
+    def gap(t, O=O, D=D):
+        if t.ndim == 2:
+            O, D = O[:, None, :], D[:, None, :]
+        P = O + t[..., None] * D
+        w = (np.hypot(P[..., 0], P[..., 2]) - (r1 + k * P[..., 1])) / T
+        return w - _ref_height(img, np.mod(np.arctan2(P[..., 0], P[..., 2]) / (2 * np.pi), 1.0), P[..., 1] / H)
+
+    return t_in, _exit_t(outer, O, D), gap
+
+
 def _ref_march(img, r1, r2, H, T, O, D, n=4096, nbis=40):
     """Float64 reference: 4096 uniform samples over the outer shell interval, then bisection.
 
     A single segment along +y from the origin (perpendicular planes): w from Eq. 11-12, u =
     atan2(x, z) / 2 pi, v = y / H (exact for parallel planes).
     """
-    outer = ref.segments([[0, 0, 0], [0, H, 0]], [r1 + T, r2 + T], [-1, 0])
-    t_in, _ = ref.intersect(outer, O, D)
-    t_in = np.where(np.isfinite(t_in) & (ref.inside(outer, O) == 0), t_in, 0.0)
-    t_out = _exit_t(outer, O, D)
-    k = (r2 - r1) / H
+    t_in, t_out, gap = _ref_shell(img, r1, r2, H, T, O, D)
 
     def below(t, O=O, D=D):
-        if t.ndim == 2:
-            O, D = O[:, None, :], D[:, None, :]
-        P = O + t[..., None] * D
-        rho = np.hypot(P[..., 0], P[..., 2])
-        w = (rho - (r1 + k * P[..., 1])) / T
-        u = np.mod(np.arctan2(P[..., 0], P[..., 2]) / (2 * np.pi), 1.0)
-        return w <= _ref_height(img, u, P[..., 1] / H)
+        return gap(t, O, D) <= 0
 
     valid = np.isfinite(t_out) & (t_out > t_in)
     a = np.where(valid, t_in, 0.0)
@@ -415,18 +425,7 @@ def _ref_dense(img, r1, r2, H, T, O, D, n=20000, nbis=50):
     the reference decides the ray clearly: its gap w - h stays 1e-3 above 0 at every sample before
     the last 0.02 of t before the crossing (at every sample on a miss) and it crosses at a slope
     (a graze the tracer may decide either way within rounding is not counted)."""
-    outer = ref.segments([[0, 0, 0], [0, H, 0]], [r1 + T, r2 + T], [-1, 0])
-    t_in, _ = ref.intersect(outer, O, D)
-    t_in = np.where(np.isfinite(t_in) & (ref.inside(outer, O) == 0), t_in, 0.0)
-    t_out = _exit_t(outer, O, D)
-    k = (r2 - r1) / H
-
-    def gap(t, O=O, D=D):
-        if t.ndim == 2:
-            O, D = O[:, None, :], D[:, None, :]
-        P = O + t[..., None] * D
-        w = (np.hypot(P[..., 0], P[..., 2]) - (r1 + k * P[..., 1])) / T
-        return w - _ref_height(img, np.mod(np.arctan2(P[..., 0], P[..., 2]) / (2 * np.pi), 1.0), P[..., 1] / H)
+    t_in, t_out, gap = _ref_shell(img, r1, r2, H, T, O, D)
 
     valid = np.isfinite(t_out) & (t_out > t_in)
     a, b = np.where(valid, t_in, 0.0), np.where(valid, t_out, 1.0)
