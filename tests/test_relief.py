@@ -462,23 +462,32 @@ def _spikes_map():
     return img.astype(np.uint8)
 
 
-@pytest.mark.parametrize("which", ["smooth", "spikes"])
+@pytest.mark.parametrize("which", ["smooth", "spikes", "thin"])
 def test_exact_tracer_finds_the_float64_first_crossing(tmp_path, rng, which):
     """``method: exact`` against a 20,000-sample float64 march with 50 bisections on the same
-    bilinear field: rays from outside the shell at any angle (grazing the outer frustum
-    included) and from inside it above the relief; on the rays the reference decides clearly,
-    the same hit or miss and t within 64 float32 epsilons of the ray's reach (the segment is 2
-    long)."""
-    r1, r2, H, T = 0.5, 0.4, 2.0, 0.15
-    img = _smooth_map() if which == "smooth" else _spikes_map()
+    bilinear field: rays from outside the shell at any angle, rays nearly tangent to the outer
+    frustum (grazing the shell) and rays from inside it above the relief; a smooth map, ridges one
+    texel wide, and a thin shell (thickness 1e-3 of the radius); on the rays the reference
+    decides clearly, the same hit or miss and t within 64 float32 epsilons of the ray's reach
+    (the segment is 2 long)."""
+    r1, r2, H = 0.5, 0.4, 2.0
+    T = 5e-4 if which == "thin" else 0.15
+    img = _spikes_map() if which == "spikes" else _smooth_map()
     n = 1500
     O, D = ref.random_rays(rng, [-0.7, -0.1, -0.7], [0.7, 2.1, 0.7], n)
-    y = rng.uniform(0.2, 1.8, n // 3)
-    ang = rng.uniform(0, 2 * np.pi, n // 3)
+    m = n // 3
+    y = rng.uniform(0.2, 1.8, m)
+    ang = rng.uniform(0, 2 * np.pi, m)
+    radial = np.stack([np.sin(ang), 0 * ang, np.cos(ang)], 1)
     rr = r1 + (r2 - r1) * y / H + T * 0.97
-    Oi = np.stack([rr * np.sin(ang), y, rr * np.cos(ang)], 1)  # inside the shell, above the relief
-    Di = rng.normal(size=(n // 3, 3))
-    O, D = np.vstack([O, Oi]), np.vstack([D, Di / np.linalg.norm(Di, axis=1, keepdims=True)])
+    Oi = radial * rr[:, None] + y[:, None] * np.array([0, 1.0, 0])  # inside the shell, above the relief
+    Di = rng.normal(size=(m, 3))
+    tang = np.stack([np.cos(ang), 0 * ang, -np.sin(ang)], 1) + rng.normal(0, 0.05, m)[:, None] * np.array([0, 1.0, 0])
+    tang /= np.linalg.norm(tang, axis=1, keepdims=True)
+    rg = r1 + (r2 - r1) * y / H + T * rng.uniform(0.3, 0.999, m)  # passing this far from the axis
+    Og = radial * rg[:, None] + y[:, None] * np.array([0, 1.0, 0]) - 1.5 * tang
+    O = np.vstack([O, Oi, Og])
+    D = np.vstack([D, Di / np.linalg.norm(Di, axis=1, keepdims=True), tang])
     t_ref, clear = _ref_dense(img, r1, r2, H, T, O, D)
     b = build_relief(tmp_path, img, [[0, 0, 0], [0, H, 0]], [r1, r2], [-1, 0], thickness=T, scale=[1, 1], method="exact")
     hit = cast(b, O, D, culled=True)
