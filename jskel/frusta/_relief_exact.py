@@ -46,8 +46,8 @@ from ..numerics import dot3, eps_of, safe_div, safe_sqrt
 from ._relief import _TWO_PI, _angle_u, _least_of_upper, sample_height
 
 LOOPS = 1024  # traversal iterations per (ray, segment) before the pair is left undecided
-NEWTON = 10
-SLIVER = 1e-3  # texels: a range reaching this far into a neighbouring cell is bounded as its own cell's  # Newton steps kept in the final bracket (g monotone there)
+NEWTON = 10  # Newton steps kept in the final bracket (g monotone there)
+SLIVER = 1e-3  # texels: a range reaching this far into a neighbouring cell is bounded as its own cell's
 
 
 def pyramid(height: np.ndarray, v_mode: str):

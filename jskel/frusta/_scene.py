@@ -69,7 +69,7 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
         tex_size=on_device(tex_size),
     )
     if rel is not None:
-        rq = _relief_quality(rel, arrays, relief_ids)
+        rq = _relief_quality(rel, arrays, relief_ids, None if maps is None else maps.height.shape)
         info = dict(info, relief_uv=rq.uv)
     static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block,
                     "none" if cfg.accel == "none" else ("bvh" if plain is not None and plain.bvh is not None else "blocks"),
@@ -139,7 +139,7 @@ def _relief_group(cfg: FrustaConfig, arrays: FrustaArrays, ids, anchor, dtype):
     return relief, block, maps, relief_memory(arrays, height, rel.scale, ids)
 
 
-def _relief_quality(rel, arrays: FrustaArrays, ids) -> ReliefQuality:
+def _relief_quality(rel, arrays: FrustaArrays, ids, map_shape) -> ReliefQuality:
     """The relief's static march options; ``uv: auto`` takes the approximate v where every
     relief segment's two cutting planes are parallel (where the paper says it is exact), else
     the exact one."""
@@ -155,7 +155,8 @@ def _relief_quality(rel, arrays: FrustaArrays, ids) -> ReliefQuality:
         raise ValueError(f"object.relief.uv: method exact needs v linear along the ray (uv: approximate); uv {why}")
     from ._relief_exact import pyramid_levels
 
-    return ReliefQuality(uv, rel.early_exit, rel.v_mode, "exact", pyramid_levels(load_height_map(rel.map).shape, rel.v_mode))
+    levels = () if map_shape is None else pyramid_levels(map_shape, rel.v_mode)  # (the map loaded once, by the group)
+    return ReliefQuality(uv, rel.early_exit, rel.v_mode, "exact", levels)
 
 
 # the tree of a build, evaluated by NumPy (``jskel.host_eval``): XLA:CPU compiled it in 0.25 s
