@@ -503,15 +503,18 @@ def test_exact_tracer_finds_the_float64_first_crossing(tmp_path, rng, which):
     assert np.mean(hit.flags != 0) < 0.01
 
 
-def test_exact_tracer_pyramid_bounds_every_range(rng):
+@pytest.mark.parametrize("shape", [(20, 37), (16, 32)])
+def test_exact_tracer_pyramid_bounds_every_range(rng, shape):
     """The min/max pyramid's bound of the cells [x0, x1] x [y0, y1] (x wrapping, y wrapping or
     clamped) against the least and greatest texel of those cells' bilinear footprints, from
-    NumPy, on a random 37 x 20 map (neither side a power of two) and ranges of every size."""
+    NumPy, on a random map and ranges of every size: 37 x 20 (neither side a power of two: a
+    wrapped range is split at the seam) and 32 x 16 (both: its levels tile the map, a wrapped
+    range's cells are taken modulo each level's size)."""
     import jax.numpy as jnp
 
     from jskel.frusta import _relief_exact as rx
 
-    img = rng.integers(0, 256, (20, 37)).astype(np.uint8)
+    img = rng.integers(0, 256, shape).astype(np.uint8)
     H, W = img.shape
     for mode in ("wrap", "clamp"):
         mx, mn, levels = rx.pyramid(img, mode)

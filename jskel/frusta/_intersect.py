@@ -319,7 +319,7 @@ def nearest_batch(params: FrustaParams, block_c, block_r, seg_fn, origins, direc
 
 
 def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn, origins, directions, t_min, t_max, block: int, cap: int,
-                          undecided: bool = False, seg_c=None, seg_r=None):
+                          undecided: bool = False, seg_c=None, seg_r=None, lanes=None):
     """Like :func:`nearest_batch`, but ``seg_fn`` runs only on the (ray, segment) pairs that
     ``pre_fn(seg, o, d, t_min, t_max) -> bool`` admits: compaction, not masking.
 
@@ -335,9 +335,16 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
     on a relief column's 65,536 camera rays, ``pre_fn`` on every pair of a block of 8 (2 of them
     real segments) was most of the cast's time when the march took one step (one-off profile,
     2026-12-06, 2-core Xeon).
+
+    ``lanes``: (begin, advance, done, finish, steps) for a ``seg_fn`` of many uneven iterations
+    (``_relief_exact``): ``begin(seg, o, d, t_min, t_max) -> (ctx, state)``, ``advance(ctx,
+    state) -> state``, ``done(state)``, ``finish(ctx, state) -> (t, s, code, *undecided)``. Then
+    the admitted pairs are traced by ``cap`` persistent lanes, each refilled with the next pair
+    as its own finishes, ``steps`` iterations between refills (``wavefront.refill_loop``),
+    instead of sub-batches that each wait for their slowest pair.
     """
     from ..accel import first_set, pack_bits
-    from ..wavefront import compact_map
+    from ..wavefront import compact_map, refill_loop
 
     n = origins.shape[0]
     dtype = origins.dtype
@@ -370,16 +377,10 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
             order, count = first_set(pack_bits(ok), ok.shape[0])
             order = jnp.concatenate([jnp.minimum(order, ok.shape[0] - 1), jnp.zeros((cap,), jnp.int32)])
 
-            def sub(state):
-                j, (bt, bs, bc, bi, *bu) = state
-                lane = j * cap + jnp.arange(cap, dtype=jnp.int32)
-                pair = jax.lax.dynamic_slice(order, (j * cap,), (cap,))
-                live = lane < count
+            def merge(acc, pair, live, t, s_, code, und):
+                bt, bs, bc, bi, *bu = acc
                 ray = jnp.where(live, pair // block, n)  # n: dropped by the scatters
-                sj = pair % block
-                seg = jax.tree_util.tree_map(lambda a: a[sj], blk)
                 rc = jnp.minimum(ray, n - 1)
-                t, s_, code, *und = vseg(seg, origins[rc], directions[rc], t_min[rc], t_max[rc])
                 t = jnp.where(live, t, jnp.inf)
                 bu = [b_.at[ray].min(u_, mode="drop") for b_, u_ in zip(bu, und)]  # (dropped where not live)
                 new_t = bt.at[ray].min(t, mode="drop")
@@ -387,8 +388,26 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
                 wr = jnp.where(win, ray, n)
                 bs = bs.at[wr].set(s_, mode="drop")
                 bc = bc.at[wr].set(code, mode="drop")
-                bi = bi.at[wr].set(base + sj, mode="drop")
-                return j + 1, (new_t, bs, bc, bi, *bu)
+                bi = bi.at[wr].set(base + pair % block, mode="drop")
+                return (new_t, bs, bc, bi, *bu)
+
+            def gathered(pair):
+                rc = jnp.minimum(pair // block, n - 1)
+                seg = jax.tree_util.tree_map(lambda a: a[pair % block], blk)
+                return seg, origins[rc], directions[rc], t_min[rc], t_max[rc]
+
+            if lanes is not None:
+                begin, advance, done, finish, steps = lanes
+                return refill_loop(lambda p: jax.vmap(begin)(*gathered(p)), jax.vmap(advance), jax.vmap(done),
+                                   lambda acc, p, ctx, st, fin: merge(acc, p, fin, *jax.vmap(finish)(ctx, st)),
+                                   order, count, cap, steps, carry)
+
+            def sub(state):
+                j, acc = state
+                lane = j * cap + jnp.arange(cap, dtype=jnp.int32)
+                pair = jax.lax.dynamic_slice(order, (j * cap,), (cap,))
+                t, s_, code, *und = vseg(*gathered(pair))
+                return j + 1, merge(acc, pair, lane < count, t, s_, code, und)
 
             _, out = jax.lax.while_loop(lambda st: st[0] * cap < count, sub, (jnp.int32(0), carry))
             return out

@@ -83,6 +83,15 @@ class ReliefQuality(NamedTuple):
 
 def sample_height(maps: ReliefMaps, uu, vv, v_mode: str):
     """Bilinear height in [0, 1] at texture coordinates (uu, vv) (already scaled); u wraps."""
+    fx, fy, t00, t01, t10, t11 = bilinear_taps(maps, uu, vv, v_mode)
+    val = (1 - fx) * (1 - fy) * t00 + fx * (1 - fy) * t01 + (1 - fx) * fy * t10 + fx * fy * t11
+    return val / 255.0
+
+
+def bilinear_taps(maps: ReliefMaps, uu, vv, v_mode: str):
+    """(fx, fy, t00, t01, t10, t11): the bilinear weights at (uu, vv) and the four texels
+    (0..255, row then column offset) that :func:`sample_height` interpolates; u wraps, v wraps
+    or is clamped by ``v_mode``."""
     img = maps.height
     h, w = img.shape
     x = uu * w - 0.5
@@ -100,8 +109,7 @@ def sample_height(maps: ReliefMaps, uu, vv, v_mode: str):
         ya, yb = jnp.clip(y0, 0, h - 1), jnp.clip(y0 + 1, 0, h - 1)
     dt = uu.dtype
     f = lambda yy, xx: img[yy, xx].astype(dt)  # noqa: E731
-    val = (1 - fx) * (1 - fy) * f(ya, xa) + fx * (1 - fy) * f(ya, xb) + (1 - fx) * fy * f(yb, xa) + fx * fy * f(yb, xb)
-    return val / 255.0
+    return fx, fy, f(ya, xa), f(ya, xb), f(yb, xa), f(yb, xb)
 
 
 def _in_slab(seg, p, tol):
@@ -184,6 +192,10 @@ def _relief_t(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, o, d, t_min
     interval in the shell (:func:`_shell_window`), marched (:func:`_march`) and bisected
     (:func:`_bisect`) for its first crossing of the relief surface; t inf where it has none in
     (t_min, t_max]; t_undecided as :func:`make_relief_t` says."""
+    if q.method == "exact":
+        from ._relief_exact import relief_t
+
+        return relief_t(maps, q, seg, o, d, t_min, t_max)
     n_steps, n_bis = maps.steps, maps.bisection
     inf = jnp.asarray(jnp.inf, o.dtype)
     t0, e, s_a, s_b, ok, entry, from_outside = _shell_window(seg, o, d, t_min, t_max)
@@ -200,18 +212,6 @@ def _relief_t(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, o, d, t_min
     b0 = first[0] - first[2] <= 0
     inside0 = (~from_outside) & b0  # the march starts below the relief surface
     hit_at_entry = from_outside & b0
-    if q.method == "exact":
-        from ._relief_exact import search
-
-        v_a, v_b = exact_v(seg, e + s_a * d)[0], exact_v(seg, e + s_b * d)[0]
-        found, root, s_und = search(maps, (maps.mip_max, maps.mip_min), q.levels, q.v_mode, seg, e, d, s_a, s_b, v_a, v_b,
-                                    inside0, hit_at_entry, ok)
-        s_hit = jnp.where(hit_at_entry, s_a, differentiable_root(gap, root))
-        t = t0 + s_hit
-        good = ok & found & (t > t_min) & (t <= t_max)
-        code = jnp.where(hit_at_entry, entry, RELIEF)
-        t_und = jnp.where(ok & jnp.isfinite(s_und), t0 + s_und, inf)
-        return jnp.where(good, t, inf), s_hit, code.astype(jnp.int32), t_und
     period = maps.scale[0] * maps.height.shape[1]
     found, lo, hi, s_und = _march(sample, maps.slope, period, inside0, hit_at_entry, first, s_a, s_b, n_steps, q.early_exit)
     lo, hi = _bisect(below, inside0, lo, hi, n_bis)

@@ -38,12 +38,15 @@ config refuses ``method: exact`` with ``uv: exact`` by name.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..numerics import dot3, eps_of, safe_div, safe_sqrt
-from ._relief import _TWO_PI, _angle_u, _least_of_upper, sample_height
+from ..numerics import differentiable_root, dot3, eps_of, safe_div, safe_sqrt
+from ._intersect import FrustaParams
+from ._relief import _TWO_PI, RELIEF, _angle_u, _least_of_upper, bilinear_taps
 
 LOOPS = 1024  # traversal iterations per (ray, segment) before the pair is left undecided
 NEWTON = 10  # Newton steps kept in the final bracket (g monotone there)
@@ -101,24 +104,33 @@ def _pieces(lo, n, size):
 def _pyramid_bounds(mip_max, mip_min, levels, cx0, cx1, cy0, cy1, W: int, Hc: int, wrap_y: bool, whole):
     """(least, greatest) texel over cells [cx0, cx1] x [cy0, cy1] (integers, x unwrapped; y
     already the row index for a clamped map), from the coarsest level needed; ``whole``: the
-    whole map's (the top level)."""
+    whole map's (the top level). A range of at most 2^l cells meets at most 2 cells of level l
+    on an axis that does not wrap, or on one whose size is a power of two (its levels tile it
+    exactly, so a wrapped range's cells are the unwrapped ones modulo the level's size); on a
+    wrapping axis of another size the range is split at the seam into two pieces of 2 each."""
     nl = len(levels)
     nx, ny = cx1 - cx0, cy1 - cy0
     span = jnp.maximum(nx, ny) + 1
     lvl = jnp.ceil(jnp.log2(span.astype(jnp.float32))).astype(jnp.int32)
     whole = whole | (nx >= W) | (ny >= Hc)
     lvl = jnp.where(whole, nl - 1, jnp.clip(lvl, 0, nl - 1))
-    xs = jnp.stack(_pieces(cx0, jnp.minimum(nx, W - 1), W))
-    if wrap_y:
+    pow2_x, pow2_y = W & (W - 1) == 0, Hc & (Hc - 1) == 0
+    if pow2_x:
+        xs = jnp.stack([cx0, cx0 + jnp.minimum(nx, W - 1)])
+    else:
+        xs = jnp.stack(_pieces(cx0, jnp.minimum(nx, W - 1), W))
+    if wrap_y and not pow2_y:
         ys = jnp.stack(_pieces(cy0, jnp.minimum(ny, Hc - 1), Hc))
     else:
-        ys = jnp.stack([cy0, cy1, cy0, cy1])
+        ys = jnp.stack([cy0, cy0 + jnp.minimum(ny, Hc - 1)])
     xs, ys, lvl = _materialised(xs, ys, lvl)
     off = jnp.asarray([o for o, _, _ in levels], jnp.int32)[lvl]
     rows = jnp.asarray([r for _, r, _ in levels], jnp.int32)[lvl]
     cols = jnp.asarray([c for _, _, c in levels], jnp.int32)[lvl]
-    bx = jnp.minimum(jnp.right_shift(xs, lvl), cols - 1)
-    by = jnp.minimum(jnp.right_shift(ys, lvl), rows - 1)
+    bx = jnp.right_shift(xs, lvl)
+    bx = jnp.mod(bx, cols) if pow2_x else jnp.minimum(bx, cols - 1)
+    by = jnp.right_shift(ys, lvl)
+    by = jnp.mod(by, rows) if wrap_y and pow2_y else jnp.minimum(by, rows - 1)
     idx = off + (by[:, None] * cols + bx[None, :]).reshape(-1)
     lo = mip_min.at[idx].get(mode="promise_in_bounds")
     hi = mip_max.at[idx].get(mode="promise_in_bounds")
@@ -130,9 +142,10 @@ def _materialised(xs, ys, lvl):
     makes them into the pyramid's gather, running it again for each of the 16 elements gathered
     (1.06 s of a 1.24 s cast of 4,096 rays, one-off profile, 2026-12-06); a dot is not fused
     into it (a sort by constant keys did the same: the 64 x 64 column cast took 104 ms with it, 74 with the dot)."""
+    nx = xs.shape[0]
     vals = jnp.concatenate([xs, ys, lvl[None]]).astype(jnp.float32)  # small integers: exact
     vals = jnp.round(jnp.dot(jnp.eye(vals.shape[0], dtype=jnp.float32), vals)).astype(jnp.int32)
-    return vals[:4], vals[4:8], vals[8]
+    return vals[:nx], vals[nx:-1], vals[-1]
 
 
 def _mul_range(a_lo, a_hi, b_lo, b_hi):
@@ -140,72 +153,192 @@ def _mul_range(a_lo, a_hi, b_lo, b_hi):
     return jnp.min(p), jnp.max(p)
 
 
-def search(maps, mips, levels, v_mode: str, seg, e, d, s_a, s_b, v_a, v_b, inside0, hit_at_entry, ok):
-    """(found, s_root, s_undecided) of one ray's window [s_a, s_b] in one segment's shell (the
-    module's traversal): the first s where the ray crosses the relief surface from the side it
-    starts on, to rounding; s_undecided the start of the first interval left undecided (inf
-    where none). ``mips``: the pyramid's (max, min) arrays; v = v_a .. v_b linearly over the window;
-    ``ok``: the window is not empty (else nothing is traversed)."""
-    mip_max, mip_min = mips
-    dt = e.dtype
-    hh, ww = maps.height.shape
-    Hc = hh if v_mode == "wrap" else hh + 1
-    su, sv = maps.scale[0], maps.scale[1]
-    period = su * ww  # X where u wraps
-    seamless = jnp.mod(period, ww) == 0  # an integer scale_u: the map's columns continue across u = 1
-    k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
-    du, dm, dz = dot3(d, seg.u), dot3(d, seg.m), dot3(d, seg.w)
-    ex, ez = dot3(e, seg.u), dot3(e, seg.w)
-    vr = safe_div(v_b - v_a, s_b - s_a, 0.0)  # dv/ds
-    cp = ez * du - ex * dz  # rho^2 dphi/ds, constant along the ray
-    qa, qb = du * du + dz * dz, ex * du + ez * dz  # rho^2 = qa s^2 + 2 qb s + (ex^2 + ez^2)
-    tiny = 8 * eps_of(e) * (jnp.abs(s_a) + jnp.abs(s_b) + 1e-30)
-    inf = jnp.asarray(jnp.inf, dt)
+class Lane(NamedTuple):
+    """One (ray, segment) pair's constants for the traversal: the segment, the ray recentred on
+    it (o + t0 d = C1 + e), its window [s_a, s_b] in the shell with v = v_a .. v_b across it,
+    whether it starts below the relief surface (``inside0``) or meets it at the shell's entry
+    (``hit_at_entry``), ``ok`` (the window is not empty), and what the hit needs: t0, the ray's
+    (t_min, t_max] and the shell's entry code."""
 
-    def geo(s):
-        p = e + s * d
+    seg: FrustaParams
+    e: jnp.ndarray
+    d: jnp.ndarray
+    s_a: jnp.ndarray
+    s_b: jnp.ndarray
+    v_a: jnp.ndarray
+    v_b: jnp.ndarray
+    inside0: jnp.ndarray
+    hit_at_entry: jnp.ndarray
+    ok: jnp.ndarray
+    t0: jnp.ndarray
+    t_min: jnp.ndarray
+    t_max: jnp.ndarray
+    entry: jnp.ndarray
+
+
+class State(NamedTuple):
+    """Where one pair's traversal stands: ``phase`` 0 while intervals are decided (the interval
+    [s0, s0 + L], ``geo`` at s0 in g0, ``i`` iterations taken), 1 while Newton steps refine the
+    bracket [lo, hi] from ``x`` (``k`` steps taken), 2 when done (``found`` a crossing, at x);
+    s_und the start of the first interval left undecided (inf where none)."""
+
+    phase: jnp.ndarray
+    i: jnp.ndarray
+    s0: jnp.ndarray
+    g0: tuple
+    L: jnp.ndarray
+    lo: jnp.ndarray
+    hi: jnp.ndarray
+    x: jnp.ndarray
+    k: jnp.ndarray
+    found: jnp.ndarray
+    s_und: jnp.ndarray
+
+
+def begin(maps, q, seg: FrustaParams, o, d, t_min, t_max):
+    """(:class:`Lane`, first :class:`State`) of a ray (o, d, t_min, t_max) against a relief
+    segment: its whole window the first interval (done at once where the window is empty or the
+    ray meets the surface at the shell's entry)."""
+    from ._relief import _shell_window, exact_v
+
+    t0, e, s_a, s_b, ok, entry, from_outside = _shell_window(seg, o, d, t_min, t_max)
+    v_a, v_b = exact_v(seg, e + s_a * d)[0], exact_v(seg, e + s_b * d)[0]
+    ln = Lane(seg, e, d, s_a, s_b, v_a, v_b, False, False, ok, t0, t_min, t_max, entry)
+    g = _Field(maps, q, ln).geo(s_a)
+    b0 = g[0] - g[5] <= 0
+    ln = ln._replace(inside0=(~from_outside) & b0, hit_at_entry=from_outside & b0)
+    zero = jnp.zeros((), jnp.int32)
+    done = ln.hit_at_entry | ~ok
+    st = State(jnp.where(done, 2, 0).astype(jnp.int32), zero, s_a, g, s_b - s_a, s_a, s_a, s_a, zero,
+               ln.hit_at_entry & ok, jnp.asarray(jnp.inf, e.dtype))
+    return ln, st
+
+
+def advance(maps, q, ln: Lane, st: State) -> State:
+    """One iteration of a pair's traversal (the module's): an interval decided (skipped,
+    halved or found to bracket the one crossing) or, in the bracket, one Newton step kept in
+    it. A finished pair's state comes back unchanged."""
+    return _Field(maps, q, ln).advance(st)
+
+
+def result(ln: Lane, st: State):
+    """(found, s_root, s_undecided) of a finished :class:`State`."""
+    return ln.ok & st.found, jnp.where(ln.hit_at_entry, ln.s_a, st.x), st.s_und
+
+
+def search(maps, q, ln: Lane, st: State):
+    """(found, s_root, s_undecided) of one pair from :func:`begin`, its iterations in one ``while_loop``."""
+    st = jax.lax.while_loop(lambda st: st.phase < 2, lambda st: advance(maps, q, ln, st), st)
+    return result(ln, st)
+
+
+def lane_fns(maps, q, steps: int):
+    """(begin, advance, done, finish, steps) of the traversal for persistent lanes
+    (``_intersect.nearest_batch_compact``'s ``lanes``)."""
+    return (lambda seg, o, d, t_min, t_max: begin(maps, q, seg, o, d, t_min, t_max),
+            lambda ln, st: advance(maps, q, ln, st),
+            lambda st: st.phase == 2,
+            lambda ln, st: hit_of(maps, q, ln, *result(ln, st)),
+            steps)
+
+
+def relief_t(maps, q, seg: FrustaParams, o, d, t_min, t_max):
+    """(t, s, code, t_undecided) of one ray against one relief segment (``_relief.make_relief_t``)
+    by the exact traversal."""
+    ln, st = begin(maps, q, seg, o, d, t_min, t_max)
+    return hit_of(maps, q, ln, *search(maps, q, ln, st))
+
+
+def hit_of(maps, q, ln: Lane, found, root, s_und):
+    """(t, s, code, t_undecided) of a pair from its :func:`result`: t inf where it has no
+    crossing in (t_min, t_max]; s differentiable by the implicit-function theorem
+    (``numerics.differentiable_root``); an entry hit is the shell's own analytic root."""
+    fl = _Field(maps, q, ln)
+
+    def gap(s):
+        g = fl.geo(s)
+        return g[0] - g[5]
+
+    inf = jnp.asarray(jnp.inf, ln.e.dtype)
+    s_hit = jnp.where(ln.hit_at_entry, ln.s_a, differentiable_root(gap, root))
+    t = ln.t0 + s_hit
+    good = ln.ok & found & (t > ln.t_min) & (t <= ln.t_max)
+    code = jnp.where(ln.hit_at_entry, ln.entry, RELIEF)
+    t_und = jnp.where(ln.ok & jnp.isfinite(s_und), ln.t0 + s_und, inf)
+    return jnp.where(good, t, inf), s_hit, code.astype(jnp.int32), t_und
+
+
+class _Field:
+    """The ray's height w, the map's h and the bounds between them along one pair's window."""
+
+    def __init__(self, maps, q, ln: Lane):
+        self.maps, self.ln, self.v_mode = maps, ln, q.v_mode
+        self.levels = q.levels
+        seg, e, d = ln.seg, ln.e, ln.d
+        self.hh, self.ww = maps.height.shape
+        self.su, self.sv = maps.scale[0], maps.scale[1]
+        self.period = self.su * self.ww  # X where u wraps
+        self.k = safe_div(seg.r2 - seg.r1, seg.h, 0.0)
+        self.du, self.dm, self.dz = dot3(d, seg.u), dot3(d, seg.m), dot3(d, seg.w)
+        self.ex, self.ez = dot3(e, seg.u), dot3(e, seg.w)
+        self.vr = safe_div(ln.v_b - ln.v_a, ln.s_b - ln.s_a, 0.0)  # dv/ds
+        self.cp = self.ez * self.du - self.ex * self.dz  # rho^2 dphi/ds, constant along the ray
+        self.tiny = 8 * eps_of(e) * (jnp.abs(ln.s_a) + jnp.abs(ln.s_b) + 1e-30)
+
+    def geo(self, s):
+        """(w, dw/ds, rho^2, X, Y, h, dh/ds) at e + s d: X, Y the texel coordinates h is read at."""
+        ln, seg = self.ln, self.ln.seg
+        p = ln.e + s * ln.d
         x, y, z = dot3(p, seg.u), dot3(p, seg.m), dot3(p, seg.w)
         rho2 = x * x + z * z
         rho = safe_sqrt(rho2)
-        w = safe_div(rho - (seg.r1 + k * y), seg.shell, 0.0)
-        dw = safe_div(safe_div(x * du + z * dz, rho, 0.0) - k * dm, seg.shell, 0.0)
-        v = v_a + vr * (s - s_a)
+        w = safe_div(rho - (seg.r1 + self.k * y), seg.shell, 0.0)
+        dw = safe_div(safe_div(x * self.du + z * self.dz, rho, 0.0) - self.k * self.dm, seg.shell, 0.0)
+        v = ln.v_a + self.vr * (s - ln.s_a)
         u = _angle_u(seg, p, v)
-        vv = (v + seg.v_off) * sv
-        h = sample_height(maps, u * su, vv, v_mode)
-        return w, dw, rho2, u * period - 0.5, vv * hh - 0.5, h
+        vv = (v + seg.v_off) * self.sv
+        fx, fy, t00, t01, t10, t11 = bilinear_taps(self.maps, u * self.su, vv, self.v_mode)
+        h = ((1 - fx) * (1 - fy) * t00 + fx * (1 - fy) * t01 + (1 - fx) * fy * t10 + fx * fy * t11) / 255.0
+        h_x = ((1 - fy) * (t01 - t00) + fy * (t11 - t10)) / 255.0  # per texel
+        h_y = ((1 - fx) * (t10 - t00) + fx * (t11 - t01)) / 255.0
+        dx = (safe_div(self.cp, rho2, 0.0) / _TWO_PI + seg.twist * self.vr) * self.period
+        dh = h_x * dx + h_y * (self.vr * self.sv * self.hh)
+        return w, dw, rho2, u * self.period - 0.5, vv * self.hh - 0.5, h, dh
 
-    def gap(s):
-        g = geo(s)
-        return g[0] - g[5]
+    def crossed(self, g):
+        return (g[0] - g[5] <= 0) != self.ln.inside0
 
-    def crossed(g):
-        return (g[0] - g[5] <= 0) != inside0
-
-    def texel(jx, jy):
+    def texel(self, jx, jy):
+        hh, ww = self.hh, self.ww
         xa = jnp.mod(jx, ww)
-        if v_mode == "wrap":
-            ya = jnp.mod(jy, hh)
-        else:
-            ya = jnp.clip(jy, 0, hh - 1)
-        return maps.height[ya, xa].astype(dt) / 255.0
+        ya = jnp.mod(jy, hh) if self.v_mode == "wrap" else jnp.clip(jy, 0, hh - 1)
+        return self.maps.height[ya, xa].astype(self.ln.e.dtype) / 255.0
 
-    def decide(s0, g0, s1, g1):
-        """(skip, bracket): the interval [s0, s1] holds no crossing / its only crossing."""
+    def decide(self, s0, g0, s1, g1):
+        """(skip, bracket, cut): the interval [s0, s1] holds no crossing / its only crossing; cut
+        the distance from s0 to where the level-0 cell at s0 ends along the ray."""
+        ln, seg, maps, v_mode = self.ln, self.ln.seg, self.maps, self.v_mode
+        hh, ww, period, vr = self.hh, self.ww, self.period, self.vr
+        du, dz, ex, ez = self.du, self.dz, self.ex, self.ez
+        Hc = hh if v_mode == "wrap" else hh + 1
+        seamless = jnp.mod(period, ww) == 0  # an integer scale_u: the map's columns continue across u = 1
+        inf = jnp.asarray(jnp.inf, ln.e.dtype)
+        tiny = self.tiny
         L = s1 - s0
-        w0, dw0, r0, X0, Y0, _ = g0
-        w1, dw1, r1, X1, Y1, _ = g1
+        w0, dw0, r0, X0, Y0 = g0[:5]
+        w1, dw1, r1, X1, Y1 = g1[:5]
         w_lo = w0 + _least_of_upper([(0.0 * w0, dw0), (w1 - w0 - dw1 * L, dw1)], L)
         w_hi = jnp.maximum(w0, w1)
         # rho^2 over the interval (a convex quadratic) bounds the angle's rate
+        qa, qb = du * du + dz * dz, ex * du + ez * dz  # rho^2 = qa s^2 + 2 qb s + (ex^2 + ez^2)
         sv_ = jnp.clip(safe_div(-qb, qa, s0), s0, s1)
         rmin = jnp.minimum(jnp.minimum(r0, r1), qa * sv_ * sv_ + 2 * qb * sv_ + (ex * ex + ez * ez))
         rmax = jnp.maximum(r0, r1)
-        a1, a2 = safe_div(cp, jnp.maximum(rmin, 0.0), inf), safe_div(cp, rmax, 0.0)
+        a1, a2 = safe_div(self.cp, jnp.maximum(rmin, 0.0), inf), safe_div(self.cp, rmax, 0.0)
         ph_lo, ph_hi = jnp.minimum(a1, a2), jnp.maximum(a1, a2)
         xr_lo = (ph_lo / _TWO_PI + seg.twist * vr) * period
         xr_hi = (ph_hi / _TWO_PI + seg.twist * vr) * period
-        yr = vr * sv * hh
+        yr = vr * self.sv * hh
         mono_x = (xr_lo > 0) | (xr_hi < 0) | ((xr_lo == 0) & (xr_hi == 0))
         dX = X1 - X0
         dX = dX - period * jnp.round(safe_div(dX, period, 0.0))
@@ -226,11 +359,11 @@ def search(maps, mips, levels, v_mode: str, seg, e, d, s_a, s_b, v_a, v_b, insid
         cx1 = jnp.where(whole, 0, cx1)
         cy0 = jnp.where(whole, 0, cy0)
         cy1 = jnp.where(whole, 0, cy1)
-        h_lo, h_hi = _pyramid_bounds(mip_max, mip_min, levels, cx0, cx1, cy0, cy1, ww, Hc, v_mode == "wrap", whole)
+        h_lo, h_hi = _pyramid_bounds(maps.mip_max, maps.mip_min, self.levels, cx0, cx1, cy0, cy1, ww, Hc, v_mode == "wrap", whole)
         # one cell: the bilinear's own bounds (at the range's corners) and its slopes
         one = ~whole & (cx0 == cx1) & (cy0 == cy1)
         jy = cy0 if v_mode == "wrap" else cy0 - 1
-        t00, t10, t01, t11 = texel(cx0, jy), texel(cx0 + 1, jy), texel(cx0, jy + 1), texel(cx0 + 1, jy + 1)
+        t00, t10, t01, t11 = self.texel(cx0, jy), self.texel(cx0 + 1, jy), self.texel(cx0, jy + 1), self.texel(cx0 + 1, jy + 1)
         fx = jnp.clip(jnp.stack([xlo, xhi]) - cx0, 0.0, 1.0)
         fy = jnp.clip(jnp.stack([ylo, yhi]) - (cy0 if v_mode == "wrap" else cy0 - 1), 0.0, 1.0)
         if v_mode != "wrap":  # a clamped row beyond the map: the edge rows, fy immaterial
@@ -246,8 +379,8 @@ def search(maps, mips, levels, v_mode: str, seg, e, d, s_a, s_b, v_a, v_b, insid
         py = _mul_range(jnp.min(hy), jnp.max(hy), yr, yr)
         g_lo, g_hi = dw0 - (px[1] + py[1]), dw1 - (px[0] + py[0])  # bounds of g' = w' - h'
         mono = one & strict & mono_x & ((g_lo > 0) | (g_hi < 0))
-        c1 = crossed(g1)
-        apart = jnp.where(inside0, w_hi <= h_lo, w_lo > h_hi)
+        c1 = self.crossed(g1)
+        apart = jnp.where(ln.inside0, w_hi <= h_lo, w_lo > h_hi)
         skip = ~c1 & (apart | mono)
         bracket = c1 & (mono | (L <= tiny))
         # where the current level-0 cell ends along the ray (a cut for the next interval: halving
@@ -263,36 +396,50 @@ def search(maps, mips, levels, v_mode: str, seg, e, d, s_a, s_b, v_a, v_b, insid
         cut = jnp.min(jnp.where(cand > s0 + tiny, cand, inf)) - s0
         return skip, bracket, cut
 
-    def body(st):
-        i, s0, g0, L, done, lo, hi, s_und = st
-        s1 = jnp.minimum(s0 + L, s_b)
-        g1 = geo(s1)
-        skip, bracket, cut = decide(s0, g0, s1, g1)
-        floor = (s1 - s0) <= tiny
+    def advance(self, st: State) -> State:
+        ln, tiny = self.ln, self.tiny
+        inf = jnp.asarray(jnp.inf, ln.e.dtype)
+        trav, newt = st.phase == 0, st.phase == 1
+        s1 = jnp.where(newt, st.x, jnp.minimum(st.s0 + st.L, ln.s_b))
+        g1 = self.geo(s1)  # the next interval's end, or the Newton iterate
+        # an interval (phase 0)
+        skip, bracket, cut = self.decide(st.s0, st.g0, s1, g1)
+        floor = (s1 - st.s0) <= tiny
         stuck = floor & ~skip & ~bracket  # a graze within rounding: left undecided, passed over
-        s_und = jnp.where(stuck & ~jnp.isfinite(s_und), s0, s_und)
+        s_und = jnp.where(trav & stuck & ~jnp.isfinite(st.s_und), st.s0, st.s_und)
         move = skip | stuck
-        end = move & (s1 >= s_b)
-        lo, hi = jnp.where(bracket, s0, lo), jnp.where(bracket, s1, hi)
-        s0n = jnp.where(move, s1, s0)
-        g0n = jax.tree_util.tree_map(lambda a, b: jnp.where(move, b, a), g0, g1)
-        Ln = jnp.where(move, 2 * L, jnp.where(bracket, L, jnp.minimum(0.5 * L, cut)))
-        return i + 1, s0n, g0n, Ln, done | bracket | end, lo, hi, s_und
-
-    st0 = (jnp.int32(0), s_a, geo(s_a), s_b - s_a, hit_at_entry | ~ok, s_a, s_a, inf)
-    i, s0, _, _, done, lo, hi, s_und = jax.lax.while_loop(lambda st: (st[0] < LOOPS) & ~st[4], body, st0)
-    found = ok & (hit_at_entry | (done & (hi > lo)))
-    s_und = jnp.where(~done, jnp.minimum(s_und, s0), s_und)  # out of iterations: undecided from there
-
-    # the one crossing in [lo, hi] (g monotone there): Newton steps kept in the bracket
-    def newton(_, lh):
-        a, b, x = lh
-        gx, dg = jax.jvp(gap, (x,), (jnp.ones_like(x),))
-        cx = (gx <= 0) != inside0
-        a, b = jnp.where(cx, a, x), jnp.where(cx, x, b)
-        xn = x - safe_div(gx, dg, inf)
-        # inclusive: a converged step lands on the end the last sample just moved there
-        return a, b, jnp.where(gx == 0, x, jnp.where((xn >= a) & (xn <= b), xn, 0.5 * (a + b)))
-
-    _, _, x = jax.lax.fori_loop(0, NEWTON, newton, (lo, hi, 0.5 * (lo + hi)))
-    return found, jnp.where(hit_at_entry, s_a, x), s_und
+        end = move & (s1 >= ln.s_b)
+        s0n = jnp.where(move, s1, st.s0)
+        g0n = tuple(jnp.where(move, b, a) for a, b in zip(st.g0, g1))
+        Ln = jnp.where(move, 2 * st.L, jnp.where(bracket, st.L, jnp.minimum(0.5 * st.L, cut)))
+        # the bracket's first iterate: the secant of g over it, inside it
+        ga, gb = st.g0[0] - st.g0[5], g1[0] - g1[5]
+        sec = st.s0 + (s1 - st.s0) * safe_div(ga, ga - gb, 0.5)
+        x0 = jnp.where((sec > st.s0) & (sec < s1), sec, 0.5 * (st.s0 + s1))
+        i = st.i + 1
+        out = (i >= LOOPS) & ~bracket & ~end  # out of iterations: undecided from where it stopped
+        s_und = jnp.where(out, jnp.minimum(s_und, s0n), s_und)
+        ph_t = jnp.where(bracket, 1, jnp.where(end | out, 2, 0))
+        # a Newton step in the bracket (phase 1): g is monotone there, one crossing
+        gx, dg = g1[0] - g1[5], g1[1] - g1[6]
+        cx = self.crossed(g1)
+        a, b = jnp.where(cx, st.lo, st.x), jnp.where(cx, st.x, st.hi)
+        xn = st.x - safe_div(gx, dg, inf)
+        xn = jnp.where(gx == 0, st.x, jnp.where((xn >= a) & (xn <= b), xn, 0.5 * (a + b)))
+        kn = st.k + 1
+        conv = (gx == 0) | (jnp.abs(xn - st.x) <= tiny) | (kn >= NEWTON)
+        ph_n = jnp.where(conv, 2, 1)
+        pick = lambda t_, n_, keep: jnp.where(trav, t_, jnp.where(newt, n_, keep))  # noqa: E731
+        return State(
+            phase=pick(ph_t, ph_n, st.phase).astype(jnp.int32),
+            i=jnp.where(trav, i, st.i),
+            s0=jnp.where(trav, s0n, st.s0),
+            g0=tuple(jnp.where(trav, a_, b_) for a_, b_ in zip(g0n, st.g0)),
+            L=jnp.where(trav, Ln, st.L),
+            lo=pick(st.s0, a, st.lo),
+            hi=pick(s1, b, st.hi),
+            x=pick(x0, xn, st.x),
+            k=jnp.where(newt, kn, st.k),
+            found=st.found | (trav & bracket),
+            s_und=jnp.where(trav, s_und, st.s_und),
+        )
