@@ -137,6 +137,13 @@ class Representation:
     #: measured choice, stated where a representation sets it
     cpu_compiler_options: ClassVar[Mapping[str, Any]] = {}
 
+    @classmethod
+    def compiler_options_for(cls, static) -> Mapping[str, Any]:
+        """The CPU options of a program over an object of static options ``static``: the class's
+        :attr:`cpu_compiler_options` unless a representation measured another choice for some
+        of its statics (and overrides this)."""
+        return cls.cpu_compiler_options
+
     def __init_subclass__(cls, module: str | None = None, **kw):
         """``class _X(Representation, module=__name__)``: the module's own functions named as
         :data:`FUNCTION_MEMBERS` names them (with the interface's signatures) become the
@@ -284,21 +291,22 @@ class Object:
         return registry.get(self.rep)
 
     def compiler_options(self) -> dict:
-        """The XLA options its programs compile with on the CPU (``cpu_compiler_options``)."""
-        return agreed_options([self.rep])
+        """The XLA options its programs compile with on the CPU (``compiler_options_for``)."""
+        return agreed_options([self.rep], [self.static])
 
 
-def agreed_options(reps) -> dict:
+def agreed_options(reps, statics) -> dict:
     """The CPU compiler options of a program over objects of the representations ``reps``
-    (registered names): every option some of them set, except one they set to different values
-    (it keeps XLA's default). A representation that sets none takes the others': the measured
-    choice for the mixed scenes (docs/performance.md: scene_cacti's render faster with the
-    frusta's, scene_effects' 1-3 % slower for 1.7-2.3 s less compile)."""
+    (registered names) with static options ``statics`` (``Representation.compiler_options_for``):
+    every option some of them set, except one they set to different values (it keeps XLA's
+    default). A representation that sets none takes the others': the measured choice for the
+    mixed scenes (docs/performance.md: scene_cacti's render faster with the frusta's,
+    scene_effects' 1-3 % slower for 1.7-2.3 s less compile)."""
     from . import registry
 
     out, clash = {}, set()
-    for name in dict.fromkeys(reps):
-        for k, v in registry.get(name).cpu_compiler_options.items():
+    for name, static in zip(reps, statics):
+        for k, v in registry.get(name).compiler_options_for(static).items():
             clash |= {k} if out.get(k, v) != v else set()
             out.setdefault(k, v)
     return {k: v for k, v in out.items() if k not in clash}

@@ -530,9 +530,27 @@ def test_exact_tracer_pyramid_bounds_every_range(rng, shape):
             cols = np.mod(np.concatenate([xs, xs + 1]), W)
             block = img[np.ix_(rows, cols)].astype(float) / 255.0
             yy0, yy1 = (y0, y0 + ny) if mode == "wrap" else (y0 + 1, y0 + ny + 1)
-            lo, hi = rx._pyramid_bounds(jnp.asarray(mx), jnp.asarray(mn), levels, jnp.int32(x0), jnp.int32(x0 + nx),
+            lo, hi = rx._pyramid_bounds(jnp.asarray(np.stack([mx, mn], -1)), levels, jnp.int32(x0), jnp.int32(x0 + nx),
                                         jnp.int32(yy0), jnp.int32(yy1), W, H + (mode != "wrap"), mode == "wrap", jnp.asarray(False))
             assert float(lo) <= block.min() + 1e-7 and float(hi) >= block.max() - 1e-7, (mode, x0, nx, y0, ny)
+
+
+@pytest.mark.parametrize("v_mode", ["wrap", "clamp"])
+def test_exact_tracer_memory_counts_its_pyramid(tmp_path, v_mode):
+    """The exact tracer keeps the 8-bit map plus a (max, min) byte pair per pyramid cell: for a
+    12 x 20 map, levels of ceil-halved sides down to one cell (12 or 13 rows: a clamped map has a
+    row of cells below its first), counted here from the sides alone; the march keeps no pyramid."""
+    img = np.zeros((12, 20), np.uint8)
+    rows, cols, cells = 12 + (v_mode == "clamp"), 20, 0
+    while True:
+        cells += rows * cols
+        if rows == cols == 1:
+            break
+        rows, cols = -(-rows // 2), -(-cols // 2)
+    mem = build_relief(tmp_path, img, *SEG, method="exact", v_mode=v_mode).info["memory"]
+    assert mem["pyramid_bytes"] == 2 * cells and mem["relief_map_bytes"] == img.size
+    assert mem["representation_bytes"] == mem["frusta_bytes"] + img.size + 2 * cells
+    assert build_relief(tmp_path, img, *SEG).info["memory"]["pyramid_bytes"] == 0
 
 
 def test_exact_tracer_refuses_a_nonlinear_v_by_name(tmp_path):

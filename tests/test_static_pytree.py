@@ -134,10 +134,16 @@ def test_a_program_compiles_with_the_cpu_options_its_representations_agree_on(mo
     b = _cylinder()
     obj = frusta_object(b)
     assert executor.compiler_options((obj, None)) == {"xla_cpu_use_fusion_emitters": False}
-    assert interface.agreed_options(["implicit", "frusta", "implicit"]) == {"xla_cpu_use_fusion_emitters": False}
+    assert interface.agreed_options(["implicit", "frusta", "implicit"], [None] * 3) == {"xla_cpu_use_fusion_emitters": False}
+    # the exact relief tracer asks for the fusion emitters: alone it has them, beside plain frusta neither wins
+    from jskel.frusta import ReliefQuality
+
+    exact = obj.static._replace(relief=ReliefQuality(method="exact"))
+    assert interface.agreed_options(["frusta"], [exact]) == {"xla_cpu_use_fusion_emitters": True}
+    assert interface.agreed_options(["frusta", "frusta"], [exact, obj.static]) == {}
     monkeypatch.setattr(type(implicit), "cpu_compiler_options", {"xla_cpu_use_fusion_emitters": True, "xla_cpu_enable_fast_math": False})
-    assert interface.agreed_options(["frusta", "implicit"]) == {"xla_cpu_enable_fast_math": False}
-    scene = Scene(None, type("Static", (), {"reps": ("frusta", "implicit", "frusta")})())
+    assert interface.agreed_options(["frusta", "implicit"], [None, None]) == {"xla_cpu_enable_fast_math": False}
+    scene = Scene(None, type("Static", (), {"reps": ("frusta", "implicit", "frusta"), "statics": (None, None, None)})())
     assert executor.compiler_options((scene, None)) == {"xla_cpu_enable_fast_math": False}
     seen = []
 

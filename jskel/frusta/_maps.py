@@ -12,8 +12,10 @@ from ._build import FrustaArrays
 
 
 
-def relief_memory(arr: FrustaArrays, height: np.ndarray, scale, relief_ids, dtype_bytes: int = 4) -> dict:
+def relief_memory(arr: FrustaArrays, height: np.ndarray, scale, relief_ids, dtype_bytes: int = 4, pyramid_bytes: int = 0) -> dict:
     """Bytes of the representation beside an equivalent displaced triangle mesh (Sec. 4).
+    ``pyramid_bytes``: the exact tracer's min/max pyramid (``_relief_exact.pyramid``; 0 for the
+    march), counted in the representation's bytes.
 
     The mesh samples each relief segment at the height map's texel density (one vertex per
     texel of the tiled map over the segment: W * scale_u by H * scale_v), with float32
@@ -26,5 +28,6 @@ def relief_memory(arr: FrustaArrays, height: np.ndarray, scale, relief_ids, dtyp
     hh, ww = height.shape
     verts = len(relief_ids) * (ww * float(scale[0])) * (hh * float(scale[1]))
     mesh_b = int(verts * 12 + 2 * verts * 12)
-    return {"frusta_bytes": int(frusta_b), "relief_map_bytes": maps_b, "representation_bytes": int(frusta_b + maps_b),
+    return {"frusta_bytes": int(frusta_b), "relief_map_bytes": maps_b, "pyramid_bytes": int(pyramid_bytes),
+            "representation_bytes": int(frusta_b + maps_b + pyramid_bytes),
             "mesh_vertices": int(verts), "mesh_triangles": int(2 * verts), "mesh_bytes": mesh_b}

@@ -58,8 +58,7 @@ class ReliefMaps(NamedTuple):
     slope: jnp.ndarray
     steps: jnp.ndarray
     bisection: jnp.ndarray
-    mip_max: jnp.ndarray | None = None  # ``exact``: the height pyramid's maxima, every level flat (uint8)
-    mip_min: jnp.ndarray | None = None  # and its minima (``_relief_exact.pyramid``)
+    mip: jnp.ndarray | None = None  # ``exact``: (K, 2) uint8, the height pyramid's (max, min), every level flat (``_relief_exact.pyramid``)
 
 
 def texel_slopes(height) -> np.ndarray:

@@ -101,7 +101,7 @@ def _pieces(lo, n, size):
     return a, jnp.where(wraps, size - 1, a + n), jnp.where(wraps, 0, a), jnp.where(wraps, a + n - size, a + n)
 
 
-def _pyramid_bounds(mip_max, mip_min, levels, cx0, cx1, cy0, cy1, W: int, Hc: int, wrap_y: bool, whole):
+def _pyramid_bounds(mip, levels, cx0, cx1, cy0, cy1, W: int, Hc: int, wrap_y: bool, whole):
     """(least, greatest) texel over cells [cx0, cx1] x [cy0, cy1] (integers, x unwrapped; y
     already the row index for a clamped map), from the coarsest level needed; ``whole``: the
     whole map's (the top level). A range of at most 2^l cells meets at most 2 cells of level l
@@ -132,18 +132,20 @@ def _pyramid_bounds(mip_max, mip_min, levels, cx0, cx1, cy0, cy1, W: int, Hc: in
     by = jnp.right_shift(ys, lvl)
     by = jnp.mod(by, rows) if wrap_y and pow2_y else jnp.minimum(by, rows - 1)
     idx = off + (by[:, None] * cols + bx[None, :]).reshape(-1)
-    lo = mip_min.at[idx].get(mode="promise_in_bounds")
-    hi = mip_max.at[idx].get(mode="promise_in_bounds")
+    cells = mip.at[idx].get(mode="promise_in_bounds")  # (cells, 2): max, min
+    lo, hi = cells[:, 1], cells[:, 0]
     return jnp.min(lo).astype(jnp.float32) / 255.0, jnp.max(hi).astype(jnp.float32) / 255.0
 
 
 def _materialised(xs, ys, lvl):
     """(xs, ys, lvl) unchanged, through a product with the identity: XLA fused the arithmetic that
-    makes them into the pyramid's gather, running it again for each of the 16 elements gathered
-    (1.06 s of a 1.24 s cast of 4,096 rays, one-off profile, 2026-12-06); a dot is not fused
-    into it (a sort by constant keys did the same: the 64 x 64 column cast took 104 ms with it, 74 with the dot)."""
+    makes them into the pyramid's gather, running it again for each element gathered (1.06 s of
+    a 1.24 s cast of 4,096 rays when 16 were read, one-off profile, 2026-12-06); a dot is not
+    fused into it. A sort by constant keys did the same, slower; an ``optimization_barrier``
+    was slower still (0.30 s against 0.24 s for the 256 x 256 column), and so was a product of
+    the final indices (0.24 s against 0.18 s). Cell indices are far below 2^24: exact in float32."""
     nx = xs.shape[0]
-    vals = jnp.concatenate([xs, ys, lvl[None]]).astype(jnp.float32)  # small integers: exact
+    vals = jnp.concatenate([xs, ys, lvl[None]]).astype(jnp.float32)
     vals = jnp.round(jnp.dot(jnp.eye(vals.shape[0], dtype=jnp.float32), vals)).astype(jnp.int32)
     return vals[:nx], vals[nx:-1], vals[-1]
 
@@ -359,7 +361,7 @@ class _Field:
         cx1 = jnp.where(whole, 0, cx1)
         cy0 = jnp.where(whole, 0, cy0)
         cy1 = jnp.where(whole, 0, cy1)
-        h_lo, h_hi = _pyramid_bounds(maps.mip_max, maps.mip_min, self.levels, cx0, cx1, cy0, cy1, ww, Hc, v_mode == "wrap", whole)
+        h_lo, h_hi = _pyramid_bounds(maps.mip, self.levels, cx0, cx1, cy0, cy1, ww, Hc, v_mode == "wrap", whole)
         # one cell: the bilinear's own bounds (at the range's corners) and its slopes
         one = ~whole & (cx0 == cx1) & (cy0 == cy1)
         jy = cy0 if v_mode == "wrap" else cy0 - 1

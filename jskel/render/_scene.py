@@ -312,7 +312,7 @@ class Scene:
         representations agree on (``interface.agreed_options``)."""
         from ..interface import agreed_options
 
-        return agreed_options(self.static.reps)
+        return agreed_options(self.static.reps, self.static.statics)
 
 
 def scene_call(scene: Scene, rays: Rays) -> dict:
