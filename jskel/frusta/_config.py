@@ -170,7 +170,7 @@ class ReliefConfig(StrictModel):
     method: Literal["march", "exact"] = "march"
     """``march``: the paper's uniform steps and bisection (``steps``, ``bisection``); ``exact``: skip through
     a min/max pyramid of the map and solve the crossing in its bilinear cell to rounding (no step
-    count; needs v linear along the ray: ``uv`` approximate, or auto with parallel cutting planes)."""
+    count), with ``uv`` approximate or exact as the march."""
     segments: list[Annotated[int, Field(ge=0)]] | None = None
     """Indices of the segments that carry relief; unset: all."""
 

@@ -10,16 +10,19 @@ descent and ascent, as the maximum mipmaps of Tevs, Ihrke and Seidel 2008 are wa
 * **w** (Eq. 11-12), the ray's height in the shell, is convex along the ray (the distance to
   the axis is a norm of an affine function; the inner radius is linear), so on an interval it
   lies above its tangents at both ends and below its larger end value.
-* **(X, Y)**, the texel coordinates: Y is linear in s (v interpolated linearly across the window,
-  the paper's approximate v, which is exact for parallel cutting planes), and X follows the
-  angle, whose rate along a line is C / rho^2 (C = z dx - x dz is constant along the ray, rho^2
-  a convex quadratic): bounds of rho^2 over the interval bound dX/ds, so X is monotone there and
-  its range is its ends' (twist adds a constant rate times dv/ds).
+* **(X, Y)**, the texel coordinates. With ``uv: approximate`` Y is linear in s (v interpolated
+  linearly across the window, the paper's approximate v, exact for parallel cutting planes);
+  with ``uv: exact`` v is Eq. 7's, A beta / (A beta - B alpha) with A, B affine along the ray
+  and alpha, beta functions of the angle, whose range and rate over an interval come from
+  interval arithmetic on that expression (``_Field._v_bounds``). X follows the angle, whose rate
+  along a line is C / rho^2 (C = z dx - x dz is constant along the ray, rho^2 a convex
+  quadratic): bounds of rho^2 over the interval bound dX/ds, so X is monotone there and its
+  range is its ends' (twist adds its rate times dv/ds).
 * **h**, the bilinear height, lies between the least and greatest texel of the cells its (X, Y)
   range covers: level 0 of the pyramid holds each cell's 4 texels' max and min (the bilinear
   footprint, with u wrapping and v wrapping or clamped as the sampler does), each level above
   2 x 2 of the one below; a range of at most 2^l cells on each axis meets at most 2 x 2 cells of
-  level l per contiguous piece (a range that wraps is two pieces).
+  level l (a range that wraps on an axis whose size is not a power of two is two pieces).
 
 An interval is skipped when the bounds keep the ray on its side of the surface (above it for a
 ray from outside: the least of w above the greatest h; below it for a ray starting below: the
@@ -32,8 +35,10 @@ step size: the first crossing is found to rounding. A ray whose interval shrinks
 without a decision (a tangent graze of the surface) is recorded as undecided, which the batch
 turns into the ``graze`` flag, as the march's bound does; so is one that runs out of ``LOOPS``.
 
-Limits: v must be linear in s (``uv: approximate``, or ``auto`` with parallel cutting planes);
-config refuses ``method: exact`` with ``uv: exact`` by name.
+A batch's (ray, segment) pairs take from a few to over a hundred iterations: they run in
+persistent lanes (``wavefront.refill_loop``), each refilled with the next pair as its own
+finishes, with the bracket's Newton steps as the pair's last iterations (from the secant of g
+over the bracket).
 """
 
 from __future__ import annotations
@@ -46,7 +51,7 @@ import numpy as np
 
 from ..numerics import differentiable_root, dot3, eps_of, safe_div, safe_sqrt
 from ._intersect import FrustaParams
-from ._relief import _TWO_PI, RELIEF, _angle_u, _least_of_upper, bilinear_taps
+from ._relief import _TWO_PI, RELIEF, _angle_u, _least_of_upper, bilinear_taps, exact_v
 
 LOOPS = 1024  # traversal iterations per (ray, segment) before the pair is left undecided
 NEWTON = 10  # Newton steps kept in the final bracket (g monotone there)
@@ -201,7 +206,7 @@ def begin(maps, q, seg: FrustaParams, o, d, t_min, t_max):
     """(:class:`Lane`, first :class:`State`) of a ray (o, d, t_min, t_max) against a relief
     segment: its whole window the first interval (done at once where the window is empty or the
     ray meets the surface at the shell's entry)."""
-    from ._relief import _shell_window, exact_v
+    from ._relief import _shell_window
 
     t0, e, s_a, s_b, ok, entry, from_outside = _shell_window(seg, o, d, t_min, t_max)
     v_a, v_b = exact_v(seg, e + s_a * d)[0], exact_v(seg, e + s_b * d)[0]
@@ -286,6 +291,12 @@ class _Field:
         self.vr = safe_div(ln.v_b - ln.v_a, ln.s_b - ln.s_a, 0.0)  # dv/ds
         self.cp = self.ez * self.du - self.ex * self.dz  # rho^2 dphi/ds, constant along the ray
         self.tiny = 8 * eps_of(e) * (jnp.abs(ln.s_a) + jnp.abs(ln.s_b) + 1e-30)
+        self.exact_v = q.uv == "exact"
+        if self.exact_v:  # Eq. 7's v = A beta / (A beta - B alpha) (see ``_v_rate``)
+            self.nb3 = (dot3(seg.nb, seg.m), dot3(seg.nb, seg.u), dot3(seg.nb, seg.w))
+            self.nt3 = (dot3(seg.nt, seg.m), dot3(seg.nt, seg.u), dot3(seg.nt, seg.w))
+            self.a_e, self.a_d = seg.db - dot3(seg.nb, e), -dot3(seg.nb, d)  # A(s) = a_e + a_d s
+            self.b_e, self.b_d = seg.dt - dot3(seg.nt, e), -dot3(seg.nt, d)
 
     def geo(self, s):
         """(w, dw/ds, rho^2, X, Y, h, dh/ds) at e + s d: X, Y the texel coordinates h is read at."""
@@ -296,16 +307,96 @@ class _Field:
         rho = safe_sqrt(rho2)
         w = safe_div(rho - (seg.r1 + self.k * y), seg.shell, 0.0)
         dw = safe_div(safe_div(x * self.du + z * self.dz, rho, 0.0) - self.k * self.dm, seg.shell, 0.0)
-        v = ln.v_a + self.vr * (s - ln.s_a)
+        dphi = safe_div(self.cp, rho2, 0.0)
+        if self.exact_v:
+            v = exact_v(seg, p)[0]
+            sn, cs = safe_div(x, rho, 0.0), safe_div(z, rho, 1.0)  # the angle's sine and cosine
+            vd = self._v_rate(self.a_e + self.a_d * s, self.b_e + self.b_d * s, sn, cs, dphi)
+        else:
+            v = ln.v_a + self.vr * (s - ln.s_a)
+            vd = self.vr
         u = _angle_u(seg, p, v)
         vv = (v + seg.v_off) * self.sv
         fx, fy, t00, t01, t10, t11 = bilinear_taps(self.maps, u * self.su, vv, self.v_mode)
         h = ((1 - fx) * (1 - fy) * t00 + fx * (1 - fy) * t01 + (1 - fx) * fy * t10 + fx * fy * t11) / 255.0
         h_x = ((1 - fy) * (t01 - t00) + fy * (t11 - t10)) / 255.0  # per texel
         h_y = ((1 - fx) * (t10 - t00) + fx * (t11 - t01)) / 255.0
-        dx = (safe_div(self.cp, rho2, 0.0) / _TWO_PI + seg.twist * self.vr) * self.period
-        dh = h_x * dx + h_y * (self.vr * self.sv * self.hh)
-        return w, dw, rho2, u * self.period - 0.5, vv * self.hh - 0.5, h, dh
+        dx = (dphi / _TWO_PI + seg.twist * vd) * self.period
+        dh = h_x * dx + h_y * (vd * self.sv * self.hh)
+        g = (w, dw, rho2, u * self.period - 0.5, vv * self.hh - 0.5, h, dh)
+        return g + (sn, cs, vd) if self.exact_v else g
+
+    def _v_rate(self, A, B, sn, cs, dphi):
+        """dv/ds of Eq. 7's exact v at a point: v = A beta / (A beta - B alpha) with A = d_b - n_b . P
+        and B = d_t - n_t . P (affine along the ray), alpha = n_b . g and beta = n_t . g (g = m + k
+        r_hat, the generator, a function of the angle alone), so dv/ds = [alpha beta (A B' - A' B)
+        + A B (alpha' beta - alpha beta')] / (A beta - B alpha)^2; ``_v_bounds`` bounds the same
+        expression over an interval."""
+        k = self.k
+        (bm, bu, bw), (tm, tu, tw) = self.nb3, self.nt3
+        al, be = bm + k * (bu * sn + bw * cs), tm + k * (tu * sn + tw * cs)
+        al_d, be_d = k * (bu * cs - bw * sn) * dphi, k * (tu * cs - tw * sn) * dphi
+        num = al * be * (A * self.b_d - self.a_d * B) + A * B * (al_d * be - al * be_d)
+        den = A * be - B * al
+        return safe_div(num, den * den, 0.0)
+
+    def _v_bounds(self, s0, g0, s1, g1, ph_lo, ph_hi):
+        """(ylo, yhi, vd_lo, vd_hi): the texel row Y's range over [s0, s1] and dv/ds's. The
+        approximate v is linear (its ends and its slope). The exact v (Eq. 7) by interval
+        arithmetic on :meth:`_v_rate`'s expression: A and B are affine (their ends), alpha and
+        beta and their angle derivatives are c0 + k (a sin phi + b cos phi), which moves at most
+        k sqrt(a^2 + b^2) per radian, so over an angle span dphi it stays within half that span's
+        reach of its ends' mean; phi' lies in [ph_lo, ph_hi]. v = 1 / (1 + B alpha / (-A beta)) is
+        monotone in that ratio (A <= 0 <= B between the planes), so its range comes from the
+        ratio's; where dv/ds keeps one sign the range is the ends'."""
+        Y0, Y1 = g0[4], g1[4]
+        if not self.exact_v:
+            return jnp.minimum(Y0, Y1), jnp.maximum(Y0, Y1), self.vr, self.vr
+        k = self.k
+        (bm, bu, bw), (tm, tu, tw) = self.nb3, self.nt3
+        s0n, c0, s1n, c1 = g0[7], g0[8], g1[7], g1[8]
+        span = jnp.abs(jnp.arctan2(s0n * c1 - c0 * s1n, c0 * c1 + s0n * s1n))
+
+        def wave(a, b):  # the range of a sin phi + b cos phi over the angles between the ends
+            f0, f1, r = a * s0n + b * c0, a * s1n + b * c1, jnp.sqrt(a * a + b * b)
+            return jnp.maximum(-r, 0.5 * (f0 + f1 - r * span)), jnp.minimum(r, 0.5 * (f0 + f1 + r * span))
+
+        def scaled(c, lohi):
+            lo, hi = _mul_range(k, k, *lohi)
+            return c + lo, c + hi
+
+        pos = 1e-30
+        al = scaled(bm, wave(bu, bw))
+        be = scaled(tm, wave(tu, tw))
+        al, be = (jnp.maximum(al[0], pos), jnp.maximum(al[1], pos)), (jnp.maximum(be[0], pos), jnp.maximum(be[1], pos))
+        al_d = _mul_range(*_mul_range(k, k, *wave(-bw, bu)), ph_lo, ph_hi)
+        be_d = _mul_range(*_mul_range(k, k, *wave(-tw, tu)), ph_lo, ph_hi)
+        A0, A1 = self.a_e + self.a_d * s0, self.a_e + self.a_d * s1
+        B0, B1 = self.b_e + self.b_d * s0, self.b_e + self.b_d * s1
+        A = (jnp.minimum(jnp.minimum(A0, A1), 0.0), jnp.minimum(jnp.maximum(A0, A1), 0.0))
+        B = (jnp.maximum(jnp.minimum(B0, B1), 0.0), jnp.maximum(jnp.maximum(B0, B1), 0.0))
+        inf = jnp.asarray(jnp.inf, s0.dtype)
+        t_lo = safe_div(B[0] * al[0], -A[0] * be[1], inf)
+        t_hi = safe_div(B[1] * al[1], -A[1] * be[0], inf)
+        v_lo, v_hi = 1.0 / (1.0 + t_hi), 1.0 / (1.0 + t_lo)
+        ab_ = (jnp.minimum(A[0] * self.b_d, A[1] * self.b_d) - jnp.maximum(self.a_d * B[0], self.a_d * B[1]),
+               jnp.maximum(A[0] * self.b_d, A[1] * self.b_d) - jnp.minimum(self.a_d * B[0], self.a_d * B[1]))
+        t1 = _mul_range(al[0] * be[0], al[1] * be[1], *ab_)
+        x1, x2 = _mul_range(*al_d, *be), _mul_range(*al, *be_d)
+        t2 = _mul_range(*_mul_range(*A, *B), x1[0] - x2[1], x1[1] - x2[0])
+        num = (t1[0] + t2[0], t1[1] + t2[1])
+        a_b, b_a = _mul_range(*A, *be), _mul_range(*B, *al)
+        d_hi = jnp.minimum(a_b[1] - b_a[0], 0.0)  # A beta - B alpha <= 0: its square from |d_hi|^2 to |d_lo|^2
+        d_lo = a_b[0] - b_a[1]
+        q_lo, q_hi = d_hi * d_hi, d_lo * d_lo
+        ok = q_lo > 0
+        vd_lo = jnp.where(ok, jnp.minimum(num[0] / jnp.where(ok, q_lo, 1.0), num[0] / jnp.where(ok, q_hi, 1.0)), -inf)
+        vd_hi = jnp.where(ok, jnp.maximum(num[1] / jnp.where(ok, q_lo, 1.0), num[1] / jnp.where(ok, q_hi, 1.0)), inf)
+        mono = (vd_lo > 0) | (vd_hi < 0)
+        hh, sv, off = self.hh, self.sv, self.ln.seg.v_off
+        ylo = jnp.where(mono, jnp.minimum(Y0, Y1), (v_lo + off) * sv * hh - 0.5)
+        yhi = jnp.where(mono, jnp.maximum(Y0, Y1), (v_hi + off) * sv * hh - 0.5)
+        return ylo, yhi, vd_lo, vd_hi
 
     def crossed(self, g):
         return (g[0] - g[5] <= 0) != self.ln.inside0
@@ -320,7 +411,7 @@ class _Field:
         """(skip, bracket, cut): the interval [s0, s1] holds no crossing / its only crossing; cut
         the distance from s0 to where the level-0 cell at s0 ends along the ray."""
         ln, seg, maps, v_mode = self.ln, self.ln.seg, self.maps, self.v_mode
-        hh, ww, period, vr = self.hh, self.ww, self.period, self.vr
+        hh, ww, period = self.hh, self.ww, self.period
         du, dz, ex, ez = self.du, self.dz, self.ex, self.ez
         Hc = hh if v_mode == "wrap" else hh + 1
         seamless = jnp.mod(period, ww) == 0  # an integer scale_u: the map's columns continue across u = 1
@@ -338,14 +429,16 @@ class _Field:
         rmax = jnp.maximum(r0, r1)
         a1, a2 = safe_div(self.cp, jnp.maximum(rmin, 0.0), inf), safe_div(self.cp, rmax, 0.0)
         ph_lo, ph_hi = jnp.minimum(a1, a2), jnp.maximum(a1, a2)
-        xr_lo = (ph_lo / _TWO_PI + seg.twist * vr) * period
-        xr_hi = (ph_hi / _TWO_PI + seg.twist * vr) * period
-        yr = vr * self.sv * hh
+        ylo, yhi, vd_lo, vd_hi = self._v_bounds(s0, g0, s1, g1, ph_lo, ph_hi)
+        tw_lo, tw_hi = _mul_range(seg.twist, seg.twist, vd_lo, vd_hi)
+        xr_lo = (ph_lo / _TWO_PI + tw_lo) * period
+        xr_hi = (ph_hi / _TWO_PI + tw_hi) * period
+        yr_lo, yr_hi = vd_lo * self.sv * hh, vd_hi * self.sv * hh
+        yr = g0[9] * self.sv * hh if self.exact_v else yr_lo  # at s0 (the next row boundary's estimate)
         mono_x = (xr_lo > 0) | (xr_hi < 0) | ((xr_lo == 0) & (xr_hi == 0))
         dX = X1 - X0
         dX = dX - period * jnp.round(safe_div(dX, period, 0.0))
         xlo, xhi = jnp.minimum(X0, X0 + dX), jnp.maximum(X0, X0 + dX)
-        ylo, yhi = jnp.minimum(Y0, Y1), jnp.maximum(Y0, Y1)
         seam = ((xlo < -0.5) | (xhi >= period - 0.5)) & ~seamless
         # cells met, less a sliver of SLIVER texels at either end (a range that starts on a cell's
         # boundary, rounded either way); the bounds grow by the map's slope over a sliver below
@@ -378,7 +471,7 @@ class _Field:
         hx = jnp.stack([(t10 - t00) * (1 - b) + (t11 - t01) * b for b in (fy[0], fy[1])])
         hy = jnp.stack([(t01 - t00) * (1 - a) + (t11 - t10) * a for a in (fx[0], fx[1])])
         px = _mul_range(jnp.min(hx), jnp.max(hx), xr_lo, xr_hi)
-        py = _mul_range(jnp.min(hy), jnp.max(hy), yr, yr)
+        py = _mul_range(jnp.min(hy), jnp.max(hy), yr_lo, yr_hi)
         g_lo, g_hi = dw0 - (px[1] + py[1]), dw1 - (px[0] + py[0])  # bounds of g' = w' - h'
         mono = one & strict & mono_x & ((g_lo > 0) | (g_hi < 0))
         c1 = self.crossed(g1)

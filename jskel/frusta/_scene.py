@@ -149,10 +149,6 @@ def _relief_quality(rel, arrays: FrustaArrays, ids, map_shape) -> ReliefQuality:
         uv = "approximate" if np.all(par) else "exact"
     if rel.method != "exact":
         return ReliefQuality(uv, rel.early_exit, rel.v_mode)
-    if uv == "exact":
-        bent = np.asarray(ids)[~par]
-        why = "is exact" if rel.uv == "exact" else f"is auto and segments {bent[:5].tolist()} have cutting planes that are not parallel"
-        raise ValueError(f"object.relief.uv: method exact needs v linear along the ray (uv: approximate); uv {why}")
     from ._relief_exact import pyramid_levels
 
     levels = () if map_shape is None else pyramid_levels(map_shape, rel.v_mode)  # (the map loaded once, by the group)

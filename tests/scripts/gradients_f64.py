@@ -270,6 +270,11 @@ if wanted("relief_exact"):  # the exact traversal's root, through the same impli
     o, d = down(32, (-0.2, 0.3), (0.2, 1.2), 3.0, rng, (0.03, -0.05))
     check_batch("relief_exact", {"type": "frusta", "skeleton": RELIEF_CYLINDER,
                                  "relief": {**RELIEF, "uv": "approximate", "method": "exact"}}, o, d)
+if wanted("relief_exact_bent"):  # exact v (Eq. 7) across a joint whose cutting plane tilts
+    o, d = down(32, (-0.2, 0.5), (0.3, 1.2), 3.0, rng, (0.03, -0.05))
+    check_batch("relief_exact_bent", {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 0.8, 0], [0.3, 1.6, 0]],
+                                                                       "radii": [0.5, 0.45, 0.4], "parents": [-1, 0, 1]},
+                                      "relief": {**RELIEF, "uv": "exact", "method": "exact"}}, o, d)
 
 # implicit: a 6 x 4 grid of balls. The Lipschitz march (the tree's leaves) and the bisection
 # (Morton blocks) cull in blocks of 4 with two blocks kept per ray: rays along the rows meet more
