@@ -494,9 +494,14 @@ def test_exact_tracer_finds_the_float64_first_crossing(tmp_path, rng, which):
     D = np.vstack([D, Di / np.linalg.norm(Di, axis=1, keepdims=True), tang])
     t_ref, clear = _ref_dense(img, r1, r2, H, T, O, D)
     b = build_relief(tmp_path, img, [[0, 0, 0], [0, H, 0]], [r1, r2], [-1, 0], thickness=T, scale=[1, 1], method="exact")
-    hit = cast(b, O, D, culled=True)
+    _agrees_with_reference(cast(b, O, D, culled=True), t_ref, clear)
+
+
+def _agrees_with_reference(hit, t_ref, decided):
+    """The exact tracer's hits against a float64 reference's t (inf: a miss) on the rays it
+    decides clearly: no NaN, the same hit or miss where the tracer raises no flag, t within 64
+    float32 epsilons of the rays' reach (about 4), flags on under 1 % of the rays."""
     assert not np.any(np.isnan(hit.t)) and np.all(np.isfinite(hit.normal))
-    decided = clear
     assert decided.mean() > 0.8
     same = np.isfinite(hit.t) == np.isfinite(t_ref)
     assert np.all(same[decided & (hit.flags == 0)]), np.nonzero(~same & decided)[0][:5]
@@ -567,16 +572,7 @@ def test_exact_tracer_with_exact_v_on_a_bent_chain(tmp_path, rng):
     decided = per[0][1] & per[1][1]
     b = build_relief(tmp_path, img, joints, radii, parents, thickness=T, scale=[1, 1], method="exact", uv="exact")
     assert b.static.relief.uv == "exact"
-    hit = cast(b, O, D, culled=True)
-    assert not np.any(np.isnan(hit.t))
-    assert decided.mean() > 0.8
-    same = np.isfinite(hit.t) == np.isfinite(t_ref)
-    assert np.all(same[decided & (hit.flags == 0)]), np.nonzero(~same & decided)[0][:5]
-    both = decided & np.isfinite(hit.t) & np.isfinite(t_ref)
-    assert both.sum() > 100
-    err = np.abs(hit.t[both] - t_ref[both])
-    assert err.max() <= 64 * np.finfo(np.float32).eps * 4.0, err.max()
-    assert np.mean(hit.flags != 0) < 0.01
+    _agrees_with_reference(cast(b, O, D, culled=True), t_ref, decided)
 
 
 @pytest.mark.parametrize("shape", [(20, 37), (16, 32)])
