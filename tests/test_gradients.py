@@ -29,7 +29,7 @@ def test_hit_distances_have_the_derivatives_finite_differences_give():
                        capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr[-3000:]
     checked = json.loads(p.stdout.strip().splitlines()[-1])["checked"]
-    batch = {f"frusta_{m}": 8 for m in ("none", "blocks", "bins", "packets", "walks", "kernel", "skeleton")} | {"relief_fixed": 8, "relief_early": 8, "relief_exact": 8, "relief_exact_bent": 8}
+    batch = {f"frusta_{m}": 8 for m in ("none", "blocks", "bins", "packets", "walks", "kernel", "skeleton")} | {"relief_fixed": 8, "relief_early": 8, "relief_exact": 8, "relief_exact_bent": 8, "relief_exact_texels": 8}
     batch |= {f"implicit_{m}": 8 for m in ("lipschitz", "bisection", "naive", "exact", "exact_tubes")} | {"cells_first_hit": 8, "cells_refraction": 8, "cells_voxels": 8}
     batch |= {"mesh_packets": 8, "mesh_walks": 8}
     # hypothesis' three examples and the two ends, at scales 1e-10 .. 1e10

@@ -623,3 +623,41 @@ def test_exact_tracer_memory_counts_its_pyramid(tmp_path, v_mode):
     assert mem["pyramid_bytes"] == 2 * cells and mem["relief_map_bytes"] == img.size
     assert mem["representation_bytes"] == mem["frusta_bytes"] + img.size + 2 * cells
     assert build_relief(tmp_path, img, *SEG).info["memory"]["pyramid_bytes"] == 0
+    floats = build_relief(tmp_path, img, *SEG, storage="float").info["memory"]
+    assert floats["relief_map_bytes"] == 4 * img.size  # float32 texels (the build's type)
+
+
+@pytest.mark.parametrize("method", ["march", "exact"])
+def test_texel_derivatives_of_a_constant_map_raise_a_cylinder(tmp_path, method):
+    """``relief.storage: float``: the texels are a traced array and hit distances have
+    derivatives against each of them (the implicit-function theorem at the root). On a cylinder
+    of radius r with a constant map of level L the surface is the cylinder of radius
+    R = r + T L / 255, and raising every texel by one raises it by T / 255: for a ray at distance
+    b from the axis, t = 3 - sqrt(R^2 - b^2), so the derivatives over all texels sum to
+    -(T / 255) R / sqrt(R^2 - b^2), from the four texels of the hit's bilinear cell."""
+    import jax
+    import jax.numpy as jnp
+
+    from jskel.interface import Object, intersect
+    from jskel.rays import make_rays
+
+    r, T, level = 0.5, 0.1, 100
+    b = build_relief(tmp_path, np.full((MAP, MAP), level), [[0, 0, 0], [0, 2, 0]], [r, r], [-1, 0], thickness=T,
+                     steps=64, bisection=20, method=method, storage="float")
+    assert jnp.issubdtype(b.params.maps.height.dtype, jnp.floating)
+    R = r + T * level / 255.0
+    off = np.array([0.0, 0.1, 0.25, 0.4])  # the ray's distance from the axis
+    O = np.stack([np.full(4, 3.0), np.full(4, 1.0), off], 1)
+    rays = make_rays(O - b.anchor, np.tile([-1.0, 0, 0], (4, 1)))
+
+    def t_of(height):
+        params = b.params._replace(maps=b.params.maps._replace(height=height))
+        return intersect(Object(params, b.static, "frusta"), rays).t
+
+    t = np.asarray(t_of(b.params.maps.height))
+    np.testing.assert_allclose(t, 3.0 - np.sqrt(R * R - off * off), atol=2e-5)
+    grads = jax.jacrev(t_of)(b.params.maps.height)  # (4, H, W)
+    total = np.asarray(grads.sum(axis=(1, 2)))
+    # t = 3 - sqrt(R^2 - b^2) with R = r + T h / 255: dt/dh = -(T / 255) R / sqrt(R^2 - b^2)
+    np.testing.assert_allclose(total, -(T / 255.0) * R / np.sqrt(R * R - off * off), rtol=1e-3)
+    assert np.count_nonzero(np.asarray(grads[0])) <= 4  # the bilinear footprint of the hit

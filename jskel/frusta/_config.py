@@ -167,6 +167,10 @@ class ReliefConfig(StrictModel):
     """Map lookup beyond [0, 1] in v: repeat or clamp."""
     early_exit: bool = False
     """March in a loop that stops once every ray of the batch has found its bracket, instead of exactly ``steps`` steps."""
+    storage: Literal["uint8", "float"] = "uint8"
+    """The map on the device: 8-bit texels (Sec. 4), or the same values (0..255) in the build's
+    float type, a traced array that derivatives reach (hit distances against each texel, through
+    the implicit-function theorem), at 4 or 8 bytes a texel."""
     method: Literal["march", "exact"] = "march"
     """``march``: the paper's uniform steps and bisection (``steps``, ``bisection``); ``exact``: skip through
     a min/max pyramid of the map and solve the crossing in its bilinear cell to rounding (no step

@@ -12,10 +12,12 @@ from ._build import FrustaArrays
 
 
 
-def relief_memory(arr: FrustaArrays, height: np.ndarray, scale, relief_ids, dtype_bytes: int = 4, pyramid_bytes: int = 0) -> dict:
+def relief_memory(arr: FrustaArrays, height: np.ndarray, scale, relief_ids, dtype_bytes: int = 4, pyramid_bytes: int = 0,
+                  texel_bytes: int = 1) -> dict:
     """Bytes of the representation beside an equivalent displaced triangle mesh (Sec. 4).
     ``pyramid_bytes``: the exact tracer's min/max pyramid (``_relief_exact.pyramid``; 0 for the
-    march), counted in the representation's bytes.
+    march), counted in the representation's bytes; ``texel_bytes``: 1 for the 8-bit map, the
+    float type's for ``relief.storage: float``.
 
     The mesh samples each relief segment at the height map's texel density (one vertex per
     texel of the tiled map over the segment: W * scale_u by H * scale_v), with float32
@@ -24,7 +26,7 @@ def relief_memory(arr: FrustaArrays, height: np.ndarray, scale, relief_ids, dtyp
     s = arr.h.shape[0]
     per_seg = 3 + 3 + 3 + 3 + 1 + 1 + 1 + 3 + 1 + 3 + 1 + 1 + 1 + 1  # floats in FrustaParams
     frusta_b = s * per_seg * dtype_bytes
-    maps_b = int(height.size)  # uint8
+    maps_b = int(height.size) * texel_bytes
     hh, ww = height.shape
     verts = len(relief_ids) * (ww * float(scale[0])) * (hh * float(scale[1]))
     mesh_b = int(verts * 12 + 2 * verts * 12)

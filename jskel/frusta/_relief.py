@@ -46,7 +46,8 @@ _TWO_PI = 2.0 * jnp.pi
 
 
 class ReliefMaps(NamedTuple):
-    """height: (H, W) uint8 (8-bit storage, Sec. 4); scale: (2,) repeats per unit u and v;
+    """height: (H, W) uint8 (8-bit storage, Sec. 4), or float 0..255 (``relief.storage: float``,
+    differentiable); scale: (2,) repeats per unit u and v;
     slope: (2,) the largest change of the bilinear height per texel along x and along y
     (:func:`texel_slopes`), the bound the march's ``graze`` test needs; steps: () int32, the
     march's uniform samples (Sec. 3); bisection: () int32, the halvings of the bracket the march

@@ -134,9 +134,11 @@ def _relief_group(cfg: FrustaConfig, arrays: FrustaArrays, ids, anchor, dtype):
         from ._relief_exact import pyramid
 
         mip = on_device(np.stack(pyramid(height, rel.v_mode)[:2], axis=-1))
-    maps = ReliefMaps(on_device(height), on_device(rel.scale, dtype), on_device(texel_slopes(height), dtype),
+    texels = on_device(height) if rel.storage == "uint8" else on_device(height, dtype)  # (float: 0..255, a traced leaf)
+    maps = ReliefMaps(texels, on_device(rel.scale, dtype), on_device(texel_slopes(height), dtype),
                       on_device(np.int32(rel.steps)), on_device(np.int32(rel.bisection)), mip)
-    return relief, block, maps, relief_memory(arrays, height, rel.scale, ids, pyramid_bytes=0 if mip is None else int(mip.size))
+    return relief, block, maps, relief_memory(arrays, height, rel.scale, ids, pyramid_bytes=0 if mip is None else int(mip.size),
+                                              texel_bytes=texels.dtype.itemsize)
 
 
 def _relief_quality(rel, arrays: FrustaArrays, ids, map_shape) -> ReliefQuality:

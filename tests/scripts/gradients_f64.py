@@ -270,6 +270,10 @@ if wanted("relief_exact"):  # the exact traversal's root, through the same impli
     o, d = down(32, (-0.2, 0.3), (0.2, 1.2), 3.0, rng, (0.03, -0.05))
     check_batch("relief_exact", {"type": "frusta", "skeleton": RELIEF_CYLINDER,
                                  "relief": {**RELIEF, "uv": "approximate", "method": "exact"}}, o, d)
+if wanted("relief_exact_texels"):  # the map's texels as traced floats (relief.storage: float), with the radii and thickness
+    o, d = down(32, (-0.2, 0.3), (0.2, 1.2), 3.0, rng, (0.03, -0.05))
+    check_batch("relief_exact_texels", {"type": "frusta", "skeleton": RELIEF_CYLINDER,
+                                        "relief": {**RELIEF, "uv": "approximate", "method": "exact", "storage": "float"}}, o, d)
 if wanted("relief_exact_bent"):  # exact v (Eq. 7) across a joint whose cutting plane tilts
     o, d = down(32, (-0.2, 0.5), (0.3, 1.2), 3.0, rng, (0.03, -0.05))
     check_batch("relief_exact_bent", {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 0.8, 0], [0.3, 1.6, 0]],
