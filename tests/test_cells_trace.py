@@ -22,7 +22,7 @@ N_RAYS = 1000
 def cell_cfg(tmp, **kw):
     base = {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45},
             "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "tiles": 6,
-            "steps_per_tile": 256, "bisection": 10, "cache": str(tmp / "cache")}
+            "search": "linear", "steps_per_tile": 256, "bisection": 10, "cache": str(tmp / "cache")}
     base.update(kw)
     return cells.CellsConfig.model_validate(base)
 
@@ -213,7 +213,7 @@ def test_cli_render_writes_the_cell_aov_from_the_cache(obj, tmp_path):
     import json
 
     tmp, built, O, D = obj
-    body = f"""object: {{type: cells, base: {{type: torus, major: 1.0, minor: 0.45}}, tiles: 6, steps_per_tile: 256, bisection: 10,
+    body = f"""object: {{type: cells, base: {{type: torus, major: 1.0, minor: 0.45}}, tiles: 6, search: linear, steps_per_tile: 256, bisection: 10,
   tile_map: {{type: voronoi, resolution: 16, cells: 8, seed: 0}}, cache: {tmp / 'cache'}}}
 camera: {{eye: [0, 2, 2.5], target: [0, 0, 0], width: 32, height: 24}}
 render: {{progress: false}}

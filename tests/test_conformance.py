@@ -59,13 +59,13 @@ def _examples(tmp):
                      "tubes": [{"a": [-0.5, -0.6, 0.2], "b": [0.4, -1.2, 0.5], "radius_a": 0.5, "radius_b": 0.3}]},
         "cells": {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45},
                   "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "tiles": 4,
-                  "steps_per_tile": 64, "bisection": 8, "cache": str(tmp / "cache")},
+                  "steps_per_tile": 64, "bisection": 8, "cache": str(tmp / "cache")},  # (the default search: voxels)
         "mesh": {"type": "mesh", "path": str(sphere), "normals": "smooth"},
     }
 
 
 #: variants held to the same contract: another search of a representation (name:variant -> overrides)
-VARIANTS = {"cells:voxels": {"search": "voxels"}}
+VARIANTS = {"cells:linear": {"search": "linear"}}
 
 
 @pytest.fixture(scope="module")

@@ -79,7 +79,7 @@ def test_cells_depth_follows_translation_and_scale(tmp_path, mode):
     colours, which depend on where the reflected and refracted rays go, stay the same too."""
     obj = {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45},
            "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "tiles": 6, "mode": mode,
-           "steps_per_tile": 64, "bisection": 12, "cache": str(tmp_path / "c")}
+           "search": "linear", "steps_per_tile": 64, "bisection": 12, "cache": str(tmp_path / "c")}
     moved_obj = dict(obj, base={"type": "torus", "major": S, "minor": S * 0.45, "center": C.tolist()})
     cam = ([0.0, 2.2, 2.6], [0.0, 0.0, 0.0])
     base = {"object": obj, "camera": {**_camera(*cam, rotate=False), **{"eye": cam[0], "target": cam[1]}}}

@@ -398,7 +398,7 @@ def test_cells_far_ray_and_step_cap_are_flagged(tmp_path):
     with max_steps = 2 a ray that needs more samples is flagged STEP_CAP."""
     base = {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45},
             "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "tiles": 6,
-            "steps_per_tile": 256, "bisection": 10, "cache": str(tmp_path / "cache")}
+            "search": "linear", "steps_per_tile": 256, "bisection": 10, "cache": str(tmp_path / "cache")}
     built = cells.build(cells.CellsConfig.model_validate(base))
     O = np.array([[1.0, 0.0, -1e5], [1.0, 0.0, -3.0]])
     D = np.tile([0.0, 0.0, 1.0], (2, 1))
@@ -424,7 +424,7 @@ def test_cells_part_stepped_over_between_samples_is_flagged(tmp_path):
     tile = np.zeros((16, 16, 16), np.int64)
     tile[4:12, 3:13, 5:11] = 1
     np.save(tmp_path / "tile.npy", tile)
-    cfg = {"type": "cells", "base": {"type": "sphere", "radius": 1.0}, "tiles": 1, "steps_per_tile": 24,
+    cfg = {"type": "cells", "base": {"type": "sphere", "radius": 1.0}, "tiles": 1, "search": "linear", "steps_per_tile": 24,
            "tile_map": {"type": "file", "path": str(tmp_path / "tile.npy")}, "cache": None}
     built = cells.build(cells.CellsConfig.model_validate(cfg))
     size = built.info["tile_size"]

@@ -149,7 +149,7 @@ def test_cells_hard_rays_raise_no_nan(debug_nans, tmp_path, mode):
     cfg = cells.CellsConfig.model_validate({
         "type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45},
         "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "tiles": 6,
-        "steps_per_tile": 32, "bisection": 6, "mode": mode, "bounces": 2, "ior": 2.4, "cache": str(tmp_path / "c")})
+        "search": "linear", "steps_per_tile": 32, "bisection": 6, "mode": mode, "bounces": 2, "ior": 2.4, "cache": str(tmp_path / "c")})
     b = cells.build(cfg)
     rays = _rays(b.anchor, [
         ([0, 0, 5], [0, 0, -1]),          # through the hole
@@ -177,7 +177,7 @@ def test_cells_modes_through_the_integrator_raise_no_nan(debug_nans, tmp_path, m
 
     obj = {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45},
            "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "tiles": 6,
-           "steps_per_tile": 32, "bisection": 6, "mode": mode, "bounces": 2, "ior": 2.4, "cache": str(tmp_path / "c")}
+           "search": "linear", "steps_per_tile": 32, "bisection": 6, "mode": mode, "bounces": 2, "ior": 2.4, "cache": str(tmp_path / "c")}
     for eye, target in (([0, 0, 5], [1.0, 0, 0]), ([1.0, 0, 0], [1.0, 0.3, -1.0]), ([5, 0, 0], [-1, 0, 0])):
         raw = {"object": obj, "camera": {"eye": eye, "target": target, "up": [0, 1, 0], "width": 16, "height": 12},
                "render": {"progress": False}}

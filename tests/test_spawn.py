@@ -75,7 +75,7 @@ def _raw(name, tmp, s, shift):
             trimesh.creation.box(extents=BOX).export(path)
         return {"type": "mesh", "path": str(path), "scale": s, "offset": off, "normals": "flat"}
     np.save(tmp / "tile.npy", TILE)
-    return {"type": "cells", "base": {"type": "sphere", "radius": s, "center": off}, "tiles": 1, "steps_per_tile": 256,
+    return {"type": "cells", "base": {"type": "sphere", "radius": s, "center": off}, "tiles": 1, "search": "linear", "steps_per_tile": 256,
             "tile_map": {"type": "file", "path": str(tmp / "tile.npy")}, "cache": None}
 
 

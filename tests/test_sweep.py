@@ -262,6 +262,7 @@ object:
   base: {{type: torus, major: 1.0, minor: 0.45}}
   tile_map: {{type: voronoi, resolution: 16, cells: 8, seed: 0}}
   tiles: 6
+  search: linear
   steps_per_tile: 16
   bisection: 10
   cache: {tmp_path / 'cache'}

@@ -75,7 +75,8 @@ class BaseShapeConfig(StrictModel):
 
 class CellsConfig(StrictModel):
     """Cell-based object (Nürnberg 2011): a base shape tiled ``tiles`` times per axis by a tile
-    map, ray traced by linear + binary search (Alg. 3.1-3.3) in one of three modes."""
+    map, ray traced through the tile map's voxels (or by Alg. 3.1's linear + binary search) in
+    one of three modes (Alg. 3.1-3.3)."""
 
     type: Literal["cells"]
     """Selects this representation."""
@@ -97,15 +98,16 @@ class CellsConfig(StrictModel):
     """``refraction``: index of refraction."""
     reflectivity: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
     """``reflection``: weight of the mirrored light."""
-    search: Literal["linear", "voxels"] = "linear"
-    """``linear``: Alg. 3.1's linear search every ``steps_per_tile``-th of a tile, then
-    ``bisection`` halvings of the last step; ``voxels``: every voxel of the tile map the ray
-    crosses, in order, to the first target (exact: the hit is the crossed face, no part is
-    stepped over; ``steps_per_tile`` and ``bisection`` are not used)."""
+    search: Literal["linear", "voxels"] = "voxels"
+    """``voxels`` (the default): every voxel of the tile map the ray crosses, in order, to the
+    first target (exact: the hit is the crossed face, no part is stepped over;
+    ``steps_per_tile`` and ``bisection`` are not used); ``linear``: Alg. 3.1's linear search
+    every ``steps_per_tile``-th of a tile, then ``bisection`` halvings of the last step (the
+    thesis' method, whose step its Sec. 5.3 studies)."""
     steps_per_tile: Annotated[int, Field(ge=1, le=65536)] = 256
-    """Linear search step, 1/steps_per_tile of a tile (the main quality knob)."""
+    """``search: linear``'s step, 1/steps_per_tile of a tile (its quality knob)."""
     bisection: Annotated[int, Field(ge=0, le=40)] = 10
-    """Bisection iterations refining a linear step's crossing."""
+    """``search: linear``: bisection iterations refining a step's crossing."""
     max_steps: Annotated[int, Field(ge=1, le=1 << 24)] = 1 << 18
     """Samples (``voxels``: voxels and skipped tiles) per ray segment; a ray that reaches the cap
     is flagged."""

@@ -511,7 +511,8 @@ def scaled_raw(kind, s, off):
                 "relief": {**RELIEF, "thickness": 0.1 * s, "early_exit": False}}
     if kind == "fuzz_cells":
         return {"type": "cells", "base": {"type": "torus", "major": s, "minor": 0.45 * s, "center": off.tolist()}, "tiles": 6,
-                "bisection": 40, "cache": str(TMP / "cells"), "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}}
+                "bisection": 40, "search": "linear", "cache": str(TMP / "cells"),
+                "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}}
     if kind == "fuzz_implicit":  # a 2 x 2 block of the grid's balls, the Lipschitz march
         return {"type": "implicit", "threshold": 0.5, "method": "lipschitz", "step": 0.01 * s, "eps": 1e-3 * s, "bisection": 40,
                 "balls": [{"center": (np.asarray(q["center"]) * s + off).tolist(), "radius": q["radius"] * s}
