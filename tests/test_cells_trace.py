@@ -647,7 +647,8 @@ def reference_dda(built, O, D, want=None):
     where ``want`` is False, of the first voxel that is not, and that voxel's whole-cell id
     (:func:`reference_first_cell`'s key). Each crossing's t is computed from the voxel's integer
     index, not accumulated. Also returns each hit's distance to the nearest voxel edge, in
-    voxels (the float32 walk may round a ray through an edge or corner either way)."""
+    voxels (the float32 walk may round a ray through an edge or corner either way), and the
+    voxels each ray looked at (the hit's included)."""
     want = np.ones(len(O), bool) if want is None else np.asarray(want, bool)
     p = built.params
     n, r = int(p.tiles), int(p.res)
@@ -666,10 +667,12 @@ def reference_dda(built, O, D, want=None):
     t_cur = t0.copy()
     t_hit, cid, edge = np.full(len(O), np.inf), np.full(len(O), -1, np.int64), np.full(len(O), np.inf)
     alive = t0 < t1
+    visited = np.zeros(len(O), np.int64)
     for _ in range(3 * g + 3):
         idx = np.nonzero(alive)[0]
         if not idx.size:
             break
+        visited[idx] += 1
         vv = v[idx]
         tile, loc = vv // r, vv % r
         s = split[loc[:, 0], loc[:, 1], loc[:, 2]]
@@ -692,7 +695,7 @@ def reference_dda(built, O, D, want=None):
         v[go, axis] += step[go, axis]
         inb = np.all((v[go] >= 0) & (v[go] < g), 1) & (t_cur[go] < t1[go])
         alive[go[~inb]] = False
-    return t_hit, cid, edge
+    return t_hit, cid, edge, visited
 
 
 @pytest.mark.parametrize("seed", [11, 12, 13])
@@ -709,7 +712,7 @@ def test_the_voxel_walk_equals_a_float64_dda_on_random_tile_maps(tmp_path, seed)
     lo, hi = built.bounds
     O, D = ref.random_rays(rng, lo, hi, N_RAYS, spread=0.8)
     hit, _ = trace(built, O, D)
-    t_ref, id_ref, edge = reference_dda(built, O, D)
+    t_ref, id_ref, edge, _ = reference_dda(built, O, D)
     got = np.where(np.isfinite(hit.t), np.asarray(hit.prim), -1)
     clear = edge > 1e-4
     assert np.isfinite(t_ref).mean() > 0.3 and clear.mean() > 0.99
@@ -724,8 +727,26 @@ def test_the_voxel_walk_equals_a_float64_dda_on_random_tile_maps(tmp_path, seed)
     org, dd = org[inside], D[ok][inside]
     exit_t = jax.jit(jax.vmap(lambda o, d: first_hit(built.params, o, d, 0.0, jnp.inf, built.static.options, True).t))
     t_out = np.asarray(exit_t(jnp.asarray(org - built.anchor, jnp.float32), jnp.asarray(dd, jnp.float32)), np.float64)
-    t_out_ref, _, edge_out = reference_dda(built, org, dd, want=np.zeros(len(org), bool))
+    t_out_ref, _, edge_out, _ = reference_dda(built, org, dd, want=np.zeros(len(org), bool))
     clear_out = edge_out > 1e-4
     assert inside.mean() > 0.9 and clear_out.mean() > 0.99 and np.all(np.isfinite(t_out_ref))
     err = np.abs(t_out - t_out_ref)[clear_out] * np.linalg.norm(dd[clear_out], axis=1)
     assert np.all(err <= voxel * 2.0**-12 + 2e-5), err.max()
+
+
+def test_traversal_stats_count_the_voxels_the_walk_looks_at(obj):
+    """``traversal_stats`` (what ``bench`` reports with ``stats: true``): the voxel walk without
+    tile skipping looks at exactly the voxels the float64 DDA of :func:`reference_dda` does,
+    ray by ray, so its mean, 99th percentile and max are the reference's; tile skipping only
+    lowers the count."""
+    tmp, _, O, D = obj
+    flat = cells.build(cell_cfg(tmp, search="voxels", skip=False))
+    _, steps = trace(flat, O, D)
+    visited = reference_dda(flat, O, D)[3]
+    np.testing.assert_array_equal(np.asarray(steps), visited)
+    rays = make_rays(O - flat.anchor, D)
+    stats = cells.traversal_stats(flat, rays)
+    assert stats["steps_per_ray_mean"] == pytest.approx(visited.mean()) and stats["steps_per_ray_max"] == visited.max()
+    assert stats["steps_per_ray_p99"] == pytest.approx(np.percentile(visited, 99))
+    skipping = cells.traversal_stats(cells.build(cell_cfg(tmp, search="voxels")), rays)
+    assert skipping["steps_per_ray_mean"] < stats["steps_per_ray_mean"]

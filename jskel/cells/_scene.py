@@ -16,7 +16,7 @@ import numpy as np
 from .. import checks
 from ..cache import data_dir
 from ..executor import size_bucket
-from ..interface import Built, OwnMaterial, Representation
+from ..interface import Built, Object, OwnMaterial, Representation
 from ..numerics import differentiable_root, safe_normalize
 from ..rays import FLAG_FLOAT_SPACING, FLAG_GRAZE, FLAG_STEP_CAP, Hit, masked_hit
 from ._base import base_inside as base_inside
@@ -289,6 +289,28 @@ def _crossed_face(p: CellParams, x0, direction):
     side = jnp.where(jnp.sum(face * direction) > 0, 0.25, -0.25)
     v_in = jnp.where(face > 0, jnp.round(v) + side, v)
     return face, p.lo + v_in * (p.size / r)
+
+
+def _steps_batch(obj: Object, rays):
+    """Per ray, what the primary search took: samples (``search: linear``) or voxels and
+    skipped tiles (``voxels``), ``first_hit``'s own count (one module-level function: the static
+    options ride in the ``Object`` pytree, so the executor compiles once per static)."""
+    p, static = obj.params, obj.static
+
+    def one(o, d, a, b):
+        return first_hit(p, o, d, a, b, static.options, static.two_sided).steps
+
+    return jax.vmap(one)(*rays)
+
+
+def traversal_stats(built: Built, rays, chunk: int = 4096) -> dict:
+    """Steps per ray of the primary search (:func:`_steps_batch`): mean, 99th percentile and
+    max, deterministic counts beside the timings (issue 50 asks for them per search)."""
+    from ..executor import map_chunks
+
+    steps = np.asarray(map_chunks(_steps_batch, Object(built.params, built.static, "cells"), rays, chunk=chunk, progress=False).out)
+    return {"steps_per_ray_mean": float(np.mean(steps)), "steps_per_ray_p99": float(np.percentile(steps, 99)),
+            "steps_per_ray_max": int(np.max(steps))}
 
 
 def albedo(p: CellParams, static: Static, hit: Hit):
