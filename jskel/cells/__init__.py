@@ -12,8 +12,9 @@ from ._scene import inside as inside
 from ._scene import intersect_one as intersect_one
 from ._scene import normal_map as normal_map
 from ._scene import precompute as precompute
+from ._scene import steps_per_ray as steps_per_ray
 from ._scene import traversal_stats as traversal_stats
 from ._trace import CellParams as CellParams
 from ._trace import TraceOptions as TraceOptions
 
-__all__ = ["CellParams", "CellsConfig", "REPRESENTATION", "Static", "TraceOptions", "albedo", "base_inside", "build", "inside", "intersect_one", "normal_map", "precompute", "traversal_stats"]
+__all__ = ["CellParams", "CellsConfig", "REPRESENTATION", "Static", "TraceOptions", "albedo", "base_inside", "build", "inside", "intersect_one", "normal_map", "precompute", "steps_per_ray", "traversal_stats"]

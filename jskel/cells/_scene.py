@@ -303,12 +303,18 @@ def _steps_batch(obj: Object, rays):
     return jax.vmap(one)(*rays)
 
 
-def traversal_stats(built: Built, rays, chunk: int = 4096) -> dict:
-    """Steps per ray of the primary search (:func:`_steps_batch`): mean, 99th percentile and
-    max, deterministic counts beside the timings (issue 50 asks for them per search)."""
+def steps_per_ray(built: Built, rays, chunk: int = 4096) -> np.ndarray:
+    """(N,) int: what the primary search took for each ray (:func:`_steps_batch`), in the rays'
+    order (an image of them for camera rays in raster order)."""
     from ..executor import map_chunks
 
-    steps = np.asarray(map_chunks(_steps_batch, Object(built.params, built.static, "cells"), rays, chunk=chunk, progress=False).out)
+    return np.asarray(map_chunks(_steps_batch, Object(built.params, built.static, "cells"), rays, chunk=chunk, progress=False).out)
+
+
+def traversal_stats(built: Built, rays, chunk: int = 4096) -> dict:
+    """Steps per ray of the primary search (:func:`steps_per_ray`): mean, 99th percentile and
+    max, deterministic counts beside the timings (issue 50 asks for them per search)."""
+    steps = steps_per_ray(built, rays, chunk)
     return {"steps_per_ray_mean": float(np.mean(steps)), "steps_per_ray_p99": float(np.percentile(steps, 99)),
             "steps_per_ray_max": int(np.max(steps))}
 
