@@ -109,7 +109,7 @@ class Preliminary(NamedTuple):
 #: the members a representation may give as module-level functions of its folder, picked up by
 #: ``Representation.__init_subclass__(module=...)``
 FUNCTION_MEMBERS = ("build", "intersect_one", "intersect_batch", "cast", "surface", "occluded", "albedo", "inside",
-                    "traversal_stats", "traced_fields")
+                    "steps_per_ray", "traversal_stats", "traced_fields")
 
 
 class Representation:
@@ -234,6 +234,11 @@ class Representation:
     def extra_aovs(self, built: Built, hits) -> dict:
         """More per-pixel outputs of a render, by name (NumPy, leading axis H*W)."""
         return {}
+
+    def steps_per_ray(self, built: Built, rays: Rays, chunk: int = 4096):
+        """(N,) int NumPy: each ray's search steps, in the rays' order (``render.steps`` writes
+        them as an image); None where the representation counts none."""
+        return None
 
     def traversal_stats(self, built: Built, rays: Rays, chunk: int = 4096) -> dict:
         """Deterministic work counts per ray (nodes, leaves) for the benchmarks; {} if none."""

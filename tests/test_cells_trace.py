@@ -698,16 +698,32 @@ def reference_dda(built, O, D, want=None):
     return t_hit, cid, edge, visited
 
 
-@pytest.mark.parametrize("seed", [11, 12, 13])
-def test_the_voxel_walk_equals_a_float64_dda_on_random_tile_maps(tmp_path, seed):
-    """The default search (``voxels``) on tile maps of random cell sites: on every ray the same
-    first cell as :func:`reference_dda` (an exact float64 walk, not a march) and t on that
-    voxel's entry face (2^-12 of a voxel past it), except where the reference's hit lies within
-    1e-4 voxel of a voxel edge (float32 may round the ray through either neighbour); then the
-    exit search of the refraction mode (Alg. 3.3), from half a voxel into each cell found, for
-    the first voxel outside it, the same way."""
-    built = cells.build(cell_cfg(tmp_path, search="voxels", tile_map={"type": "voronoi", "resolution": 16, "cells": 8, "seed": seed}))
-    assert built.static.options.voxels
+def _walk_from(built, O, D, want):
+    """The walk's t from origins O inside or outside the box along D, looking for an inside
+    voxel (``want``) or for the first one outside (the refraction mode's exit search)."""
+    f = jax.jit(jax.vmap(lambda o, d: first_hit(built.params, o, d, 0.0, jnp.inf, built.static.options, not want).t))
+    return np.asarray(f(jnp.asarray(O - built.anchor, jnp.float32), jnp.asarray(D, jnp.float32)), np.float64)
+
+
+@pytest.mark.parametrize("seed,tiles", [(11, 6), (12, 6), (13, 16)])
+def test_the_voxel_walk_equals_a_float64_dda_on_random_tile_maps(tmp_path, seed, tiles):
+    """The default search (``voxels``, with the occupancy pyramid) on tile maps of random cell
+    sites, against :func:`reference_dda` (an exact float64 walk, not a march), for the searches
+    of all three modes: every ray's first cell (first hit), and t on that voxel's entry face
+    (2^-12 of a voxel past it); from just outside each cell found, along the ray mirrored in
+    the face it crossed, the next inside voxel (the reflection mode's secondary search); from
+    half a voxel into each cell found, the first voxel outside (the refraction mode's exit
+    search, Alg. 3.3). Rays whose reference hit lies within 1e-4 voxel of a voxel edge are left
+    out (float32 may round the ray through either neighbour). 16 tiles a side: blocks of up to
+    4 tiles are crossed in one step, empty and full ones (the levels asserted present)."""
+    from jskel.cells._trace import EMPTY_SHIFT, FULL_SHIFT, LEVEL_MASK
+
+    base = {"type": "torus", "major": 1.0, "minor": 0.45 if tiles == 6 else 0.7}  # a thick tube: full blocks
+    built = cells.build(cell_cfg(tmp_path, search="voxels", tiles=tiles, base=base, tile_map={"type": "voronoi", "resolution": 16, "cells": 8, "seed": seed}))
+    assert built.static.options.voxels and built.static.options.pyramid
+    if tiles == 16:
+        fl = np.asarray(built.params.tile_flags)
+        assert ((fl >> EMPTY_SHIFT) & LEVEL_MASK).max() >= 2 and ((fl >> FULL_SHIFT) & LEVEL_MASK).max() >= 1
     rng = np.random.default_rng(seed)
     lo, hi = built.bounds
     O, D = ref.random_rays(rng, lo, hi, N_RAYS, spread=0.8)
@@ -718,20 +734,106 @@ def test_the_voxel_walk_equals_a_float64_dda_on_random_tile_maps(tmp_path, seed)
     assert np.isfinite(t_ref).mean() > 0.3 and clear.mean() > 0.99
     np.testing.assert_array_equal(got[clear], id_ref[clear])
     ok = np.isfinite(t_ref) & clear
-    voxel = float((built.bounds[1][0] - built.bounds[0][0]) / 6) / int(built.params.res)
-    dn = np.linalg.norm(D[ok], axis=1)
-    assert np.all(np.abs(hit.t[ok] - t_ref[ok]) * dn <= voxel * 2.0**-12 + 2e-5)
+    voxel = float((built.bounds[1][0] - built.bounds[0][0]) / tiles) / int(built.params.res)
+    tol = voxel * 2.0**-12 + 2e-5
+    dn = np.linalg.norm(D, axis=1)
+    assert np.all(np.abs(hit.t[ok] - t_ref[ok]) * dn[ok] <= tol)
+    # the reflection mode's search: from a quarter voxel before the face, mirrored in it
+    x_hit = O[ok] + t_ref[ok, None] * D[ok]
+    u = (x_hit - np.asarray(lo, np.float64)) / voxel
+    axis = np.argmin(np.abs(u - np.round(u)), 1)  # the face crossed: the coordinate on a voxel plane
+    org = x_hit - 0.25 * voxel * D[ok] / dn[ok, None]
+    mirrored = D[ok].copy()
+    mirrored[np.arange(len(axis)), axis] *= -1
+    t_m = _walk_from(built, org, mirrored, True)
+    t_m_ref, _, edge_m, _ = reference_dda(built, org, mirrored)
+    clear_m = edge_m > 1e-4
+    assert clear_m.mean() > 0.99 and np.isfinite(t_m_ref).mean() > 0.3
+    np.testing.assert_array_equal(np.isfinite(t_m[clear_m]), np.isfinite(t_m_ref[clear_m]))
+    both = clear_m & np.isfinite(t_m_ref)
+    assert np.all(np.abs(t_m - t_m_ref)[both] * np.linalg.norm(mirrored[both], axis=1) <= tol)
     # the exit search, from half a voxel inside the cells found
-    org = (O + (t_ref[:, None] + 0.5 * voxel / np.linalg.norm(D, axis=1)[:, None]) * D)[ok]
+    org = (O + (t_ref[:, None] + 0.5 * voxel / dn[:, None]) * D)[ok]
     inside = _in_cell(built, org)
     org, dd = org[inside], D[ok][inside]
-    exit_t = jax.jit(jax.vmap(lambda o, d: first_hit(built.params, o, d, 0.0, jnp.inf, built.static.options, True).t))
-    t_out = np.asarray(exit_t(jnp.asarray(org - built.anchor, jnp.float32), jnp.asarray(dd, jnp.float32)), np.float64)
+    t_out = _walk_from(built, org, dd, False)
     t_out_ref, _, edge_out, _ = reference_dda(built, org, dd, want=np.zeros(len(org), bool))
     clear_out = edge_out > 1e-4
     assert inside.mean() > 0.9 and clear_out.mean() > 0.99 and np.all(np.isfinite(t_out_ref))
     err = np.abs(t_out - t_out_ref)[clear_out] * np.linalg.norm(dd[clear_out], axis=1)
-    assert np.all(err <= voxel * 2.0**-12 + 2e-5), err.max()
+    assert np.all(err <= tol), err.max()
+
+
+def test_render_steps_writes_each_pixels_voxels_as_the_dda_counts_them(obj, tmp_path, capsys):
+    """``render.steps: true`` writes steps.npy (H, W): with tile skipping off, each pixel's count
+    is the voxels :func:`reference_dda` visits along that pixel's camera ray; with skipping
+    and the pyramid (the defaults), no pixel more. A representation that counts no steps, and
+    a scene, are refused with exit code 2, naming the key."""
+    from jskel import config
+    from jskel.render import camera_of
+
+    tmp, _, _, _ = obj
+    body = f"""object: {{type: cells, base: {{type: torus, major: 1.0, minor: 0.45}}, tiles: 6, skip: SKIP,
+  tile_map: {{type: voronoi, resolution: 16, cells: 8, seed: 0}}, cache: {tmp / 'cache'}}}
+camera: {{eye: [0, 2, 2.5], target: [0, 0, 0], width: 32, height: 24}}
+render: {{progress: false, steps: true}}
+"""
+    steps = {}
+    for skip in ("false", "true"):
+        p = tmp_path / f"exp_{skip}.yaml"
+        p.write_text(body.replace("SKIP", skip))
+        assert cli.main(["render", str(p), "--out", str(tmp_path / skip)]) == 0
+        steps[skip] = np.load(tmp_path / skip / "steps.npy")
+    exp, _ = config.load(str(tmp_path / "exp_false.yaml"))
+    O, D = camera_of(exp).ray_arrays()
+    built = cells.build(cell_cfg(tmp, search="voxels", skip=False))
+    visited = reference_dda(built, O, D)[3].reshape(24, 32)
+    assert steps["false"].shape == (24, 32) and visited.max() > 20
+    np.testing.assert_array_equal(steps["false"], visited)
+    assert np.all(steps["true"] <= steps["false"]) and steps["true"].sum() < steps["false"].sum()
+    frusta = tmp_path / "frusta.yaml"
+    frusta.write_text("object: {type: frusta, skeleton: {joints: [[0,0,0],[0,1,0]], radii: [0.3, 0.2], parents: [-1, 0]}}\nrender: {steps: true}\n")
+    capsys.readouterr()
+    assert cli.main(["render", str(frusta), "--out", str(tmp_path / "f")]) == 2
+    assert "render.steps" in capsys.readouterr().err
+    scene = tmp_path / "scene.yaml"
+    scene.write_text("objects:\n  - {name: a, shape: {type: frusta, skeleton: {joints: [[0,0,0],[0,1,0]], radii: [0.3, 0.2], parents: [-1, 0]}}}\n"
+                     "render: {steps: true}\n")
+    assert cli.main(["render", str(scene), "--out", str(tmp_path / "s")]) == 2
+    assert "render.steps" in capsys.readouterr().err
+
+
+def test_tile_levels_are_the_largest_uniform_blocks(rng):
+    """``tile_levels``: per tile, the largest l such that the aligned block of 2^l tiles a side
+    holding it has no INSIDE part (empty level) or only INSIDE-only tiles (full level), the
+    tiles past the 6 given (padding to 8) counting as empty and not full; checked tile by tile
+    against blocks cut here."""
+    from jskel.cells._trace import EMPTY_SHIFT, FULL_SHIFT, LEVEL_MASK, TILE_ALL_INSIDE, TILE_HAS_INSIDE, tile_levels
+
+    full = TILE_HAS_INSIDE | TILE_ALL_INSIDE
+    flags = rng.choice([0, TILE_HAS_INSIDE, full], size=(6, 6, 6), p=[0.3, 0.3, 0.4]).astype(np.int32)
+    flags[:4, :4, :4] = full  # a full block of 4
+    flags[4:, 4:, :2] = 0  # an empty block of 2
+    flags[4:6, 0:2, 4:6] = full  # a full block of 2 whose block of 4 reaches the padding
+    out = tile_levels(flags)
+    np.testing.assert_array_equal(out & 3, flags)
+    padded = np.zeros((8, 8, 8), np.int32)
+    padded[:6, :6, :6] = flags
+    for i, j, k in np.ndindex(6, 6, 6):
+        want = []
+        for bit, uniform in ((EMPTY_SHIFT, lambda b: not np.any(b & TILE_HAS_INSIDE)), (FULL_SHIFT, lambda b: bool(np.all(b & TILE_ALL_INSIDE)))):
+            lvl = 0
+            for l in (1, 2, 3):
+                w = 1 << l
+                blk = padded[i // w * w:(i // w + 1) * w, j // w * w:(j // w + 1) * w, k // w * w:(k // w + 1) * w]
+                if uniform(blk):
+                    lvl = l
+                else:
+                    break
+            want.append(lvl)
+        assert ((out[i, j, k] >> EMPTY_SHIFT) & LEVEL_MASK, (out[i, j, k] >> FULL_SHIFT) & LEVEL_MASK) == tuple(want), (i, j, k)
+    assert (out[0, 0, 0] >> FULL_SHIFT) & LEVEL_MASK == 2 and (out[4, 0, 4] >> FULL_SHIFT) & LEVEL_MASK == 1
+    assert (out[5, 5, 0] >> EMPTY_SHIFT) & LEVEL_MASK >= 1
 
 
 def test_traversal_stats_count_the_voxels_the_walk_looks_at(obj):

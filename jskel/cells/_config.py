@@ -113,6 +113,10 @@ class CellsConfig(StrictModel):
     is flagged."""
     skip: bool = True
     """Skip empty and full tiles (Alg. 3.2, 3.3)."""
+    pyramid: bool = True
+    """``search: voxels`` with ``skip``: cross a run of empty tiles (or of full ones, leaving the
+    inside) one aligned block of 2^l tiles at a time, from an occupancy pyramid built with the
+    membership map; false: one tile at a time."""
     color_map: str = "worley"
     """Cell colours: ``worley``, or a path to a (c, c, c, 3) .npy array in [0, 1]."""
     environment: str = "sky"

@@ -25,7 +25,7 @@ from ._membership import INSIDE, memory_table, membership, unpack, words_for
 from ._tiles import OFFSETS, SplitCells, part_links, part_offsets, sphere_tile, split_cells, validate_tile_map, voronoi_tile
 from ._search import first_hit
 from ._voxels import INTO
-from ._trace import TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, TraceOptions, cell_id, color_at, membership_at, normal_at, starts_inside
+from ._trace import TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, TraceOptions, cell_id, tile_levels, color_at, membership_at, normal_at, starts_inside
 
 CACHE_VERSION = 1
 REFRACTED = 0.85  # the refraction mode's weight of the refracted light (0.15 local)
@@ -201,7 +201,7 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
 
     res, cres = int(obj.split.shape[0]), int(obj.colors.shape[0])
     params = CellParams(
-        bucketed(obj.split.astype(np.int32), res), bucketed(obj.words, cfg.tiles), bucketed(tile_flags(obj.words, slots, present), cfg.tiles),
+        bucketed(obj.split.astype(np.int32), res), bucketed(obj.words, cfg.tiles), bucketed(tile_levels(tile_flags(obj.words, slots, present)), cfg.tiles),
         bucketed(obj.normals, res, dtype), bucketed(obj.colors, cres, dtype), jnp.asarray(lo - anchor, dtype),
         jnp.asarray(obj.size, dtype), jnp.asarray(1.0 / cfg.steps_per_tile, dtype),
         slot_table(obj.offsets), slot_table(obj.split_cell),
@@ -209,7 +209,7 @@ def build(cfg: CellsConfig, dtype=np.float32) -> Built:
         jnp.asarray(cfg.max_steps, jnp.int32), jnp.asarray(cfg.bisection, jnp.int32), jnp.asarray(slots, jnp.int32),
         jnp.asarray(cfg.tiles, jnp.int32), jnp.asarray(res, jnp.int32), jnp.asarray(cres, jnp.int32),
     )
-    static = Static(TraceOptions(cfg.skip, cfg.search == "voxels"), cfg.mode == "refraction")
+    static = Static(TraceOptions(cfg.skip, cfg.search == "voxels", cfg.pyramid), cfg.mode == "refraction")
     info = dict(obj.info)
     info["words_per_tile"] = words_for(slots)
     # the last bisection bracket's width; the voxel walk's hit lies _voxels.INTO of a voxel past the face

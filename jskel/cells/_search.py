@@ -19,7 +19,7 @@ def first_hit(p: CellParams, o, d, t_min, t_max, opt: TraceOptions, two_sided: b
     t0, t1 = object_interval(p, o, d, t_min, t_max)
     want = ~starts_inside(p, o, d, t_min) if two_sided else True
     cut = t_max < object_interval(p, o, d, t_min, jnp.inf)[1]  # t_max ends the window inside the box
-    m = walk(p, o, d, t0, t1, want, opt.skip) if opt.voxels else march(p, o, d, t0, t1, want, opt, cut)
+    m = walk(p, o, d, t0, t1, want, opt.skip, opt.pyramid) if opt.voxels else march(p, o, d, t0, t1, want, opt, cut)
     inf = jnp.asarray(jnp.inf, o.dtype)
     live = t0 <= t1
     return m._replace(t=jnp.where(live, m.t, inf), found=m.found & live, floored=m.floored & live, stepped=m.stepped & live)

@@ -31,6 +31,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..numerics import safe_div, safe_normalize, safe_sqrt
 from ..rays import ulp_floor
@@ -38,6 +39,8 @@ from ._membership import INSIDE, lookup
 
 TILE_HAS_INSIDE = 1
 TILE_ALL_INSIDE = 2
+#: bits of ``tile_flags`` above the two flags: the pyramid levels (:func:`tile_levels`)
+EMPTY_SHIFT, FULL_SHIFT, LEVEL_MASK = 2, 6, 15
 
 
 class CellParams(NamedTuple):
@@ -56,7 +59,7 @@ class CellParams(NamedTuple):
 
     split: jnp.ndarray  # (R,R,R) int32 split index of the r^3 tile map, 0 empty space, R = size_bucket(r)
     words: jnp.ndarray  # (B,B,B,W) uint32 packed membership of the N^3 tiles, B = size_bucket(N)
-    tile_flags: jnp.ndarray  # (B,B,B) int32 TILE_HAS_INSIDE | TILE_ALL_INSIDE
+    tile_flags: jnp.ndarray  # (B,B,B) int32 TILE_HAS_INSIDE | TILE_ALL_INSIDE, and the pyramid levels (``tile_levels``)
     normals: jnp.ndarray  # (R,R,R,3) unit normals of Alg. 4.8 (0 inside a cell)
     colors: jnp.ndarray  # (C,C,C,3) tileable linear RGB of the c^3 colour map, C = size_bucket(c)
     lo: jnp.ndarray  # (3,) object corner, relative to the anchor
@@ -81,6 +84,39 @@ class TraceOptions(NamedTuple):
 
     skip: bool = True  # empty / full tile skipping
     voxels: bool = False  # the exact voxel walk (``_voxels.walk``) instead of the linear search
+    pyramid: bool = True  # the walk skips aligned blocks of 2^l tiles whole (``tile_levels``)
+
+
+def tile_levels(flags: np.ndarray) -> np.ndarray:
+    """The occupancy pyramid over the tiles, flattened onto them: ``flags`` (B, B, B) int32 of
+    TILE_HAS_INSIDE | TILE_ALL_INSIDE, returned with two 4-bit levels added per tile. Bits
+    ``EMPTY_SHIFT``: the largest l such that the aligned block of 2^l tiles a side holding the
+    tile has no INSIDE part; bits ``FULL_SHIFT``: the largest l such that every tile of that
+    block is INSIDE only (0 where only the tile itself is, or it is not: the flag bits say
+    which). Blocks are counted on the tiles padded with empty ones to a power of two, so a block
+    that reaches past the object is empty there and never full.
+
+    Levels l = 1 .. K of an occupancy pyramid (empty / full / mixed per block, K = ceil(log2 B))
+    answer "can this block be crossed in one step" with one read per level; stored per tile they
+    take one read, the tile's own, which the walk makes anyway (``_voxels.walk``)."""
+    b = flags.shape[0]
+    k = int(np.ceil(np.log2(b))) if b > 1 else 0
+    if k > LEVEL_MASK:
+        raise ValueError(f"object.tiles: {b} tiles a side need {k} pyramid levels, at most {LEVEL_MASK}")
+    a = np.zeros((1 << k,) * 3, np.int32)
+    a[:b, :b, :b] = flags & (TILE_HAS_INSIDE | TILE_ALL_INSIDE)
+    empty, full = (a & TILE_HAS_INSIDE) == 0, (a & TILE_ALL_INSIDE) != 0
+    e_lvl, f_lvl = np.zeros(a.shape, np.int32), np.zeros(a.shape, np.int32)
+    for lvl in range(1, k + 1):
+        n = a.shape[0] >> lvl
+        w = 1 << lvl
+        e_blk = empty.reshape(n, w, n, w, n, w).all(axis=(1, 3, 5))
+        f_blk = full.reshape(n, w, n, w, n, w).all(axis=(1, 3, 5))
+        up = lambda m: np.repeat(np.repeat(np.repeat(m, w, 0), w, 1), w, 2)  # noqa: E731
+        e_lvl += up(e_blk)  # a block at l empty => its sub-block at l - 1 empty: the count is the level
+        f_lvl += up(f_blk)
+    out = a | (e_lvl << EMPTY_SHIFT) | (f_lvl << FULL_SHIFT)
+    return out[:b, :b, :b].astype(np.int32)
 
 
 def locate(p: CellParams, x):

@@ -13,7 +13,11 @@ the axis that leaves first, so the walk ends even where rounding makes two exits
 
 Tile skipping as in Alg. 3.2 rows 11-16 and Alg. 3.3 rows 12-15: in a tile with no INSIDE part
 (looking for one) or with INSIDE parts only (leaving one) the walk jumps to the tile's exit, to
-the voxel there on the tile's far side.
+the voxel there on the tile's far side; with ``pyramid`` (the default) to the exit of the
+largest aligned block of 2^l tiles around it that can be skipped whole (an occupancy pyramid over
+the tiles, stored per tile in the tile's flags: ``_trace.tile_levels``), so a run of empty tiles
+costs a step per pyramid cell, and the one read a step makes stays the tile's own. A block's
+exits are computed from its integer bounds, as a voxel's are.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from ._membership import INSIDE, lookup
-from ._trace import TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, March, _min3, position_spacing, voxel_ray
+from ._trace import EMPTY_SHIFT, FULL_SHIFT, LEVEL_MASK, TILE_ALL_INSIDE, TILE_HAS_INSIDE, CellParams, March, _min3, position_spacing, voxel_ray
 
 
 #: how far past the crossed face a hit's t lies, in voxel edges
@@ -49,7 +53,7 @@ def _code(p: CellParams, g, r):
     return jnp.where(s > 0, code, 0), p.tile_flags[tile[0], tile[1], tile[2]], tile
 
 
-def walk(p: CellParams, o, d, t_start, t_end, want_inside, skip: bool) -> March:
+def walk(p: CellParams, o, d, t_start, t_end, want_inside, skip: bool, pyramid: bool = True) -> March:
     """The first voxel from ``t_start`` whose INSIDE-ness equals ``want_inside`` (a Python bool
     or a traced one), before ``t_end``: ``t`` its entry (the crossed face, or ``t_start`` if the
     ray starts in one) plus :data:`INTO` of a voxel edge, ``t_out`` the middle of the voxel
@@ -80,12 +84,21 @@ def walk(p: CellParams, o, d, t_start, t_end, want_inside, skip: bool) -> March:
         te = exits(g + pos)
         axis = _first_axis(te)
         g_next, t_next = g + jnp.where(axis, inc, 0), _min3(te)
-        if skip:  # to the far side of the tile: its exit axis one voxel on, the others where the ray is
+        if skip:  # to the far side of the tile, or of the largest skippable block of 2^l tiles
+            # around it: its exit axis one voxel on, the others where the ray is
             can = jnp.where(want_inside, (flags & TILE_HAS_INSIDE) == 0, (flags & TILE_ALL_INSIDE) != 0)
-            tt = exits((tile + pos) * r)
+            if pyramid:
+                lvl = jnp.where(want_inside, jnp.right_shift(flags, EMPTY_SHIFT), jnp.right_shift(flags, FULL_SHIFT)) & LEVEL_MASK
+                span = jnp.left_shift(r, lvl)
+                blk = jnp.right_shift(tile, lvl)
+                lo_v = blk * span
+                tt = exits((blk + pos) * span)
+            else:
+                span, lo_v = r, tile * r
+                tt = exits((tile + pos) * r)
             t_jump, t_axis = _min3(tt), _first_axis(tt)
-            across = jnp.clip(jnp.floor(vr.q0 + t_jump * vr.qd).astype(jnp.int32), tile * r, tile * r + r - 1)
-            g_jump = jnp.where(t_axis, jnp.where(pos, (tile + 1) * r, tile * r - 1), across)
+            across = jnp.clip(jnp.floor(vr.q0 + t_jump * vr.qd).astype(jnp.int32), lo_v, lo_v + span - 1)
+            g_jump = jnp.where(t_axis, jnp.where(pos, lo_v + span, lo_v - 1), across)
             g_next, t_next = jnp.where(can, g_jump, g_next), jnp.where(can, t_jump, t_next)
         t_next = jnp.maximum(t_next, t_in)
         return (jnp.where(hit, g, g_next), jnp.where(hit, t_in, t_next), jnp.where(hit, t_before, t_in),

@@ -210,6 +210,11 @@ class RenderConfig(StrictModel):
     """Device memory budget of one compiled call, MiB: ``chunk`` is halved until the call fits."""
     spp: Annotated[int, Field(ge=1, le=1024)] = 1
     """Jittered samples per pixel (the first at the pixel centre)."""
+    steps: bool = False
+    """Also write ``steps.npy`` (H, W): each pixel's camera ray's search steps (cells: the voxels
+    and skipped tiles or blocks of the walk, or the linear search's samples), counted in one more
+    pass over the camera rays after the timed render. Single objects of a representation that
+    counts them (``Representation.steps_per_ray``; cells)."""
     seed: int = 0
     """Seed of the sample jitter."""
     bounces: Annotated[int, Field(ge=0, le=16)] = 2

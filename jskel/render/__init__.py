@@ -250,6 +250,7 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     if exp.is_scene:
         return render_scene(exp, obj, prog)
     rep = registry.get(obj.type)
+    _check_steps(exp, [rep])
     dtype = dtype_of(exp)
     t0 = time.perf_counter()
     params, static, built = build_single(exp, obj, dtype)
@@ -271,7 +272,32 @@ def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
     aovs = dict(rep.extra_aovs(built, hits))
     if static.effects.shadows:
         aovs["visibility"] = fr.first["visibility"]
+    if exp.render.steps:
+        aovs["steps"] = steps_image(exp, rep, built)
     return RenderResult(hits, fr.rgb, image=fr.image, run=run, aovs=aovs or None)
+
+
+def _check_steps(exp: Experiment, reps) -> None:
+    """``render.steps`` is refused (``ValueError``, before anything is built) for a scene and
+    for a representation that counts no steps (``Representation.steps_per_ray`` left as is)."""
+    if not exp.render.steps:
+        return
+    from ..interface import Representation
+
+    if exp.is_scene:
+        raise ValueError("render.steps: true: a scene's steps are not counted (single objects of type 'cells' only)")
+    for rep in reps:
+        if type(rep).steps_per_ray is Representation.steps_per_ray:
+            raise ValueError(f"render.steps: true: object.type {rep.name!r} counts no search steps (cells do)")
+
+
+def steps_image(exp: Experiment, rep, built) -> np.ndarray:
+    """(H*W,) int32 in image order: each pixel-centre camera ray's search steps
+    (``Representation.steps_per_ray``), one more pass over the rays of the render's first sample."""
+    cam = camera_of(exp)  # ``exp`` as the render framed it
+    rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
+    steps = np.asarray(rep.steps_per_ray(built, rays, chunk_of(exp.render)), np.int32)
+    return steps[tile_inverse(cam.width, cam.height, exp.render.tile)]
 
 
 def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> RenderResult:
@@ -286,6 +312,7 @@ def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> Rende
     path branches, one of the branches) and ``secondary`` (secondary rays per pixel)."""
     from ._build import build_scene, place_objects, world_bounds
 
+    _check_steps(exp, [])
     count_programs()
     dtype = dtype_of(exp)
     t0 = time.perf_counter()
