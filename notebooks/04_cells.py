@@ -18,8 +18,7 @@ import numpy as np
 import jskel
 from jskel import cells
 from jskel.cells._membership import unpack
-from jskel.rays import make_rays
-from jskel.render import camera_of, render
+from jskel.render import render
 
 SMALL = os.environ.get("JSKEL_NOTEBOOK_SMALL") == "1"  # CI runs every notebook at a reduced size
 ROOT = next(p for p in [Path.cwd(), *Path.cwd().parents] if (p / "experiments").is_dir())
@@ -63,19 +62,20 @@ plt.show()
 # %% [markdown]
 # ## Steps per ray: the voxel walk and the linear search
 #
-# `cells.steps_per_ray`: what the primary search took for each camera ray, the voxels and
-# skipped tiles of the walk (the default) against the samples of the linear search at 1/256 of a
-# tile (the gallery's step), on the same object and rays.
+# `render.steps: true` writes each camera ray's primary-search steps as an AOV (`steps.npy`,
+# `RenderResult.aovs["steps"]`): the voxels and skipped tiles or blocks of the walk (the
+# default, crossing runs of empty tiles one pyramid block at a time), the same walk tile by
+# tile (`object.pyramid: false`), and the samples of the linear search at 1/256 of a tile (the
+# gallery's step), on the same object and rays.
 
 # %%
-fig, axs = plt.subplots(1, 2, figsize=(10, 3.8))
-for a, search in zip(axs, ("voxels", "linear")):
-    e, o = jskel.load(ROOT / "experiments" / "torus_cells.yaml", SMALLER + [f"object.search={search}"])
-    b = cells.build(o)
-    o_, d_ = camera_of(e).ray_arrays(anchor=b.anchor)  # raster order
-    steps = cells.steps_per_ray(b, make_rays(o_, d_)).reshape(H, W)
+fig, axs = plt.subplots(1, 3, figsize=(15, 3.8))
+settings = (["object.search=voxels"], ["object.search=voxels", "object.pyramid=false"], ["object.search=linear"])
+for a, extra, title in zip(axs, settings, ("walk, pyramid", "walk, tile by tile", "linear, 1/256 tile")):
+    e, o = jskel.load(ROOT / "experiments" / "torus_cells.yaml", SMALLER + extra + ["render.steps=true"])
+    steps = render(e, o, progress=False).aovs["steps"].reshape(H, W)
     im = a.imshow(steps, cmap="magma")
-    a.set_title(f"{search}: {steps.mean():.0f} steps per ray on average, {steps.max()} at most")
+    a.set_title(f"{title}: {steps.mean():.0f} mean, {steps.max()} max")
     a.axis("off")
     fig.colorbar(im, ax=a, shrink=0.8)
 plt.show()

@@ -120,7 +120,7 @@ def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
     for k in ("memory", "memory_bytes", "precompute_s", "cache"):
         if k in r["info"]:
             row[k] = r["info"][k]
-    for k in ("effects", "secondary_rays", "spp"):  # scenes
+    for k in ("effects", "secondary_rays", "spp", "flags"):  # scenes; flags: rays flagged, by bit name
         if k in r:
             row[k] = r[k]
     return row, first
