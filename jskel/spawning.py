@@ -28,9 +28,9 @@ from .rays import FLAG_BAD_DIRECTION, Hit, Rays
 #: the n of gamma(n) bounding a hit position's error per unit of |o| + |t d| + |p|, per
 #: component. pbrt-v4 bounds ``o + t d`` by gamma(3) for an exact t (Sec. 6.8.4); the tracers'
 #: t comes from longer chains (the frusta's recentred quadratic, a triangle's barycentrics, a
-#: march's sample positions). ``tests/test_spawn.py``'s hits lie at most 1.9 u x that sum
-#: (projected on the normal) off the closed-form surface (float32, scales 1e-3..1e3, distances
-#: to 1e5 sizes; 2026-12-02, the mesh's the largest), so 16 leaves a margin of about 8
+#: march's sample positions). ``tests/test_spawn.py``'s hits lie at most about 2 u x that sum
+#: (projected on the normal) off the closed-form surface, so 16 leaves a margin of about 8
+#: (docs/choices.md#spawn-gamma)
 SPAWN_GAMMA_N = 16
 
 

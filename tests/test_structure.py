@@ -5,12 +5,15 @@
   (the renderer, the benches and the CLI talk to the interface, so a new representation is a
   folder and a registry line);
 * no module imports another folder's private module (``from ..frusta._scene import ...``);
-* every registered representation is a final subclass of the interface's base with its name.
+* every registered representation is a final subclass of the interface's base with its name;
+* no dated measurement sits in the package's source: figures that chose a constant or a code
+  path live in docs/choices.md and the result files, where they are rerun and replaced.
 """
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 from jskel import registry
@@ -123,3 +126,17 @@ def test_animated_is_declared_where_a_section_has_a_frame():
     for name in registry.names():
         rep = registry.get(name)
         assert rep.animated == ("frame" in rep.Config.model_fields), name
+
+
+def test_no_dated_measurement_is_left_in_the_source():
+    """No ``YYYY-MM-DD`` date in any module of the package (comments and docstrings included):
+    a measurement that chose something is recorded in docs/choices.md with its date, commit and
+    machine, and the code points there. The pattern is checked to find a date."""
+    date = re.compile(r"\b20\d\d-[01]\d-[0-3]\d\b")
+    assert date.search("# took 1.2 s (one-off, 2026-12-06, 2-core Xeon)")
+    found = [f"{p.relative_to(PKG.parent)}:{i}" for p in _sources() for i, line in enumerate(p.read_text().splitlines(), 1) if date.search(line)]
+    assert not found, found
+    choices = (PKG.parent / "docs" / "choices.md").read_text()
+    anchors = {m.group(1) for m in re.finditer(r"^### (\S+)$", choices, re.M)}
+    cited = {m.group(1) for p in _sources() for m in re.finditer(r"docs/choices\.md#([\w-]+)", p.read_text())}
+    assert cited and cited <= anchors, sorted(cited - anchors)

@@ -57,8 +57,7 @@ class BaseShapeConfig(StrictModel):
     """``voxel_mesh``: a watertight triangle mesh file."""
     voxels: Annotated[int, Field(ge=16, le=2048)] = 512
     """``voxel_mesh``: voxels along the mesh's longest side in its inside test (the surface's voxels, then
-    filled); for a 20,480-face icosphere on the 2-core CPU the inside test was ready in 10.9 s at 512 and 1.7 s
-    at 256 (2026-12-03; the fill of the whole grid dominates at 512)."""
+    filled); the fill of the whole grid dominates its time at 512 (docs/choices.md#voxel-mesh-voxels)."""
     object: dict[str, Any] | None = None
     """``object``: another representation's ``object`` section (with its ``type``), whose ``inside`` decides."""
 

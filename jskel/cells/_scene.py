@@ -280,8 +280,7 @@ def _crossed_face(p: CellParams, x0, direction):
     voxel past that face on the ray's side, in the voxel the ray entered. The march's t lies
     within its last bracket of the face; with the default 256 steps a tile and 10 halvings
     that is about an ulp of float32 positions, so x0 itself can fall in the voxel before the
-    face, whose Alg. 4.8 normal is another cell's (up to 141 degrees from float64's in
-    ``python -m jskel sweep experiments/sweep_precision_cells.yaml`` at 5b41912, 2026-12-03).
+    face, whose Alg. 4.8 normal is another cell's (docs/choices.md#crossed-face).
     Where x0 is not in an inside cell, the normal and the cell id are looked up here instead."""
     r = p.res.astype(x0.dtype)
     v = jax.lax.stop_gradient((x0 - p.lo) / p.size * r)

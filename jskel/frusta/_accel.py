@@ -161,14 +161,7 @@ def bin_groups(tree: BVH, per: int):
 # up to this many segments (the plain group's size bucket, so no new program) ``nearest_bins``
 # compiles its pair test for one lane count, not two (``accel._bins._lane_test``): a smaller
 # program at no cost in render time on small objects; above it the two are kept (a long list's
-# part-full steps run on fewer lanes). One-off, fresh processes, 2-core AMD EPYC, AVX-512,
-# 2026-12-02, load varying, when the bins compiled three lane counts (tests/scripts/traversal_programs.py
-# with --bins-one-lane 32 and 0):
-# the default experiment's 30-segment saguaro, 5,687 StableHLO lines against 7,400, compile
-# 4.2-5.3 s of process CPU against 5.2-6.7 s (4 runs each; 0.6-1.0 s saved in the quiet pairs),
-# warm render 40-49 ms CPU against 47-61 ms; experiments/scene_effects.yaml, 24,290 lines
-# against 27,626, compile 13.6 and 17.7 s against 14.7 and 20.3 s. At 120 segments (bucket
-# 128) one lane count rendered slower (52 ms against 43 ms, one run each).
+# part-full steps run on fewer lanes; docs/choices.md#bins-one-lane)
 BINS_ONE_LANE = 32
 
 

@@ -81,11 +81,9 @@ def _bucket(n: int) -> int:
     return max(8, 1 << (int(n) - 1).bit_length())
 
 
-# The build runs its geometry once on a few dozen to a few thousand rows: XLA:CPU compiled it in
-# 0.68 s at backend level 0 (the default experiment's run.json, ``programs.by_name``, at 301e769;
-# 2026-12-04, 2-core Intel Xeon with AVX-512), while NumPy evaluates its jaxpr without a compile
-# (``jskel.host_eval``): the default's build went 1.15 -> 0.22 s and the 4,176-segment neuron's,
-# whose depth levels run one after another, 1.42 -> 0.95 s (docs/bench_latency_cpu.jsonl). Where its
+# The build runs its geometry once on a few dozen to a few thousand rows: NumPy evaluates its
+# jaxpr without a compile (``jskel.host_eval``), several times faster than XLA:CPU compiles it
+# for a single run (docs/choices.md#host-build). Where its
 # evaluation is slow and asked for again, XLA compiles it at backend level 0 without LLVM's
 # expensive passes (it runs once per build: optimising it buys nothing)
 _HOST_OPTS = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}

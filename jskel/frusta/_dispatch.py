@@ -39,23 +39,16 @@ def traversal_of(cfg: FrustaConfig, plain_segments: int) -> str:
 
 # from this many plain segments ``auto`` picks bins on the CPU, below it the per-ray walks, whose
 # program compiles faster (the bins hold the walks, for chunks they hand back, and their own
-# pair loop). `python -m jskel bench experiments/bench_frusta.yaml` at 1024x768, warm medians of
-# 5, compile apart, 2-core AMD EPYC, 2026-12-03, one run each way at 4cbc63e (`--set
-# 'set=[object.traversal=bins]'` for bins), compile / render in seconds: saguaro (30 segments)
-# bins 6.19 / 0.071, walks 3.21 / 0.170; aloe (229) bins 6.85 / 0.069, walks 3.15 / 0.479. The
-# bins' extra compile takes 30 such frames to earn back on the saguaro (walks 2.4x slower), 9 on
-# the aloe, where the walks are 7x slower: the line is drawn between them.
+# pair loop); the line lies between the objects on which the bins' compile is and is not earned
+# back in a few frames (docs/choices.md#auto-bins-segments)
 AUTO_BINS_SEGMENTS = 64
 
-# below this many plain segments the block scan beat the BVH (256x192: the 8-segment well 0.11 s
-# with blocks, 0.16 s with the tree; the 30-segment saguaro 0.24 s vs 0.10 s)
+# below this many plain segments the block scan beat the BVH (docs/choices.md#auto-bins-segments)
 AUTO_BVH_SEGMENTS = 16
 
 
-# the exact relief traversal's persistent lanes and iterations between refills: on the relief
-# column at 256 x 256 (20,563 pairs, 21.6 iterations each on average, 131 at most) the cast took
-# 0.50-0.55 s with 512, 1,024 or 2,048 lanes and 0.20-0.21 s with 4, 8 or 16 steps once the pyramid
-# read 4 cells (one-off, 2026-12-06, 2-core Xeon): the choice matters little
+# the exact relief traversal's persistent lanes and iterations between refills: the cast's time
+# changed little from 512 to 2,048 lanes or 4 to 16 steps (docs/choices.md#exact-lanes)
 EXACT_LANES = 1024
 EXACT_STEPS = 8
 

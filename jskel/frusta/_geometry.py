@@ -86,8 +86,7 @@ def rows_by_level(depth, n: int) -> np.ndarray:
     of two (at least 8), so skeletons of similar shape share an executable (rows past the depth
     count are never visited). :func:`frames` visits only these
     rows per level: a neuron 430 levels deep costs 430 small steps, not 430 passes over every
-    segment (1.63 of the 1.73 s of its host build before, measured 2026-12-02 on the 2-core
-    AMD EPYC)."""
+    segment (most of its host build before: docs/choices.md#depth-table)."""
     depth = np.asarray(depth, np.int64)
     levels = int(depth.max()) + 1 if depth.size else 1
     order = np.argsort(depth, kind="stable")

@@ -332,9 +332,8 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
 
     ``seg_c``, ``seg_r`` (S,3), (S,): a bounding sphere per segment. Then ``pre_fn`` runs only on
     the pairs whose ray meets the segment's sphere, gathered the same way (``wavefront.compact_map``):
-    on a relief column's 65,536 camera rays, ``pre_fn`` on every pair of a block of 8 (2 of them
-    real segments) was most of the cast's time when the march took one step (one-off profile,
-    2026-12-06, 2-core Xeon).
+    on every pair it was most of a relief cast's time when the march took one step
+    (docs/choices.md#relief-pairs).
 
     ``lanes``: (begin, advance, done, finish, steps) for a ``seg_fn`` of many uneven iterations
     (``_relief_exact``): ``begin(seg, o, d, t_min, t_max) -> (ctx, state)``, ``advance(ctx,

@@ -17,17 +17,10 @@ equal :func:`jskel.frusta._accel.nearest_groups` bit for bit (tested). On a GPU 
 compiled by Triton and XLA's loop by XLA; they may contract multiply-adds differently, so t can
 differ in the last bits there (the benchmark reports the agreement it measured).
 
-Measured on the H100 (``experiments/bench_scale_kernel.yaml``, 1024x768, jax 0.11.2; docs/performance.md):
-the palm 13.8-16.1 ms, the oasis 13.3-15.6 ms and the cacti 13.7 ms per frame (render: shading
-and the copy of every output to the host included) against 97, 162 and 48 ms for XLA's walk over
-the whole frame, with identical hits, ids and depths on all three; 32, 64 and 128 rays per
-program differed by less than the runs' spread. Triton compiles the kernel in 12-15 s.
-On 2026-11-24 at 2a412eb (``experiments/bench_scale.yaml`` on the H100, ``jskel.measure.cast_resident``: rays already
-on the GPU, t and segment left there, as Mitsuba's ``ray_intersect`` is timed) the cast alone
-took 0.60-0.79 ms for Table 1's scenes against 0.78-0.94 ms for Mitsuba's CUDA variant in the
-same run, and 6.6-8.0 ms with the rays' copy in and the results' copy out: on a GPU the
-traversal is no longer what a frame waits on. The CPU's packet candidate lists (bins) run there
-5-12x slower than this kernel (``experiments/bench_scale_bins_device.yaml``).
+On the H100 it renders Table 1's scenes several times faster than XLA's walk over the whole
+frame, with identical hits, and its cast is below Mitsuba's CUDA variant's
+(``experiments/bench_scale_kernel.yaml``, ``bench_scale.yaml``; the figures, dated:
+docs/choices.md#pallas-kernel).
 """
 
 from __future__ import annotations

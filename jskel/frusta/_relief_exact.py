@@ -144,11 +144,10 @@ def _pyramid_bounds(mip, levels, cx0, cx1, cy0, cy1, W: int, Hc: int, wrap_y: bo
 
 def _materialised(xs, ys, lvl):
     """(xs, ys, lvl) unchanged, through a product with the identity: XLA fused the arithmetic that
-    makes them into the pyramid's gather, running it again for each element gathered (1.06 s of
-    a 1.24 s cast of 4,096 rays when 16 were read, one-off profile, 2026-12-06); a dot is not
-    fused into it. A sort by constant keys did the same, slower; an ``optimization_barrier``
-    was slower still (0.30 s against 0.24 s for the 256 x 256 column), and so was a product of
-    the final indices (0.24 s against 0.18 s). Cell indices are far below 2^24: exact in float32."""
+    makes them into the pyramid's gather, running it again for each element gathered (most of the
+    cast's time); a dot is not fused into it. A sort by constant keys, an
+    ``optimization_barrier`` and a product of the final indices were slower
+    (docs/choices.md#identity-product). Cell indices are far below 2^24: exact in float32."""
     nx = xs.shape[0]
     vals = jnp.concatenate([xs, ys, lvl[None]]).astype(jnp.float32)
     vals = jnp.round(jnp.dot(jnp.eye(vals.shape[0], dtype=jnp.float32), vals)).astype(jnp.int32)

@@ -157,10 +157,9 @@ def _relief_quality(rel, arrays: FrustaArrays, ids, map_shape) -> ReliefQuality:
     return ReliefQuality(uv, rel.early_exit, rel.v_mode, "exact", levels)
 
 
-# the tree of a build, evaluated by NumPy (``jskel.host_eval``): XLA:CPU compiled it in 0.25 s
-# (30 segments, backend level 0) to 0.37 s (4,176, optimised; run.json's ``programs.by_name`` of
-# ``JSKEL_CACHE=off python -m jskel render``, at 301e769, 2026-12-04, 2-core Intel Xeon); the
-# device rebuild of an animated frame runs the same ``build_bvh`` inside its program
+# the tree of a build, evaluated by NumPy (``jskel.host_eval``), not compiled for a single run
+# (docs/choices.md#host-build); the device rebuild of an animated frame runs the same
+# ``build_bvh`` inside its program
 _build_bvh_host = HostFn(build_bvh, static_argnums=(1,))
 
 
@@ -255,8 +254,8 @@ def surface(scene: FrustaScene, static: Static, rays: Rays, pre: Preliminary) ->
         hits.append(jax.lax.cond(jnp.any(jnp.isfinite(t)), lambda: fin(g.frusta, o, d, t, s, c, i, static.quality.normals), lambda: miss))
     if pre.payload.relief is not None:
         # only the rays that hit a relief segment (wavefront.compact_map): the finish (exact v,
-        # the angle, four height samples and a cross product) on every ray of the column's
-        # 65,536 was 45 ms of a 83 ms intersect at one march step (one-off, 2026-12-06, 2-core Xeon)
+        # the angle, four height samples and a cross product) on every ray was half of an
+        # intersect at one march step (docs/choices.md#relief-finish)
         rt = pre.payload.relief[0]
         one = make_relief_finish(scene.maps, static.relief)
         fin = lambda sub: jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0, 0))(scene.relief.frusta, *sub)  # noqa: E731
@@ -352,23 +351,17 @@ class _Frusta(Representation, module=__name__):
     name = "frusta"
     Config = FrustaConfig
     animated = True
-    #: XLA:CPU's elemental emitters instead of its MLIR fusion emitters. Render programs compiled
-    #: both ways (``tests/scripts/first_image_programs.py EXP --sets fusion,elemental`` and the
-    #: reverse order, process CPU seconds; 2026-12-04, the 2-core Intel Xeon, jax 0.10.2):
-    #: default 2.2-2.3 -> 1.2-1.3 s, palm 3.9 -> 2.4-2.7 s, scene_cacti 9.0-9.2 -> 6.1-6.8 s,
-    #: scene_effects 7.6-7.7 -> 5.3-5.9 s, their runs 12-27 % faster to 3 % slower
-    #: (docs/performance.md). Implicit and cell objects alone keep the default (theirs ran 15-24 %
-    #: slower with it); in a scene with frusta they take the frusta's (``agreed_options``), as
-    #: scene_cacti's mirror ball and scene_effects' cell object do in the runs above
+    #: XLA:CPU's elemental emitters instead of its MLIR fusion emitters: render programs compile
+    #: in about two thirds of the time, and run from 27 % faster to 3 % slower
+    #: (docs/choices.md#elemental-emitters). Implicit and cell objects alone keep the default
+    #: (theirs ran slower with it); in a scene with frusta they take the frusta's
+    #: (``agreed_options``)
     cpu_compiler_options = {"xla_cpu_use_fusion_emitters": False}
 
     @classmethod
     def compiler_options_for(cls, static):
         """The exact relief tracer's loop runs faster with the fusion emitters, for a longer
-        compile. The cast of the 256 x 256 relief column (``tests/scripts`` aside: a one-off
-        AOT compile of ``cast_t_prim`` per option, persistent cache off; 2026-12-06, the 2-core
-        Intel Xeon, jax 0.10.2): elemental 4.5 s compile and 0.285 s per cast, fusion emitters
-        6.0 s and 0.185 s; the march at 64 steps ran 0.104 s against 0.084 s. Set to True rather
+        compile (docs/choices.md#exact-relief-fusion-emitters). Set to True rather
         than left unset, so a scene whose other frusta ask for False falls back to XLA's default
         (True) instead of taking theirs."""
         if isinstance(static, Static) and static.relief is not None and static.relief.method == "exact":

@@ -130,8 +130,8 @@ def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_
 
 def _words(mask):
     """``accel.pack_bits`` of one ray's mask as a sum of its set bits' values (disjoint bits: the
-    same words); XLA on the CPU vectorises the sum, while the shift-or reduce took 1.4 ms of the
-    gecko's 9.5 ms batch of 4,096 rays (one-off profile, 2026-12-06)."""
+    same words); XLA on the CPU vectorises the sum, where a shift-or reduce was a sixth of the
+    cull's time (docs/choices.md#cull-words)."""
     n = mask.shape[0]
     w = jnp.pad(mask, (0, -n % 32)).reshape(-1, 32)
     return jnp.sum(jnp.where(w, jnp.uint32(1) << jnp.arange(32, dtype=jnp.uint32), jnp.uint32(0)), axis=1, dtype=jnp.uint32)
