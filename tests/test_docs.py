@@ -20,9 +20,22 @@ import pytest
 from pydantic import Field
 
 from jskel import registry
-from jskel.config import ConfigFile, StrictModel, config_files, reference_rows, undocumented
+from jskel.config import StrictModel, reference_rows, undocumented
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def _hook():
+    """docs/hooks/config_reference.py as a module: the docs build's list of file models
+    (``config_files``) lives there, above the config floor."""
+    spec = importlib.util.spec_from_file_location("config_reference_hook", ROOT / "docs" / "hooks" / "config_reference.py")
+    hook = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hook)
+    return hook
+
+
+def config_files():
+    return _hook().config_files()
 
 # the core packages, and every registered representation's folder
 PACKAGES = list(dict.fromkeys(["jskel", "jskel.accel", "jskel.render", "jskel.fit", "jskel.measure"] + [f"jskel.{n}" for n in registry.names()]))
@@ -117,10 +130,8 @@ def test_every_config_key_has_a_description():
 def test_the_walker_reports_undocumented_keys_and_the_docs_build_fails_on_them(monkeypatch):
     # a model nested twice is walked once; keys are reported by their dotted path
     assert undocumented(_Outer) == ["plain", "inner.bare"]
-    spec = importlib.util.spec_from_file_location("config_reference_hook", ROOT / "docs" / "hooks" / "config_reference.py")
-    hook = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(hook)
-    monkeypatch.setattr(hook, "config_files", lambda: [ConfigFile("Test file", "jskel test", _Outer, "")])
+    hook = _hook()
+    monkeypatch.setattr(hook, "config_files", lambda: [hook.ConfigFile("Test file", "jskel test", _Outer, "")])
     from mkdocs.exceptions import PluginError
     with pytest.raises(PluginError, match=r"Test file: plain(.|\n)*Test file: inner\.bare"):
         hook.on_files([], None)

@@ -6,6 +6,8 @@
   folder and a registry line);
 * no module imports another folder's private module (``from ..frusta._scene import ...``);
 * every registered representation is a final subclass of the interface's base with its name;
+* config/ imports nothing of the package above it (only itself and the registry, whose
+  representations' sections it validates);
 * no dated measurement sits in the package's source: figures that chose a constant or a code
   path live in docs/choices.md and the result files, where they are rerun and replaced.
 """
@@ -140,3 +142,35 @@ def test_no_dated_measurement_is_left_in_the_source():
     anchors = {m.group(1) for m in re.finditer(r"^### (\S+)$", choices, re.M)}
     cited = {m.group(1) for p in _sources() for m in re.finditer(r"docs/choices\.md#([\w-]+)", p.read_text())}
     assert cited and cited <= anchors, sorted(cited - anchors)
+
+
+def _imported(p: Path) -> set[str]:
+    """The package modules a source file imports anywhere in it (functions included), relative
+    imports resolved: ``from .. import registry`` in jskel/config/_load.py is ``jskel.registry``."""
+    mod = ["jskel", *p.relative_to(PKG).with_suffix("").parts]
+    if mod[-1] == "__init__":
+        mod = mod[:-1]
+    pkg = mod if p.name == "__init__.py" else mod[:-1]
+    out = set()
+    for node in ast.walk(ast.parse(p.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names if a.name.split(".")[0] == "jskel"}
+        elif isinstance(node, ast.ImportFrom):
+            base = pkg[: len(pkg) - node.level + 1] if node.level else []
+            name = ".".join(base + ([node.module] if node.module else []))
+            if name.split(".")[0] != "jskel":
+                continue
+            out |= {f"{name}.{a.name}" for a in node.names} if not node.module else {name}
+    return out
+
+
+def test_config_imports_nothing_above_it():
+    """jskel/config/ validates files; what runs them (render, measure, fit, the CLI) imports it,
+    never the reverse. Its modules import only jskel.config and jskel.registry (the resolver
+    checked to see ``from .. import registry``)."""
+    allowed = ("jskel.config", "jskel.registry")
+    bad = {str(p.relative_to(PKG.parent)): sorted(m for m in _imported(p) if not m.startswith(allowed))
+           for p in sorted((PKG / "config").glob("*.py"))}
+    assert "jskel.registry" in _imported(PKG / "config" / "_load.py")
+    bad = {k: v for k, v in bad.items() if v}
+    assert not bad, bad

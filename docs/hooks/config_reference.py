@@ -1,15 +1,52 @@
 """mkdocs hook: docs/config.md, the configuration reference, generated from the pydantic models
-at every build (``jskel.config.config_files`` and ``reference_rows``), so it cannot drift from the
-code. A key without a description fails the build."""
+at every build (:func:`config_files`, here, and ``jskel.config.reference_rows``), so it cannot
+drift from the code. A key without a description fails the build. The list of file models is
+kept here, in the docs build, not in ``jskel.config``: it names the fit's, the benchmarks' and the
+sweeps' models, which sit above the config floor."""
 
 from __future__ import annotations
 
 import re
+from typing import NamedTuple
 
 from mkdocs.exceptions import PluginError
 from mkdocs.structure.files import File
+from pydantic import BaseModel
 
-from jskel.config import config_files, reference_rows, undocumented
+from jskel.config import reference_rows, undocumented
+
+
+class ConfigFile(NamedTuple):
+    """A file (or section) the project reads: a title, the command that reads it, the model of
+    its top level and the dotted prefix its keys carry (``object.`` for a representation)."""
+
+    title: str
+    command: str
+    model: type[BaseModel]
+    prefix: str
+
+
+def config_files() -> list[ConfigFile]:
+    """Every configuration file's model: the experiment, each registered representation's
+    ``object`` section (also a scene object's ``shape``), the fit, bench, fitting bench,
+    latency and sweep files."""
+    from jskel import registry
+    from jskel.config import Experiment
+    from jskel.fit import FitBenchFile, FitFile
+    from jskel.measure.bench import BenchFile
+    from jskel.measure.latency import LatencyFile
+    from jskel.measure.sweep import SweepFile
+
+    out = [ConfigFile("Experiment", "python -m jskel render EXP", Experiment, "")]
+    out += [ConfigFile(f"object: type {n}", "python -m jskel render EXP", registry.get(n).Config, "object.")
+            for n in registry.names()]
+    return out + [
+        ConfigFile("Fit file", "python -m jskel fit FILE", FitFile, ""),
+        ConfigFile("Bench file", "python -m jskel bench FILE", BenchFile, ""),
+        ConfigFile("Fitting bench file", "python -m jskel bench FILE", FitBenchFile, ""),
+        ConfigFile("Latency bench file", "python -m jskel bench FILE", LatencyFile, ""),
+        ConfigFile("Sweep file", "python -m jskel sweep FILE", SweepFile, ""),
+    ]
 
 INTRO = """# Configuration reference
 

@@ -46,11 +46,9 @@ from ._schema import MaterialConfig as MaterialConfig
 from ._schema import SceneObjectConfig as SceneObjectConfig
 from ._schema import EnvironmentConfig as EnvironmentConfig
 from ._schema import Experiment as Experiment
-from ._reference import ConfigFile as ConfigFile
 from ._reference import Row as Row
-from ._reference import config_files as config_files
 from ._reference import reference_rows as reference_rows
 from ._reference import undocumented as undocumented
 
 # (_format: the error lines of a pydantic ValidationError, for loaders of other files)
-__all__ = ["apply_overrides", "AUTO_CHUNK_ACCELERATOR", "AUTO_CHUNK_CPU", "AUTO_CHUNKS_PER_CALL_CPU", "CameraConfig", "chunk_of", "chunks_per_call_of", "config_files", "ConfigError", "ConfigFile", "DEFAULT_EXPERIMENT", "EnvironmentConfig", "Experiment", "_format", "LightConfig", "load", "MaterialConfig", "MotionConfig", "read_yaml", "reference_rows", "RenderConfig", "resolved", "RGB", "set_path", "Row", "SceneObjectConfig", "ShadingConfig", "StrictModel", "TransformConfig", "undocumented", "Unit", "validate", "Vec3"]
+__all__ = ["apply_overrides", "AUTO_CHUNK_ACCELERATOR", "AUTO_CHUNK_CPU", "AUTO_CHUNKS_PER_CALL_CPU", "CameraConfig", "chunk_of", "chunks_per_call_of", "ConfigError", "DEFAULT_EXPERIMENT", "EnvironmentConfig", "Experiment", "_format", "LightConfig", "load", "MaterialConfig", "MotionConfig", "read_yaml", "reference_rows", "RenderConfig", "resolved", "RGB", "set_path", "Row", "SceneObjectConfig", "ShadingConfig", "StrictModel", "TransformConfig", "undocumented", "Unit", "validate", "Vec3"]

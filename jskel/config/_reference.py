@@ -6,7 +6,8 @@ description is the string literal under it (``use_attribute_docstrings``), its t
 and range (``Field`` constraints, also inside ``Annotated`` parts of unions and tuples) are the
 model's own. :func:`reference_rows` walks a model and its nested sections into one row per
 dotted key; :func:`undocumented` lists the keys without a description, which fail the docs
-build (``docs/hooks/config_reference.py`` renders the rows as docs/config.md)."""
+build (``docs/hooks/config_reference.py`` lists the files' models and renders their rows as
+docs/config.md: the list names models above this floor, so it lives in the docs build)."""
 
 from __future__ import annotations
 
@@ -30,39 +31,6 @@ class Row(NamedTuple):
     default: str
     range: str
     description: str
-
-
-class ConfigFile(NamedTuple):
-    """A file (or section) the project reads: a title, the command that reads it, the model of
-    its top level and the dotted prefix its keys carry (``object.`` for a representation)."""
-
-    title: str
-    command: str
-    model: type[BaseModel]
-    prefix: str
-
-
-def config_files() -> list[ConfigFile]:
-    """Every configuration file's model: the experiment, each registered representation's
-    ``object`` section (also a scene object's ``shape``), the fit, bench, fitting bench,
-    latency and sweep files."""
-    from .. import registry
-    from ..fit import FitBenchFile, FitFile
-    from ..measure.bench import BenchFile
-    from ..measure.latency import LatencyFile
-    from ..measure.sweep import SweepFile
-    from ._schema import Experiment
-
-    out = [ConfigFile("Experiment", "python -m jskel render EXP", Experiment, "")]
-    out += [ConfigFile(f"object: type {n}", "python -m jskel render EXP", registry.get(n).Config, "object.")
-            for n in registry.names()]
-    return out + [
-        ConfigFile("Fit file", "python -m jskel fit FILE", FitFile, ""),
-        ConfigFile("Bench file", "python -m jskel bench FILE", BenchFile, ""),
-        ConfigFile("Fitting bench file", "python -m jskel bench FILE", FitBenchFile, ""),
-        ConfigFile("Latency bench file", "python -m jskel bench FILE", LatencyFile, ""),
-        ConfigFile("Sweep file", "python -m jskel sweep FILE", SweepFile, ""),
-    ]
 
 
 def _parts(tp) -> tuple[Any, tuple]:
