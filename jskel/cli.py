@@ -93,23 +93,25 @@ def cmd_bench(args) -> int:
     """``jskel bench FILE``: see ``jskel.measure.bench`` (time to first image: ``jskel.measure.latency``)."""
     from .measure.bench import run_bench  # imported by the command that needs it: a render's start skips them
     from .measure.latency import is_latency_file, run_latency_file
+    from .peers.studies import PEERS
 
     if is_latency_file(args.file):
-        run_latency_file(args.file, args.set, args.out, command=args.command)
+        run_latency_file(args.file, args.set, args.out, command=args.command, peers=PEERS)
     else:
-        run_bench(args.file, args.set, args.runs, args.out, args.x64, command=args.command)
+        run_bench(args.file, args.set, args.runs, args.out, args.x64, command=args.command, peers=PEERS)
     return 0
 
 
 def cmd_sweep(args) -> int:
     """``jskel sweep FILE --out DIR``: see ``jskel.measure.sweep``."""
     from .measure.sweep import load_sweep, run_sweep
+    from .peers.studies import PEERS
 
     x64 = X64 if args.x64 else []
     sweep, jobs, ref_jobs = load_sweep(args.file, args.set, x64)
     out = Path(args.out)
     rows = run_sweep(sweep, jobs, ref_jobs, out, progress=args.progress, spec=(str(args.file), list(args.set), x64),
-                     command=args.command)
+                     command=args.command, peers=PEERS)
     print(f"jskel: {len(rows)} settings -> {out / 'results.csv'}, {out / 'report.md'}")
     return 0
 

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from jskel.measure import bench
 from jskel.measure.bench import BenchFile, groups_of, run_bench
 from jskel.measure.files import read_model
+from jskel.probe.study import Peers
 from jskel.render import camera_of
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
@@ -33,7 +33,7 @@ def _cylinder_t(o, d):
     return t, y
 
 
-def test_the_peer_study_gets_the_rays_of_an_auto_framed_render(tmp_path, monkeypatch):
+def test_the_peer_study_gets_the_rays_of_an_auto_framed_render(tmp_path):
     exp = tmp_path / "cyl.yaml"
     exp.write_text(f"""
 object:
@@ -61,8 +61,7 @@ peer: skeleton
         seen["t"] = np.asarray(ref_hits.t, np.float64)
         return [{"peer": "stand-in", "rows_seen": len(rows)}]
 
-    monkeypatch.setitem(bench.STUDIES, "skeleton", study)
-    rows = run_bench(file, [])
+    rows = run_bench(file, [], peers=Peers(studies={"skeleton": study}))
     assert rows[-1] == {"peer": "stand-in", "rows_seen": 1}
     o, d = (np.asarray(a, np.float64) for a in seen["rays"])
     assert o.shape == (32 * 24, 3)

@@ -291,7 +291,7 @@ def test_resident_cast_gives_the_render_hits_in_tile_order():
     import jax
 
     from jskel import registry
-    from jskel.measure.cast import cast_resident, resident_rays
+    from jskel.probe.cast import cast_resident, resident_rays
     from jskel.config import load
     from jskel.camera import tile_inverse
     from jskel.render import render

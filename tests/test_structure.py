@@ -8,6 +8,8 @@
 * every registered representation is a final subclass of the interface's base with its name;
 * config/ imports nothing of the package above it (only itself and the registry, whose
   representations' sections it validates);
+* measure/ (the harness) and peers/ (Embree, Mitsuba, marching cubes) import neither the other:
+  what both use is in probe/, and the CLI hands the peers to the harness;
 * no dated measurement sits in the package's source: figures that chose a constant or a code
   path live in docs/choices.md and the result files, where they are rerun and replaced.
 """
@@ -174,3 +176,15 @@ def test_config_imports_nothing_above_it():
     assert "jskel.registry" in _imported(PKG / "config" / "_load.py")
     bad = {k: v for k, v in bad.items() if v}
     assert not bad, bad
+
+
+def test_measure_and_peers_import_neither_the_other():
+    """The harness (jskel/measure/) and the peers (jskel/peers/) share jskel/probe/ (timing, the
+    cast timed alone, metrics, the study protocol) and import neither the other; the CLI passes
+    ``jskel.peers.PEERS`` to the harness's commands."""
+    pairs = [("measure", "jskel.peers"), ("peers", "jskel.measure")]
+    bad = {str(p.relative_to(PKG.parent)): sorted(m for m in _imported(p) if m.startswith(other))
+           for folder, other in pairs for p in sorted((PKG / folder).glob("*.py"))}
+    bad = {k: v for k, v in bad.items() if v}
+    assert not bad, bad
+    assert "jskel.probe.timing" in _imported(PKG / "peers" / "skeleton_study.py")  # the resolver sees them

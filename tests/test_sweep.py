@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from jskel import cli
-from jskel.measure.metrics import compare, depth_in_pixels, pareto_front, ssim, uv_rmse
+from jskel.probe.metrics import compare, depth_in_pixels, pareto_front, ssim, uv_rmse
 from jskel.rays import Hit
 from jskel.measure.grid import Range
 
@@ -106,7 +106,7 @@ def test_one_grid_expansion_for_bench_and_sweep():
 def test_warm_runs_compile_apart_then_warm_up_then_time():
     """``timing.warm_runs``: the first call (the compile) is kept apart, ``warmup - 1`` more are
     untimed, then ``runs`` are timed; ``spread`` is their median, minimum and maximum."""
-    from jskel.measure.timing import spread, warm_runs
+    from jskel.probe.timing import spread, warm_runs
 
     calls = []
     out = warm_runs(lambda: calls.append(len(calls)) or len(calls) - 1, runs=3, warmup=2)

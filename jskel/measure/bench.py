@@ -20,14 +20,14 @@ from .. import registry
 from ..cache import count_programs, program_counts
 from ..config import ConfigError, StrictModel, chunk_of, read_yaml
 from ..fit import FitBenchFile, run_fit_bench
-from ..peers.studies import STUDIES, StudyOptions
 from ..render import camera_of, dtype_of, framed, render
-from .cast import timed_cast
+from ..probe.cast import timed_cast
 from .files import X64, JsonLines, beside, load_experiment, read_model
 from .grid import expand, keys_of, overrides_of
-from .metrics import compare
+from ..probe.metrics import compare
 from .plots import plot_bars, plot_scaling, plot_sweep
-from .timing import render_runs, spread
+from ..probe.study import Peers, StudyOptions, needed
+from ..probe.timing import render_runs, spread
 
 
 class BenchFile(StrictModel):
@@ -176,8 +176,9 @@ def as_rendered(exp, ref):
     return exp.model_copy(update={"camera": type(exp.camera).model_validate(ref.run["config"]["camera"])})
 
 
-def run_group(bench: BenchFile, group: Group, runs: int, emit: JsonLines) -> list[dict]:
-    """Render the reference (one log line), time every job, then the peer's study: the rows."""
+def run_group(bench: BenchFile, group: Group, runs: int, emit: JsonLines, peers: Peers = Peers()) -> list[dict]:
+    """Render the reference (one log line), time every job, then the peer's study (from
+    ``peers``): the rows."""
     ref = None
     if group.reference is not None:
         ref = render(*group.reference, progress=False)
@@ -188,7 +189,8 @@ def run_group(bench: BenchFile, group: Group, runs: int, emit: JsonLines) -> lis
         emit(rows[-1])
     if bench.peer is not None and ref is not None:
         exp, obj = group.reference
-        for row in STUDIES[bench.peer](as_rendered(exp, ref), obj, ref.hits, runs, rows, bench.study_options()):
+        study = needed(peers.studies.get(bench.peer), "peer", bench.peer)
+        for row in study(as_rendered(exp, ref), obj, ref.hits, runs, rows, bench.study_options()):
             emit(row)
             rows.append(row)
     return rows
@@ -222,17 +224,20 @@ def plot_bench(bench: BenchFile, groups: list[Group], rows_by_group: list[list[d
 
 
 def run_bench(file, overrides: list[str], runs: int | None = None, out=None, x64: bool = False,
-              command: str | None = None) -> list[dict]:
+              command: str | None = None, peers: Peers = Peers()) -> list[dict]:
     """Run a bench file (``--set`` ``overrides`` of its keys, ``runs`` instead of its own, rows
     also to ``out``, every scene in float64 with ``x64``; ``command``: how it was asked for, in
-    every kept row's provenance). Returns the rows."""
+    every kept row's provenance; ``peers``: the studies a ``peer:`` may name,
+    ``jskel.peers.PEERS`` from the CLI). Returns the rows."""
     raw = read_yaml(file)
     if isinstance(raw, dict) and "fit" in raw:
         return run_fit_bench(read_model(FitBenchFile, file, overrides).fit, JsonLines(out, command))
     bench = read_model(BenchFile, file, overrides)
     groups = groups_of(bench, file, X64 if x64 else [])
     emit = JsonLines(out, command)
-    rows_by_group = [run_group(bench, g, runs or bench.runs, emit) for g in groups]
+    if bench.peer is not None:  # before anything renders
+        needed(peers.studies.get(bench.peer), "peer", bench.peer)
+    rows_by_group = [run_group(bench, g, runs or bench.runs, emit, peers) for g in groups]
     if out is not None:
         plot_bench(bench, groups, rows_by_group, Path(out))
     return [r for g in rows_by_group for r in g]

@@ -29,6 +29,7 @@ from pydantic import Field
 from ..cache import count_programs, program_counts
 from ..config import StrictModel, read_yaml
 from ..render import render
+from ..probe.study import Peers, needed
 from .files import JsonLines, beside, load_experiment, read_model
 
 FLOOR = [sys.executable, "-c", "import jax; jax.numpy.zeros(3).block_until_ready()"]
@@ -151,8 +152,8 @@ def cases(spec: LatencySpec, file, work: Path) -> list[tuple[str, Callable]]:
     return out
 
 
-def process_rows(spec: LatencySpec, file, work: Path, emit: JsonLines) -> list[dict]:
-    """The floor, each case cold then warm (``repeats`` times), and Mitsuba's process."""
+def process_rows(spec: LatencySpec, file, work: Path, emit: JsonLines, peers: Peers = Peers()) -> list[dict]:
+    """The floor, each case cold then warm (``repeats`` times), and Mitsuba's process (``peers``)."""
     rows = []
     for rep in range(spec.repeats):
         floor = {"case": "jax_floor", "repeat": rep, **timed_process(FLOOR, process_env(work / "floor"), None, spec.timeout_s)}
@@ -168,15 +169,14 @@ def process_rows(spec: LatencySpec, file, work: Path, emit: JsonLines) -> list[d
                 rows.append(row)
                 emit(row)
         if spec.mitsuba is not None:
-            rows.append(mitsuba_row(spec, file, work / f"mitsuba_{rep}", rep))
+            rows.append(mitsuba_row(spec, file, work / f"mitsuba_{rep}", rep, needed(peers.mitsuba_image, "latency.mitsuba", spec.mitsuba)))
             emit(rows[-1])
     return rows
 
 
-def mitsuba_row(spec: LatencySpec, file, folder: Path, rep: int) -> dict:
-    """Mitsuba's process for ``spec.mitsuba``'s skeleton at the gallery's size, or why not."""
-    from ..peers.mitsuba_image import prepare
-
+def mitsuba_row(spec: LatencySpec, file, folder: Path, rep: int, prepare) -> dict:
+    """Mitsuba's process for ``spec.mitsuba``'s skeleton at the gallery's size, or why not
+    (``prepare``: ``Peers.mitsuba_image``, the CLI's ``peers.mitsuba_image.prepare``)."""
     exp, obj = load_experiment(beside(spec.mitsuba, file, "latency.mitsuba"), spec.set)
     cmd, png = prepare(exp, obj, folder, spec.mitsuba_variant)
     row = {"case": f"mitsuba_{spec.mitsuba_variant}", "scene": exp.name, "repeat": rep}
@@ -235,12 +235,15 @@ def rerender_rows(spec: LatencySpec, file, emit: JsonLines) -> list[dict]:
     return rows
 
 
-def run_latency_bench(spec: LatencySpec, file, out=None, command: str | None = None) -> list[dict]:
+def run_latency_bench(spec: LatencySpec, file, out=None, command: str | None = None, peers: Peers = Peers()) -> list[dict]:
     """The whole benchmark: process rows (in a temporary folder), then the in-process re-renders
-    (``command``: how it was asked for, in every kept row's provenance)."""
+    (``command``: how it was asked for, in every kept row's provenance; ``peers``: Mitsuba's
+    process where ``latency.mitsuba`` asks for it, ``Peers.mitsuba_image``)."""
+    if spec.mitsuba is not None:  # before anything runs
+        needed(peers.mitsuba_image, "latency.mitsuba", spec.mitsuba)
     emit = JsonLines(out, command)
     with tempfile.TemporaryDirectory(prefix="jskel_latency_") as tmp:
-        rows = process_rows(spec, file, Path(tmp), emit)
+        rows = process_rows(spec, file, Path(tmp), emit, peers)
     if spec.rerender is not None:
         rows += rerender_rows(spec, file, emit)
     return rows
@@ -252,6 +255,6 @@ def is_latency_file(file) -> bool:
     return isinstance(raw, dict) and "latency" in raw
 
 
-def run_latency_file(file, overrides: list[str], out=None, command: str | None = None) -> list[dict]:
+def run_latency_file(file, overrides: list[str], out=None, command: str | None = None, peers: Peers = Peers()) -> list[dict]:
     """``jskel bench FILE`` for a latency file (``--set latency.KEY=VALUE`` overrides)."""
-    return run_latency_bench(read_model(LatencyFile, file, overrides).latency, file, out, command)
+    return run_latency_bench(read_model(LatencyFile, file, overrides).latency, file, out, command, peers)

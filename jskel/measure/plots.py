@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .metrics import pareto_front
+from ..probe.metrics import pareto_front
 from .results import number
 
 

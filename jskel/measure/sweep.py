@@ -26,17 +26,16 @@ from pydantic import Field, field_validator, model_validator
 from tqdm.auto import tqdm
 
 from ..config import ConfigError, StrictModel
-from ..peers.mesh_studies import embree_mesh
-from ..peers.study import StudyOptions
 from ..cache import count_programs, program_counts
 from ..progress import quiet
 from ..render import render
 from .files import beside, load_experiment, provenance, read_model
 from .grid import Range, expand, keys_of, overrides_of, setting_key
-from .metrics import compare, depth_in_pixels, ssim
+from ..probe.metrics import compare, depth_in_pixels, ssim
 from .plots import plot_sweep_file
 from .results import cell, columns, read_done, write_report
-from .timing import render_runs, spread
+from ..probe.study import Peers, StudyOptions, needed
+from ..probe.timing import render_runs, spread
 
 #: metric name -> where it comes from (``metrics.compare``, ``metrics.ssim``, the run's bytes)
 METRICS = ("hit_miss_pct", "prim_mismatch_pct", "depth_rmse", "depth_max", "normal_deg_mean", "normal_deg_max",
@@ -196,9 +195,9 @@ def measure_setting(sweep: SweepFile, setting: dict, job, rj, refs: dict) -> dic
     return row
 
 
-def peer_rows(sweep: SweepFile, ref_job, refs: dict, levels: list[int]) -> list[dict]:
+def peer_rows(sweep: SweepFile, ref_job, refs: dict, levels: list[int], embree_mesh) -> list[dict]:
     """Bhagvat et al. 2009, Fig. 6 ("GS+R"): the base experiment's relief as displaced triangle
-    meshes (``peers.mesh_studies.embree_mesh``) at subdivision ``levels``, cast by Embree on the
+    meshes (``embree_mesh``: ``Peers.mesh``, the CLI's ``peers.mesh_studies.embree_mesh``) at subdivision ``levels``, cast by Embree on the
     same rays and scored against the base setting's reference. Time: Embree's warm median cast
     (its BVH build apart, in ``peer_build_s``); memory: the mesh's bytes."""
     exp, obj = ref_job[1]
@@ -270,7 +269,7 @@ def _append(path: Path, cols: list[str], rows_iter, total: int, initial: int, pr
 
 
 def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress: bool | None = None, spec=None,
-              command: str | None = None) -> list[dict]:
+              command: str | None = None, peers: Peers = Peers()) -> list[dict]:
     """Measure every job ``(setting, (exp, obj))`` not already in ``out/results.csv`` against its
     reference job (``ref_jobs[i]``: ``(key, (exp, obj))`` or None; renders shared by key),
     appending rows as they finish; then write the plot and the report. Returns every row.
@@ -284,7 +283,10 @@ def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress:
     Several hosts (the ``JSKEL_*`` variables of ``jskel.distributed``): every process measures
     every setting, each render spread over the hosts as ``jskel render`` does, in the order of
     process 0's list of settings still to do; process 0 alone reads and writes ``out``.
-    ``command`` (how the sweep was asked for) goes into the report's provenance line."""
+    ``command`` (how the sweep was asked for) goes into the report's provenance line. ``peers``:
+    the Embree mesh study a ``peer:`` asks for (``Peers.mesh``; the CLI passes ``jskel.peers.PEERS``)."""
+    if sweep.peer is not None:  # before anything renders
+        needed(peers.mesh, "peer", sweep.peer)
     writer = jax.process_index() == 0
     path = out / "results.csv"
     keys = keys_of([s for s, _ in jobs])
@@ -305,7 +307,7 @@ def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress:
     if sweep.peer is not None:
         levels = [lv for lv in sweep.peer_levels if setting_key({"peer.level": lv}) not in done]
         if levels:
-            _append(path, cols, peer_rows(sweep, ref_jobs[-1], {}, levels), len(levels), 0, False)
+            _append(path, cols, peer_rows(sweep, ref_jobs[-1], {}, levels, needed(peers.mesh, "peer", sweep.peer)), len(levels), 0, False)
     rows = list(read_done(path).values())
     plot = plot_sweep_file(rows, keys, sweep.metrics[0], out / "pareto.png")
     write_report(sweep, rows, keys, out / "report.md", plot, provenance(command))

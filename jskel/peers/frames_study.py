@@ -22,8 +22,8 @@ import time
 import jax
 
 from ..frusta import host_frusta, rebuilder, skeleton_arrays
-from ..measure.cast import cast_once, cast_resident, on_accelerator, resident_rays
-from ..measure.timing import median_of
+from ..probe.cast import cast_once, cast_resident, on_accelerator, resident_rays
+from ..probe.timing import median_of
 from ..render import dtype_of, render
 from .skeleton import EmbreeMesh, frusta_mesh
 

@@ -19,13 +19,13 @@ import numpy as np
 from ..frusta import host_frusta
 from ..textures import load_height_map
 from ..implicit import expand, primitives
-from ..measure.timing import median_of, warm_runs
+from ..probe.timing import median_of, warm_runs
 from ..mesh import read_mesh
 from ..render import camera_of
 from .implicit_mesh import marching_cubes_mesh
 from .relief_mesh import displaced_mesh, embree_cast
 from .skeleton import EmbreeMesh
-from .study import StudyOptions, match_target, scored
+from ..probe.study import StudyOptions, match_target, scored
 
 
 def _mesh_columns(V, F) -> dict:

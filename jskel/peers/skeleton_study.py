@@ -10,11 +10,11 @@ import time
 import numpy as np
 
 from ..frusta import ANIMATED, host_frusta, skeleton_arrays
-from ..measure.timing import median_of, warm_runs
+from ..probe.timing import median_of, warm_runs
 from ..render import camera_of
 from .frames_study import frames_row
 from .skeleton import TABLE1_GS_LEVEL, EmbreeMesh, MitsubaCurves, frusta_mesh
-from .study import StudyOptions
+from ..probe.study import StudyOptions
 
 
 def agreement(t, ref_t) -> dict:

@@ -1,11 +1,14 @@
 """The peers' studies by the name a bench file gives them (``peer:``), each
-``fn(exp, obj, ref_hits, runs, rows, options) -> [row]`` (``peers.study``)."""
+``fn(exp, obj, ref_hits, runs, rows, options) -> [row]`` (``probe.study``), and :data:`PEERS`,
+what the CLI hands the harness (``jskel.measure``, which does not import this folder)."""
 
 from __future__ import annotations
 
 from . import mesh_studies
 from .skeleton_study import skeleton
-from .study import StudyOptions as StudyOptions
+from ..probe.study import Peers
+from ..probe.study import StudyOptions as StudyOptions
+from .mitsuba_image import prepare
 
 STUDIES = {
     "embree_mesh": mesh_studies.embree_mesh,
@@ -14,4 +17,7 @@ STUDIES = {
     "skeleton": skeleton,
 }
 
-__all__ = ["STUDIES", "StudyOptions"]
+#: every peer, as the harness's commands take them
+PEERS = Peers(STUDIES, mesh_studies.embree_mesh, prepare)
+
+__all__ = ["PEERS", "STUDIES", "StudyOptions"]

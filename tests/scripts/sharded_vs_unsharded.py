@@ -50,7 +50,7 @@ for name, (path, extra) in cases.items():
 # the bench's resident cast (rays placed on the devices before the clock, results left there) on
 # four devices: each call takes a chunk per device, and the hits are the one-device render's
 from jskel import registry  # noqa: E402
-from jskel.measure.cast import cast_resident, resident_rays  # noqa: E402
+from jskel.probe.cast import cast_resident, resident_rays  # noqa: E402
 from jskel.camera import tile_inverse  # noqa: E402
 
 exp, obj = config.load("experiments/saguaro.yaml", ["camera.width=40", "camera.height=30", "render.chunk=150", "render.devices=all"])

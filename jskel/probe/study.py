@@ -7,9 +7,9 @@ of the same group (for ratios and "similar quality" targets) and :class:`StudyOp
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, Callable, Mapping, NamedTuple
 
-from ..measure.metrics import compare
+from .metrics import compare
 
 
 class StudyOptions(NamedTuple):
@@ -21,6 +21,27 @@ class StudyOptions(NamedTuple):
     match: dict | None = None
     frames: tuple = ()
     mitsuba_variant: str = "llvm_ad_rgb"
+
+
+class Peers(NamedTuple):
+    """The peers a harness command may run, handed to it by its caller (the CLI passes
+    ``jskel.peers.PEERS``), so that ``jskel.measure`` and ``jskel.peers`` import neither the
+    other: ``studies`` by the name a bench file's ``peer:`` gives them, each a study as above;
+    ``mesh``: a sweep's ``peer: embree_mesh`` (a study too); ``mitsuba_image``: the latency
+    benchmark's Mitsuba process, ``(exp, obj, folder, variant) -> (command or None, image path
+    or why not)``. An empty default: a file that asks for a peer not given is refused."""
+
+    studies: Mapping[str, Callable] = {}
+    mesh: Callable | None = None
+    mitsuba_image: Callable | None = None
+
+
+def needed(what, key: str, value) -> Any:
+    """``what``, or a ValueError naming the file's ``key`` and ``value`` where the caller gave
+    no such peer (:class:`Peers`)."""
+    if what is None:
+        raise ValueError(f"{key}: {value!r} asks for a peer that was not given (the CLI passes jskel.peers.PEERS)")
+    return what
 
 
 class Depths(NamedTuple):
