@@ -23,7 +23,8 @@ from .config import ConfigError
 from . import registry
 from .devices import use_host_devices
 from .distributed import init_from_env
-from .measure.files import X64, load_experiment, read_model
+from .config import load as load_experiment
+from .measure.files import X64, read_model
 from .render import aov_sheet, render, write_aovs
 
 

@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from jskel.config import load
+from jskel.config import _load as config_load
 from jskel.measure import files
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -66,7 +67,7 @@ def test_the_folder_holds_every_kind():
 @pytest.mark.parametrize("path", FILES, ids=[p.stem for p in FILES])
 def test_each_experiment_file_validates_and_names_its_command(path, monkeypatch):
     asked = []
-    monkeypatch.setattr(files, "_enable_x64_if_asked", lambda raw: asked.append(raw))
+    monkeypatch.setattr(config_load, "_enable_x64_if_asked", lambda exp: asked.append(exp))
     raw = yaml.safe_load(path.read_text())
     kind = kind_of(raw)
     assert validate_file(path, kind, raw) >= 1

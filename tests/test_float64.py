@@ -83,7 +83,8 @@ SCRIPT_TRAVERSALS = textwrap.dedent(
     import numpy as np
     from jskel.devices import use_host_devices
     use_host_devices()
-    from jskel.measure.files import X64, load_experiment
+    from jskel.config import load as load_experiment
+    from jskel.measure.files import X64
     from jskel.render import render
 
     exp_path, out = sys.argv[1], sys.argv[2]

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from jskel.frusta import skeleton_arrays
-from jskel.measure.files import load_experiment, read_model
+from jskel.config import load as load_experiment
+from jskel.measure.files import read_model
 from jskel.measure.latency import LatencyFile, cases, changes, process_env, timed_process
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -115,9 +115,23 @@ def read_yaml(path: str | Path | None) -> dict:
 
 
 def load(path: str | Path | None = None, overrides: list[str] | None = None) -> tuple[Experiment, BaseModel]:
-    """Read, override and validate an experiment file."""
+    """Read an experiment file (None: the embedded default), apply ``key=value`` overrides and
+    validate it (every bad key at once, a ``ConfigError``); the one loader of the CLI, the
+    benchmarks, the sweeps and the notebooks. An experiment that asks for ``render.dtype:
+    float64`` switches JAX's x64 on here, when it is read, before anything compiles (library
+    code below never switches it)."""
     raw = apply_overrides(read_yaml(path), overrides or [])
-    return validate(raw)
+    exp, obj = validate(raw)
+    _enable_x64_if_asked(exp)
+    return exp, obj
+
+
+def _enable_x64_if_asked(exp: Experiment) -> None:
+    """x64 on where the experiment asks for float64, at its loading, before anything compiles."""
+    if exp.render.dtype == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
 
 
 def resolved(exp: Experiment, obj: BaseModel) -> dict:

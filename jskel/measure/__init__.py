@@ -18,7 +18,6 @@ from ..probe.cast import cast_once as cast_once
 from ..probe.cast import cast_resident as cast_resident
 from ..probe.cast import resident_rays as resident_rays
 from ..probe.cast import timed_cast as timed_cast
-from .files import load_experiment as load_experiment
 from .files import read_model as read_model
 from .grid import Range as Range
 from .grid import expand as expand
@@ -31,5 +30,5 @@ from ..probe.timing import render_runs as render_runs
 from ..probe.timing import spread as spread
 from ..probe.timing import warm_runs as warm_runs
 
-__all__ = ["Range", "cast_once", "cast_resident", "compare", "depth_in_pixels", "expand", "load_experiment", "pareto_front",
+__all__ = ["Range", "cast_once", "cast_resident", "compare", "depth_in_pixels", "expand", "pareto_front",
            "read_model", "render_runs", "resident_rays", "spread", "ssim", "timed_cast", "uv_rmse", "warm_runs"]

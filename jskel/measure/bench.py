@@ -22,7 +22,8 @@ from ..config import ConfigError, StrictModel, chunk_of, read_yaml
 from ..fit import FitBenchFile, run_fit_bench
 from ..render import camera_of, dtype_of, framed, render
 from ..probe.cast import timed_cast
-from .files import X64, JsonLines, beside, load_experiment, read_model
+from ..config import load as load_experiment
+from .files import X64, JsonLines, beside, read_model
 from .grid import expand, keys_of, overrides_of
 from ..probe.metrics import compare
 from .plots import plot_bars, plot_scaling, plot_sweep

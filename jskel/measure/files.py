@@ -1,7 +1,7 @@
 """What a measurement reads and writes: experiments, bench and sweep files, JSON lines.
 
-The CLI, the bench and the sweep load experiments through :func:`load_experiment`; nothing here
-or elsewhere in the package imports the CLI. Bad input is a ``ConfigError`` naming every bad key
+The CLI, the bench and the sweep load experiments through ``jskel.config.load``, the one loader;
+nothing here or elsewhere in the package imports the CLI. Bad input is a ``ConfigError`` naming every bad key
 (the CLI prints one line each and exits 2, before anything compiles).
 """
 
@@ -19,27 +19,10 @@ from pathlib import Path
 import jax
 from pydantic import BaseModel, ValidationError
 
-from ..config import ConfigError, _format, apply_overrides, read_yaml, validate
+from ..config import ConfigError, _format, apply_overrides, read_yaml
 
 #: ``--x64``: the precision switch, set at an entry point only
 X64 = ["render.dtype=float64"]
-
-
-def _enable_x64_if_asked(raw: dict):
-    """x64 is switched on here, at the entry point, when the experiment asks for float64 (before
-    anything compiles); library code never switches it."""
-    render = raw.get("render") if isinstance(raw, dict) else None
-    if isinstance(render, dict) and render.get("dtype") == "float64":
-        jax.config.update("jax_enable_x64", True)
-
-
-def load_experiment(path, overrides: list[str]):
-    """Read an experiment file (None: the embedded default), apply ``key=value`` overrides,
-    validate it and switch x64 on if it asks for float64. Returns (experiment, object config)."""
-    raw = apply_overrides(read_yaml(path), overrides)
-    exp, obj = validate(raw)
-    _enable_x64_if_asked(raw)
-    return exp, obj
 
 
 def read_model(model: type[BaseModel], path, overrides: list[str]):

@@ -30,7 +30,8 @@ from ..cache import count_programs, program_counts
 from ..config import StrictModel, read_yaml
 from ..render import render
 from ..probe.study import Peers, needed
-from .files import JsonLines, beside, load_experiment, read_model
+from ..config import load as load_experiment
+from .files import JsonLines, beside, read_model
 
 FLOOR = [sys.executable, "-c", "import jax; jax.numpy.zeros(3).block_until_ready()"]
 

@@ -29,7 +29,8 @@ from ..config import ConfigError, StrictModel
 from ..cache import count_programs, program_counts
 from ..progress import quiet
 from ..render import render
-from .files import beside, load_experiment, provenance, read_model
+from ..config import load as load_experiment
+from .files import beside, provenance, read_model
 from .grid import Range, expand, keys_of, overrides_of, setting_key
 from ..probe.metrics import compare, depth_in_pixels, ssim
 from .plots import plot_sweep_file

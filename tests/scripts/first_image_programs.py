@@ -131,7 +131,7 @@ def main():
     args = ap.parse_args()
     sets = list(dict.fromkeys(args.sets.split(",")))  # once each: a repeat returns JAX's in-memory executable
     executables.use_dir(tempfile.mkdtemp())  # empty: every program traced and compiled
-    from jskel.measure.files import load_experiment
+    from jskel.config import load as load_experiment
     from jskel.render import render
 
     exp, obj = load_experiment(None if args.experiment == "default" else args.experiment, [])

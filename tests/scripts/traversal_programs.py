@@ -22,7 +22,7 @@ import jax
 
 from jskel import executor
 from jskel.cache import count_programs, program_counts
-from jskel.measure.files import load_experiment
+from jskel.config import load as load_experiment
 from jskel.render import render
 
 _seen: list[dict] = []
