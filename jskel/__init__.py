@@ -5,8 +5,8 @@ __version__ = "0.1.0"
 
 from .config import ConfigError as ConfigError
 from .config import load as load
-from .devices import use_host_devices as use_host_devices
-from .cache import use_compilation_cache as use_compilation_cache
+from .compile.devices import use_host_devices as use_host_devices
+from .compile.cache import use_compilation_cache as use_compilation_cache
 from .interface import Built as Built
 from .camera import Camera as Camera
 from .rays import Hit as Hit

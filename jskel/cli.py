@@ -18,10 +18,10 @@ import imageio.v3 as iio
 import jax
 import numpy as np
 
-from .cache import use_compilation_cache
+from .compile.cache import use_compilation_cache
 from .config import ConfigError
 from . import registry
-from .devices import use_host_devices
+from .compile.devices import use_host_devices
 from .distributed import init_from_env
 from .config import load as load_experiment
 from .measure.files import X64, read_model

@@ -19,10 +19,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import executables
+from .compile import executables
 from .progress import quiet
-from .call_layout import Layout, call_rays, output_buffers, write_call
-from .call_layout import pad_to as _pad_to
+from .compile.call_layout import Layout, call_rays, output_buffers, write_call
+from .compile.call_layout import pad_to as _pad_to
 from .rays import Rays
 
 
@@ -342,7 +342,7 @@ def _plan(batch_fn: Callable, params, rays: Rays, chunk: int, devices, memory_bu
 def _slicer(rays: Rays, plan: _Plan) -> tuple[Callable, Layout, float]:
     """(slice_rays, layout, seconds): ``slice_rays(i)``, the i-th call's rays laid out for its
     devices (``call_layout.call_rays``: padded to the plan's chunk; a :class:`Live` batch when
-    chunks are grouped), the calls' :class:`~jskel.call_layout.Layout`, and the seconds taken
+    chunks are grouped), the calls' :class:`~jskel.compile.call_layout.Layout`, and the seconds taken
     to view host rays as NumPy."""
     t_host = time.perf_counter()
     if _on_host(rays):  # slicing NumPy costs nothing; slicing a CPU jax array dispatches ops

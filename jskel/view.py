@@ -20,7 +20,7 @@ What a control changes:
 So orbit, zoom, the AOV and the traced parameters re-render with the programs already compiled
 (the executor pads ray counts to buckets and the render reuses compiled programs when only
 values change: docs/rendering.md, "Programs shared across sizes"); the status line says how many
-programs each re-render handed to XLA (``jskel.cache.program_counts``).
+programs each re-render handed to XLA (``jskel.compile.cache.program_counts``).
 
 The state -> image part is pure and has no widget in it (:class:`State`, :func:`apply`,
 :func:`frame`), so tests drive :class:`View`'s callbacks headless and compare its image with a
@@ -38,7 +38,7 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from .cache import count_programs, program_counts
+from .compile.cache import count_programs, program_counts
 from .config import read_yaml, resolved, set_path, validate
 
 AOVS = ("image", "depth", "normals", "uv", "ids", "flags")

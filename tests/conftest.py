@@ -112,8 +112,8 @@ def assert_hits_agree(a, b, rtol: float = 0.0):
 @pytest.fixture
 def store(tmp_path):
     """A fresh private directory of stored executables and values in use for the test
-    (``jskel.executables``), the previous one restored after."""
-    from jskel import executables
+    (``jskel.compile.executables``), the previous one restored after."""
+    from jskel.compile import executables
 
     before = executables._state["dir"]
     d = executables.use_dir(tmp_path / "x")

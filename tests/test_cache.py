@@ -1,5 +1,5 @@
 """The persistent compilation cache: where it lives, when it is refused, and run.json's counts
-of programs compiled and loaded (``jskel.cache``)."""
+of programs compiled and loaded (``jskel.compile.cache``)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from jskel import cache
+from jskel.compile import cache
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -72,7 +72,7 @@ def _render(out: Path, env: dict) -> dict:
 
 # the default experiment's one program: the render (intersection, shading and every AOV it
 # writes); no conversion of host data, no statistic, no program of an AOV it does not write; the
-# build's float64 geometry and BVH are evaluated by NumPy (``jskel.host_eval``), not compiled
+# build's float64 geometry and BVH are evaluated by NumPy (``jskel.compile.host_eval``), not compiled
 DEFAULT_PROGRAMS = {"jit(scene_call)"}
 
 
@@ -80,7 +80,7 @@ def test_a_second_process_loads_what_the_first_compiled(tmp_path):
     """Two CLI renders of the default experiment with the same fresh cache directory
     (``JSKEL_CACHE_DIR``, JAX's own variable unset): the first loads nothing and compiles
     exactly its programs (:data:`DEFAULT_PROGRAMS`, by name), storing each as an executable
-    (``jskel.executables``); the second traces and compiles none of them and hands none to XLA:
+    (``jskel.compile.executables``); the second traces and compiles none of them and hands none to XLA:
     it loads the stored executables. The directories are created private, and the
     two images and AOVs are equal bit for bit."""
     env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "JSKEL_EXECUTABLES")}

@@ -1,4 +1,4 @@
-"""The executor's host layout of a call (``jskel.call_layout``), against a reference written
+"""The executor's host layout of a call (``jskel.compile.call_layout``), against a reference written
 here in NumPy: chunk p of a call goes to device p % D, slot p // D; a grouped call's padding
 chunks are neither filled on the way in nor copied back on the way out (what a 1024x768
 frame in 64-chunk calls over two devices used to pay for a third of its slots); a call of one
@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from jskel.call_layout import Layout, call_rays, output_buffers, write_call
+from jskel.compile.call_layout import Layout, call_rays, output_buffers, write_call
 
 # (rays, rays per call, chunks per device per call, devices): full and partial last calls,
 # a partial last chunk, devices with no live chunk, one device, one chunk per device

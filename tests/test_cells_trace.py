@@ -456,7 +456,7 @@ def test_another_sample_cap_or_bisection_count_casts_without_a_program(obj):
     the last bracket, so the same linear steps give the same hits, and 12 halvings land at or
     before 2 halvings' t, within that bracket (h / 4, h the linear step), and nearer on most
     rays; a cap of 8 samples stops rays that need more (STEP_CAP), which the default cap does not."""
-    from jskel.cache import count_programs, program_counts
+    from jskel.compile.cache import count_programs, program_counts
     from jskel.rays import FLAG_STEP_CAP
 
     tmp, built, O, D = obj
@@ -481,7 +481,7 @@ def test_another_sample_cap_or_bisection_count_casts_without_a_program(obj):
 def cast_without_a_program(built, other, O, D):
     """``other``'s cast after ``built``'s hands XLA no program, and its first cells and t agree
     with the float64 march written here (t to the linear step, a 256th of a tile); its Hit."""
-    from jskel.cache import count_programs, program_counts
+    from jskel.compile.cache import count_programs, program_counts
 
     trace(built, O, D)
     count_programs()

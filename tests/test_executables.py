@@ -1,4 +1,4 @@
-"""Stored executables (``jskel.executables``): loaded instead of traced, keyed on what the
+"""Stored executables (``jskel.compile.executables``): loaded instead of traced, keyed on what the
 program depends on, refused from an open directory or file, recompiled and replaced when an
 entry is truncated or corrupt. One tiny program; the CLI's two-process check is in
 tests/test_cache.py."""
@@ -15,7 +15,7 @@ import jax
 import numpy as np
 import pytest
 
-from jskel import executables
+from jskel.compile import executables
 
 ARGS = (np.float32(3.0), np.arange(8, dtype=np.float32))
 TRUTH = 3.0 * np.arange(8, dtype=np.float64) + 1.0  # exact in float32
@@ -99,7 +99,7 @@ def test_an_open_directory_or_file_is_refused(tmp_path, store, capsys):
 def test_an_unsharded_program_is_loaded_onto_its_one_device_of_two(tmp_path):
     """Two processes with two host devices: the second loads the first's one-device program
     (deserialized onto the device it was compiled for, not onto every device) and computes 3 x."""
-    code = ("import json, operator, numpy as np, jax; from jskel import executables as ex; "
+    code = ("import json, operator, numpy as np, jax; from jskel.compile import executables as ex; "
             f"ex.use_dir({str(tmp_path / 'x')!r}); a = (np.float32(3), np.arange(8, dtype=np.float32)); "
             "c = ex.compiled_for(operator.mul, a, None, lambda: jax.jit(operator.mul).lower(*a).compile()); "
             "print(json.dumps([np.asarray(c(*a)).tolist(), ex.counts()['loaded'], len(jax.devices())]))")
@@ -174,7 +174,7 @@ def test_a_program_served_by_jax_cache_is_not_stored(store, monkeypatch):
     """A compile that JAX's persistent cache answered (its hit event counted) is used but not
     stored: XLA:CPU re-serializes such an executable without some of its functions, and a later
     process that loaded it failed ("Function compare_convert_fusion not found")."""
-    from jskel import cache
+    from jskel.compile import cache
 
     cache.count_programs()
     monkeypatch.setitem(cache._counts, "loaded", cache._counts["loaded"])  # restored after

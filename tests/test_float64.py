@@ -81,7 +81,7 @@ SCRIPT_TRAVERSALS = textwrap.dedent(
     """
     import json, sys
     import numpy as np
-    from jskel.devices import use_host_devices
+    from jskel.compile.devices import use_host_devices
     use_host_devices()
     from jskel.config import load as load_experiment
     from jskel.measure.files import X64

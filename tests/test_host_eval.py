@@ -1,4 +1,4 @@
-"""``jskel.host_eval``: JAX functions evaluated by NumPy from their jaxprs, against XLA's own
+"""``jskel.compile.host_eval``: JAX functions evaluated by NumPy from their jaxprs, against XLA's own
 evaluation of the same functions (an independent implementation of every primitive's
 semantics), and the frusta build that now hands XLA no program."""
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from jax import lax
 
-from jskel.host_eval import HostFn
+from jskel.compile.host_eval import HostFn
 
 
 def _floats(x, y, i, j):
@@ -99,9 +99,9 @@ def test_a_primitive_without_a_rule_is_an_error_naming_it():
 def test_the_frusta_build_hands_xla_no_program(rng):
     """A branched skeleton's float64 geometry and BVH: NumPy's evaluation of
     ``_geometry.frusta_fields`` equals XLA's jitted one to 1e-12 of the skeleton's size, and
-    building it hands XLA nothing (``jskel.cache.program_counts``)."""
+    building it hands XLA nothing (``jskel.compile.cache.program_counts``)."""
     from jskel import frusta
-    from jskel.cache import count_programs, program_counts
+    from jskel.compile.cache import count_programs, program_counts
     from jskel.frusta import _build
     from jskel.frusta._geometry import frusta_fields, padded_topology
     from jskel.frusta._skeleton import topology
@@ -159,9 +159,9 @@ def test_a_value_is_stored_and_read_back_untraced_and_new_values_compute(store, 
 
 def test_a_slow_evaluation_is_compiled_when_asked_again(monkeypatch, rng):
     """An evaluation over ``COMPILE_AFTER_S`` hands XLA the program the next time (counted by
-    ``jskel.cache``), which gives what NumPy gave; a fast one never does."""
-    from jskel import host_eval
-    from jskel.cache import count_programs, program_counts
+    ``jskel.compile.cache``), which gives what NumPy gave; a fast one never does."""
+    from jskel.compile import host_eval
+    from jskel.compile.cache import count_programs, program_counts
 
     count_programs()
     a, b = rng.normal(size=7).astype(np.float32), rng.normal(size=7).astype(np.float32)

@@ -237,7 +237,7 @@ def test_another_step_cap_or_bisection_count_casts_without_a_program():
     runs its own count: 10 halvings land closer to the float64 first root than 2 (median and
     worst error over the rays both hit), and a cap of 64 Lipschitz steps leaves more rays
     unfinished than 256."""
-    from jskel.cache import count_programs, program_counts
+    from jskel.compile.cache import count_programs, program_counts
     from jskel.implicit import build
 
     O, D, t_ref, _, _, scale = random_rays(11, 2000, 512, 1000)

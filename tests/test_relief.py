@@ -368,7 +368,7 @@ def test_another_step_or_bisection_count_renders_without_a_program_and_marches_a
     halvings and none (the hit moves within the march's bracket)."""
     import imageio.v3 as iio
 
-    from jskel.cache import count_programs, program_counts
+    from jskel.compile.cache import count_programs, program_counts
     from jskel.config import validate
     from jskel.render import camera_of, render
 

@@ -1,7 +1,7 @@
 """Exploring without recompiling (issue 27): after a first render, a change of a radius, of the
 camera pose, of the image size within a bucket, of the skeleton's segment count within a
 bucket, of the samples per pixel, of the light or of the material renders with no program handed to XLA (none compiled, none loaded from the persistent
-cache: ``jskel.cache.program_counts``), and every re-render casts the changed experiment, checked
+cache: ``jskel.compile.cache.program_counts``), and every re-render casts the changed experiment, checked
 against the independent float64 reference (``tests/reference.py``, Bhagvat et al. 2009 Sec. 2).
 
 The executor's buckets themselves are checked on a batch function of a few operations (nothing
@@ -21,7 +21,7 @@ import pytest
 import reference as ref
 from triangles import moller_trumbore
 from jskel import config
-from jskel.cache import count_programs, program_counts
+from jskel.compile.cache import count_programs, program_counts
 from jskel.executor import batch_bucket, calls_grouping, map_chunks, size_bucket
 from jskel.rays import make_rays
 from jskel.render import camera_of, render

@@ -353,9 +353,9 @@ def test_no_reflective_material_compiles_no_reflection_work():
 def test_a_scene_render_hands_each_program_to_xla_once():
     """Nothing compiled twice in a process: a scene of two cylinders and a blob with shadows, at a
     lane count no other test uses (a static key of its own), hands XLA each program it needs
-    once by name (``jskel.cache.program_counts``, counted around the render), and the same
+    once by name (``jskel.compile.cache.program_counts``, counted around the render), and the same
     render again hands it none."""
-    from jskel.cache import count_programs, program_counts
+    from jskel.compile.cache import count_programs, program_counts
 
     raw = {"objects": [{"shape": cylinder(-2, 0, 0.5, 2)}, {"shape": BLOB}, {"shape": cylinder(2, 0, 0.3, 3)}],
            "camera": CAM2, "lights": [{"direction": [0.3, 0.9, 0.5]}], "render": {"lanes": 96}}

@@ -2,7 +2,7 @@
 them does, and each displayed image is compared with a direct ``render`` of the changed
 experiment, written out here (radii scaled, a joint moved, the eye turned about the up axis with
 a rotation matrix, raised in spherical coordinates, moved towards the target). A traced change
-hands no program to XLA (``jskel.cache.program_counts``); the AOVs are drawn from the last render
+hands no program to XLA (``jskel.compile.cache.program_counts``); the AOVs are drawn from the last render
 with the colour maps written out in float64. The render itself is checked against the float64
 reference in tests/test_rerender.py on the same skeleton and image size."""
 

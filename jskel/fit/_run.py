@@ -11,7 +11,7 @@ import jax
 import numpy as np
 
 from .. import frusta, skeletons
-from ..cache import program_counts
+from ..compile.cache import program_counts
 from ._config import FitFile
 from ._fit import FitResult, fit_points
 from ._measures import measures

@@ -2,7 +2,7 @@
 
 The geometry itself (axes, the cutting planes of Eq. 3-5, caps, the u-aligned frames and twist
 of Sec. 2.3) is ``_geometry.frusta_fields``, the same JAX function the device rebuild and the
-fit use; here NumPy evaluates its jaxpr in float64 (``jskel.host_eval``: no XLA compile), traced
+fit use; here NumPy evaluates its jaxpr in float64 (``jskel.compile.host_eval``: no XLA compile), traced
 inside a scoped ``jax.enable_x64(True)`` (jax >= 0.8's context manager: the process-wide
 ``jax_enable_x64`` stays as the caller set it), on the topology padded to a power of two rows
 so skeletons of similar size share one trace.
@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..host_eval import HostFn
+from ..compile.host_eval import HostFn
 from ._geometry import PLANE_KINDS, PLANE_SPLIT, cutting_planes, frusta_fields, medial_normal, padded_topology, plane_reach, segment_axes
 from ._skeleton import Topology
 
@@ -82,7 +82,7 @@ def _bucket(n: int) -> int:
 
 
 # The build runs its geometry once on a few dozen to a few thousand rows: NumPy evaluates its
-# jaxpr without a compile (``jskel.host_eval``), several times faster than XLA:CPU compiles it
+# jaxpr without a compile (``jskel.compile.host_eval``), several times faster than XLA:CPU compiles it
 # for a single run (docs/choices.md#host-build). Where its
 # evaluation is slow and asked for again, XLA compiles it at backend level 0 without LLVM's
 # expensive passes (it runs once per build: optimising it buys nothing)

@@ -5,7 +5,7 @@ the frusta: the axes, the cutting planes at the joints, the caps, and the u-alig
 their twist offsets. Three callers share it:
 
 * the host build (``_build.build_frusta``) has NumPy evaluate its jaxpr in float64
-  (``jskel.host_eval``), traced under a scoped ``jax.enable_x64(True)`` (no global switch), on
+  (``jskel.compile.host_eval``), traced under a scoped ``jax.enable_x64(True)`` (no global switch), on
   the topology padded to a power of two so skeletons of similar size share one trace;
 * the device rebuild (``_device.rebuilder``) runs it in the working dtype on every animation
   frame;

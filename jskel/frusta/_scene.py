@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..accel import nearest_tangent
-from ..host_eval import HostFn
+from ..compile.host_eval import HostFn
 from ..executor import size_bucket
 from ..numerics import on_device
 from ..interface import Built, Object, Preliminary, Representation
@@ -157,7 +157,7 @@ def _relief_quality(rel, arrays: FrustaArrays, ids, map_shape) -> ReliefQuality:
     return ReliefQuality(uv, rel.early_exit, rel.v_mode, "exact", levels)
 
 
-# the tree of a build, evaluated by NumPy (``jskel.host_eval``), not compiled for a single run
+# the tree of a build, evaluated by NumPy (``jskel.compile.host_eval``), not compiled for a single run
 # (docs/choices.md#host-build); the device rebuild of an animated frame runs the same
 # ``build_bvh`` inside its program
 _build_bvh_host = HostFn(build_bvh, static_argnums=(1,))

@@ -17,7 +17,7 @@ from typing import Annotated, Any, Literal, NamedTuple
 from pydantic import Field
 
 from .. import registry
-from ..cache import count_programs, program_counts
+from ..compile.cache import count_programs, program_counts
 from ..config import ConfigError, StrictModel, chunk_of, read_yaml
 from ..fit import FitBenchFile, run_fit_bench
 from ..render import camera_of, dtype_of, framed, render

@@ -26,7 +26,7 @@ from typing import Annotated, Callable
 
 from pydantic import Field
 
-from ..cache import count_programs, program_counts
+from ..compile.cache import count_programs, program_counts
 from ..config import StrictModel, read_yaml
 from ..render import render
 from ..probe.study import Peers, needed

@@ -26,7 +26,7 @@ from pydantic import Field, field_validator, model_validator
 from tqdm.auto import tqdm
 
 from ..config import ConfigError, StrictModel
-from ..cache import count_programs, program_counts
+from ..compile.cache import count_programs, program_counts
 from ..progress import quiet
 from ..render import render
 from ..config import load as load_experiment

@@ -15,10 +15,11 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from .. import executables, registry
+from .. import registry
+from ..compile import executables
 from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
 from ..rays import Hit, Rays, flag_counts, make_rays
-from ..cache import count_programs, program_counts
+from ..compile.cache import count_programs, program_counts
 from ..camera import Camera, framing, tile_inverse, tile_order
 from ..executor import map_chunks
 from ..interface import Object

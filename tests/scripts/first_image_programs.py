@@ -29,7 +29,7 @@ import time
 import jax
 from jax._src import stages
 
-from jskel import executables
+from jskel.compile import executables
 
 SETS = {
     "O3": {"xla_backend_optimization_level": 3, "xla_llvm_disable_expensive_passes": False},

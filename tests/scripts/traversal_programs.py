@@ -21,7 +21,7 @@ import time
 import jax
 
 from jskel import executor
-from jskel.cache import count_programs, program_counts
+from jskel.compile.cache import count_programs, program_counts
 from jskel.config import load as load_experiment
 from jskel.render import render
 

@@ -1,6 +1,6 @@
 """Compiled executables kept on disk, so a warm process neither traces nor compiles them.
 
-JAX's persistent compilation cache (``jskel.cache``) skips XLA's compile but not tracing: a
+JAX's persistent compilation cache (``jskel.compile.cache``) skips XLA's compile but not tracing: a
 fresh process still traces the render's one big program (the chunk map over the bins traversal)
 before it can look the compiled program up. Here the executor (``executor.compile_batch_fn``)
 looks for the executable itself first: on a miss of its in-process cache it loads a file keyed
@@ -145,7 +145,7 @@ def counts() -> dict:
 @lru_cache(maxsize=1)
 def source_hash() -> str:
     """SHA-256 of jskel's own Python files (paths and contents): any edit changes every key."""
-    root = Path(__file__).resolve().parent
+    root = Path(__file__).resolve().parent.parent  # the package, not this folder
     h = hashlib.sha256()
     for p in sorted(root.rglob("*.py")):
         h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")

@@ -72,7 +72,7 @@ def program_counts() -> dict:
     and ``loaded`` (from the persistent cache), ``by_name`` (each program name, e.g.
     ``jit(frusta_fields)``: how many were handed to XLA, compiled or loaded, and their seconds),
     the cache directory JAX uses (or None), and the executor's ``executables``
-    (``jskel.executables.counts``: loaded from disk, neither traced nor handed to XLA, or
+    (``jskel.compile.executables.counts``: loaded from disk, neither traced nor handed to XLA, or
     compiled and stored)."""
     from . import executables
 

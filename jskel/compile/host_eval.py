@@ -353,7 +353,7 @@ class HostFn:
     :data:`KEEP` kept) and returns NumPy arrays in ``fn``'s output tree. Under a scoped
     ``jax.enable_x64(True)`` it traces and evaluates in float64 as the jitted function would.
 
-    With jskel's cache directory in use (``jskel.executables``) each result is kept there,
+    With jskel's cache directory in use (``jskel.compile.executables``) each result is kept there,
     keyed by the arguments' values too: a warm process building the same object reads it back,
     untraced. A program whose evaluation took over :data:`COMPILE_AFTER_S` is compiled by XLA
     (``compiler_options``) the next time its process asks for it, and run compiled from then on."""

@@ -1,0 +1,16 @@
+"""Compile latency: what a fresh process waits for before its first image, and how it is cut.
+One folder, one cache policy: every cache (JAX's compiled programs, the stored executables,
+the cell objects' precomputed maps) lives under jskel's cache directory (``cache.default_cache_dir``:
+``JSKEL_CACHE_DIR``, else ``$XDG_CACHE_HOME/jskel/jax``, else ``~/.cache/jskel/jax``), is
+switched off together by ``JSKEL_CACHE=off``, and is used only from a directory this user owns
+and no one else may write (``cache.unsafe_reason``).
+
+* ``cache``: JAX's persistent compilation cache, the directory policy, counts of programs
+  compiled and loaded;
+* ``executables``: compiled executables stored whole, so a warm process neither traces nor
+  compiles them;
+* ``host_eval``: small programs (a build's geometry and tree) evaluated by NumPy from their
+  jaxprs instead of compiled;
+* ``call_layout``: the host layout of one compiled call (chunks per call, padding);
+* ``devices``: XLA's host devices, an explicit call.
+"""
