@@ -3,6 +3,8 @@ written here; tile skipping; the laws of reflection and refraction; modes; bad i
 
 from __future__ import annotations
 
+import stat
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -433,9 +435,11 @@ def test_refraction_mode_is_the_integrators_glass_material_against_a_float64_alg
     np.testing.assert_allclose(res.rgb[~hit & same], want_rgb[~hit & same], atol=2e-6)  # escaping camera rays see the sky
 
 
-def test_the_default_cache_lives_in_jskels_cache_directory_and_follows_its_switch(tmp_path, monkeypatch):
+def test_the_default_cache_lives_in_jskels_cache_directory_and_follows_its_switch(tmp_path, monkeypatch, capsys):
     """``cache: auto`` (the default) keeps precomputed objects in the ``cells`` folder of
-    ``JSKEL_CACHE_DIR``, not under the working directory; ``JSKEL_CACHE=off`` keeps none."""
+    ``JSKEL_CACHE_DIR``, not under the working directory, made private (0700); a folder others
+    may write is refused with one warning line, as the compiled programs' is; ``JSKEL_CACHE=off``
+    keeps none."""
     precompute = cells.precompute
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("JSKEL_CACHE_DIR", str(tmp_path / "jc"))
@@ -445,6 +449,12 @@ def test_the_default_cache_lives_in_jskels_cache_directory_and_follows_its_switc
     assert precompute(cfg).info["cache"] == "miss" and precompute(cfg).info["cache"] == "hit"
     assert len(list((tmp_path / "jc" / "cells").glob("*.npz"))) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["jc"]  # nothing written where the process runs
+    assert stat.S_IMODE((tmp_path / "jc" / "cells").stat().st_mode) == 0o700
+    (tmp_path / "jc" / "cells").chmod(0o777)
+    capsys.readouterr()
+    assert precompute(cfg).info["cache"] == "off"
+    err = capsys.readouterr().err
+    assert "writable by group or others" in err and str(tmp_path / "jc" / "cells") in err
     monkeypatch.setenv("JSKEL_CACHE", "off")
     assert precompute(cfg).info["cache"] == "off"
 

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import checks
-from ..compile.cache import data_dir
+from ..compile.cache import data_dir, prepared_dir
 from ..executor import size_bucket
 from ..interface import Built, Object, OwnMaterial, Representation
 from ..numerics import differentiable_root, safe_normalize
@@ -111,7 +111,11 @@ def precompute(cfg: CellsConfig) -> CellObject:
     the cache folder when the same inputs were computed before."""
     inside, lo, hi, digest = base_inside(cfg)
     key = _cache_key(cfg, digest)
-    folder = data_dir("cells") if cfg.cache == "auto" else (Path(cfg.cache) if cfg.cache else None)
+    if cfg.cache == "auto":  # jskel's cache directory, under its one policy: made 0700, refused if others may write it
+        folder = data_dir("cells")
+        folder = None if folder is None else prepared_dir(folder, "cell object cache")
+    else:
+        folder = Path(cfg.cache) if cfg.cache else None
     path = folder / f"{key}.npz" if folder is not None else None
     if path is not None and path.exists():
         z = np.load(path, allow_pickle=False)

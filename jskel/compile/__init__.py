@@ -1,9 +1,10 @@
 """Compile latency: what a fresh process waits for before its first image, and how it is cut.
 One folder, one cache policy: every cache (JAX's compiled programs, the stored executables,
-the cell objects' precomputed maps) lives under jskel's cache directory (``cache.default_cache_dir``:
-``JSKEL_CACHE_DIR``, else ``$XDG_CACHE_HOME/jskel/jax``, else ``~/.cache/jskel/jax``), is
-switched off together by ``JSKEL_CACHE=off``, and is used only from a directory this user owns
-and no one else may write (``cache.unsafe_reason``).
+the cell objects' precomputed maps with ``cache: auto``) lives under jskel's cache directory
+(``cache.default_cache_dir``: ``JSKEL_CACHE_DIR``, else ``$XDG_CACHE_HOME/jskel/jax``, else
+``~/.cache/jskel/jax``), is switched off together by ``JSKEL_CACHE=off``, and is made with mode
+0700 and used only where this user owns it and no one else may write it (``cache.prepared_dir``,
+``cache.unsafe_reason``; one warning line otherwise, and the process runs without that cache).
 
 * ``cache``: JAX's persistent compilation cache, the directory policy, counts of programs
   compiled and loaded;

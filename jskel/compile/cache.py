@@ -122,17 +122,18 @@ def _warn(line: str) -> None:
     print(f"jskel: warning: {line}", file=sys.stderr)
 
 
-def prepared_dir(path: Path) -> Path | None:
+def prepared_dir(path: Path, what: str = "compilation cache") -> Path | None:
     """``path`` created with mode 0700 (its parents as the umask makes them), or None with one
-    warning line when it cannot be made or is unsafe (:func:`unsafe_reason`); never raises."""
+    warning line (naming it as ``what``) when it cannot be made or is unsafe
+    (:func:`unsafe_reason`); never raises. Every folder of jskel's cache directory goes through it."""
     try:
         path.mkdir(mode=0o700, parents=True, exist_ok=True)
         why = unsafe_reason(path)
     except OSError as e:
-        _warn(f"compilation cache {path} cannot be used ({e.strerror or e}); running without it")
+        _warn(f"{what} {path} cannot be used ({e.strerror or e}); running without it")
         return None
     if why is not None:
-        _warn(f"compilation cache {path} {why}; running without it")
+        _warn(f"{what} {path} {why}; running without it")
         return None
     return path
 
