@@ -26,6 +26,7 @@ marching one its surface tolerance) and inherits the rest. The conformance suite
 from __future__ import annotations
 
 import sys
+import typing
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Hashable, Mapping, NamedTuple
 
@@ -112,13 +113,33 @@ FUNCTION_MEMBERS = ("build", "intersect_one", "intersect_batch", "cast", "surfac
                     "steps_per_ray", "traversal_stats", "traced_fields")
 
 
+def missing_members(cls) -> list[str]:
+    """The members of :attr:`Representation.REQUIRED` that ``cls`` neither defines nor inherits
+    from a class other than the base, and a ``Config`` that is not a pydantic model whose
+    ``type`` is ``Literal[name]``: each named (every one at once, when the class is defined)."""
+    out = []
+    for m in Representation.REQUIRED:
+        own = getattr(cls, m, None)
+        if own is None or own is getattr(Representation, m, None):
+            out.append(m)
+    cfg, name = getattr(cls, "Config", None), getattr(cls, "name", None)
+    if cfg is not None and name is not None:
+        field = cfg.model_fields.get("type") if isinstance(cfg, type) and issubclass(cfg, BaseModel) else None
+        if field is None or typing.get_args(field.annotation) != (name,):
+            out.append(f"Config (a pydantic model whose type is Literal[{name!r}])")
+    return out
+
+
 class Representation:
     """Base of every representation: the whole interface, with defaults for what is optional.
 
     Must be given by a subclass: ``name``, ``Config`` (the pydantic model of an ``object``
     section, with a ``type`` literal equal to ``name``), :meth:`build`, :meth:`intersect_one`,
-    :meth:`albedo`, :meth:`inside`. Everything else has a default here that is correct for any
-    representation, and is overridden where a representation can do better.
+    :meth:`albedo`, :meth:`inside`; a class that lacks any of them is a ``TypeError`` when it is
+    defined, every missing one named (:func:`missing_members`), not at its first call.
+    Everything else has a default here that is correct for any representation, and is
+    overridden where a representation can do better (``cast``, ``surface``, ``occluded``: the
+    two stages of a hit and the shadow-ray test, inherited from ``intersect_batch``).
     """
 
     name: ClassVar[str]
@@ -150,15 +171,19 @@ class Representation:
         representation's static members, so each folder states what it has once, where it
         defines it, instead of rebinding every function by hand."""
         super().__init_subclass__(**kw)
-        if module is None:
-            return
-        namespace = sys.modules[module].__dict__
-        for member in FUNCTION_MEMBERS:
-            fn = namespace.get(member)
-            if callable(fn) and getattr(fn, "__module__", None) == module and member not in cls.__dict__:
-                setattr(cls, member, staticmethod(fn))
+        if module is not None:
+            namespace = sys.modules[module].__dict__
+            for member in FUNCTION_MEMBERS:
+                fn = namespace.get(member)
+                if callable(fn) and getattr(fn, "__module__", None) == module and member not in cls.__dict__:
+                    setattr(cls, member, staticmethod(fn))
+        missing = missing_members(cls)
+        if missing:
+            raise TypeError(f"{cls.__name__}: a representation must give {', '.join(missing)} (jskel.interface.Representation)")
 
     # ------------------------------------------------------------------ must be given
+    #: what a subclass must give, checked when the class is defined (:func:`missing_members`)
+    REQUIRED: ClassVar[tuple[str, ...]] = ("name", "Config", "build", "intersect_one", "albedo", "inside")
 
     def build(self, cfg: BaseModel, dtype=np.float32) -> Built:
         """Host: validate ``cfg`` and precompute; a :class:`Built`."""

@@ -188,3 +188,40 @@ def test_measure_and_peers_import_neither_the_other():
     bad = {k: v for k, v in bad.items() if v}
     assert not bad, bad
     assert "jskel.probe.timing" in _imported(PKG / "peers" / "skeleton_study.py")  # the resolver sees them
+
+
+def test_a_representation_missing_members_is_refused_when_its_class_is_defined():
+    """A subclass of the interface's base that lacks what it must give is a TypeError when the
+    class statement runs (not at its first call), naming every missing member at once; its
+    Config must be a model whose ``type`` is ``Literal[name]``. One that gives them all (the
+    rest inherited) is accepted."""
+    from typing import Literal
+
+    import pytest
+    from pydantic import BaseModel
+
+    with pytest.raises(TypeError) as e:
+        class _Half(Representation):
+            name = "half"
+
+            def build(self, cfg, dtype=None):
+                return None
+    msg = str(e.value)
+    assert all(m in msg for m in ("Config", "intersect_one", "albedo", "inside")) and "build" not in msg.replace("jskel", "")
+
+    class _Cfg(BaseModel):
+        type: Literal["other"]
+
+    with pytest.raises(TypeError, match=r"Config \(a pydantic model whose type is Literal\['whole'\]\)"):
+        class _Mislabelled(Representation):
+            name, Config = "whole", _Cfg
+            build = intersect_one = albedo = inside = staticmethod(lambda *a: None)
+
+    class _WholeCfg(BaseModel):
+        type: Literal["whole"]
+
+    class _Whole(Representation):
+        name, Config = "whole", _WholeCfg
+        build = intersect_one = albedo = inside = staticmethod(lambda *a: None)
+
+    assert _Whole.cast is Representation.cast  # the optional members inherited
