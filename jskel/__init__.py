@@ -1,6 +1,6 @@
 """jskel: ray casting skeletal and detail surface representations in JAX."""
 
-__version__ = "0.1.0"
+from ._version import __version__ as __version__
 
 
 from .config import ConfigError as ConfigError

@@ -87,7 +87,7 @@ def provenance(command: str | None = None) -> dict:
     import jaxlib
     import numpy
 
-    from .. import __version__
+    from .._version import __version__
 
     return {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "commit": _commit(), "machine": _cpu(),
             "devices": sorted({f"{d.platform}:{d.device_kind}" for d in jax.devices()}),

@@ -91,7 +91,7 @@ def environment() -> dict:
     """Versions, device and host recorded in every run.json and benchmark row."""
     import jaxlib
 
-    from .. import __version__
+    from .._version import __version__
 
     dev = jax.devices()[0]
     return {
