@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import checks
-from ..compile.cache import data_dir, prepared_dir
+from ..compile.policy import data_dir, prepared_dir
 from ..executor import size_bucket
 from ..interface import Built, Object, OwnMaterial, Representation
 from ..numerics import differentiable_root, safe_normalize

@@ -3,10 +3,12 @@ One folder, one cache policy: every cache (JAX's compiled programs, the stored e
 the cell objects' precomputed maps with ``cache: auto``) lives under jskel's cache directory
 (``cache.default_cache_dir``: ``JSKEL_CACHE_DIR``, else ``$XDG_CACHE_HOME/jskel/jax``, else
 ``~/.cache/jskel/jax``), is switched off together by ``JSKEL_CACHE=off``, and is made with mode
-0700 and used only where this user owns it and no one else may write it (``cache.prepared_dir``,
-``cache.unsafe_reason``; one warning line otherwise, and the process runs without that cache).
+0700 and used only where this user owns it and no one else may write it (``policy.prepared_dir``,
+``policy.unsafe_reason``; one warning line otherwise, and the process runs without that cache).
 
-* ``cache``: JAX's persistent compilation cache, the directory policy, counts of programs
+* ``policy``: where every cache lives and which directories may be used;
+* ``events``: JAX's monitoring events counted (programs compiled, loaded);
+* ``cache``: JAX's persistent compilation cache switched on, and the counts of programs
   compiled and loaded;
 * ``executables``: compiled executables stored whole, so a warm process neither traces nor
   compiles them;

@@ -16,7 +16,7 @@ with one warning line (naming the directory and the fix) and the process runs wi
 An explicitly set ``JAX_COMPILATION_CACHE_DIR`` wins: JAX's own configuration is then left as
 it is.
 
-Counting (:func:`program_counts`) listens to JAX's monitoring events: every program handed to
+Counting (:func:`program_counts`; the listeners are ``events``, the directory rules ``policy``) listens to JAX's monitoring events: every program handed to
 XLA records ``/jax/core/compile/backend_compile_duration`` (compiled, or loaded from the
 persistent cache) and every load records ``/jax/compilation_cache/cache_hits``; compiled is
 their difference. Programs reused from JAX's in-memory caches are neither.
@@ -25,46 +25,19 @@ their difference. Programs reused from JAX's in-memory caches are neither.
 from __future__ import annotations
 
 import os
-import stat
-import sys
 from pathlib import Path
 
 import jax
+
+from . import executables  # the executor's own programs, stored whole (no tracing when warm)
+from .events import _by_name, _counts, count_programs
+from .policy import _warn, data_dir, default_cache_dir, prepared_dir, unsafe_reason
 
 # Every program is written to the cache, however quickly it compiled (JAX's default is 1 s).
 # A render also compiles many small programs (the build's jitted pieces, framing, the hits'
 # post-processing): each takes tens of milliseconds to compile but adds up to seconds in a
 # fresh process, while loading one from disk takes about a millisecond.
 MIN_COMPILE_S = 0.0
-
-_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
-_HIT_EVENT = "/jax/compilation_cache/cache_hits"
-_counts = {"requests": 0, "loaded": 0}
-_by_name: dict = {}  # program name -> [programs handed to XLA, their seconds]
-_listening = False
-
-
-def _on_event(event: str, **kwargs) -> None:
-    if event == _HIT_EVENT:
-        _counts["loaded"] += 1
-
-
-def _on_duration(event: str, duration: float, **kwargs) -> None:
-    if event == _COMPILE_EVENT:
-        _counts["requests"] += 1
-        got = _by_name.setdefault(str(kwargs.get("fun_name", "?")), [0, 0.0])
-        got[0] += 1
-        got[1] += duration
-
-
-def count_programs() -> None:
-    """Start counting programs compiled and loaded in this process (idempotent; the CLI and
-    :func:`use_compilation_cache` call it; a render calls it too, counting from then on)."""
-    global _listening
-    if not _listening:
-        jax.monitoring.register_event_listener(_on_event)
-        jax.monitoring.register_event_duration_secs_listener(_on_duration)
-        _listening = True
 
 
 def program_counts() -> dict:
@@ -74,68 +47,9 @@ def program_counts() -> dict:
     the cache directory JAX uses (or None), and the executor's ``executables``
     (``jskel.compile.executables.counts``: loaded from disk, neither traced nor handed to XLA, or
     compiled and stored)."""
-    from . import executables
-
     return {"compiled": _counts["requests"] - _counts["loaded"], "loaded": _counts["loaded"],
             "by_name": {k: [n, round(s, 4)] for k, (n, s) in sorted(_by_name.items())},
             "cache_dir": jax.config.jax_compilation_cache_dir, "executables": executables.counts()}
-
-
-def default_cache_dir(env=None) -> Path | None:
-    """The cache directory the environment asks for: None with ``JSKEL_CACHE=off``, else
-    ``JSKEL_CACHE_DIR``, ``$XDG_CACHE_HOME/jskel/jax`` or ``~/.cache/jskel/jax``. A value of
-    ``JSKEL_CACHE`` other than on/off is a ``ValueError``."""
-    env = os.environ if env is None else env
-    switch = env.get("JSKEL_CACHE", "on").strip().lower()
-    if switch not in ("on", "off", "1", "0", "true", "false", ""):
-        raise ValueError(f"JSKEL_CACHE: {env['JSKEL_CACHE']!r} is not on or off")
-    if switch in ("off", "0", "false"):
-        return None
-    if env.get("JSKEL_CACHE_DIR"):
-        return Path(env["JSKEL_CACHE_DIR"]).expanduser()
-    base = env.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "jskel" / "jax"
-
-
-def data_dir(name: str, env=None) -> Path | None:
-    """The folder ``name`` of jskel's cache directory (:func:`default_cache_dir`), where
-    precomputed data are kept beside the compiled programs: ``~/.cache/jskel/jax/<name>``, or
-    under ``JSKEL_CACHE_DIR``; None with ``JSKEL_CACHE=off``. Not created here."""
-    root = default_cache_dir(env)
-    return None if root is None else root / name
-
-
-def unsafe_reason(path: Path) -> str | None:
-    """Why ``path`` (an existing directory) must not hold executables this process loads: not
-    a directory, owned by another user, or writable by group or others; None when it is safe."""
-    st = path.stat()
-    if not stat.S_ISDIR(st.st_mode):
-        return "is not a directory"
-    if os.name == "posix" and st.st_uid != os.getuid():
-        return f"is owned by uid {st.st_uid}, not this user"
-    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-        return f"is writable by group or others (mode {stat.S_IMODE(st.st_mode):o}; fix: chmod 700 {path})"
-    return None
-
-
-def _warn(line: str) -> None:
-    print(f"jskel: warning: {line}", file=sys.stderr)
-
-
-def prepared_dir(path: Path, what: str = "compilation cache") -> Path | None:
-    """``path`` created with mode 0700 (its parents as the umask makes them), or None with one
-    warning line (naming it as ``what``) when it cannot be made or is unsafe
-    (:func:`unsafe_reason`); never raises. Every folder of jskel's cache directory goes through it."""
-    try:
-        path.mkdir(mode=0o700, parents=True, exist_ok=True)
-        why = unsafe_reason(path)
-    except OSError as e:
-        _warn(f"{what} {path} cannot be used ({e.strerror or e}); running without it")
-        return None
-    if why is not None:
-        _warn(f"{what} {path} {why}; running without it")
-        return None
-    return path
 
 
 def use_compilation_cache(path=None) -> Path | None:
@@ -155,7 +69,9 @@ def use_compilation_cache(path=None) -> Path | None:
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)
-    from . import executables  # the executor's own programs, stored whole (no tracing when warm)
-
     executables.use_dir(None if executables.switched_off() else path / "executables")
     return path
+
+
+__all__ = ["MIN_COMPILE_S", "_by_name", "_counts", "_warn", "count_programs", "data_dir", "default_cache_dir", "prepared_dir",
+           "program_counts", "unsafe_reason", "use_compilation_cache"]

@@ -43,7 +43,8 @@ import jax
 import jaxlib
 import numpy as np
 
-from .cache import _warn, unsafe_reason
+from . import events
+from .policy import _warn, unsafe_reason
 
 MAGIC = b"jskel-executable-2 "
 MAX_MB = 2048.0  # the folder's default cap in MiB (``JSKEL_EXECUTABLES_MAX_MB``)
@@ -335,13 +336,11 @@ def compiled_for(fn, args, mesh, compile_: Callable):
             _counts["loaded"] += 1
             _touch(path)
             return got
-    from . import cache
-
-    cache.count_programs()  # JAX's cache hits are counted from here on
-    hits = cache._counts["loaded"]
+    events.count_programs()  # JAX's cache hits are counted from here on
+    hits = events._counts["loaded"]
     compiled = compile_()
     _counts["compiled"] += 1
-    if path is not None and cache._counts["loaded"] > hits:
+    if path is not None and events._counts["loaded"] > hits:
         # served by JAX's persistent cache (jskel's source changed, the program did not): XLA:CPU
         # serializes such a deserialized executable without some of its functions (a later
         # process failed with "Function compare_convert_fusion not found"), so it is not stored
