@@ -18,12 +18,11 @@ import imageio.v3 as iio
 import jax
 import numpy as np
 
-from .compile.cache import use_compilation_cache
-from .config import ConfigError
 from . import registry
+from .compile.cache import use_compilation_cache
 from .compile.devices import use_host_devices
+from .config import ConfigError, load
 from .distributed import init_from_env
-from .config import load as load_experiment
 from .measure.files import X64, read_model
 from .render import aov_sheet, render, write_aovs
 
@@ -72,7 +71,7 @@ def cmd_render_frames(args, exp, obj) -> int:
 
 
 def cmd_render(args) -> int:
-    exp, obj = load_experiment(args.experiment, args.set + (X64 if args.x64 else []))
+    exp, obj = load(args.experiment, args.set + (X64 if args.x64 else []))
     if args.frames is not None:
         return cmd_render_frames(args, exp, obj)
     res = render(exp, obj, progress=args.progress)
@@ -136,7 +135,7 @@ def cmd_fit(args) -> int:
 def cmd_export(args) -> int:
     """``jskel export EXPERIMENT --out mesh.ply``: the object as a triangle mesh (its
     representation's ``export_mesh``: the frusta tessellated, ``jskel.frusta.export_mesh``)."""
-    exp, obj = load_experiment(args.experiment, args.set)
+    exp, obj = load(args.experiment, args.set)
     if exp.is_scene:
         raise ConfigError(["object.type: export writes a single skeleton object (got a scene)"])
     info = registry.get(obj.type).export_mesh(obj, args.out, args.level, "--out")

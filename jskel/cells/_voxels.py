@@ -93,7 +93,8 @@ def walk(p: CellParams, o, d, t_start, t_end, want_inside, skip: bool, pyramid: 
                 blk = jnp.right_shift(tile, lvl)
                 lo_v = blk * span
                 tt = exits((blk + pos) * span)
-            else:
+            else:  # the tile's own bounds, written as before the pyramid: XLA:CPU compiles the
+                # pyramid's form at level 0 into a much slower walk (docs/choices.md#walk-tile-bounds)
                 span, lo_v = r, tile * r
                 tt = exits((tile + pos) * r)
             t_jump, t_axis = _min3(tt), _first_axis(tt)

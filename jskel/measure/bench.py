@@ -18,17 +18,16 @@ from pydantic import Field
 
 from .. import registry
 from ..compile.cache import count_programs, program_counts
-from ..config import ConfigError, StrictModel, chunk_of, read_yaml
+from ..config import ConfigError, StrictModel, chunk_of, load, read_yaml
 from ..fit import FitBenchFile, run_fit_bench
-from ..render import camera_of, dtype_of, framed, render
 from ..probe.cast import timed_cast
-from ..config import load as load_experiment
-from .files import X64, JsonLines, beside, read_model
-from .grid import expand, keys_of, overrides_of
 from ..probe.metrics import compare
-from .plots import plot_bars, plot_scaling, plot_sweep
 from ..probe.study import Peers, StudyOptions, needed
 from ..probe.timing import render_runs, spread
+from ..render import camera_of, dtype_of, framed, render
+from .files import X64, JsonLines, beside, read_model
+from .grid import expand, keys_of, overrides_of
+from .plots import plot_bars, plot_scaling, plot_sweep
 
 
 class BenchFile(StrictModel):
@@ -146,10 +145,10 @@ def groups_of(bench: BenchFile, file, extra: list[str]) -> list[Group]:
     if bench.labels is not None and len(bench.labels) != len(settings):
         raise ConfigError([f"labels: {len(bench.labels)} labels for {len(settings)} sweep settings"])
     if bench.sweep is None:
-        return [Group(None, [Job(str(p), *load_experiment(p, common), None) for p in paths])]
+        return [Group(None, [Job(str(p), *load(p, common), None) for p in paths])]
     # a sweep with no reference only times its settings (e.g. cost against scene size)
-    return [Group(load_experiment(p, common + bench.reference) if bench.reference else None,
-                  [Job(str(p), *load_experiment(p, common + overrides_of(st)), st) for st in settings]) for p in paths]
+    return [Group(load(p, common + bench.reference) if bench.reference else None,
+                  [Job(str(p), *load(p, common + overrides_of(st)), st) for st in settings]) for p in paths]
 
 
 def job_row(bench: BenchFile, job: Job, runs: int, ref) -> dict:

@@ -27,10 +27,9 @@ from typing import Annotated, Callable
 from pydantic import Field
 
 from ..compile.cache import count_programs, program_counts
-from ..config import StrictModel, read_yaml
-from ..render import render
+from ..config import StrictModel, load, read_yaml
 from ..probe.study import Peers, needed
-from ..config import load as load_experiment
+from ..render import render
 from .files import JsonLines, beside, read_model
 
 FLOOR = [sys.executable, "-c", "import jax; jax.numpy.zeros(3).block_until_ready()"]
@@ -178,7 +177,7 @@ def process_rows(spec: LatencySpec, file, work: Path, emit: JsonLines, peers: Pe
 def mitsuba_row(spec: LatencySpec, file, folder: Path, rep: int, prepare) -> dict:
     """Mitsuba's process for ``spec.mitsuba``'s skeleton at the gallery's size, or why not
     (``prepare``: ``Peers.mitsuba_image``, the CLI's ``peers.mitsuba_image.prepare``)."""
-    exp, obj = load_experiment(beside(spec.mitsuba, file, "latency.mitsuba"), spec.set)
+    exp, obj = load(beside(spec.mitsuba, file, "latency.mitsuba"), spec.set)
     cmd, png = prepare(exp, obj, folder, spec.mitsuba_variant)
     row = {"case": f"mitsuba_{spec.mitsuba_variant}", "scene": exp.name, "repeat": rep}
     if cmd is None:
@@ -217,11 +216,11 @@ def rerender_rows(spec: LatencySpec, file, emit: JsonLines) -> list[dict]:
     """In this process: a first render, then each change of :func:`changes` from it, timed
     with the programs each compiled (and loaded from the persistent cache)."""
     path = beside(spec.rerender, file, "latency.rerender")
-    exp, obj = load_experiment(path, spec.set)
+    exp, obj = load(path, spec.set)
     count_programs()
     rows = []
     for i, (change, sets) in enumerate(changes(exp, obj).items()):
-        e, o = load_experiment(path, spec.set + sets)
+        e, o = load(path, spec.set + sets)
         before = program_counts()
         t0 = time.perf_counter()
         res = render(e, o, progress=False)

@@ -25,18 +25,17 @@ from jax.experimental import multihost_utils
 from pydantic import Field, field_validator, model_validator
 from tqdm.auto import tqdm
 
-from ..config import ConfigError, StrictModel
 from ..compile.cache import count_programs, program_counts
-from ..progress import quiet
-from ..render import render
-from ..config import load as load_experiment
-from .files import beside, provenance, read_model
-from .grid import Range, expand, keys_of, overrides_of, setting_key
+from ..config import ConfigError, StrictModel, load
 from ..probe.metrics import compare, depth_in_pixels, ssim
-from .plots import plot_sweep_file
-from .results import cell, columns, read_done, write_report
 from ..probe.study import Peers, StudyOptions, needed
 from ..probe.timing import render_runs, spread
+from ..progress import quiet
+from ..render import render
+from .files import beside, provenance, read_model
+from .grid import Range, expand, keys_of, overrides_of, setting_key
+from .plots import plot_sweep_file
+from .results import cell, columns, read_done, write_report
 
 #: metric name -> where it comes from (``metrics.compare``, ``metrics.ssim``, the run's bytes)
 METRICS = ("hit_miss_pct", "prim_mismatch_pct", "depth_rmse", "depth_max", "normal_deg_mean", "normal_deg_max",
@@ -139,11 +138,11 @@ def load_sweep(path, overrides: list[str], exp_overrides: list[str] = ()):
         if ro is None:
             return None
         key = json.dumps(ro)
-        return seen.setdefault(key, (key, load_experiment(base, ro)))
+        return seen.setdefault(key, (key, load(base, ro)))
 
     for i, st in enumerate(sweep.grid()):
         try:
-            jobs.append((st, load_experiment(base, sweep.set + list(exp_overrides) + overrides_of(st))))
+            jobs.append((st, load(base, sweep.set + list(exp_overrides) + overrides_of(st))))
             ref_jobs.append(ref_job(st))
         except ConfigError as e:
             raise ConfigError([f"setting {i} {json.dumps(st)}: {line}" for line in e.lines]) from None
