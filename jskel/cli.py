@@ -42,20 +42,20 @@ def _frames(spec: str) -> list[float]:
     return [parts[0] + i * step for i in range(n)]
 
 
-def cmd_render_frames(args, exp, obj) -> int:
-    """Render an animation: numbered images and AOVs, animation.gif, one run.json."""
-    rep = None if exp.is_scene else registry.get(obj.type)
-    if rep is not None and not rep.animated:
-        raise ConfigError([f"--frames: object.type {obj.type!r} has no animation"])
+def cmd_render_frames(args, exp) -> int:
+    """Render an animation: numbered images and AOVs, animation.gif, one run.json. Frame ``f``
+    is the experiment's ``frame``: it poses every animated shape (at its own ``frame`` + f) and
+    moves every object with a ``motion``."""
+    moving = [o for o in exp.objects if o.motion is not None or registry.get(o.shape.type).animated]
+    if not moving:
+        types = ", ".join(sorted({repr(o.shape.type) for o in exp.objects}))
+        where = exp.objects[0].at(0) if len(exp.objects) == 1 else "objects[]"
+        raise ConfigError([f"--frames: {where}.type {types} has no animation"])
     frames = _frames(args.frames)
     out = Path(args.out)
     images, runs = [], []
     for f in frames:  # host loop over frames: each reuses the one compiled render
-        if exp.is_scene:  # a scene's frame poses every animated shape and moves objects with a motion
-            e, o = exp.model_copy(update={"frame": f}), obj
-        else:
-            e, o = exp, rep.at_frame(obj, f)
-        res = render(e, o, progress=args.progress)
+        res = render(exp.model_copy(update={"frame": f}), progress=args.progress)
         tag = f"{int(round(f)):04d}" if float(f).is_integer() else f"{f:09.3f}"
         sub = out / f"frame_{tag}"
         write_aovs(sub, res.hits, res.image, exp.camera.width, exp.camera.height, res.run, res.aovs)
@@ -71,10 +71,10 @@ def cmd_render_frames(args, exp, obj) -> int:
 
 
 def cmd_render(args) -> int:
-    exp, obj = load(args.experiment, args.set + (X64 if args.x64 else []))
+    exp = load(args.experiment, args.set + (X64 if args.x64 else []))
     if args.frames is not None:
-        return cmd_render_frames(args, exp, obj)
-    res = render(exp, obj, progress=args.progress)
+        return cmd_render_frames(args, exp)
+    res = render(exp, progress=args.progress)
     if jax.process_index() != 0:  # several hosts: process 0 writes the gathered image
         return 0
     paths = write_aovs(args.out, res.hits, res.image, exp.camera.width, exp.camera.height, res.run, res.aovs)
@@ -135,9 +135,11 @@ def cmd_fit(args) -> int:
 def cmd_export(args) -> int:
     """``jskel export EXPERIMENT --out mesh.ply``: the object as a triangle mesh (its
     representation's ``export_mesh``: the frusta tessellated, ``jskel.frusta.export_mesh``)."""
-    exp, obj = load(args.experiment, args.set)
-    if exp.is_scene:
-        raise ConfigError(["object.type: export writes a single skeleton object (got a scene)"])
+    exp = load(args.experiment, args.set)
+    if len(exp.objects) != 1 or exp.objects[0].is_placed:
+        raise ConfigError([f"objects: export writes one skeleton object in its own frame (got {len(exp.objects)} objects"
+                           f"{', placed by a transform or motion' if len(exp.objects) == 1 else ''})"])
+    obj = exp.objects[0].shape
     info = registry.get(obj.type).export_mesh(obj, args.out, args.level, "--out")
     print(f"jskel: exported {info['segments']} segments at level {info['level']}: {info['faces']} triangles -> {info['path']}")
     return 0

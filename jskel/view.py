@@ -79,18 +79,20 @@ class State:
 def base_of(experiment, width: int | None = None, height: int | None = None) -> dict:
     """An experiment as the plain dict a view changes, holding only the keys it sets (a key
     written out at its default can mean something else: a single object's light casts shadows
-    only where its section says so): ``experiment`` is a file path, a raw dict or ``(experiment,
-    object)`` as ``jskel.config.load`` returns; ``width`` and ``height`` override the camera's.
+    only where its section says so): ``experiment`` is a file path, a raw dict or the
+    ``Experiment`` ``jskel.config.load`` returns (a file's ``object:`` written back as one);
+    ``width`` and ``height`` override the camera's.
     Validated here, so a bad experiment is one ``ConfigError`` naming every problem."""
     if isinstance(experiment, (str, Path)):
         raw = read_yaml(experiment)
     elif isinstance(experiment, dict):
         raw = copy.deepcopy(experiment)
     else:
-        exp, obj = experiment
+        exp = experiment
         raw = exp.model_dump(mode="json", exclude_unset=True)
-        if not exp.is_scene:
-            raw["object"] = obj.model_dump(mode="json", exclude_unset=True)
+        if len(exp.objects) == 1 and exp.objects[0].at(0) == "object":  # as its file wrote it
+            raw["object"] = exp.objects[0].shape.model_dump(mode="json", exclude_unset=True)
+            del raw["objects"]
     for key, v in (("width", width), ("height", height)):
         if v is not None:
             raw.setdefault("camera", {})[key] = int(v)
@@ -101,7 +103,10 @@ def base_of(experiment, width: int | None = None, height: int | None = None) -> 
 def full_of(base: dict) -> dict:
     """``base`` with every key at its value (``jskel.config.resolved``): where a control reads
     a value that ``base`` leaves at its default."""
-    return resolved(*validate(base))
+    full = resolved(validate(base))
+    if "object" in base:  # keyed as ``base`` is: a file's object section, not the scene of one it loads as
+        full["object"] = full.pop("objects")[0]["shape"]
+    return full
 
 
 def _rotate(v: np.ndarray, axis: np.ndarray, deg: float) -> np.ndarray:
@@ -189,10 +194,10 @@ def frame(raw: dict, aov: str = "image"):
     the render's result, programs handed to XLA by the render: compiled + loaded)."""
     from .render import render
 
-    exp, obj = validate(raw)
+    exp = validate(raw)
     count_programs()
     before = program_counts()
-    res = render(exp, obj, progress=False)
+    res = render(exp, progress=False)
     after = program_counts()
     programs = after["compiled"] - before["compiled"] + after["loaded"] - before["loaded"]
     return aov_image(res, aov, exp.camera.width, exp.camera.height), res, programs

@@ -53,8 +53,8 @@ raw = {
     "object": {"type": "frusta", "skeleton": {"joints": joints.tolist(), "radii": radii.tolist(), "parents": parents}},
     "camera": {"eye": [3.5, 2.5, 5.0], "target": [0.1, 1.4, 0.0], "fov_deg": 40, "width": W, "height": H},
 }
-exp, obj = validate(raw)
-res = render(exp, obj, progress=False)
+exp = validate(raw)
+res = render(exp, progress=False)
 hit = np.isfinite(res.hits.t).reshape(H, W)
 uv = res.hits.uv.reshape(H, W, 2)
 nrm = res.hits.normal.reshape(H, W, 3)
@@ -80,7 +80,7 @@ plt.show()
 radii2 = radii.copy()
 radii2[1] = 0.6
 raw["object"]["skeleton"]["radii"] = radii2.tolist()
-res2 = render(*validate(raw), progress=False)
+res2 = render(validate(raw), progress=False)
 fig, axs = plt.subplots(1, 2, figsize=(8, 3.4))
 axs[0].imshow(res.image)
 axs[0].set_title("radius[1] = 0.4")

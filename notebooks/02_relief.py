@@ -26,9 +26,9 @@ plt.rcParams["figure.dpi"] = 60  # the stored close-ups stay small
 
 
 def run(steps):
-    exp, obj = jskel.load(ROOT / "experiments" / "relief_column.yaml",
-                          [f"camera.width={S}", f"camera.height={S}", f"object.relief.steps={steps}", "render.progress=false"])
-    return render(exp, obj, progress=False)
+    exp = jskel.load(ROOT / "experiments" / "relief_column.yaml",
+                     [f"camera.width={S}", f"camera.height={S}", f"object.relief.steps={steps}", "render.progress=false"])
+    return render(exp, progress=False)
 
 
 # %% [markdown]

@@ -60,7 +60,7 @@ plt.show()
 # %%
 cam = {"eye": [0.5, 1.5, 6.0], "target": [0.0, 0.5, 0.0], "fov_deg": 40, "width": W, "height": H}
 def trace(**kw):
-    return render(*validate({"object": {**model, **kw}, "camera": cam}), progress=False)
+    return render(validate({"object": {**model, **kw}, "camera": cam}), progress=False)
 
 ref = trace(method="lipschitz", eps=1e-4)
 methods = {"naive, step 0.3": dict(method="naive", step=0.3, bisection=8),
@@ -91,8 +91,8 @@ plt.show()
 frames = [0, 12, 24] if SMALL else [0, 6, 12, 18, 24, 30]
 fig, axs = plt.subplots(1, len(frames), figsize=(3 * len(frames), 2.6))
 for a, f in zip(axs, frames):
-    exp, obj = jskel.load(ROOT / "experiments" / "spider.yaml", [f"camera.width={W}", f"camera.height={H}", f"object.frame={f}"])
-    a.imshow(render(exp, obj, progress=False).image)
+    exp = jskel.load(ROOT / "experiments" / "spider.yaml", [f"camera.width={W}", f"camera.height={H}", f"object.frame={f}"])
+    a.imshow(render(exp, progress=False).image)
     a.set_title(f"frame {f}")
     a.axis("off")
 plt.show()

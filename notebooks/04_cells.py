@@ -32,8 +32,8 @@ SMALLER = ["object.search=linear", f"object.tiles={TILES}", "object.tile_map.res
 # ## The tile map and the membership map
 
 # %%
-exp, obj = jskel.load(ROOT / "experiments" / "torus_cells.yaml", SMALLER)
-co = cells.precompute(obj)
+exp = jskel.load(ROOT / "experiments" / "torus_cells.yaml", SMALLER)
+co = cells.precompute(exp.objects[0].shape)
 res = co.split.shape[0]
 slots = len(co.split_cell) - 1
 codes = unpack(co.words, slots).reshape(TILES, TILES, TILES, slots)  # 0 outside, 1 inside, 2 intersected (per split cell)
@@ -52,8 +52,7 @@ plt.show()
 # %%
 fig, axs = plt.subplots(1, 3, figsize=(13, 3.6))
 for a, mode in zip(axs, ("first_hit", "reflection", "refraction")):
-    e, o = jskel.load(ROOT / "experiments" / "torus_cells.yaml", SMALLER + [f"object.mode={mode}"])
-    r = render(e, o, progress=False)
+    r = render(jskel.load(ROOT / "experiments" / "torus_cells.yaml", SMALLER + [f"object.mode={mode}"]), progress=False)
     a.imshow(r.image)
     a.set_title(f"{mode}: {r.run['render_s']:.2f} s")
     a.axis("off")
@@ -72,8 +71,8 @@ plt.show()
 fig, axs = plt.subplots(1, 3, figsize=(15, 3.8))
 settings = (["object.search=voxels"], ["object.search=voxels", "object.pyramid=false"], ["object.search=linear"])
 for a, extra, title in zip(axs, settings, ("walk, pyramid", "walk, tile by tile", "linear, 1/256 tile")):
-    e, o = jskel.load(ROOT / "experiments" / "torus_cells.yaml", SMALLER + extra + ["render.steps=true"])
-    steps = render(e, o, progress=False).aovs["steps"].reshape(H, W)
+    e = jskel.load(ROOT / "experiments" / "torus_cells.yaml", SMALLER + extra + ["render.steps=true"])
+    steps = render(e, progress=False).aovs["steps"].reshape(H, W)
     im = a.imshow(steps, cmap="magma")
     a.set_title(f"{title}: {steps.mean():.0f} mean, {steps.max()} max")
     a.axis("off")

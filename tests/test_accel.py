@@ -239,7 +239,8 @@ def test_bvh_equals_brute_force_on_the_lsystem_tree(traversal):
     from jskel.config import load
     from jskel.camera import tile_order
 
-    exp, obj = load("experiments/lsystem_tree.yaml", ["camera.width=64", "camera.height=48"])
+    exp = load("experiments/lsystem_tree.yaml", ["camera.width=64", "camera.height=48"])
+    obj = exp.objects[0].shape
     brute = frusta.build(obj.model_copy(update={"accel": "none"}))
     fast = frusta.build(obj.model_copy(update={"accel": "bvh", "traversal": traversal}))
     assert brute.static.accel == "none" and fast.static.traversal == traversal
@@ -301,7 +302,8 @@ def test_bvh_equals_block_culling_on_the_large_scenes(scene, frame, traversal):
     from jskel.camera import tile_order
     from jskel.render import camera_of
 
-    exp, obj = load(f"experiments/{scene}.yaml", ["camera.width=48", "camera.height=36", f"object.frame={frame}", f"object.traversal={traversal}"])
+    exp = load(f"experiments/{scene}.yaml", ["camera.width=48", "camera.height=36", f"object.frame={frame}", f"object.traversal={traversal}"])
+    obj = exp.objects[0].shape
     fast = frusta.build(obj)
     blocks = frusta.build(obj.model_copy(update={"accel": "blocks"}))
     assert fast.static.accel == "bvh" and fast.static.traversal == traversal and blocks.static.accel == "blocks"

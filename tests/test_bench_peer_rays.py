@@ -56,7 +56,7 @@ peer: skeleton
 """)
     seen = {}
 
-    def study(exp, obj, ref_hits, runs, rows, options):
+    def study(exp, ref_hits, runs, rows, options):
         seen["rays"] = camera_of(exp).ray_arrays()  # raises while frame: auto is unresolved
         seen["t"] = np.asarray(ref_hits.t, np.float64)
         return [{"peer": "stand-in", "rows_seen": len(rows)}]
@@ -87,11 +87,11 @@ def test_the_neuron_benchmarks_expand_to_their_documented_settings():
     (g,) = groups_of(b, file, [])
     assert b.peer == "skeleton" and b.cast and g.reference is not None
     assert [j.setting for j in g.jobs] == [{"object.accel": "bvh"}]
-    assert g.reference[1].skeleton.replicate == 4 and g.jobs[0].obj.skeleton.replicate == 4
-    assert (g.reference[0].camera.width, g.reference[0].camera.height) == (1024, 768)
+    assert g.reference.objects[0].shape.skeleton.replicate == 4 and g.jobs[0].exp.objects[0].shape.skeleton.replicate == 4
+    assert (g.reference.camera.width, g.reference.camera.height) == (1024, 768)
     file = EXPERIMENTS / "bench_neuron_size.yaml"
     s = read_model(BenchFile, file, [])
     (g,) = groups_of(s, file, [])
     assert s.peer is None and s.cast and s.stats and g.reference is None
-    assert [j.obj.skeleton.replicate for j in g.jobs] == [1, 2, 4]
+    assert [j.exp.objects[0].shape.skeleton.replicate for j in g.jobs] == [1, 2, 4]
     assert s.labels == [f"{4177 * k * k} nodes" for k in (1, 2, 4)]

@@ -248,15 +248,15 @@ def test_a_single_cell_object_renders_through_the_integrator_with_its_own_sky(ob
     tmp, built, O, D = obj
     raw = {"object": cell_cfg(tmp).model_dump(mode="json"), "camera": {"eye": [0, 2, 2.5], "target": [0, 0, 0], "width": 32, "height": 24},
            "render": {"progress": False}}
-    exp, o = validate(raw)
-    res = render(exp, o)
+    exp = validate(raw)
+    res = render(exp)
     miss = ~np.isfinite(res.hits.t)
     assert 0.2 < miss.mean() < 0.8
     _, d = camera_of(exp).ray_arrays()
     np.testing.assert_allclose(res.rgb[miss], sky(d[miss]), atol=2e-6)
     assert "effects" not in res.run  # first hit: no secondary-ray level was compiled
     raw["render"]["spp"] = 4
-    four = render(*validate(raw))
+    four = render(validate(raw))
     np.testing.assert_array_equal(four.hits.prim, res.hits.prim)  # AOVs from the pixel centres
     assert four.run["rays"] == 4 * res.run["rays"] and np.any(four.rgb != res.rgb)
 
@@ -309,8 +309,8 @@ def test_reflection_mode_is_the_integrators_mirror_material_against_a_float64_bo
     raw = {"object": cell_cfg(tmp, mode="reflection", bounces=1, reflectivity=k).model_dump(mode="json"),
            "camera": {"eye": [0, 2, 2.5], "target": [0, 0, 0], "width": 32, "height": 24},
            "lights": [{"direction": [0.4, 0.9, 0.5], "color": [1.0, 0.95, 0.9], "intensity": 1.0}], "render": {"progress": False}}
-    exp, o = validate(raw)
-    res = render(exp, o)
+    exp = validate(raw)
+    res = render(exp)
     assert res.run["effects"]["reflection"] and res.run["effects"]["bounces"] == 1
     O, D = camera_of(exp).ray_arrays()
     t0, _ = reference_first_cell(built, O, D)
@@ -387,8 +387,8 @@ def test_refraction_mode_is_the_integrators_glass_material_against_a_float64_alg
     raw = {"object": cell_cfg(tmp, mode="refraction", bounces=bounces, ior=ior).model_dump(mode="json"),
            "camera": {"eye": [0, 2, 2.5], "target": [0, 0, 0], "width": 32, "height": 24},
            "lights": [{"direction": [0.4, 0.9, 0.5], "color": [1.0, 0.95, 0.9], "intensity": 1.0}], "render": {"progress": False}}
-    exp, o = validate(raw)
-    res = render(exp, o)
+    exp = validate(raw)
+    res = render(exp)
     assert res.run["effects"]["refraction"] and res.run["effects"]["bounces"] == bounces
     O, D = camera_of(exp).ray_arrays()
     size = float((built.bounds[1][0] - built.bounds[0][0]) / int(built.params.tiles))
@@ -794,7 +794,7 @@ render: {{progress: false, steps: true}}
         p.write_text(body.replace("SKIP", skip))
         assert cli.main(["render", str(p), "--out", str(tmp_path / skip)]) == 0
         steps[skip] = np.load(tmp_path / skip / "steps.npy")
-    exp, _ = config.load(str(tmp_path / "exp_false.yaml"))
+    exp = config.load(str(tmp_path / "exp_false.yaml"))
     O, D = camera_of(exp).ray_arrays()
     built = cells.build(cell_cfg(tmp, search="voxels", skip=False))
     visited = reference_dda(built, O, D)[3].reshape(24, 32)

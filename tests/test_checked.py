@@ -136,15 +136,20 @@ def test_checked_scene_call_names_bad_objects_placements_lights_and_rays():
     from jskel.config import validate
     from jskel.render._scene import Scene, build_scene, checked_scene_call
 
-    balls = [{"center": [0, 0, 0], "radius": 1.0}, {"center": [0, 6, 0], "radius": 1.0}]
-    raw = {"objects": [{"shape": {"type": "implicit", "threshold": 0.5, "balls": balls}}],
+    # the two balls of radius 1 at y = 0 and y = 6, written at half size and placed by a scale of 2:
+    # a scene of one at its anchor skips an identity placement (``SceneStatic.identity``), this
+    # one is traced, so its ``xform`` is checked
+    balls = [{"center": [0, 0, 0], "radius": 0.5}, {"center": [0, 3, 0], "radius": 0.5}]
+    raw = {"objects": [{"shape": {"type": "implicit", "threshold": 0.5, "balls": balls}, "transform": {"scale": 2.0}}],
            "camera": {"eye": [0, 0, 5], "target": [0, 0, 0], "up": [0, 1, 0], "fov_deg": 30, "width": 8, "height": 8},
            "lights": [{"direction": [0.4, 0.9, 0.5], "shadows": False}]}
-    exp, shapes = validate(raw)
-    params, static, eye, _, _ = build_scene(exp, shapes, np.float32)
+    exp = validate(raw)
+    params, static, origin, _, _ = build_scene(exp, np.float32)
+    # rays from the camera's eye, relative to the scene's origin (a scene of one: its object's anchor)
+    eye = np.asarray(exp.camera.eye, np.float64)
     d = np.random.default_rng(0).normal(scale=0.1, size=(N, 3)) + [0.0, 0.0, -1.0]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    rays = make_rays(np.zeros((N, 3)), d)
+    rays = make_rays(np.tile(eye - origin, (N, 1)), d)
     out = checked_scene_call(Scene(params, static), rays)
     # the ball's surface: f = (1 - r^2)^2 = 0.5 at rho = sqrt(1 - sqrt(0.5)) (Wyvill's kernel, radius 1)
     rho, e = np.sqrt(1.0 - np.sqrt(0.5)), np.asarray(eye, np.float64)

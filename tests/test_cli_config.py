@@ -46,7 +46,8 @@ def test_render_writes_every_output(tmp_path):
 
 
 def test_default_experiment_is_embedded():
-    exp, obj = load(None)
+    exp = load(None)
+    obj = exp.objects[0].shape
     assert obj.type == "frusta" and exp.camera.width > 0
 
 

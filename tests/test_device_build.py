@@ -24,7 +24,8 @@ def test_a_device_rebuild_of_a_later_frame_casts_like_the_host_build_of_it():
     from jskel.frusta import skeleton_arrays
     from jskel.render import camera_of
 
-    exp, obj = load("experiments/dancing_cacti.yaml", ["camera.width=64", "camera.height=48"])
+    exp = load("experiments/dancing_cacti.yaml", ["camera.width=64", "camera.height=48"])
+    obj = exp.objects[0].shape
     rb = frusta.rebuilder(obj)
     later = obj.model_copy(update={"frame": 7.0})
     j, r, _, _ = skeleton_arrays(later.skeleton, 7.0)

@@ -91,11 +91,11 @@ SCRIPT_TRAVERSALS = textwrap.dedent(
     base = ["camera.width=48", "camera.height=36", "camera.fov_deg=20", "object.bin_walk_ratio=0"]
     for x64 in (False, True):
         for trav in (sys.argv[3:] if x64 else sys.argv[3:4]):
-            exp, obj = load_experiment(exp_path, base + [f"object.traversal={trav}"] + (X64 if x64 else []))
-            res = render(exp, obj)
+            exp = load_experiment(exp_path, base + [f"object.traversal={trav}"] + (X64 if x64 else []))
+            res = render(exp)
             tag = f"{trav}_{64 if x64 else 32}"
             np.save(f"{out}/{tag}.npy", np.asarray(res.hits.t))
-            json.dump({"dtype": res.run["config"]["render"]["dtype"], "traversal": res.run["config"]["object"]["traversal"]},
+            json.dump({"dtype": res.run["config"]["render"]["dtype"], "traversal": res.run["config"]["objects"][0]["shape"]["traversal"]},
                       open(f"{out}/{tag}.json", "w"))
     print("ok")
     """

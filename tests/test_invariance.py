@@ -53,7 +53,7 @@ def test_frusta_depth_follows_the_transform():
             "camera": {**_camera(*cam), **{"eye": cam[0], "target": cam[1], "up": [0, 1, 0]}}}
     moved = {"object": {"type": "frusta", "skeleton": {"joints": [_pt(x) for x in j], "radii": [S * x for x in r], "parents": p}},
              "camera": _camera(*cam)}
-    _compare(render(*validate(base)), render(*validate(moved)), 2.5, 1e-5)
+    _compare(render(validate(base)), render(validate(moved)), 2.5, 1e-5)
 
 
 @pytest.mark.parametrize("method", ["lipschitz", "bisection"])
@@ -68,7 +68,7 @@ def test_implicit_depth_follows_the_transform(method):
     cam = ([0.3, 0.5, 4.5], [0.0, 0.1, 0.0])
     base = {"object": obj, "camera": {**_camera(*cam), **{"eye": cam[0], "target": cam[1], "up": [0, 1, 0]}}}
     moved = {"object": moved_obj, "camera": _camera(*cam)}
-    _compare(render(*validate(base)), render(*validate(moved)), 3.0, 1e-4)
+    _compare(render(validate(base)), render(validate(moved)), 3.0, 1e-4)
 
 
 @pytest.mark.parametrize("mode", ["first_hit", "reflection", "refraction"])
@@ -84,7 +84,7 @@ def test_cells_depth_follows_translation_and_scale(tmp_path, mode):
     cam = ([0.0, 2.2, 2.6], [0.0, 0.0, 0.0])
     base = {"object": obj, "camera": {**_camera(*cam, rotate=False), **{"eye": cam[0], "target": cam[1]}}}
     moved = {"object": moved_obj, "camera": _camera(*cam, rotate=False)}
-    a, b = render(*validate(base)), render(*validate(moved))
+    a, b = render(validate(base)), render(validate(moved))
     _compare(a, b, 3.0, 1e-4, cells=True)
     diff = np.abs(np.asarray(a.rgb, np.float64) - np.asarray(b.rgb, np.float64)).max(-1)
     assert np.mean(diff <= 2e-3) >= 0.98, float(np.mean(diff <= 2e-3))

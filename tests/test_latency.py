@@ -54,11 +54,13 @@ def test_each_process_gets_its_own_cache_and_no_bars(monkeypatch, tmp_path):
 
 
 def test_the_rerender_changes_change_one_thing_each():
-    exp, obj = load_experiment(SAGUARO, [])
+    exp = load_experiment(SAGUARO, [])
+    obj = exp.objects[0].shape
     j, r, p = skeleton_arrays(obj.skeleton, obj.frame)[:3]
     got = {}
-    for name, sets in changes(exp, obj).items():
-        e, o = load_experiment(SAGUARO, sets)
+    for name, sets in changes(exp).items():
+        e = load_experiment(SAGUARO, sets)
+        o = e.objects[0].shape
         got[name] = (e, *skeleton_arrays(o.skeleton, o.frame)[:3])
     e0, j0, r0, p0 = got["none"]
     assert np.array_equal(j0, j) and np.array_equal(r0, r) and np.array_equal(p0, p)

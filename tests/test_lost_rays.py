@@ -494,10 +494,10 @@ def test_render_keeps_the_flags_of_rays_that_miss_and_counts_them_by_name():
     from jskel.config import validate
     from jskel.render import camera_of, render
 
-    exp, obj = validate({"object": {"type": "implicit", "threshold": T, "method": "lipschitz", "steps": 1, "balls": [{"center": [0, 0, 0], "radius": 1.0}]},
-                         "camera": {"eye": [0.0, 0.0, 4.0], "target": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0], "fov_deg": 40,
-                                    "width": 16, "height": 12}})
-    res = render(exp, obj)
+    exp = validate({"object": {"type": "implicit", "threshold": T, "method": "lipschitz", "steps": 1, "balls": [{"center": [0, 0, 0], "radius": 1.0}]},
+                     "camera": {"eye": [0.0, 0.0, 4.0], "target": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0], "fov_deg": 40,
+                                "width": 16, "height": 12}})
+    res = render(exp)
     O, D = camera_of(exp).ray_arrays()
     b = np.linalg.norm(np.cross(-O, D), axis=1) / np.linalg.norm(D, axis=1)
     step = T / (8 / (3 * np.sqrt(3)))

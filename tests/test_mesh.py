@@ -232,8 +232,8 @@ def test_a_mesh_mirror_in_a_scene_reflects_and_shadows_frusta_implicit_and_cell_
                         "transform": {"translate": [0.5, 0.0, 1.0]}},
                        {"shape": cell_shape, "transform": {"scale": SC, "translate": CC.tolist()}}],
            "camera": cam, "lights": [{"direction": L.tolist(), "shadows": True}], "render": {"bounces": 1}}
-    exp, shapes = validate(copy.deepcopy(raw))
-    res = render(exp, shapes, progress=False)
+    exp = validate(copy.deepcopy(raw))
+    res = render(exp, progress=False)
     # the camera's pixel-centre rays, written out
     eye = np.array(cam["eye"])
     f = -eye / np.linalg.norm(eye)

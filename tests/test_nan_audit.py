@@ -181,7 +181,7 @@ def test_cells_modes_through_the_integrator_raise_no_nan(debug_nans, tmp_path, m
     for eye, target in (([0, 0, 5], [1.0, 0, 0]), ([1.0, 0, 0], [1.0, 0.3, -1.0]), ([5, 0, 0], [-1, 0, 0])):
         raw = {"object": obj, "camera": {"eye": eye, "target": target, "up": [0, 1, 0], "width": 16, "height": 12},
                "render": {"progress": False}}
-        res = render(*validate(raw))
+        res = render(validate(raw))
         assert np.all(np.isfinite(res.rgb)) and res.run["effects"]["bounces"] == 2
 
 

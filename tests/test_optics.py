@@ -125,8 +125,8 @@ def _inside_glass():
                         "shape": {"type": "frusta", "normals": "geometric",
                                   "skeleton": {"joints": [[0, 0, 0], [0, H, 0]], "radii": [R, R], "parents": [-1, 0]}}}],
            "camera": CAM, "lights": [{"direction": [0.3, 0.9, 0.5]}], "render": {"bounces": 1}}
-    exp, obj = validate(copy.deepcopy(raw))
-    return render(exp, obj, progress=False)
+    exp = validate(copy.deepcopy(raw))
+    return render(exp, progress=False)
 
 
 def _camera_rays():

@@ -96,10 +96,10 @@ def test_a_long_build_says_what_it_builds_and_a_short_one_nothing(monkeypatch, c
 
     monkeypatch.setattr(progress, "notice_after", notice)
     seg = {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 1, 0]], "radii": [0.2, 0.2], "parents": [-1, 0]}}
-    exp, shapes = config.validate({"objects": [{"name": "a", "shape": seg}, {"shape": seg}]})
-    _build.place_objects(exp, shapes, np.float32)
-    exp1, obj = config.validate({"object": seg})
-    _build.build_single(exp1, obj, np.float32)
+    exp = config.validate({"objects": [{"name": "a", "shape": seg}, {"shape": seg}]})
+    _build.place_objects(exp, np.float32)
+    exp1 = config.validate({"object": seg})
+    _build.place_objects(exp1, np.float32)
     d = _build.BUILD_NOTICE_S
     assert said == [(d, "building a (frusta, 1 of 2)"), (d, "building objects[1] (frusta, 2 of 2)"), (d, "building the object (frusta)")]
     assert 0.5 <= d <= 2.0

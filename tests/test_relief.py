@@ -345,11 +345,11 @@ def test_render_counts_relief_rays_that_cannot_decide(tmp_path, rng):
     img[rng.integers(0, MAP, 60), rng.integers(0, MAP, 60)] = 255
     iio.imwrite(tmp_path / "h.png", img)
     relief = {"map": str(tmp_path / "h.png"), "thickness": 0.2, "steps": 3, "bisection": 8, "scale": [1, 1]}
-    exp, obj = validate({"object": {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 2, 0]], "radii": [0.5, 0.5], "parents": [-1, 0]},
-                                    "relief": relief},
-                         "camera": {"eye": [0.0, 1.0, 4.0], "target": [0.0, 1.0, 0.0], "up": [0.0, 1.0, 0.0], "fov_deg": 40,
-                                    "width": 16, "height": 12}})
-    res = render(exp, obj)
+    exp = validate({"object": {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 2, 0]], "radii": [0.5, 0.5], "parents": [-1, 0]},
+                               "relief": relief},
+                    "camera": {"eye": [0.0, 1.0, 4.0], "target": [0.0, 1.0, 0.0], "up": [0.0, 1.0, 0.0], "fov_deg": 40,
+                               "width": 16, "height": 12}})
+    res = render(exp)
     flags = np.asarray(res.hits.flags).reshape(-1)
     O, D = camera_of(exp).ray_arrays()
     b = build_relief(tmp_path, img, [[0, 0, 0], [0, 2, 0]], [0.5, 0.5], [-1, 0], thickness=0.2, steps=3, bisection=8, scale=[1, 1])
@@ -380,10 +380,10 @@ def test_another_step_or_bisection_count_renders_without_a_program_and_marches_a
     ts = []
     for steps, bisection in ((3, 8), (64, 8), (64, 0)):
         relief = {"map": str(tmp_path / "h.png"), "thickness": 0.2, "steps": steps, "bisection": bisection, "scale": [1, 1]}
-        exp, obj = validate({"object": {"type": "frusta", "skeleton": skel, "relief": relief}, "camera": cam})
+        exp = validate({"object": {"type": "frusta", "skeleton": skel, "relief": relief}, "camera": cam})
         count_programs()
         before = program_counts()
-        res = render(exp, obj)
+        res = render(exp)
         after = program_counts()
         if ts:
             assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]

@@ -50,11 +50,11 @@ def _experiment(joints=JOINTS, radii=RADII, parents=PARENTS, eye=(4.0, 2.5, 6.0)
     return config.validate(raw)
 
 
-def _programs(exp, obj):
+def _programs(exp):
     """(render result, programs handed to XLA by the render: compiled + loaded)."""
     count_programs()
     before = program_counts()
-    res = render(exp, obj)
+    res = render(exp)
     after = program_counts()
     return res, (after["compiled"] - before["compiled"]) + (after["loaded"] - before["loaded"])
 
@@ -80,8 +80,8 @@ def _assert_casts(res, exp, joints, radii, parents):
 @pytest.fixture(scope="module")
 def first():
     """The first render (it compiles, or loads from the persistent cache, what it needs)."""
-    exp, obj = _experiment()
-    res, _ = _programs(exp, obj)
+    exp = _experiment()
+    res, _ = _programs(exp)
     _assert_casts(res, exp, JOINTS, RADII, PARENTS)
     return res
 
@@ -105,8 +105,8 @@ CHANGES = {
 @pytest.mark.parametrize("change", sorted(CHANGES))
 def test_a_change_within_its_bucket_renders_without_a_program(first, change):
     kw, skeleton = CHANGES[change]()
-    exp, obj = _experiment(**kw)
-    res, programs = _programs(exp, obj)
+    exp = _experiment(**kw)
+    res, programs = _programs(exp)
     assert programs == 0, f"{change}: {programs} programs compiled or loaded"
     assert res.run["compile_s"] == 0.0
     _assert_casts(res, exp, *skeleton)
@@ -186,7 +186,7 @@ MODEL_CAMERA = {"eye": [0.5, 3.0, 4.0], "target": [0.0, 0.0, 0.0], "up": [0, 1, 
 
 
 def _model_experiment(obj):
-    """(experiment, object) of ``obj`` seen by :data:`MODEL_CAMERA`."""
+    """The experiment of ``obj`` seen by :data:`MODEL_CAMERA`."""
     raw = {"name": "rerender_model", "object": obj, "camera": MODEL_CAMERA, "render": {"chunk": 2048, "progress": False}}
     return config.validate(raw)
 
@@ -271,16 +271,16 @@ def test_a_model_grown_within_its_bucket_renders_without_a_program(tmp_path, kin
     for size in sizes:
         if kind == "mesh":
             tri = _terrain(size)
-            exp, obj = _model_experiment(_mesh_object(tmp_path, tri))
+            exp = _model_experiment(_mesh_object(tmp_path, tri))
             t_ref, amb = _triangles_f64(tri, *_unit_rays(exp))
             tol = 1e-4
         else:
             c, rho = _balls(size)
-            exp, obj = _model_experiment({"type": "implicit", "threshold": BALL_T, "method": "lipschitz", "eps": 1e-3,
-                                          "balls": [{"center": x.tolist(), "radius": 0.6} for x in c]})
+            exp = _model_experiment({"type": "implicit", "threshold": BALL_T, "method": "lipschitz", "eps": 1e-3,
+                                     "balls": [{"center": x.tolist(), "radius": 0.6} for x in c]})
             t_ref, amb = _spheres_f64(c, rho, *_unit_rays(exp))
             tol = 2e-3
-        res, got = _programs(exp, obj)
+        res, got = _programs(exp)
         programs.append(got)
         _assert_model_hits(res, exp, t_ref, amb, tol)
     assert programs[1] == 0, f"{kind}: {programs[1]} programs compiled or loaded for the grown model"
@@ -293,9 +293,9 @@ def test_an_implicit_threshold_and_step_lengths_render_without_a_program():
     c, _ = _balls(6)
     programs = []
     for T, step, eps in ((BALL_T, 0.02, 1e-3), (0.16, 0.035, 5e-4)):
-        exp, obj = _model_experiment({"type": "implicit", "threshold": T, "method": "lipschitz", "step": step, "eps": eps,
-                                      "balls": [{"center": x.tolist(), "radius": 0.6} for x in c]})
-        res, got = _programs(exp, obj)
+        exp = _model_experiment({"type": "implicit", "threshold": T, "method": "lipschitz", "step": step, "eps": eps,
+                                 "balls": [{"center": x.tolist(), "radius": 0.6} for x in c]})
+        res, got = _programs(exp)
         programs.append(got)
         _assert_model_hits(res, exp, *_spheres_f64(c, 0.6 * np.sqrt(1 - np.sqrt(T)), *_unit_rays(exp)), 2e-3)
     assert programs[1] == 0, f"{programs[1]} programs compiled or loaded for a new threshold and step lengths"

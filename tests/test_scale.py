@@ -98,10 +98,10 @@ def _wall(k, width=48, height=64):
     from jskel.config import load
     from jskel.render import camera_of
 
-    exp, obj = load("experiments/saguaro.yaml", [f"camera.width={width}", f"camera.height={height}", "object.accel=bvh",
-                                                 f"object.skeleton.replicate={k}", "camera.eye=[0.1, 3.3, 9.5]",
-                                                 "camera.target=[0.1, 3.3, 0]", "camera.fov_deg=40"])
-    built = frusta.build(obj)
+    exp = load("experiments/saguaro.yaml", [f"camera.width={width}", f"camera.height={height}", "object.accel=bvh",
+                                            f"object.skeleton.replicate={k}", "camera.eye=[0.1, 3.3, 9.5]",
+                                            "camera.target=[0.1, 3.3, 0]", "camera.fov_deg=40"])
+    built = frusta.build(exp.objects[0].shape)
     return built, camera_of(exp).rays(anchor=built.anchor)
 
 
@@ -129,15 +129,15 @@ def test_memory_budget_shrinks_the_chunk_and_keeps_the_image():
 
     # block culling: the budget is the executor's, whatever the cast (the BVH's bins compile twice as long)
     base = ["camera.width=64", "camera.height=48", "render.chunk=2048", "render.progress=false", "object.accel=blocks"]
-    exp, obj = load("experiments/saguaro.yaml", base)
-    plain = render(exp, obj)
+    exp = load("experiments/saguaro.yaml", base)
+    plain = render(exp)
     assert "memory_budget" not in plain.run and plain.run["peak_host_mb"] > 0
     # a budget far above the need keeps the chunk and reports what XLA says the call needs
-    roomy = render(*load("experiments/saguaro.yaml", base + ["render.memory_mb=65536"]))
+    roomy = render(load("experiments/saguaro.yaml", base + ["render.memory_mb=65536"]))
     need = roomy.run["memory_budget"]["tries"][0]["bytes"]
     assert roomy.run["memory_budget"]["chunk"] == 2048 and 0 < need <= 65536 * 2**20
     mb = need / 3 / 2**20
-    small = render(*load("experiments/saguaro.yaml", base + [f"render.memory_mb={mb}"]))
+    small = render(load("experiments/saguaro.yaml", base + [f"render.memory_mb={mb}"]))
     mem = small.run["memory_budget"]
     assert mem["chunk"] < 2048 and mem["tries"][-1]["bytes"] <= int(mb * 2**20) < mem["tries"][0]["bytes"]
     np.testing.assert_array_equal(small.hits.t, plain.hits.t)
@@ -233,7 +233,8 @@ def test_packets_share_short_walks_on_coherent_rays_and_equal_per_ray_walks():
     from jskel.camera import permute, tile_order
     from jskel.render import camera_of
 
-    exp, obj = load("experiments/dancing_cacti.yaml", ["camera.width=64", "camera.height=48", "object.traversal=packets"])
+    exp = load("experiments/dancing_cacti.yaml", ["camera.width=64", "camera.height=48", "object.traversal=packets"])
+    obj = exp.objects[0].shape
     built = frusta.build(obj)
     assert built.static.packet == 256 and built.static.traversal == "packets"
     rays = permute(camera_of(exp).rays(anchor=built.anchor), tile_order(64, 48, 64))
@@ -296,13 +297,14 @@ def test_resident_cast_gives_the_render_hits_in_tile_order():
     from jskel.camera import tile_inverse
     from jskel.render import render
 
-    exp, obj = load("experiments/saguaro.yaml", ["camera.width=64", "camera.height=48", "render.chunk=2048", "render.progress=false"])
-    want = render(exp, obj).hits
+    exp = load("experiments/saguaro.yaml", ["camera.width=64", "camera.height=48", "render.chunk=2048", "render.progress=false"])
+    obj = exp.objects[0].shape
+    want = render(exp).hits
     built = registry.get(obj.type).build(obj, np.float32)
     chunks = resident_rays(exp, built)
     assert [c.size for c in chunks] == [2048, 2048]
     assert all(isinstance(a, jax.Array) for c in chunks for a in c)
-    secs, outs = cast_resident(exp, obj, built, chunks)
+    secs, outs = cast_resident(exp, built, chunks)
     assert secs > 0.0 and all(isinstance(a, jax.Array) for o in outs for a in o)
     t = np.concatenate([np.asarray(o[0]) for o in outs])[:3072][tile_inverse(64, 48, exp.render.tile)]
     prim = np.concatenate([np.asarray(o[1]) for o in outs])[:3072][tile_inverse(64, 48, exp.render.tile)]

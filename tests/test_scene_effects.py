@@ -27,8 +27,8 @@ def sphere_radius(R, thr=T):
 
 
 def run(raw):
-    exp, obj = validate(copy.deepcopy(raw))
-    return exp, render(exp, obj, progress=False)
+    exp = validate(copy.deepcopy(raw))
+    return exp, render(exp, progress=False)
 
 
 def cylinder(x, z, r, h, **shape):
@@ -130,8 +130,6 @@ def test_a_single_object_shadows_itself_where_a_light_asks():
     """A single object is a scene of one: a light that sets ``shadows: true`` gives it shadow
     rays (two exact spheres in one implicit object, one in the other's shadow); the default
     light section gives none (no visibility output, no shadow code in the program)."""
-    from jskel.render._scene import build_single
-
     c0, c1 = np.array([0.0, 1.0, 1.0]), np.array([1.6, 1.0, -2.6])
     r0, r1 = sphere_radius(1.0), sphere_radius(1.4)
     L = (c1 - c0) / np.linalg.norm(c1 - c0) + np.array([0.0, 0.15, 0.0])
@@ -155,8 +153,8 @@ def test_a_single_object_shadows_itself_where_a_light_asks():
     assert ref.sum() > 400 and (on0 & ~ref).sum() > 400
     assert np.sum(got != ref) <= 0.03 * ref.sum()  # the shadow's rim, one pixel wide at most
 
-    exp, obj = validate(copy.deepcopy({**raw, "lights": [{"direction": L.tolist()}]}))  # the default: no shadow rays
-    plain = render(exp, obj, progress=False)
+    exp = validate(copy.deepcopy({**raw, "lights": [{"direction": L.tolist()}]}))  # the default: no shadow rays
+    plain = render(exp, progress=False)
     assert plain.aovs is None and "effects" not in plain.run
     np.testing.assert_array_equal(plain.hits.t, res.hits.t)
     lit = on0 & ~ref & (res.aovs["visibility"][:, 0] == 1)
@@ -164,8 +162,8 @@ def test_a_single_object_shadows_itself_where_a_light_asks():
     assert np.all(plain.rgb[ref & got].sum(1) > res.rgb[ref & got].sum(1))  # shadowed pixels lose the light
     rays = make_rays(np.zeros((256, 3)), np.tile([0.0, 0.0, -1.0], (256, 1)))
     for r, scoped in ((raw, True), ({**raw, "lights": [{"direction": L.tolist()}]}, False)):
-        exp, obj = validate(copy.deepcopy(r))
-        params, static, _ = build_single(exp, obj, np.float32)
+        exp = validate(copy.deepcopy(r))
+        params, static, _, _, _ = build_scene(exp, np.float32)
         eqns = _eqns(jax.make_jaxpr(scene_call)(Scene(params, static), rays).jaxpr)
         assert any("shadow_rays" in str(e.source_info.name_stack) for e in eqns) == scoped
         assert not any(k in str(e.source_info.name_stack) for e in eqns for k in ("reflection_rays", "refraction_rays"))
@@ -313,8 +311,8 @@ def test_glass_rod_shows_what_snell_predicts(mirror_glass):
 
 
 def _program(raw, n=256):
-    exp, shapes = validate(copy.deepcopy(raw))
-    params, static, _, _, _ = build_scene(exp, shapes, np.float32)
+    exp = validate(copy.deepcopy(raw))
+    params, static, _, _, _ = build_scene(exp, np.float32)
     rays = make_rays(np.zeros((n, 3)), np.tile([0.0, 0.0, -1.0], (n, 1)))
     jaxpr = jax.make_jaxpr(scene_call)(Scene(params, static), rays)
     return static, jaxpr, jax.jit(scene_call).lower(Scene(params, static), rays)
@@ -384,8 +382,8 @@ def test_objects_of_one_shape_are_traced_once():
         return {"objects": [{"shape": s} for s in shapes], "camera": CAM2, "lights": NO_SHADOW}
 
     def size(*shapes):
-        exp, obj = validate(scene(*shapes))
-        params, static, _, _, _ = build_scene(exp, obj, np.float32)
+        exp = validate(scene(*shapes))
+        params, static, _, _, _ = build_scene(exp, np.float32)
         rays = make_rays(np.zeros((64, 3)), np.tile([0.0, 0.0, -1.0], (64, 1)))
         return groups(params, static), len(_eqns(jax.make_jaxpr(scene_call)(Scene(params, static), rays).jaxpr))
 
@@ -443,9 +441,9 @@ def test_srgb_transfer_matches_the_standard():
 
 def test_bad_scene_input_names_the_key():
     raw = {"objects": [{"shape": BLOB, "material": {"transparency": 0.5}}]}
-    exp, shapes = validate(copy.deepcopy(raw))
+    exp = validate(copy.deepcopy(raw))
     with pytest.raises(ValueError, match=r"objects\[0\]\.material\.transparency"):
-        render(exp, shapes)
+        render(exp)
     bad = {"objects": [{"shape": {"type": "frusta", "skeleton": {"procedural": "saguaro", "sede": 1}},
                         "material": {"reflectivity": 0.7, "transparency": 0.6}}], "object": SAG}
     with pytest.raises(ConfigError) as e:

@@ -98,14 +98,16 @@ def test_a_scene_of_one_reuses_its_program_for_new_values_and_keys_on_its_static
     module-level batch function (``scene_call``) compiles nothing for a second build of the same
     shapes, and gives that build's closed-form hits."""
     from jskel.config import validate
-    from jskel.render._scene import Scene, build_single, scene_call
+    from jskel.render._build import place_objects
+    from jskel.render._scene import Scene, build_scene, scene_call
 
     def built(radius):
         raw = {"object": {"type": "frusta", "skeleton": {"joints": [[0, 0, 0], [0, 2, 0]], "radii": [radius, radius], "parents": [-1, 0]}},
                "camera": {"eye": [0, 1, 5], "target": [0, 1, 0], "up": [0, 1, 0], "fov_deg": 40, "width": 8, "height": 8}}
-        exp, obj = validate(raw)
-        params, static, b = build_single(exp, obj, np.float32)
-        return Scene(params, static), b
+        exp = validate(raw)
+        placed = place_objects(exp, np.float32)
+        params, static, _, _, _ = build_scene(exp, np.float32, placed)
+        return Scene(params, static), placed[0].built
 
     s1, b1 = built(0.5)
     s2, b2 = built(0.4)

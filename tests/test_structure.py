@@ -11,7 +11,12 @@
 * measure/ (the harness) and peers/ (Embree, Mitsuba, marching cubes) import neither the other:
   what both use is in probe/, and the CLI hands the peers to the harness;
 * no dated measurement sits in the package's source: figures that chose a constant or a code
-  path live in docs/choices.md and the result files, where they are rerun and replaced.
+  path live in docs/choices.md and the result files, where they are rerun and replaced;
+* no import runs back up: the package's import graph (imports inside functions counted) has no
+  cycle, so its modules stand in floors;
+* an experiment reaches the code as one value (``config.Experiment``, a scene of one where a
+  file says ``object:``): no ``is_scene``, no ``single`` switch, no ``(exp, obj)`` pair, in the
+  package, the tests or the notebooks.
 """
 
 from __future__ import annotations
@@ -225,3 +230,108 @@ def test_a_representation_missing_members_is_refused_when_its_class_is_defined()
         build = intersect_one = albedo = inside = staticmethod(lambda *a: None)
 
     assert _Whole.cast is Representation.cast  # the optional members inherited
+
+
+def _module_name(p: Path) -> str:
+    mod = ["jskel", *p.relative_to(PKG).with_suffix("").parts]
+    return ".".join(mod[:-1] if mod[-1] == "__init__" else mod)
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """Module -> the package modules it imports (anywhere in it), each import resolved to the
+    longest module name it starts with (``jskel.frusta.ReliefMaps`` is ``jskel.frusta``)."""
+    mods = {_module_name(p): p for p in _sources()}
+
+    def resolve(name: str) -> str | None:
+        parts = name.split(".")
+        return next((".".join(parts[:k]) for k in range(len(parts), 0, -1) if ".".join(parts[:k]) in mods), None)
+
+    return {m: {r for r in map(resolve, _imported(p)) if r is not None and r != m} for m, p in mods.items()}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan, iterative)."""
+    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter[0]
+        counter[0] += 1
+        stack.append(root)
+        on.add(root)
+        while work:
+            v, it = work[-1]
+            w = next(it, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = counter[0]
+                    counter[0] += 1
+                    stack.append(w)
+                    on.add(w)
+                    work.append((w, iter(sorted(graph[w]))))
+                elif w in on:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                comp = []
+                while True:
+                    w = stack.pop()
+                    on.discard(w)
+                    comp.append(w)
+                    if w == v:
+                        break
+                if len(comp) > 1:
+                    out.append(sorted(comp))
+    return out
+
+
+def test_no_import_runs_back_up():
+    """No module imports one that imports it back, directly or through others, imports inside
+    functions included: the graph is acyclic, so every module sits on a floor above what it
+    imports. (The cycle finder is checked on a graph with one.)"""
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    graph = _import_graph()
+    assert "jskel.frusta._relief" in graph["jskel.frusta._relief_method"]  # the resolver sees the package's modules
+    assert not _cycles(graph), _cycles(graph)
+
+
+_TWO_SHAPES = {"is_scene", "single", "build_single", "render_scene"}
+
+
+def _two_shapes(p: Path) -> list[str]:
+    """Where ``p`` still carries an experiment in two shapes: a name or attribute ``is_scene``,
+    ``single``, ``build_single`` or ``render_scene``, or an ``(exp, obj)`` pair (assigned,
+    unpacked in a loop, or taken as a function's first two parameters)."""
+    found = []
+    for node in ast.walk(ast.parse(p.read_text())):
+        name = (node.attr if isinstance(node, ast.Attribute) else node.id if isinstance(node, ast.Name)
+                else node.arg if isinstance(node, (ast.arg, ast.keyword)) else None)
+        if name in _TWO_SHAPES:
+            found.append(f"{p.name}:{node.lineno}: {name}")
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, (ast.For, ast.comprehension)) else []
+        for t in targets:
+            if isinstance(t, ast.Tuple) and [getattr(e, "id", None) for e in t.elts[:2]] == ["exp", "obj"]:
+                found.append(f"{p.name}:{getattr(node, 'lineno', t.lineno)}: (exp, obj)")
+        if isinstance(node, (ast.FunctionDef, ast.Lambda)) and [a.arg for a in node.args.args[:2]] == ["exp", "obj"]:
+            found.append(f"{p.name}:{node.lineno}: def (exp, obj)")
+    return found
+
+
+def test_an_experiment_reaches_the_code_as_one_value():
+    """``config.load`` returns one ``Experiment``; nothing forks on ``is_scene`` or a ``single``
+    switch, and no ``(exp, obj)`` pair is passed around, in the package, the tests or the
+    notebooks' sources. (The finder is checked on a snippet that has each.)"""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        bad = Path(tmp) / "bad.py"
+        bad.write_text("exp, obj = load(p)\nif exp.is_scene: pass\ndef f(exp, obj): return g(single=True)\n")
+        assert len(_two_shapes(bad)) == 4, _two_shapes(bad)
+    root = PKG.parent
+    files = _sources() + sorted((root / "tests").rglob("*.py")) + sorted((root / "notebooks").glob("*.py"))
+    found = [f for p in files if p.name != "test_structure.py" for f in _two_shapes(p)]
+    assert not found, found

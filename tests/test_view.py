@@ -41,7 +41,7 @@ def _raw(joints=JOINTS, radii=RADII, eye=EYE):
 
 
 def _direct(raw):
-    return render(*config.validate(raw), progress=False)
+    return render(config.validate(raw), progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +139,7 @@ def test_knobs_are_the_objects_quality_keys_and_set_its_config():
     assert knobs["steps"].integer and knobs["steps"].value == 2048 and knobs["bisection"].lo == 0
     assert set(default_controls(full)) == {"scale", "threshold"}
     raw2 = apply(base, State(values={"steps": 300, "bisection": 3.0, "threshold": 0.6}), {**knobs, **default_controls(full)})
-    exp, obj = config.validate(raw2)
+    obj = config.validate(raw2).objects[0].shape
     assert (obj.steps, obj.bisection, obj.threshold, obj.scale) == (300, 3, 0.6, 1.0)
     assert "steps" not in base["object"] and full["object"]["steps"] == 2048, "apply changed its base"
     # a section inside the object: a relief's steps and bisection

@@ -31,13 +31,13 @@ def config_files() -> list[ConfigFile]:
     ``object`` section (also a scene object's ``shape``), the fit, bench, fitting bench,
     latency and sweep files."""
     from jskel import registry
-    from jskel.config import Experiment
+    from jskel.config import ExperimentFile
     from jskel.fit import FitBenchFile, FitFile
     from jskel.measure.bench import BenchFile
     from jskel.measure.latency import LatencyFile
     from jskel.measure.sweep import SweepFile
 
-    out = [ConfigFile("Experiment", "python -m jskel render EXP", Experiment, "")]
+    out = [ConfigFile("Experiment", "python -m jskel render EXP", ExperimentFile, "")]
     out += [ConfigFile(f"object: type {n}", "python -m jskel render EXP", registry.get(n).Config, "object.")
             for n in registry.names()]
     return out + [

@@ -1,8 +1,10 @@
 """Experiment files -> validated, frozen pydantic models; every bad key reported at once.
 
 An experiment is YAML with the sections ``object`` (its ``type`` picks a representation from
-the registry, which owns the model of the rest of that section), ``camera``, ``lights``,
-``shading`` and ``render``. Unknown keys, wrong types, out-of-range and non-finite values are
+the registry, which owns the model of the rest of that section) or ``objects`` (a scene of
+several, each a ``shape`` placed with a material), ``camera``, ``lights``, ``shading`` and
+``render`` (:class:`ExperimentFile`). :func:`load` returns one value, :class:`Experiment`: a
+scene, of one object where the file wrote ``object:``. Unknown keys, wrong types, out-of-range and non-finite values are
 errors. :func:`load` raises :class:`ConfigError` (a ``ValueError``) whose message has one line
 per problem, ``<dotted.path[index]>: <what is wrong> (got <value>)``.
 
@@ -46,9 +48,11 @@ from ._schema import MaterialConfig as MaterialConfig
 from ._schema import SceneObjectConfig as SceneObjectConfig
 from ._schema import EnvironmentConfig as EnvironmentConfig
 from ._schema import Experiment as Experiment
+from ._schema import ExperimentFile as ExperimentFile
+from ._schema import Shape as Shape
 from ._reference import Row as Row
 from ._reference import reference_rows as reference_rows
 from ._reference import undocumented as undocumented
 
 # (_format: the error lines of a pydantic ValidationError, for loaders of other files)
-__all__ = ["apply_overrides", "AUTO_CHUNK_ACCELERATOR", "AUTO_CHUNK_CPU", "AUTO_CHUNKS_PER_CALL_CPU", "CameraConfig", "chunk_of", "chunks_per_call_of", "ConfigError", "DEFAULT_EXPERIMENT", "EnvironmentConfig", "Experiment", "_format", "LightConfig", "load", "MaterialConfig", "MotionConfig", "read_yaml", "reference_rows", "RenderConfig", "resolved", "RGB", "set_path", "Row", "SceneObjectConfig", "ShadingConfig", "StrictModel", "TransformConfig", "undocumented", "Unit", "validate", "Vec3"]
+__all__ = ["apply_overrides", "AUTO_CHUNK_ACCELERATOR", "AUTO_CHUNK_CPU", "AUTO_CHUNKS_PER_CALL_CPU", "CameraConfig", "chunk_of", "chunks_per_call_of", "ConfigError", "DEFAULT_EXPERIMENT", "EnvironmentConfig", "Experiment", "ExperimentFile", "_format", "LightConfig", "load", "MaterialConfig", "MotionConfig", "read_yaml", "reference_rows", "RenderConfig", "resolved", "RGB", "set_path", "Row", "SceneObjectConfig", "Shape", "ShadingConfig", "StrictModel", "TransformConfig", "undocumented", "Unit", "validate", "Vec3"]

@@ -7,14 +7,13 @@ from __future__ import annotations
 
 import copy
 from pathlib import Path
-from typing import Any
 
 import yaml
 from pydantic import BaseModel, ValidationError
 
 from .. import registry
 from ._errors import ConfigError, _format, _loc, _short
-from ._schema import Experiment
+from ._schema import Experiment, ExperimentFile
 
 DEFAULT_EXPERIMENT = Path(__file__).parent.parent / "data" / "default.yaml"
 
@@ -29,37 +28,54 @@ def _validate_shape(raw_obj: dict, where: tuple) -> tuple[BaseModel | None, list
         return None, _format(e, where)
 
 
-def validate(raw: dict) -> tuple[Experiment, Any]:
-    """Validate a raw experiment dict; returns (experiment, object config) or raises ConfigError.
-
-    For a scene (``objects:``) the second item is the tuple of the objects' validated shapes."""
-    if not isinstance(raw, dict):
-        raise ConfigError([f"<root>: an experiment must be a mapping (got {_short(raw)})"])
-    lines: list[str] = []
-    exp = obj = None
-    try:
-        exp = Experiment.model_validate(raw)
-    except ValidationError as e:
-        lines += _format(e)
+def _shapes_validated(raw: dict) -> tuple[dict, list[str], list[str]]:
+    """``raw`` with every object's section (``object``, ``objects[i].shape``) replaced by its
+    representation's validated model, and the error lines of those that fail, named by their
+    own key paths (``object.skeleton.radii[1]: ...``), and the paths of those (their lines are
+    given once)."""
+    raw, lines, failed = dict(raw), [], []
     raw_obj = raw.get("object")
     if isinstance(raw_obj, dict):
         obj, more = _validate_shape(raw_obj, ("object",))
         lines += more
+        if obj is None:
+            failed.append("object")
+        else:
+            raw["object"] = obj
     elif raw_obj is not None:
         lines.append(f"object: must be a mapping with a 'type' key (got {_short(raw_obj)})")
+        failed.append("object")
     raw_objs = raw.get("objects")
     if isinstance(raw_objs, list):
-        shapes = []
+        raw["objects"] = objs = list(raw_objs)
         for i, o in enumerate(raw_objs):
             shape = o.get("shape") if isinstance(o, dict) else None
             if isinstance(shape, dict):
                 got, more = _validate_shape(shape, ("objects", i, "shape"))
-                shapes.append(got)
                 lines += more
-        obj = tuple(shapes)
-    if lines:
-        raise ConfigError(lines)
-    return exp, obj
+                if got is None:
+                    failed.append(f"objects[{i}].shape")
+                else:
+                    objs[i] = {**o, "shape": got}
+    return raw, lines, failed
+
+
+def validate(raw: dict) -> Experiment:
+    """Validate a raw experiment dict (an ``object:`` file or a scene's ``objects:``) into the
+    one :class:`Experiment` value (``ExperimentFile.experiment``: one object is a scene of one),
+    or raise ConfigError with a line per problem, every section's at once."""
+    if not isinstance(raw, dict):
+        raise ConfigError([f"<root>: an experiment must be a mapping (got {_short(raw)})"])
+    raw, shape_lines, failed = _shapes_validated(raw)
+    lines: list[str] = []
+    try:
+        file = ExperimentFile.model_validate(raw)
+    except ValidationError as e:  # the failed shapes have their lines already
+        lines += [ln for ln in _format(e) if not any(ln.startswith(f) and ln[len(f)] in ".[:" for f in failed)]
+        file = None
+    if lines or shape_lines:
+        raise ConfigError(lines + shape_lines)
+    return file.experiment()
 
 
 def set_path(d: dict, path: str, value):
@@ -114,16 +130,16 @@ def read_yaml(path: str | Path | None) -> dict:
     return raw if raw is not None else {}
 
 
-def load(path: str | Path | None = None, overrides: list[str] | None = None) -> tuple[Experiment, BaseModel]:
+def load(path: str | Path | None = None, overrides: list[str] | None = None) -> Experiment:
     """Read an experiment file (None: the embedded default), apply ``key=value`` overrides and
-    validate it (every bad key at once, a ``ConfigError``); the one loader of the CLI, the
-    benchmarks, the sweeps and the notebooks. An experiment that asks for ``render.dtype:
-    float64`` switches JAX's x64 on here, when it is read, before anything compiles (library
-    code below never switches it)."""
+    validate it (every bad key at once, a ``ConfigError``) into the one :class:`Experiment`
+    value; the one loader of the CLI, the benchmarks, the sweeps and the notebooks. An
+    experiment that asks for ``render.dtype: float64`` switches JAX's x64 on here, when it is
+    read, before anything compiles (library code below never switches it)."""
     raw = apply_overrides(read_yaml(path), overrides or [])
-    exp, obj = validate(raw)
+    exp = validate(raw)
     _enable_x64_if_asked(exp)
-    return exp, obj
+    return exp
 
 
 def _enable_x64_if_asked(exp: Experiment) -> None:
@@ -134,14 +150,7 @@ def _enable_x64_if_asked(exp: Experiment) -> None:
         jax.config.update("jax_enable_x64", True)
 
 
-def resolved(exp: Experiment, obj: BaseModel) -> dict:
-    """The resolved config as plain data (saved to ``run.json``)."""
-    d = exp.model_dump(mode="json")
-    if exp.is_scene:
-        for o, shape in zip(d["objects"], obj):
-            o["shape"] = shape.model_dump(mode="json")
-        d.pop("object")
-    else:
-        d["object"] = obj.model_dump(mode="json")
-        d.pop("objects")
-    return d
+def resolved(exp: Experiment) -> dict:
+    """The resolved config as plain data (saved to ``run.json``): the experiment as a scene,
+    each object's shape as its representation's model dumps it; loading it renders the same."""
+    return exp.model_dump(mode="json")

@@ -4,10 +4,10 @@ from the registry), and the automatic chunk sizes."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PrivateAttr, SerializeAsAny, ValidationInfo, field_validator, model_validator
 
 
 
@@ -276,13 +276,39 @@ class MaterialConfig(StrictModel):
         return self
 
 
+def _registered_shape(v):
+    """An object's own section as its representation's validated ``Config``: a mapping is
+    validated by the model the registry holds for its ``type`` (imported then, not before), a
+    model of a registered representation passes as it is. The representations' ``Config``
+    models, told apart by their ``type`` literal, are the union; the registry is its list, read
+    lazily, so reading an experiment imports only the representations it names."""
+    from .. import registry
+
+    if isinstance(v, BaseModel):
+        kind = getattr(v, "type", None)
+        if kind in registry.names() and isinstance(v, registry.get(kind).Config):
+            return v
+        raise ValueError(f"not the configuration of a registered representation (got {type(v).__name__})")
+    if not isinstance(v, dict):
+        raise ValueError(f"must be a mapping with a 'type' key (got {v!r})")
+    kind = v.get("type")
+    if kind not in registry.names():
+        raise ValueError(f"unknown representation (got {kind!r}; known: {', '.join(registry.names())})")
+    return registry.get(kind).Config.model_validate(v)
+
+
+#: A representation's section (``object:``, a scene object's ``shape:``): the ``Config`` of the
+#: representation its ``type`` names (``_registered_shape``), dumped as that model.
+Shape = Annotated[SerializeAsAny[BaseModel], BeforeValidator(_registered_shape)]
+
+
 class SceneObjectConfig(StrictModel):
     """One object of a scene: a ``shape`` (any representation's ``object`` section, validated by
     the registry), its transform, material and motion."""
 
     name: str | None = None
     """A name for the object (error messages, run.json)."""
-    shape: dict
+    shape: Shape
     """The object's own section: any representation's ``object`` section, with its ``type``."""
     transform: TransformConfig = TransformConfig()
     """Object to world placement."""
@@ -290,6 +316,18 @@ class SceneObjectConfig(StrictModel):
     """Surface response in the scene."""
     motion: MotionConfig | None = None
     """Rigid motion per animation frame; unset: static."""
+
+    _at: str | None = PrivateAttr(None)  # where the file wrote it, for messages: "object" for an ``object:`` section
+
+    def at(self, i: int) -> str:
+        """The key path of this object, the ``i``-th of its experiment, as its file wrote it:
+        ``object`` for a file's ``object:`` section, ``objects[i]`` otherwise."""
+        return self._at or f"objects[{i}]"
+
+    @property
+    def is_placed(self) -> bool:
+        """Whether a transform or motion moves the object (a file's ``object:`` section never does)."""
+        return self.transform != TransformConfig() or self.motion is not None
 
 
 class EnvironmentConfig(StrictModel):
@@ -305,16 +343,11 @@ class EnvironmentConfig(StrictModel):
     """Linear RGB colour straight down; unset: ``shading.background``."""
 
 
-class Experiment(StrictModel):
-    """A whole experiment: one ``object`` (validated by the registered representation) or a
-    scene of several ``objects`` with materials, an ``environment`` and a ``frame``."""
+class _Common(StrictModel):
+    """What an experiment file and the experiment value share: everything but the objects."""
 
     name: str = "experiment"
     """The experiment's name (run.json, benchmark rows)."""
-    object: Any = None
-    """One object: its ``type`` names the representation whose section this is (see below); not with ``objects``."""
-    objects: list[SceneObjectConfig] | None = None
-    """A scene: several placed objects with materials; not with ``object``."""
     camera: CameraConfig = CameraConfig()
     """The pinhole camera."""
     lights: list[LightConfig] = [LightConfig()]
@@ -328,6 +361,18 @@ class Experiment(StrictModel):
     frame: float = 0.0
     """Animation frame of a scene (shapes with a ``frame`` key, motions)."""
 
+
+class ExperimentFile(_Common):
+    """An experiment as a file writes it: one ``object`` (validated by the registered
+    representation) or a scene of several ``objects`` with materials, an ``environment`` and a
+    ``frame``. ``jskel.config.load`` turns it into the one value the code takes,
+    :class:`Experiment` (:meth:`experiment`)."""
+
+    object: Shape | None = None
+    """One object: its ``type`` names the representation whose section this is (see below); not with ``objects``."""
+    objects: list[SceneObjectConfig] | None = None
+    """A scene: several placed objects with materials; not with ``object``."""
+
     @model_validator(mode="after")
     def _object_or_objects(self):
         if (self.object is None) == (self.objects is None):
@@ -337,6 +382,41 @@ class Experiment(StrictModel):
             raise ValueError("objects: a scene needs at least one object")
         return self
 
-    @property
-    def is_scene(self) -> bool:
-        return self.objects is not None
+    def experiment(self) -> "Experiment":
+        """The experiment value: a file's ``object:`` becomes a scene of one (``objects:``, one
+        object, no transform, the default material) whose lights cast shadows only where their
+        section says ``shadows: true`` (an ``object:`` file written before shadows existed renders
+        as it did); a scene's lights cast them unless told not to. Its run.json writes it so."""
+        common = {k: getattr(self, k) for k in _Common.model_fields}
+        if self.objects is not None:
+            return Experiment(**common, objects=tuple(self.objects))
+        one = SceneObjectConfig(shape=self.object)
+        one._at = "object"
+        lights = [l if "shadows" in l.model_fields_set else l.model_copy(update={"shadows": False}) for l in self.lights]
+        return Experiment(**{**common, "lights": lights}, objects=(one,))
+
+
+class Experiment(_Common):
+    """The one experiment value every entry takes (``jskel.render.render``, the benchmarks,
+    the sweeps, the fit, the viewer): a scene of ``objects`` (a file's single ``object:`` is a
+    scene of one, :meth:`ExperimentFile.experiment`), each object's ``shape`` already validated
+    by its representation, with the camera, lights, shading, environment and render options."""
+
+    objects: tuple[SceneObjectConfig, ...]
+    """The scene's objects (at least one), each a shape placed with a material."""
+
+    @field_validator("objects")
+    @classmethod
+    def _some(cls, v):
+        if not v:
+            raise ValueError("a scene needs at least one object")
+        return v
+
+    def with_shapes(self, *shapes) -> "Experiment":
+        """The experiment with its objects' shapes replaced, one per object in order, each object
+        keeping its name, placement and material (a fitted skeleton, an animation frame's pose);
+        each a registered representation's model, or a mapping validated by it."""
+        if len(shapes) != len(self.objects):
+            raise ValueError(f"objects: {len(shapes)} shapes given for {len(self.objects)} objects")
+        objs = tuple(o.model_copy(update={"shape": _registered_shape(s)}) for o, s in zip(self.objects, shapes))
+        return self.model_copy(update={"objects": objs})

@@ -16,7 +16,8 @@ from ._config import FrustaConfig
 from ._intersect import _segment_t, nearest_batch, nearest_batch_compact, nearest_one
 from ._kernel import nearest_kernel
 from ._pack import FrustaScene, Group, Static
-from ._relief import enters_shell, make_relief_t
+from ._relief import enters_shell
+from ._relief_method import make_relief_t
 
 
 def traversal_of(cfg: FrustaConfig, plain_segments: int) -> str:

@@ -180,22 +180,11 @@ def enters_shell(seg: FrustaParams, o, d, t_min, t_max):
     return ok & (jnp.maximum(s_in, t_min - t0) < jnp.minimum(s_out, t_max - t0)) & seg.valid & (seg.shell > 0)
 
 
-def make_relief_t(maps: ReliefMaps, q: ReliefQuality):
-    """Per-segment relief test ``(seg, o, d, t_min, t_max) -> (t, s, code, t_undecided)`` for
-    nearest_* (``undecided=True``): t_undecided is the ray's t at the start of the first march
-    step that could not exclude a crossing (:func:`_step_undecided`; inf where none)."""
-    return functools.partial(_relief_t, maps, q)
-
-
 def _relief_t(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, o, d, t_min, t_max):
     """(t, s, code, t_undecided) of one ray against one relief segment (Sec. 3): the ray's
     interval in the shell (:func:`_shell_window`), marched (:func:`_march`) and bisected
     (:func:`_bisect`) for its first crossing of the relief surface; t inf where it has none in
-    (t_min, t_max]; t_undecided as :func:`make_relief_t` says."""
-    if q.method == "exact":
-        from ._relief_exact import relief_t
-
-        return relief_t(maps, q, seg, o, d, t_min, t_max)
+    (t_min, t_max]; t_undecided as ``_relief_method.make_relief_t`` says."""
     n_steps, n_bis = maps.steps, maps.bisection
     inf = jnp.asarray(jnp.inf, o.dtype)
     t0, e, s_a, s_b, ok, entry, from_outside = _shell_window(seg, o, d, t_min, t_max)

@@ -51,7 +51,7 @@ import numpy as np
 
 from ..numerics import differentiable_root, dot3, eps_of, safe_div, safe_sqrt
 from ._intersect import FrustaParams
-from ._relief import _TWO_PI, RELIEF, _angle_u, _least_of_upper, bilinear_taps, exact_v
+from ._relief import _TWO_PI, RELIEF, _angle_u, _least_of_upper, _shell_window, bilinear_taps, exact_v
 
 LOOPS = 1024  # traversal iterations per (ray, segment) before the pair is left undecided
 NEWTON = 10  # Newton steps kept in the final bracket (g monotone there)
@@ -205,8 +205,6 @@ def begin(maps, q, seg: FrustaParams, o, d, t_min, t_max):
     """(:class:`Lane`, first :class:`State`) of a ray (o, d, t_min, t_max) against a relief
     segment: its whole window the first interval (done at once where the window is empty or the
     ray meets the surface at the shell's entry)."""
-    from ._relief import _shell_window
-
     t0, e, s_a, s_b, ok, entry, from_outside = _shell_window(seg, o, d, t_min, t_max)
     v_a, v_b = exact_v(seg, e + s_a * d)[0], exact_v(seg, e + s_b * d)[0]
     ln = Lane(seg, e, d, s_a, s_b, v_a, v_b, False, False, ok, t0, t_min, t_max, entry)
@@ -249,7 +247,7 @@ def lane_fns(maps, q, steps: int):
 
 
 def relief_t(maps, q, seg: FrustaParams, o, d, t_min, t_max):
-    """(t, s, code, t_undecided) of one ray against one relief segment (``_relief.make_relief_t``)
+    """(t, s, code, t_undecided) of one ray against one relief segment (``_relief_method.make_relief_t``)
     by the exact traversal."""
     ln, st = begin(maps, q, seg, o, d, t_min, t_max)
     return hit_of(maps, q, ln, *search(maps, q, ln, st))

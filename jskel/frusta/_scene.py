@@ -31,7 +31,8 @@ from ._intersect import _finish, _segment_t, nearest_one
 from ._maps import relief_memory
 from ._pack import FrustaScene, Static, make_group
 from ._relief import ReliefMaps, ReliefQuality, texel_slopes
-from ._relief import make_relief_finish, make_relief_t
+from ._relief import make_relief_finish
+from ._relief_method import make_relief_t
 
 
 def build(cfg: FrustaConfig, dtype=np.float32) -> Built:

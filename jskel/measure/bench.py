@@ -22,7 +22,7 @@ from ..config import ConfigError, StrictModel, chunk_of, load, read_yaml
 from ..fit import FitBenchFile, run_fit_bench
 from ..probe.cast import timed_cast
 from ..probe.metrics import compare
-from ..probe.study import Peers, StudyOptions, needed
+from ..probe.study import Peers, StudyOptions, needed, shape_of
 from ..probe.timing import render_runs, spread
 from ..render import camera_of, dtype_of, framed, render
 from .files import X64, JsonLines, beside, read_model
@@ -79,27 +79,26 @@ class BenchFile(StrictModel):
 
 
 class Job(NamedTuple):
-    """One timed render: its file, (experiment, object) and setting (None outside a sweep)."""
+    """One timed render: its file, experiment and setting (None outside a sweep)."""
 
     file: str
     exp: Any
-    obj: Any
     setting: dict | None
 
 
 class Group(NamedTuple):
-    """A scene's jobs and its reference job ((experiment, object) or None)."""
+    """A scene's jobs and its reference experiment (or None)."""
 
     reference: tuple | None
     jobs: list[Job]
 
 
-def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
+def timed_render(exp, runs: int, warmup: int) -> tuple[dict, object]:
     """Render once (compiles; its compile seconds are kept), ``warmup - 1`` more, then ``runs``
     timed renders (``timing.render_runs``). Returns (row, first result)."""
     count_programs()
     before = program_counts()
-    first, warm = render_runs(exp, obj, runs, warmup)
+    first, warm = render_runs(exp, runs, warmup)
     s = spread([w["render_s"] for w in warm])
     r = first.run
     row = {"scene": exp.name, "primitives": r["primitives"], "width": exp.camera.width, "height": exp.camera.height,
@@ -126,9 +125,11 @@ def timed_render(exp, obj, runs: int, warmup: int) -> tuple[dict, object]:
     return row, first
 
 
-def traversal_stats(exp, obj) -> dict:
+def traversal_stats(exp) -> dict:
     """The representation's deterministic work counts per ray (empty where it declares none),
-    over the camera's rays in the render's order (screen tiles: packets and bins depend on it)."""
+    over the camera's rays in the render's order (screen tiles: packets and bins depend on it),
+    of an experiment of one object (``probe.study.shape_of``)."""
+    obj = shape_of(exp, "stats")
     rep = registry.get(obj.type)
     built = rep.build(obj, dtype_of(exp))
     rays = camera_of(framed(exp, built.bounds)).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
@@ -145,21 +146,21 @@ def groups_of(bench: BenchFile, file, extra: list[str]) -> list[Group]:
     if bench.labels is not None and len(bench.labels) != len(settings):
         raise ConfigError([f"labels: {len(bench.labels)} labels for {len(settings)} sweep settings"])
     if bench.sweep is None:
-        return [Group(None, [Job(str(p), *load(p, common), None) for p in paths])]
+        return [Group(None, [Job(str(p), load(p, common), None) for p in paths])]
     # a sweep with no reference only times its settings (e.g. cost against scene size)
     return [Group(load(p, common + bench.reference) if bench.reference else None,
-                  [Job(str(p), *load(p, common + overrides_of(st)), st) for st in settings]) for p in paths]
+                  [Job(str(p), load(p, common + overrides_of(st)), st) for st in settings]) for p in paths]
 
 
 def job_row(bench: BenchFile, job: Job, runs: int, ref) -> dict:
     """One job's row: its timed render, the cast alone (``cast``), traversal counts (``stats``),
     its setting and label, and its errors against the reference render ``ref`` (or None)."""
-    row, first = timed_render(job.exp, job.obj, runs, bench.warmup)
+    row, first = timed_render(job.exp, runs, bench.warmup)
     if bench.cast:
-        row.update(timed_cast(job.exp, job.obj, runs, bench.warmup))
+        row.update(timed_cast(job.exp, runs, bench.warmup))
     row["file"] = job.file
     if bench.stats:
-        row.update(traversal_stats(job.exp, job.obj))
+        row.update(traversal_stats(job.exp))
     if job.setting is not None:
         row["setting"] = job.setting
         if bench.labels is not None:
@@ -181,16 +182,15 @@ def run_group(bench: BenchFile, group: Group, runs: int, emit: JsonLines, peers:
     ``peers``): the rows."""
     ref = None
     if group.reference is not None:
-        ref = render(*group.reference, progress=False)
-        emit({"reference": bench.reference, "scene": group.reference[0].name, "render_s": round(ref.run["render_s"], 4)}, keep=False)
+        ref = render(group.reference, progress=False)
+        emit({"reference": bench.reference, "scene": group.reference.name, "render_s": round(ref.run["render_s"], 4)}, keep=False)
     rows = []
     for job in group.jobs:  # host loop over settings: each compiles its own static options
         rows.append(job_row(bench, job, runs, ref))
         emit(rows[-1])
     if bench.peer is not None and ref is not None:
-        exp, obj = group.reference
         study = needed(peers.studies.get(bench.peer), "peer", bench.peer)
-        for row in study(as_rendered(exp, ref), obj, ref.hits, runs, rows, bench.study_options()):
+        for row in study(as_rendered(group.reference, ref), ref.hits, runs, rows, bench.study_options()):
             emit(row)
             rows.append(row)
     return rows

@@ -177,8 +177,8 @@ def process_rows(spec: LatencySpec, file, work: Path, emit: JsonLines, peers: Pe
 def mitsuba_row(spec: LatencySpec, file, folder: Path, rep: int, prepare) -> dict:
     """Mitsuba's process for ``spec.mitsuba``'s skeleton at the gallery's size, or why not
     (``prepare``: ``Peers.mitsuba_image``, the CLI's ``peers.mitsuba_image.prepare``)."""
-    exp, obj = load(beside(spec.mitsuba, file, "latency.mitsuba"), spec.set)
-    cmd, png = prepare(exp, obj, folder, spec.mitsuba_variant)
+    exp = load(beside(spec.mitsuba, file, "latency.mitsuba"), spec.set)
+    cmd, png = prepare(exp, folder, spec.mitsuba_variant)
     row = {"case": f"mitsuba_{spec.mitsuba_variant}", "scene": exp.name, "repeat": rep}
     if cmd is None:
         return {**row, "skipped": png}
@@ -189,16 +189,17 @@ def _skeleton_set(j, r, p) -> str:
     return "object.skeleton=" + json.dumps({"joints": j.tolist(), "radii": r.tolist(), "parents": p.tolist()})
 
 
-def changes(exp, obj) -> dict[str, list[str]]:
+def changes(exp) -> dict[str, list[str]]:
     """Overrides of each change a researcher makes between two looks, on the experiment's
     skeleton written out as arrays: none, a radius, the camera, the image size, one more segment."""
     import numpy as np
 
     from .. import registry
 
-    sk = None if exp.is_scene else registry.get(obj.type).skeleton(obj)
+    obj = exp.objects[0].shape
+    sk = registry.get(obj.type).skeleton(obj) if len(exp.objects) == 1 and exp.objects[0].at(0) == "object" else None
     if sk is None:
-        raise ValueError(f"latency.rerender: {exp.name} is not a single skeleton object")
+        raise ValueError(f"latency.rerender: {exp.name} is not a file's single skeleton object (object:)")
     j, r, p = sk
     base = [_skeleton_set(j, r, p), "render.progress=false"]
     r2 = r.copy()
@@ -216,14 +217,14 @@ def rerender_rows(spec: LatencySpec, file, emit: JsonLines) -> list[dict]:
     """In this process: a first render, then each change of :func:`changes` from it, timed
     with the programs each compiled (and loaded from the persistent cache)."""
     path = beside(spec.rerender, file, "latency.rerender")
-    exp, obj = load(path, spec.set)
+    exp = load(path, spec.set)
     count_programs()
     rows = []
-    for i, (change, sets) in enumerate(changes(exp, obj).items()):
-        e, o = load(path, spec.set + sets)
+    for i, (change, sets) in enumerate(changes(exp).items()):
+        e = load(path, spec.set + sets)
         before = program_counts()
         t0 = time.perf_counter()
-        res = render(e, o, progress=False)
+        res = render(e, progress=False)
         seconds = time.perf_counter() - t0
         after = program_counts()
         run = res.run

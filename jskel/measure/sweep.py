@@ -125,7 +125,7 @@ def reference_overrides(sweep: SweepFile, setting: dict) -> list[str] | None:
 def load_sweep(path, overrides: list[str], exp_overrides: list[str] = ()):
     """Read and validate a sweep file and every setting's experiment and reference (x64 is
     switched on here if any of them asks for float64, before anything compiles). Returns
-    (sweep, jobs [(setting, (exp, obj))], ref_jobs [(key, (exp, obj)) or None], with one more
+    (sweep, jobs [(setting, experiment)], ref_jobs [(key, experiment) or None], with one more
     reference job at the end, the base setting's, when the sweep has a peer); bad input raises
     ``ConfigError`` naming the setting and key. ``exp_overrides`` (e.g. ``--x64``'s) apply to
     every setting before its own values."""
@@ -151,9 +151,9 @@ def load_sweep(path, overrides: list[str], exp_overrides: list[str] = ()):
     return sweep, jobs, ref_jobs
 
 
-def measure(exp, obj, ref, sweep: SweepFile) -> dict:
+def measure(exp, ref, sweep: SweepFile) -> dict:
     """Time one setting (``timing.render_runs``) and score it against ``ref`` (or None)."""
-    first, warm = render_runs(exp, obj, sweep.runs, sweep.warmup)
+    first, warm = render_runs(exp, sweep.runs, sweep.warmup)
     s = spread([w["render_s"] for w in warm])
     run = first.run
     row = {"compile_s": run["compile_s"], "time_median_s": s.median, "time_min_s": s.min, "time_max_s": s.max,
@@ -178,9 +178,9 @@ def programs_since(before: dict) -> dict:
 
 
 def _reference(rj, refs: dict):
-    """The render of reference job ``rj`` (key, (exp, obj)), rendered once per key into ``refs``."""
+    """The render of reference job ``rj`` (key, experiment), rendered once per key into ``refs``."""
     if rj[0] not in refs:
-        refs[rj[0]] = render(*rj[1], progress=False)
+        refs[rj[0]] = render(rj[1], progress=False)
     return refs[rj[0]]
 
 
@@ -188,7 +188,7 @@ def measure_setting(sweep: SweepFile, setting: dict, job, rj, refs: dict) -> dic
     """One row: the setting measured against its reference (or none)."""
     count_programs()
     before = program_counts()
-    row = measure(*job, None if rj is None else _reference(rj, refs), sweep)
+    row = measure(job, None if rj is None else _reference(rj, refs), sweep)
     row.update(programs_since(before))
     row.update(setting)
     row["setting"] = setting_key(setting)
@@ -200,9 +200,8 @@ def peer_rows(sweep: SweepFile, ref_job, refs: dict, levels: list[int], embree_m
     meshes (``embree_mesh``: ``Peers.mesh``, the CLI's ``peers.mesh_studies.embree_mesh``) at subdivision ``levels``, cast by Embree on the
     same rays and scored against the base setting's reference. Time: Embree's warm median cast
     (its BVH build apart, in ``peer_build_s``); memory: the mesh's bytes."""
-    exp, obj = ref_job[1]
     rows = []
-    for r in embree_mesh(exp, obj, _reference(ref_job, refs).hits, sweep.runs, [], StudyOptions(levels=tuple(levels))):
+    for r in embree_mesh(ref_job[1], _reference(ref_job, refs).hits, sweep.runs, [], StudyOptions(levels=tuple(levels))):
         row = {k: v for k, v in r.items() if k in sweep.metrics or k in ("hit_miss_pct", "depth_rmse")}
         row.update({"peer.level": r["level"], "triangles": r["triangles"], "peer_build_s": r["build_s"],
                     "time_median_s": r["render_s_median"], "runs": r["runs"], "rays": r["rays"],
@@ -270,8 +269,8 @@ def _append(path: Path, cols: list[str], rows_iter, total: int, initial: int, pr
 
 def run_sweep(sweep: SweepFile, jobs: list, ref_jobs: list, out: Path, progress: bool | None = None, spec=None,
               command: str | None = None, peers: Peers = Peers()) -> list[dict]:
-    """Measure every job ``(setting, (exp, obj))`` not already in ``out/results.csv`` against its
-    reference job (``ref_jobs[i]``: ``(key, (exp, obj))`` or None; renders shared by key),
+    """Measure every job ``(setting, experiment)`` not already in ``out/results.csv`` against its
+    reference job (``ref_jobs[i]``: ``(key, experiment)`` or None; renders shared by key),
     appending rows as they finish; then write the plot and the report. Returns every row.
 
     With ``parallel: N`` (and ``spec`` = (sweep file, overrides, experiment overrides) for the

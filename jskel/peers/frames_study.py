@@ -23,6 +23,7 @@ import jax
 
 from ..frusta import host_frusta, rebuilder, skeleton_arrays
 from ..probe.cast import cast_once, cast_resident, on_accelerator, resident_rays
+from ..probe.study import shape_of
 from ..probe.timing import median_of
 from ..render import dtype_of, render
 from .skeleton import EmbreeMesh, frusta_mesh
@@ -34,28 +35,30 @@ PARTS = ("jskel_build", "jskel_cast", "jskel_cast_only", "jskel_device_build", "
 TOTALS = ("jskel", "jskel_cast", "jskel_device", "jskel_resident", "embree", "mitsuba")
 
 
-def _device_rebuild(exp, obj):
+def _device_rebuild(exp):
     """(rebuild, resident rays or None): the frusta rebuilt on the device from a frame's joints
     (``frusta.rebuilder``), its cast compiled here; on an accelerator the fixed camera's rays
     placed on the device once for every frame (the rebuild keeps one anchor), as Mitsuba's are.
     (None, None) where the object cannot be rebuilt on the device."""
+    obj = shape_of(exp, "peer: skeleton")
     try:
         rb = rebuilder(obj, dtype_of(exp))
         j0, r0, _, _ = skeleton_arrays(obj.skeleton, obj.frame)
         b0 = rb(j0, r0)
-        cast_once(exp, obj, b0)  # compiles the rebuild and its cast
+        cast_once(exp, b0)  # compiles the rebuild and its cast
         return rb, (resident_rays(exp, b0) if on_accelerator() else None)
     except ValueError:
         return None, None
 
 
-def _jskel_run(exp, o, rb, resident, part: dict, tot: dict):
-    res = render(exp, o, progress=False)
+def _jskel_run(exp, rb, resident, part: dict, tot: dict):
+    o = exp.objects[0].shape
+    res = render(exp, progress=False)
     part["jskel_build"].append(res.run["build_s"])
     part["jskel_cast"].append(res.run["render_s"])
     tot["jskel"].append(res.run["build_s"] + res.run["render_s"])
     # the same frame again, built anew and cast alone (t and primitive, as the peers' casts)
-    b_s, c_s, _ = cast_once(exp, o)
+    b_s, c_s, _ = cast_once(exp)
     part["jskel_cast_only"].append(c_s)
     tot["jskel_cast"].append(b_s + c_s)
     if rb is None:
@@ -65,12 +68,12 @@ def _jskel_run(exp, o, rb, resident, part: dict, tot: dict):
     built = rb(j, r)
     jax.block_until_ready(built.params)
     d_build = time.perf_counter() - t0
-    _, c_s, _ = cast_once(exp, o, built)
+    _, c_s, _ = cast_once(exp, built)
     part["jskel_device_build"].append(d_build)
     part["jskel_device_cast"].append(c_s)
     tot["jskel_device"].append(d_build + c_s)
     if resident is not None:  # the same build, cast on resident rays, results left there
-        r_s = cast_resident(exp, o, built, resident)[0]
+        r_s = cast_resident(exp, built, resident)[0]
         part["jskel_resident_cast"].append(r_s)
         tot["jskel_resident"].append(d_build + r_s)
 
@@ -101,19 +104,21 @@ def _peer_runs(o, rays, level: int, mc, part: dict, tot: dict):
     tot["mitsuba"].append(sk + up + cast_s)
 
 
-def _frame_medians(frames, exp, obj, rays, level: int, mc, runs: int):
+def _frame_medians(frames, exp, rays, level: int, mc, runs: int):
     """({part: [median per frame]}, {system: [median per frame]}, jskel's compile seconds)."""
-    rb, resident = _device_rebuild(exp, obj)
+    obj = shape_of(exp, "peer: skeleton")
+    rb, resident = _device_rebuild(exp)
     parts, totals = {k: [] for k in PARTS}, {k: [] for k in TOTALS}
     compile_s = None
     for f in frames:  # host loop over frames
         o = obj.model_copy(update={"frame": f})
+        e = exp.with_shapes(o)
         if compile_s is None:
-            compile_s = render(exp, o, progress=False).run["compile_s"]  # the first call compiles
-            cast_once(exp, o)  # and the cast alone
+            compile_s = render(e, progress=False).run["compile_s"]  # the first call compiles
+            cast_once(e)  # and the cast alone
         part, tot = {k: [] for k in PARTS}, {k: [] for k in TOTALS}
         for _ in range(max(runs, 1)):
-            _jskel_run(exp, o, rb, resident, part, tot)
+            _jskel_run(e, rb, resident, part, tot)
             _peer_runs(o, rays, level, mc, part, tot)
         for mine, all_frames in ((part, parts), (tot, totals)):
             for k, v in mine.items():
@@ -126,10 +131,10 @@ def _over(row: dict, name: str, a: str, b: str):
     row[name] = round(row[a] / row[b], 2)
 
 
-def frames_row(frames, exp, obj, rays, level: int, mc, base: dict, runs: int = 1) -> dict:
+def frames_row(frames, exp, rays, level: int, mc, base: dict, runs: int = 1) -> dict:
     """The animated frames' row: per-part and whole-frame medians and jskel's ratios to Embree
     and (where ``mc``, Mitsuba's curves, ran) to Mitsuba."""
-    parts, totals, compile_s = _frame_medians(frames, exp, obj, rays, level, mc, runs)
+    parts, totals, compile_s = _frame_medians(frames, exp, rays, level, mc, runs)
     row = dict(base, peer="animated_frames", frames=len(frames), runs_per_frame=max(runs, 1), gs_level=level,
                jskel_compile_s=round(compile_s, 3), jskel_frame_s_median=median_of(totals["jskel"]),
                embree_frame_s_median=median_of(totals["embree"]),

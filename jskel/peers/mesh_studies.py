@@ -6,7 +6,7 @@
   displaced meshes at increasing subdivision;
 * :func:`embree_same_mesh`: Embree on the very triangles a mesh object casts.
 
-Each is ``fn(exp, obj, ref_hits, runs, rows, options)`` (``peers.study``); Embree's BVH build is
+Each is ``fn(exp, ref_hits, runs, rows, options)`` (``peers.study``); Embree's BVH build is
 timed apart from its warm casts.
 """
 
@@ -25,17 +25,17 @@ from ..render import camera_of
 from .implicit_mesh import marching_cubes_mesh
 from .relief_mesh import displaced_mesh, embree_cast
 from .skeleton import EmbreeMesh
-from ..probe.study import StudyOptions, match_target, scored
+from ..probe.study import StudyOptions, match_target, scored, shape_of
 
 
 def _mesh_columns(V, F) -> dict:
     return {"vertices": int(V.shape[0]), "triangles": int(F.shape[0]), "mesh_bytes": int(V.shape[0] * 12 + F.shape[0] * 12)}
 
 
-def marching_cubes(exp, obj, ref_hits, runs: int, rows: list[dict], options: StudyOptions) -> list[dict]:
+def marching_cubes(exp, ref_hits, runs: int, rows: list[dict], options: StudyOptions) -> list[dict]:
     """Implicit models polygonised by marching cubes at ``options.levels`` (grid cells along the
     longest side) and cast by Embree, against the same reference."""
-    cfg = expand(obj)
+    cfg = expand(shape_of(exp, "peer: marching_cubes"))
     a, b, ra, rb, _, _ = primitives(cfg)
     O, D = camera_of(exp).ray_arrays()
     target = match_target(options.match, rows)
@@ -56,9 +56,10 @@ def marching_cubes(exp, obj, ref_hits, runs: int, rows: list[dict], options: Stu
     return out
 
 
-def embree_mesh(exp, obj, ref_hits, runs: int, rows: list[dict], options: StudyOptions) -> list[dict]:
+def embree_mesh(exp, ref_hits, runs: int, rows: list[dict], options: StudyOptions) -> list[dict]:
     """Displaced meshes of the relief segments at subdivision ``options.levels`` (16 x 2^level
     around, 4 x 2^level along), cast by Embree."""
+    obj = shape_of(exp, "peer: embree_mesh")
     arrays = host_frusta(obj)[0]
     rel = obj.relief
     ids = np.arange(arrays.h.shape[0]) if rel.segments is None else np.unique(rel.segments)
@@ -76,10 +77,11 @@ def embree_mesh(exp, obj, ref_hits, runs: int, rows: list[dict], options: StudyO
     return out
 
 
-def embree_same_mesh(exp, obj, ref_hits, runs: int, rows: list[dict], options: StudyOptions) -> list[dict]:
+def embree_same_mesh(exp, ref_hits, runs: int, rows: list[dict], options: StudyOptions) -> list[dict]:
     """Embree on the very triangles a mesh object casts (read, scaled and moved as its build
     does) and the same world rays; ratios are jskel's warm cast (and render) median over
     Embree's (above 1: jskel is slower)."""
+    obj = shape_of(exp, "peer: embree")
     v, f, _ = read_mesh(obj.path)
     v = v * obj.scale + np.asarray(obj.offset, np.float64)
     O, D = camera_of(exp).ray_arrays()

@@ -15,8 +15,8 @@ import sys
 from pathlib import Path
 
 
-def prepare(exp, obj, folder: Path, variant: str = "scalar_rgb") -> tuple[list[str] | None, str]:
-    """Write ``folder``/curves.txt and spec.json for the skeleton object ``obj`` of ``exp``.
+def prepare(exp, folder: Path, variant: str = "scalar_rgb") -> tuple[list[str] | None, str]:
+    """Write ``folder``/curves.txt and spec.json for the one skeleton object of ``exp``.
     Returns (the command to time, the PNG it writes), or (None, why) when it cannot run."""
     import importlib.util
 
@@ -25,7 +25,8 @@ def prepare(exp, obj, folder: Path, variant: str = "scalar_rgb") -> tuple[list[s
     from .. import registry
     from .skeleton import curve_points
 
-    sk = None if exp.is_scene else registry.get(obj.type).skeleton(obj)
+    obj = exp.objects[0].shape
+    sk = registry.get(obj.type).skeleton(obj) if len(exp.objects) == 1 and not exp.objects[0].is_placed else None
     if sk is None:
         return None, "not a single skeleton object"
     if exp.camera.frame == "auto":

@@ -14,7 +14,7 @@ from ..probe.timing import median_of, warm_runs
 from ..render import camera_of
 from .frames_study import frames_row
 from .skeleton import TABLE1_GS_LEVEL, EmbreeMesh, MitsubaCurves, frusta_mesh
-from ..probe.study import StudyOptions
+from ..probe.study import StudyOptions, shape_of
 
 
 def agreement(t, ref_t) -> dict:
@@ -77,10 +77,11 @@ def _mitsuba_rows(skeleton, variant: str, O, D, ref_t, runs: int, base: dict, js
     return out, None
 
 
-def skeleton(exp, obj, ref_hits, runs: int, rows: list[dict], options: StudyOptions) -> list[dict]:
+def skeleton(exp, ref_hits, runs: int, rows: list[dict], options: StudyOptions) -> list[dict]:
     """Embree on the Table 1 "GS" tessellations and Mitsuba's curves on the same rays as jskel's
     ``rows`` (the first with ``object.accel`` bvh or auto gives the ratios); with
     ``options.frames`` and an animated generator, one more row of seconds per frame."""
+    obj = shape_of(exp, "peer: skeleton")
     O, D = camera_of(exp).ray_arrays()
     ref_t = np.asarray(ref_hits.t, np.float64)
     jsk = next((r for r in rows if r.get("setting", {}).get("object.accel") in ("bvh", "auto")), {})
@@ -92,5 +93,5 @@ def skeleton(exp, obj, ref_hits, runs: int, rows: list[dict], options: StudyOpti
     mitsuba, mc = _mitsuba_rows((joints, radii, parents), options.mitsuba_variant, O, D, ref_t, runs, base, jsk)
     out += mitsuba
     if options.frames and obj.skeleton.procedural in ANIMATED:
-        out.append(frames_row(options.frames, exp, obj, (O, D), level, mc, base, runs))
+        out.append(frames_row(options.frames, exp, (O, D), level, mc, base, runs))
     return out

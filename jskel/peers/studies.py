@@ -1,5 +1,5 @@
 """The peers' studies by the name a bench file gives them (``peer:``), each
-``fn(exp, obj, ref_hits, runs, rows, options) -> [row]`` (``probe.study``), and :data:`PEERS`,
+``fn(exp, ref_hits, runs, rows, options) -> [row]`` (``probe.study``), and :data:`PEERS`,
 what the CLI hands the harness (``jskel.measure``, which does not import this folder)."""
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ from ..executor import _pad_to, batch_bucket, compile_batch_fn, map_chunks, ray_
 from ..interface import Object, cast_t_prim
 from ..rays import Rays
 from ..render import camera_of, devices_of, dtype_of, framed
+from .study import shape_of
 from .timing import Spread, spread, warm_runs
 
 def on_accelerator() -> bool:
@@ -28,13 +29,14 @@ def on_accelerator() -> bool:
     return jax.default_backend() != "cpu"
 
 
-def cast_once(exp, obj, built=None) -> tuple[float, float, float]:
+def cast_once(exp, built=None) -> tuple[float, float, float]:
     """(build seconds, cast seconds, compile seconds) of one frame: the representation's build
     (skipped when ``built`` is given), then the cast alone of the camera's rays in screen-tile
     order, chunked as the render chunks them; ``t`` and ``prim`` come back to the host. The rays
     are made (host arrays, ``Camera.tiled_rays``) before the cast's clock starts, as the peers'
-    rays are."""
+    rays are. ``exp`` is an experiment of one object (``study.shape_of``)."""
     dtype = dtype_of(exp)
+    obj = shape_of(exp, "cast")
     t0 = time.perf_counter()
     built = registry.get(obj.type).build(obj, dtype) if built is None else built
     jax.block_until_ready(built.params)  # (asynchronous dispatch: the build's device work ends here)
@@ -66,7 +68,7 @@ def resident_rays(exp, built) -> list:
     return jax.block_until_ready(chunks)
 
 
-def cast_resident(exp, obj, built, chunks) -> tuple[float, list]:
+def cast_resident(exp, built, chunks) -> tuple[float, list]:
     """(seconds, [(t, prim) per chunk]) of one cast of rays already on the device
     (:func:`resident_rays`), t and primitive left there: how the Mitsuba peer's cast is timed
     (its rays are put on the GPU before its clock starts and its result is not copied back),
@@ -75,7 +77,7 @@ def cast_resident(exp, obj, built, chunks) -> tuple[float, list]:
     dispatched before one wait. On a CPU the copies cost nothing; on a GPU they are most of a
     1024x768 cast (docs/performance.md)."""
     mesh = _ray_mesh_of(exp)
-    params = Object(built.params, built.static, obj.type)
+    params = Object(built.params, built.static, shape_of(exp, "cast").type)
     if mesh is not None:
         params = jax.device_put(params, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
     compiled, _ = compile_batch_fn(cast_t_prim, (params, chunks[0]), mesh)
@@ -91,17 +93,18 @@ def _columns(prefix: str, s: Spread, digits: int) -> dict:
             f"{prefix}_max": round(s.max, digits)}
 
 
-def timed_cast(exp, obj, runs: int, warmup: int) -> dict:
+def timed_cast(exp, runs: int, warmup: int) -> dict:
     """``cast_s_median`` (and min, max) over ``runs`` warm casts of one build (:func:`cast_once`,
     timed by ``timing.warm_runs``). On an accelerator also ``cast_resident_s_median``: the same
     casts with the rays already on the device and the results left there (:func:`cast_resident`,
     as the Mitsuba peer is timed)."""
+    obj = shape_of(exp, "cast")
     built = registry.get(obj.type).build(obj, dtype_of(exp))
-    s = spread(warm_runs(lambda: cast_once(exp, obj, built)[1], runs, warmup).warm)
+    s = spread(warm_runs(lambda: cast_once(exp, built)[1], runs, warmup).warm)
     row = _columns("cast_s", s, 4)
     row["cast_mrays_per_s"] = round(exp.camera.width * exp.camera.height / s.median / 1e6, 4)
     if on_accelerator():
         chunks = resident_rays(exp, built)
-        res = spread(warm_runs(lambda: cast_resident(exp, obj, built, chunks)[0], runs, warmup).warm)
+        res = spread(warm_runs(lambda: cast_resident(exp, built, chunks)[0], runs, warmup).warm)
         row.update(_columns("cast_resident_s", res, 5))
     return row

@@ -1,7 +1,7 @@
 """What every peer study is given and how its depths are scored against jskel's reference.
 
-A study is ``fn(exp, obj, ref_hits, runs, rows, options) -> [row]``: the experiment and object
-of the bench's reference job, the reference render's hits, the number of warm runs, jskel's rows
+A study is ``fn(exp, ref_hits, runs, rows, options) -> [row]``: the experiment of the bench's
+reference job (a study of one object takes its shape by :func:`shape_of`), the reference render's hits, the number of warm runs, jskel's rows
 of the same group (for ratios and "similar quality" targets) and :class:`StudyOptions`.
 """
 
@@ -28,12 +28,22 @@ class Peers(NamedTuple):
     ``jskel.peers.PEERS``), so that ``jskel.measure`` and ``jskel.peers`` import neither the
     other: ``studies`` by the name a bench file's ``peer:`` gives them, each a study as above;
     ``mesh``: a sweep's ``peer: embree_mesh`` (a study too); ``mitsuba_image``: the latency
-    benchmark's Mitsuba process, ``(exp, obj, folder, variant) -> (command or None, image path
+    benchmark's Mitsuba process, ``(exp, folder, variant) -> (command or None, image path
     or why not)``. An empty default: a file that asks for a peer not given is refused."""
 
     studies: Mapping[str, Callable] = {}
     mesh: Callable | None = None
     mitsuba_image: Callable | None = None
+
+
+def shape_of(exp, key: str):
+    """The one object's shape of ``exp``, what a study of one object takes (its cast alone, a
+    peer's mesh or curves of it, in the object's own frame); a ValueError naming the file's
+    ``key`` where the experiment is a scene of several objects or moves its object."""
+    if len(exp.objects) != 1 or exp.objects[0].is_placed:
+        what = f"{len(exp.objects)} objects" if len(exp.objects) != 1 else "an object moved by a transform or motion"
+        raise ValueError(f"{key}: studies one object in its own frame (got {what})")
+    return exp.objects[0].shape
 
 
 def needed(what, key: str, value) -> Any:

@@ -50,8 +50,8 @@ def median_of(seconds, digits: int = 5) -> float:
     return round(float(statistics.median(seconds)), digits)
 
 
-def render_runs(exp, obj, runs: int, warmup: int) -> WarmRuns:
+def render_runs(exp, runs: int, warmup: int) -> WarmRuns:
     """Renders of one experiment (each with ``progress`` off): the first result (its ``run``
     holds compile and build seconds) and the ``runs`` warm results' ``run`` dicts."""
-    out = warm_runs(lambda: render(exp, obj, progress=False), runs, warmup)
+    out = warm_runs(lambda: render(exp, progress=False), runs, warmup)
     return WarmRuns(out.first, [r.run for r in out.warm])

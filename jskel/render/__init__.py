@@ -1,9 +1,10 @@
 """Render an experiment: build -> camera rays -> chunked (intersect + shade) -> AOVs.
 
-The batch functions are module-level and talk to the representation's interface only
-(``intersect_batch``, ``albedo``); the static options travel in the pytree
-(``interface.Object``, ``_scene.Scene``), so a second render of the same shapes reuses the
-compiled executable.
+One entry, :func:`render`, takes the one experiment value (a scene; of one object where the
+file wrote ``object:``), and one writer, :func:`run_record`, makes its run.json. The batch
+functions are module-level and talk to the representation's interface only
+(``intersect_batch``, ``albedo``); the static options travel in the pytree (``_scene.Scene``),
+so a second render of the same shapes reuses the compiled executable.
 """
 
 from __future__ import annotations
@@ -16,13 +17,11 @@ import jax
 import numpy as np
 
 from .. import registry
-from ..compile import executables
 from ..config import Experiment, chunk_of, chunks_per_call_of, resolved
 from ..rays import Hit, Rays, flag_counts, make_rays
 from ..compile.cache import count_programs, program_counts
 from ..camera import Camera, framing, tile_inverse, tile_order
 from ..executor import map_chunks
-from ..interface import Object
 from ._aov import write_aovs as write_aovs
 from ._sheet import aov_sheet as aov_sheet
 from ._sheet import panels_of as panels_of
@@ -36,13 +35,13 @@ from ..shading import shading_from_config as shading_from_config
 
 
 class RenderResult(NamedTuple):
-    """What a render returns: hits (NumPy, leading axis H*W), linear RGB, the 8-bit image, run.json's dict, and a scene's extra AOVs."""
+    """What a render returns: hits (NumPy, leading axis H*W), linear RGB, the 8-bit image, run.json's dict, and the extra AOVs."""
 
     hits: object  # NumPy Hit, leading axis H*W
     rgb: np.ndarray  # (H*W, 3) linear
     image: np.ndarray  # (H, W, 3) uint8
     run: dict  # what run.json holds
-    aovs: dict | None = None  # scenes: more per-pixel outputs (obj, visibility, ...), leading axis H*W
+    aovs: dict | None = None  # more per-pixel outputs (obj, visibility, ...: ``aovs_of``), leading axis H*W
 
 
 def camera_of(exp: Experiment) -> Camera:
@@ -135,25 +134,6 @@ def _trace(exp: Experiment, fn, params, rays: Rays, progress):
                          memory_budget=budget, group=chunks_per_call_of(exp.render))
 
 
-def _run_base(exp: Experiment, obj, build_s: float, res, n: int, primitives: int) -> dict:
-    """What every run.json starts with: the resolved config, versions, seconds, rays."""
-    return {
-        "config": resolved(exp, obj),
-        **environment(),
-        "build_s": build_s,
-        "compile_s": res.compile_s,
-        "compile_cached": res.compile_s == 0.0,
-        "render_s": res.run_s,
-        "rays": n,
-        "primitives": primitives,
-        "chunk": chunk_of(exp.render),
-        "devices_used": len(devices_of(exp) or [None]),
-        "processes": jax.process_count(),
-        "mrays_per_s": n / res.run_s / 1e6 if res.run_s > 0 else None,
-        "programs": program_counts(),  # this process's so far: compiled by XLA, loaded from the persistent cache
-    }
-
-
 def camera_rays(exp: Experiment, cam: Camera, origin, dtype) -> Rays:
     """``render.spp`` samples per pixel in screen-tile order, relative to ``origin`` (host):
     the first through the pixel centres (``Camera.tiled_rays``), the others jittered uniformly
@@ -201,153 +181,148 @@ def _integrate(exp: Experiment, params, static, origin, dtype, progress) -> _Fra
     return _Frame(res, int(rays.size), first, rgb, image)
 
 
-@jax.jit
-def _one_hit(obj: Object, o, d, a, b) -> Hit:
-    return obj.representation.intersect_one(obj.params, obj.static, o, d, a, b)
-
-
-def _reports_flags(obj: Object, dtype) -> bool:
-    """Does the representation's hit carry diagnostic flags? (from the shapes of one traced
-    ray, no compile; jit's own cache keys the trace on the object's static part and dtype)"""
-    z = jax.ShapeDtypeStruct((3,), dtype)
-    s = jax.ShapeDtypeStruct((), dtype)
-    return executables.eval_shape(_one_hit, obj, z, z, s, s).flags is not None  # stored: a warm process does not trace
-
-
 def _flag_counts(flags) -> dict:
     """run.json's ``flags``: the number of pixels carrying each bit, by the names of
     ``rays.FLAG_NAMES`` (the bits docs/numerics.md lists)."""
     return flag_counts(flags)
 
 
-def _single_run(exp: Experiment, obj, built, build_s: float, res, n: int, hits) -> dict:
-    """run.json of a single-object render."""
+def render(exp: Experiment, progress: bool | None = None) -> RenderResult:
+    """Render one frame of an experiment (host function; the heavy work is jitted in chunks):
+    the one entry of the CLI, the benchmarks, the sweeps, the fit and the viewer.
+
+    ``exp`` is the one experiment value (``config.load``): a scene, of one object where its
+    file wrote ``object:``; see ``jskel.render._scene`` for the integrator. ``render.spp``
+    samples per pixel: the first through the pixel centre (the AOVs come from it), the others
+    jittered uniformly in the pixel from ``render.seed``; the colour is their mean. Effects
+    exist only where the experiment calls for them, and so do their outputs (:func:`aovs_of`)."""
+    from ._build import assemble, place_objects, world_bounds
+
+    count_programs()
+    prog = exp.render.progress if progress is None else progress
+    _check_steps(exp)
+    dtype = dtype_of(exp)
+    t0 = time.perf_counter()
+    placed = place_objects(exp, dtype)
+    exp = framed(exp, world_bounds(placed))
+    params, static, origin, objects_info = assemble(exp, placed, dtype)
+    jax.block_until_ready(params)  # dispatch is asynchronous: the build ends here, not in the render
+    build_s = time.perf_counter() - t0
+    fr = _integrate(exp, params, static, origin, dtype, prog)
+    h = fr.first["hit"]
+    # hit positions back to world coordinates (host, float64)
+    hits = Hit(h.t, np.asarray(h.position, np.float64) + origin, h.normal, h.uv, h.prim, fr.first["flags"])
+    aovs = aovs_of(exp, placed, static, fr.first, hits)
+    run = run_record(exp, placed, static, fr, build_s, origin, objects_info, params, hits)
+    return RenderResult(hits, fr.rgb, fr.image, run, aovs or None)
+
+
+def aovs_of(exp: Experiment, placed, static, first: dict, hits: Hit) -> dict:
+    """A render's outputs beyond depth, normal, uv, prim and flags, each only where the
+    experiment calls for what it shows: ``obj`` (the object hit, -1 on a miss) with two objects
+    or more; ``visibility`` (per light, 1 lit / 0 shadowed) where a light casts shadows;
+    ``secondary`` (secondary rays per pixel) where a material reflects or refracts;
+    ``reflect_obj`` / ``refract_obj`` (where the path that starts with the pixel's first
+    reflection / refraction ray ends: the object its last ray hit, -1 if it escaped or there is
+    none; through a glass rod that is the object seen behind it; where a path branches, one of
+    the branches) with two objects or more; ``steps`` where ``render.steps`` asks; and each
+    representation's own (``Representation.extra_aovs``, e.g. a cell object's ``cell``) on the
+    pixels whose object it is."""
+    eff, obj = static.effects, first["hit"].obj
+    out = {}
+    if len(placed) > 1:
+        out["obj"] = obj
+    if eff.shadows:
+        out["visibility"] = first["visibility"]
+    if eff.bounces:
+        out["secondary"] = first["secondary"]
+    if len(placed) > 1 and eff.reflection:
+        out["reflect_obj"] = first["first_obj"][:, 0]
+    if len(placed) > 1 and eff.refraction:
+        out["refract_obj"] = first["first_obj"][:, 1]
+    for k, p in enumerate(placed):
+        mine = obj == k
+        theirs = hits if len(placed) == 1 else Hit(np.where(mine, hits.t, np.inf), hits.position, hits.normal, hits.uv,
+                                                   np.where(mine, hits.prim, -1), hits.flags)
+        for name, a in p.rep.extra_aovs(p.built, theirs).items():
+            a = np.asarray(a)
+            out[name] = a if name not in out else np.where(mine.reshape((-1,) + (1,) * (a.ndim - 1)), a, out[name])
+    if exp.render.steps:
+        out["steps"] = steps_image(exp, placed[0], static.identity[0])
+    return out
+
+
+def run_record(exp: Experiment, placed, static, fr, build_s: float, origin, objects_info: list, params, hits: Hit) -> dict:
+    """The one writer of ``run.json``: the resolved config (the experiment as a scene), versions,
+    seconds, rays, effects (where any), flag counts, each object's build info (``objects``) and
+    ``info``: the scene's counts, with a scene of one's build info beside them."""
+    res = fr.res
+    primitives = int(sum(i["primitives"] for i in objects_info))
+    info = {"objects": len(placed), "primitives": primitives}
+    if len(placed) == 1:
+        info = {**info, **placed[0].built.info}
     run = {
-        **_run_base(exp, obj, build_s, res, n, built.primitives),
+        "config": resolved(exp),
+        **environment(),
+        "build_s": build_s,
+        "compile_s": res.compile_s,
+        "compile_cached": res.compile_s == 0.0,
+        "render_s": res.run_s,
+        "rays": fr.rays,
+        "primitives": primitives,
+        "chunk": chunk_of(exp.render),
+        "devices_used": len(devices_of(exp) or [None]),
+        "processes": jax.process_count(),
+        "mrays_per_s": fr.rays / res.run_s / 1e6 if res.run_s > 0 else None,
+        "programs": program_counts(),  # this process's so far: compiled by XLA, loaded from the persistent cache
+        "spp": exp.render.spp,
+        "secondary_rays": int(np.sum(res.out["secondary"])),
         "hit_fraction": float(np.mean(np.isfinite(hits.t))),
-        "anchor": [float(x) for x in built.anchor],
-        "info": built.info,
-        "params_bytes": int(sum(getattr(x, "nbytes", 0) for x in jax.tree_util.tree_leaves(built.params))),
+        "origin": [float(x) for x in origin],
+        "objects": objects_info,
+        "info": info,
+        "params_bytes": int(sum(getattr(x, "nbytes", 0) for x in jax.tree_util.tree_leaves(params))),
         "peak_host_mb": peak_rss_mb(),
+        "flags": _flag_counts(res.out["flags"]),
     }
+    eff = static.effects
+    if eff.shadows or eff.reflection or eff.refraction:
+        run["effects"] = eff._asdict()
     if res.memory is not None:
         run["memory_budget"] = res.memory
     return run
 
 
-def render(exp: Experiment, obj, progress: bool | None = None) -> RenderResult:
-    """Render one frame of an experiment (host function; the heavy work is jitted in chunks).
-
-    ``obj`` is the validated ``object`` section, or for a scene (``objects:``) the tuple of the
-    objects' validated shapes (what ``config.load`` returns); scenes go to :func:`render_scene`.
-    A single object is a scene of one (``_build.build_single``): the same integrator, so
-    ``render.spp`` samples per pixel and shadows from lights whose section sets ``shadows:
-    true`` (then ``visibility.npy`` too) work for every object; without them it compiles no
-    secondary-ray code."""
-    from ._build import build_single
-
-    count_programs()
-    prog = exp.render.progress if progress is None else progress
-    if exp.is_scene:
-        return render_scene(exp, obj, prog)
-    rep = registry.get(obj.type)
-    _check_steps(exp, [rep])
-    dtype = dtype_of(exp)
-    t0 = time.perf_counter()
-    params, static, built = build_single(exp, obj, dtype)
-    exp = framed(exp, built.bounds)
-    jax.block_until_ready(built.params)  # dispatch is asynchronous: the build ends here, not in the render
-    build_s = time.perf_counter() - t0
-    fr = _integrate(exp, params, static, built.anchor, dtype, prog)
-    h = fr.first["hit"]
-    flags = _reports_flags(Object.of(rep, built), dtype)
-    # hit positions back to world coordinates (host, float64)
-    hits = Hit(h.t, np.asarray(h.position, np.float64) + built.anchor, h.normal, h.uv, h.prim, h.flags if flags else None)
-    run = _single_run(exp, obj, built, build_s, fr.res, fr.rays, hits)
-    if exp.render.spp > 1:
-        run["spp"] = exp.render.spp
-    if static.effects.shadows or static.effects.bounces:
-        run["effects"] = static.effects._asdict()
-    if flags:
-        run["flags"] = _flag_counts(fr.res.out["hit"].flags)
-    aovs = dict(rep.extra_aovs(built, hits))
-    if static.effects.shadows:
-        aovs["visibility"] = fr.first["visibility"]
-    if exp.render.steps:
-        aovs["steps"] = steps_image(exp, rep, built)
-    return RenderResult(hits, fr.rgb, image=fr.image, run=run, aovs=aovs or None)
-
-
-def _check_steps(exp: Experiment, reps) -> None:
-    """``render.steps`` is refused (``ValueError``, before anything is built) for a scene and
-    for a representation that counts no steps (``Representation.steps_per_ray`` left as is)."""
+def _check_steps(exp: Experiment) -> None:
+    """``render.steps`` is refused (``ValueError``, before anything is built) for a scene of
+    several objects and for a representation that counts no steps
+    (``Representation.steps_per_ray`` left as is)."""
     if not exp.render.steps:
         return
     from ..interface import Representation
 
-    if exp.is_scene:
-        raise ValueError("render.steps: true: a scene's steps are not counted (single objects of type 'cells' only)")
-    for rep in reps:
-        if type(rep).steps_per_ray is Representation.steps_per_ray:
-            raise ValueError(f"render.steps: true: object.type {rep.name!r} counts no search steps (cells do)")
+    if len(exp.objects) > 1:
+        raise ValueError(f"render.steps: true: a scene's steps are counted for one object (got {len(exp.objects)} objects)")
+    rep = registry.get(exp.objects[0].shape.type)
+    if type(rep).steps_per_ray is Representation.steps_per_ray:
+        raise ValueError(f"render.steps: true: {exp.objects[0].at(0)}.type {rep.name!r} counts no search steps (cells do)")
 
 
-def steps_image(exp: Experiment, rep, built) -> np.ndarray:
+def steps_image(exp: Experiment, p, identity: bool) -> np.ndarray:
     """(H*W,) int32 in image order: each pixel-centre camera ray's search steps
-    (``Representation.steps_per_ray``), one more pass over the rays of the render's first sample."""
+    (``Representation.steps_per_ray``) of the one object ``p`` (a ``_build.Placed``), one more
+    pass over the rays of the render's first sample, in the object's frame."""
     cam = camera_of(exp)  # ``exp`` as the render framed it
-    rays = cam.tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
-    steps = np.asarray(rep.steps_per_ray(built, rays, chunk_of(exp.render)), np.int32)
+    if identity:
+        rays = cam.tiled_rays(exp.render.tile, anchor=p.built.anchor, dtype=dtype_of(exp))
+    else:  # the camera rays placed in the object's frame on the host (float64), then cast
+        o, d = cam.ray_arrays(anchor=np.zeros(3))
+        order = tile_order(cam.width, cam.height, exp.render.tile)
+        rt = p.rotation.T
+        o_obj = (o[order] - p.translate) @ rt.T / p.scale - np.asarray(p.built.anchor, np.float64)
+        rays = make_rays(o_obj, d[order] @ rt.T, 0.0, np.inf, dtype_of(exp))
+    steps = np.asarray(p.rep.steps_per_ray(p.built, rays, chunk_of(exp.render)), np.int32)
     return steps[tile_inverse(cam.width, cam.height, exp.render.tile)]
 
 
-def render_scene(exp: Experiment, shapes, progress: bool | None = None) -> RenderResult:
-    """Render one frame of a scene (``objects:``): see ``jskel.render._scene``.
-
-    ``render.spp`` samples per pixel: the first through the pixel centre (the AOVs come from
-    it), the others jittered uniformly in the pixel from ``render.seed``; the colour is their
-    mean. Extra AOVs: ``obj`` (object index, -1 on a miss), ``visibility`` (per light, 1 lit /
-    0 shadowed), ``reflect_obj`` / ``refract_obj`` (where the path that starts with the
-    pixel's first reflection / refraction ray ends: the object its last ray hit, -1 if it
-    escaped or there is none; through a glass rod that is the object seen behind it; where a
-    path branches, one of the branches) and ``secondary`` (secondary rays per pixel)."""
-    from ._build import build_scene, place_objects, world_bounds
-
-    _check_steps(exp, [])
-    count_programs()
-    dtype = dtype_of(exp)
-    t0 = time.perf_counter()
-    placed = place_objects(exp, shapes, dtype)
-    exp = framed(exp, world_bounds(placed))
-    params, static, eye, objects_info, primitives = build_scene(exp, shapes, dtype, placed)
-    jax.block_until_ready(params)
-    build_s = time.perf_counter() - t0
-    fr = _integrate(exp, params, static, eye, dtype, progress)
-    first = fr.first
-    h = first["hit"]
-    hits = Hit(h.t, np.asarray(h.position, np.float64) + eye, h.normal, h.uv, h.prim, first["flags"])
-    eff = static.effects
-    aovs = {"obj": h.obj, "visibility": first["visibility"], "secondary": first["secondary"]}
-    if eff.reflection:
-        aovs["reflect_obj"] = first["first_obj"][:, 0]
-    if eff.refraction:
-        aovs["refract_obj"] = first["first_obj"][:, 1]
-    out = fr.res.out
-    run = {
-        **_run_base(exp, shapes, build_s, fr.res, fr.rays, primitives),
-        "spp": exp.render.spp,
-        "effects": eff._asdict(),
-        "secondary_rays": int(np.sum(out["secondary"])),
-        "hit_fraction": float(np.mean(np.isfinite(h.t))),
-        "eye": [float(x) for x in eye],
-        "objects": objects_info,
-        "info": {"objects": len(shapes), "primitives": primitives},
-        "params_bytes": int(sum(getattr(x, "nbytes", 0) for x in jax.tree_util.tree_leaves(params))),
-        "peak_host_mb": peak_rss_mb(),
-        "flags": _flag_counts(out["flags"]),
-    }
-    if fr.res.memory is not None:
-        run["memory_budget"] = fr.res.memory
-    return RenderResult(hits, fr.rgb.astype(np.float32), fr.image, run, aovs)
-
-__all__ = ["aov_sheet", "Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "framed", "lights_from_config", "output_transform", "panels_of", "peak_rss_mb", "camera_rays", "render", "render_scene", "shade_one", "shading_from_config", "write_aovs"]
+__all__ = ["aov_sheet", "aovs_of", "Lights", "RenderResult", "Shading", "camera_of", "devices_of", "dtype_of", "encode_png", "environment", "framed", "lights_from_config", "output_transform", "panels_of", "peak_rss_mb", "camera_rays", "render", "run_record", "shade_one", "shading_from_config", "write_aovs"]

@@ -1,15 +1,16 @@
-"""What the integrator (``render/_scene.py``) traces, assembled on the host: a scene's objects
-with their transforms and materials, or a single object as a scene of one.
+"""What the integrator (``render/_scene.py``) traces, assembled on the host from the one
+experiment value (``config.Experiment``): its objects with their transforms and materials.
 
-Both go through :func:`assemble`: every object is built by its representation, placed by a
-transform (float64 offsets between the rays' frame and the frame its params are stored in) and
-given a material; which effects exist is decided here, statically, from what the experiment
-asks for (:class:`Effects`).
+Every object is built by its representation (:func:`place_objects`), placed by a transform
+(float64 offsets between the rays' frame and the frame its params are stored in) and given a
+material (:func:`assemble`); which effects exist is decided here, statically, from what the
+experiment asks for (:class:`Effects`).
 
-The rays' frame. A scene's rays are relative to the camera's eye (camera-relative rendering).
-A single object's are relative to its build anchor, as a single-object render always was: with
-the identity transform the offsets are exactly zero, so a primary ray reaches the object, and
-its hit comes back, as the very floats the representation gives.
+The rays' frame. A scene of several objects has its rays relative to the camera's eye
+(camera-relative rendering); a scene of one, relative to its object's anchor placed in the
+world. An object at its own anchor (a file's ``object:`` section: no transform) then has
+offsets of exactly zero, so a primary ray reaches it, and its hit comes back, as the very floats
+the representation gives (``SceneStatic.identity``: the transform is skipped).
 """
 
 from __future__ import annotations
@@ -87,13 +88,16 @@ class SceneStatic(NamedTuple):
     effects: Effects
     lanes: int
     compaction: bool = True  # False: every queue slot traced against every object (masking; for the benchmark)
-    single: bool = False  # a scene of one: camera rays traced as one batch, outputs as a single-object render's
+    identity: tuple = ()  # per object: its placement is exactly the identity in the rays' frame (skipped)
     sky: bool = False  # a scene of one whose object carries its own environment: misses see it
+    paths: tuple = ()  # per object: its key path as the file wrote it (``object``, ``objects[i]``), for messages
 
 
 class Placed(NamedTuple):
-    """One object ready to assemble: its name, representation, build, transform and material."""
+    """One object ready to assemble: its key path, name, representation, build, transform,
+    material and the material of its own it asks for (``interface.OwnMaterial``; None)."""
 
+    at: str
     name: str
     rep: object
     built: object
@@ -101,27 +105,26 @@ class Placed(NamedTuple):
     rotation: np.ndarray  # (3, 3) float64
     translate: np.ndarray  # (3,) float64
     material: object  # config.MaterialConfig
+    own: object = None
 
 
-def shadow_lights(exp, single: bool) -> np.ndarray:
-    """(L,) bool: which lights cast shadows. In a scene a light's ``shadows`` (default true);
-    for a single object only a light whose section sets ``shadows: true`` itself, so a
-    single-object experiment written before shadows existed renders as it did, without
-    shadow rays."""
-    out = [l.shadows and (not single or "shadows" in l.model_fields_set) for l in exp.lights]
-    return np.array(out or [False])
+def shadow_lights(exp) -> np.ndarray:
+    """(L,) bool: which lights cast shadows (each light's ``shadows``; a file's ``object:``
+    section sets it false where the light's section did not set it, ``ExperimentFile.experiment``)."""
+    return np.array([l.shadows for l in exp.lights] or [False])
 
 
-def effects_of(exp, single: bool = False, own=None) -> Effects:
-    """The effects an experiment calls for (host, static). A single object has the default
-    material (neither reflection nor refraction) unless its section asks for its own (``own``,
-    an ``interface.OwnMaterial``: its reflectivity, transparency and bounces)."""
-    mats = ([] if own is None else [own]) if single else [o.material for o in exp.objects]
+def effects_of(exp, placed: list[Placed]) -> Effects:
+    """The effects an experiment calls for (host, static): reflection where a material has
+    ``reflectivity > 0``, refraction where one has ``transparency > 0`` (an object's own
+    material, a cell object's mode, counts as its material), shadows where a light of non-zero
+    intensity casts them, bounces only with reflection or refraction (an own material's)."""
+    mats = [p.material for p in placed]
     refl = any(m.reflectivity > 0 for m in mats)
     refr = any(m.transparency > 0 for m in mats)
-    casts = shadow_lights(exp, single)
-    shadows = any(bool(c) and l.intensity > 0 for c, l in zip(casts, exp.lights))
-    bounces = exp.render.bounces if own is None else own.bounces
+    shadows = any(bool(c) and l.intensity > 0 for c, l in zip(shadow_lights(exp), exp.lights))
+    own = [p.own for p in placed if p.own is not None]
+    bounces = own[0].bounces if own else exp.render.bounces
     return Effects(shadows, refl, refr, bounces if (refl or refr) else 0)
 
 
@@ -140,17 +143,22 @@ def _shape_at(shape, rep, frame: float):
     return rep.at_frame(shape, shape.frame + frame) if frame != 0.0 and rep.animated else shape
 
 
-def _check_shape(i: int, o, shape, rep):
-    """Host checks of what a representation can do in a scene (interface flags, not types)."""
+def _check_shape(i: int, o, shape, rep, alone: bool):
+    """Host checks of what a representation can do in a scene (interface flags, not types);
+    returns the material of its own the shape asks for (``Representation.own_material``)."""
     if o.material.transparency > 0 and not rep.exits_from_inside(shape):
         raise ValueError(
             f"objects[{i}].material.transparency: {o.material.transparency} on a {shape.type} object, whose tracer "
             "searches for the first entry only (a transparent object must report the exit of a ray from inside: plain frusta do)")
     own = rep.own_material(shape)
-    if own is not None:
+    if own is not None and not alone:
         raise ValueError(
             f"objects[{i}].shape.{own.asked_by}; in a scene an object is shaded by its material "
             "(material.reflectivity / transparency), not by effects of its own: give mode: first_hit")
+    if own is not None and o.material != type(o.material)():
+        raise ValueError(f"objects[{i}].material: set on an object shaded by effects of its own (shape.{own.asked_by}): "
+                         "leave the material unset, or give mode: first_hit")
+    return own
 
 
 def _world_corners(p: Placed) -> np.ndarray:
@@ -171,6 +179,24 @@ def _xform(p: Placed, origin: np.ndarray, dtype) -> XForm:
     return XForm(*(on_device(v, dtype) for v in (r.T, r, s, c, g, w.min(0) - pad, w.max(0) + pad)))
 
 
+def _is_identity(p: Placed, origin: np.ndarray) -> bool:
+    """Whether the object's placement in the rays' frame is exactly the identity (scale 1, no
+    rotation, zero offsets in float64): its rays and hits then skip the transform."""
+    a = np.asarray(p.built.anchor, np.float64)
+    c = p.rotation.T @ (origin - p.translate) / p.scale - a
+    g = p.scale * (p.rotation @ a) + p.translate - origin
+    return p.scale == 1.0 and np.array_equal(p.rotation, np.eye(3)) and not np.any(c) and not np.any(g)
+
+
+def origin_of(exp, placed: list[Placed]) -> np.ndarray:
+    """The point the rays are relative to (host, float64): a scene of one's object anchor placed
+    in the world (its own anchor where it is not moved), else the camera's eye."""
+    if len(placed) == 1:
+        p = placed[0]
+        return p.scale * (p.rotation @ np.asarray(p.built.anchor, np.float64)) + p.translate
+    return np.asarray(exp.camera.eye, np.float64)
+
+
 def _offset(p: Placed) -> float:
     """World distance a secondary ray starts off the object's surface (``Built.secondary_offset``,
     by default four times its surface tolerance)."""
@@ -178,17 +204,17 @@ def _offset(p: Placed) -> float:
     return p.scale * (4.0 * p.built.surface_tolerance if off is None else off)
 
 
-def assemble(exp, placed: list[Placed], origin, dtype, single: bool = False, own=None):
-    """Scene arrays of placed objects, rays relative to ``origin`` (host); ``own``: a single
-    object's own material (``interface.OwnMaterial``). Returns (params, static, info per object)."""
-    origin = np.asarray(origin, np.float64)
+def assemble(exp, placed: list[Placed], dtype):
+    """Scene arrays of placed objects, rays relative to :func:`origin_of` (host). Returns
+    (params, static, origin, info per object)."""
+    origin = origin_of(exp, placed)
     mats = [p.material for p in placed]
     sh = exp.shading
     cols = [m.color for m in mats]
     spec = [sh.specular if m.specular is None else m.specular for m in mats]
     shin = [sh.shininess if m.shininess is None else m.shininess for m in mats]
     off = [_offset(p) for p in placed]
-    ends = [[float(own is not None and getattr(own, f))] * len(placed) for f in ("last_local", "last_env", "local_once", "tint")]
+    ends = [[float(p.own is not None and getattr(p.own, f)) for p in placed] for f in ("last_local", "last_env", "local_once", "tint")]
     mat = Materials(*(on_device(np.asarray(v, np.float64), dtype) for v in (
         cols, spec, shin, [m.reflectivity for m in mats], [m.transparency for m in mats], [m.ior for m in mats], off, *ends)))
     bg = np.asarray(sh.background, np.float64)
@@ -196,11 +222,13 @@ def assemble(exp, placed: list[Placed], origin, dtype, single: bool = False, own
     env = np.array([bg if v is None else v for v in (ev.zenith, ev.horizon, ev.ground)], np.float64)
     lights = lights_from_config(exp.lights, dtype, origin=origin)
     params = SceneParams(tuple(p.built.params for p in placed), tuple(_xform(p, origin, dtype) for p in placed), mat, lights,
-                         on_device(shadow_lights(exp, single)), on_device(sh.ambient, dtype), on_device(env, dtype))
-    static = SceneStatic(tuple(p.rep.name for p in placed), tuple(p.built.static for p in placed), effects_of(exp, single, own),
-                         int(exp.render.lanes), bool(exp.render.compaction), single, single and placed[0].rep.own_environment)
+                         on_device(shadow_lights(exp)), on_device(sh.ambient, dtype), on_device(env, dtype))
+    sky = len(placed) == 1 and placed[0].rep.own_environment and ev == type(ev)()
+    static = SceneStatic(tuple(p.rep.name for p in placed), tuple(p.built.static for p in placed), effects_of(exp, placed),
+                         int(exp.render.lanes), bool(exp.render.compaction), tuple(_is_identity(p, origin) for p in placed),
+                         bool(sky), tuple(p.at for p in placed))
     info = [{"name": p.name, "type": p.rep.name, "primitives": p.built.primitives, **p.built.info} for p in placed]
-    return params, static, info
+    return params, static, origin, info
 
 
 #: a build says what it is building (``jskel.progress.notice_after``) once it has taken this
@@ -208,17 +236,24 @@ def assemble(exp, placed: list[Placed], origin, dtype, single: bool = False, own
 BUILD_NOTICE_S = 1.0
 
 
-def place_objects(exp, shapes, dtype) -> list[Placed]:
-    """Build every object of a scene (``objects:``) and place it (host)."""
-    placed = []
-    for i, (o, shape) in enumerate(zip(exp.objects, shapes)):
+def place_objects(exp, dtype) -> list[Placed]:
+    """Build every object of the experiment and place it (host); an object whose shape asks for
+    a material of its own (a cell object's reflection or refraction mode, alone in its scene)
+    gets it as its material."""
+    from ..config import MaterialConfig
+
+    placed, n = [], len(exp.objects)
+    for i, o in enumerate(exp.objects):
+        shape = o.shape
         rep = registry.get(shape.type)
-        _check_shape(i, o, shape, rep)
-        name = o.name or f"objects[{i}]"
-        with progress.notice_after(BUILD_NOTICE_S, f"building {name} ({shape.type}, {i + 1} of {len(shapes)})"):
+        own = _check_shape(i, o, shape, rep, n == 1)
+        name = o.name or o.at(i)
+        what = f"building {name} ({shape.type}, {i + 1} of {n})" if n > 1 else f"building the object ({shape.type})"
+        with progress.notice_after(BUILD_NOTICE_S, what):
             built = rep.build(_shape_at(shape, rep, exp.frame), dtype)
         s, r, t = object_transform(o, exp.frame)
-        placed.append(Placed(name, rep, built, s, r, t, o.material))
+        mat = o.material if own is None else MaterialConfig(reflectivity=own.reflectivity, transparency=own.transparency, ior=own.ior)
+        placed.append(Placed(o.at(i), name, rep, built, s, r, t, mat, own))
     return placed
 
 
@@ -228,31 +263,13 @@ def world_bounds(placed: list[Placed]):
     return w.min(0), w.max(0)
 
 
-def build_scene(exp, shapes, dtype, placed: list[Placed] | None = None):
-    """Build every object of a scene (``objects:``; or take them already ``placed``) and the
-    scene's arrays (host). Returns (params, static, eye, info per object, primitives in all)."""
-    eye = np.asarray(exp.camera.eye, np.float64)
-    placed = place_objects(exp, shapes, dtype) if placed is None else placed
-    params, static, info = assemble(exp, placed, eye, dtype)
-    return params, static, eye, info, int(sum(i["primitives"] for i in info))
+def build_scene(exp, dtype, placed: list[Placed] | None = None):
+    """Build every object of the experiment (or take them already ``placed``) and the scene's
+    arrays (host). Returns (params, static, origin, info per object, primitives in all)."""
+    placed = place_objects(exp, dtype) if placed is None else placed
+    params, static, origin, info = assemble(exp, placed, dtype)
+    return params, static, origin, info, int(sum(i["primitives"] for i in info))
 
 
-def build_single(exp, obj, dtype):
-    """A single object (``object:``) as a scene of one: identity transform, the default
-    material (colour 1, the shading section's specular and shininess, no reflection or
-    refraction) or the one its section asks for (``Representation.own_material``: a cell
-    object's reflection mode), rays relative to its anchor. Returns (params, static, built)."""
-    from ..config import MaterialConfig
-
-    rep = registry.get(obj.type)
-    own = rep.own_material(obj)
-    with progress.notice_after(BUILD_NOTICE_S, f"building the object ({obj.type})"):
-        built = rep.build(obj, dtype)
-    mat = MaterialConfig() if own is None else MaterialConfig(reflectivity=own.reflectivity, transparency=own.transparency, ior=own.ior)
-    p = Placed("object", rep, built, 1.0, np.eye(3), np.zeros(3), mat)
-    params, static, _ = assemble(exp, [p], built.anchor, dtype, single=True, own=own)
-    return params, static, built
-
-
-__all__ = ["Effects", "Materials", "Placed", "SceneParams", "SceneStatic", "XForm", "assemble", "build_scene", "build_single",
-           "effects_of", "object_transform", "place_objects", "shadow_lights", "world_bounds"]
+__all__ = ["Effects", "Materials", "Placed", "SceneParams", "SceneStatic", "XForm", "assemble", "build_scene",
+           "effects_of", "object_transform", "origin_of", "place_objects", "shadow_lights", "world_bounds"]

@@ -2,7 +2,7 @@
 ``_scene``): the nearest hit over all objects and the any-hit test of shadow rays. Each object
 is reached through the representation interface in its own frame (``XForm``), and traces only
 the rays that cross its world bounding box, compacted into dense sub-batches
-(``wavefront.compact_map``); a scene of one skips its identity transform."""
+(``wavefront.compact_map``); an object placed exactly at its anchor skips its identity transform."""
 
 from __future__ import annotations
 
@@ -58,7 +58,7 @@ def _to_object(x: XForm, rays: Rays) -> Rays:
 
 def _object_hits(rep_name: str, static, p, x: XForm, k: int, rays: Rays, identity: bool = False) -> SceneHit:
     """Object k's hits of ``rays`` in the rays' frame. ``identity``: the transform is the
-    identity (a scene of one), so the rays and hits skip it (the same floats: ``_apply`` is
+    identity (``SceneStatic.identity``: a scene of one at its anchor), so the rays and hits skip it (the same floats: ``_apply`` is
     exact for the identity and its offsets are zero)."""
     rep = registry.get(rep_name)
     local = rays if identity else _to_object(x, rays)
@@ -90,16 +90,17 @@ def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live, any_hit=
     ``jnp.isfinite(t)`` means anything (what the interface's default ``occluded`` asks)."""
     n, dtype = rays.size, rays.origins.dtype
     eff = static.effects
-    if static.single and not (eff.reflection or eff.refraction):  # a scene of one, camera rays only: one batch (the representation culls), as computed once
-        fn = functools.partial(_object_hits, static.reps[0], static.statics[0], params.objects[0], params.xforms[0], 0, identity=True)
+    if len(static.reps) == 1 and not (eff.reflection or eff.refraction):  # a scene of one, camera rays only: one batch (the representation culls)
+        fn = functools.partial(_object_hits, static.reps[0], static.statics[0], params.objects[0], params.xforms[0], 0,
+                               identity=static.identity[0])
         return fenced(always(rays.t_min), lambda: fn(rays))
     best = _miss(n, dtype)
     for ks in groups(params, static):
-        def merge(best, p, x, k, rep=static.reps[ks[0]], st=static.statics[ks[0]]):
+        def merge(best, p, x, k, rep=static.reps[ks[0]], st=static.statics[ks[0]], identity=static.identity[ks[0]]):
             need = (live & _box_crossed(rays, x.lo, x.hi)) if static.compaction else jnp.ones_like(live)
             if any_hit is not None and static.compaction:
                 need = need & ~(any_hit & jnp.isfinite(best.t))
-            fn = functools.partial(_object_hits, rep, st, p, x, k, identity=static.single)
+            fn = functools.partial(_object_hits, rep, st, p, x, k, identity=identity)
             return _closer(compact_map(fn, need, rays, _miss(n, dtype), static.lanes), best)
 
         if len(ks) == 1:
@@ -118,9 +119,9 @@ def groups(params: SceneParams, static: SceneStatic) -> list:
     mirror and glass rod of one segment each share a shape bucket, so their traversal is
     compiled once, not three times)."""
     found: dict = {}
-    for k, (rep, st, obj) in enumerate(zip(static.reps, static.statics, params.objects)):
+    for k, (rep, st, obj, ident) in enumerate(zip(static.reps, static.statics, params.objects, static.identity)):
         leaves, tree = jax.tree_util.tree_flatten(obj)
-        found.setdefault((rep, st, tree, tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves)), []).append(k)
+        found.setdefault((rep, st, ident, tree, tuple((jnp.shape(a), jnp.result_type(a)) for a in leaves)), []).append(k)
     return list(found.values())
 
 

@@ -1,20 +1,20 @@
-"""The integrator of every render: scenes of several objects with materials, lights and
-effects (issue 7), and a single object as a scene of one (``_build.build_single``).
+"""The integrator of every render: a scene of objects with materials, lights and effects
+(issue 7); a file's single ``object:`` is a scene of one (``config.ExperimentFile.experiment``).
 
 A scene (``objects:`` in an experiment) holds objects of any representation, each with a
 transform (uniform scale, XYZ Euler rotation, translation; plus a rigid ``motion`` per frame),
 a material, and lights (directional or point, each casting shadows or not). The renderer talks
 to every object through the representation interface only (``intersect_batch`` or
 ``intersect_one``, ``albedo``), so it never branches on a representation's type inside a kernel.
-A single object is the same program with one object, the identity transform and the default
-material; its camera rays are traced as one batch (``SceneStatic.single``: no box test, the
-representation culls) and it returns a single-object render's outputs.
+A scene of one is the same program with one object; without reflection or refraction its camera
+rays are traced as one batch (no box test: the representation culls), and an object at its own
+anchor skips its transform (``SceneStatic.identity``).
 
 Frame. Rays are expressed relative to the camera's eye ("camera-relative rendering"): the
 host computes, in float64, each object's offsets between that frame and the frame its params
 are stored in (its build anchor), so float32 keeps full precision near the camera wherever the
 scene sits in the world; with an identity transform a primary ray reaches an object as the
-very floats a single-object render gives it (the two-object test relies on it).
+very floats the representation's own cast gives it (the two-object test relies on it).
 
 Effects only where the scene calls for them, in both senses:
 
@@ -55,7 +55,7 @@ a fixed epsilon fails once the scene is scaled or moved.
 Transparent objects must report the exit of a ray from inside (``exits_from_inside(cfg)`` in
 the interface: frusta without relief, whose intersection is analytic, and a cell object in
 refraction mode); the implicit tracer searches for the first entry only (a ValueError says so).
-A single object may state a material of its own (``Representation.own_material``): a cell
+An object alone in its scene may state a material of its own (``Representation.own_material``): a cell
 object's reflection and refraction modes (Nürnberg 2011, Alg. 3.2-3.3) are such materials, with
 ``Materials.last_local``, ``last_env``, ``local_once`` and ``tint`` saying how their paths end.
 """
@@ -70,7 +70,7 @@ import jax.numpy as jnp
 
 from .. import checks, registry
 from ..numerics import safe_normalize
-from ..rays import FLAG_BAD_DIRECTION, FLAG_OVERFLOW, FLAG_TIR, Hit, Rays, or_flags_at
+from ..rays import FLAG_BAD_DIRECTION, FLAG_OVERFLOW, FLAG_TIR, Rays, or_flags_at
 from ..wavefront import compact_map
 from ..shading import facing, light_at, shade_local
 from ._build import Effects as Effects
@@ -82,7 +82,6 @@ from ._queue import _camera_queue, _tir, _transmitted
 from ._queue import spawn as spawn
 from ._queue import spawned as spawned
 from ._build import build_scene as build_scene
-from ._build import build_single as build_single
 from ._build import effects_of as effects_of
 
 
@@ -279,12 +278,8 @@ def scene_batch(static: SceneStatic):
         q = _camera_queue(rays, cap_factor * n)
         rec = Records(jnp.zeros((n, 3), dtype), jnp.zeros((n,), jnp.int32), jnp.full((n, 2), -1, jnp.int32),
                       jnp.zeros((n,), jnp.int32), _miss(n, dtype), jnp.ones((n, params.lights.radiance.shape[0]), dtype))
-        rec = (_piped if eff.shadows and not static.single else _levels)(params, static, q, rec)
-        aov, flags = rec.aov, rec.flags
-        if static.single:  # a single object's outputs: its hit, the colour, the shadows it asked for
-            out = {"hit": Hit(aov.t, aov.position, aov.normal, aov.uv, aov.prim, flags), "rgb": rec.rgb}
-            return {**out, "visibility": rec.vis0} if eff.shadows else out
-        return {"hit": aov, "rgb": rec.rgb, "visibility": rec.vis0, "flags": flags, "first_obj": rec.first_obj, "secondary": rec.secondary}
+        rec = (_piped if eff.shadows and len(static.reps) > 1 else _levels)(params, static, q, rec)
+        return {"hit": rec.aov, "rgb": rec.rgb, "visibility": rec.vis0, "flags": rec.flags, "first_obj": rec.first_obj, "secondary": rec.secondary}
 
     return batch
 
@@ -322,16 +317,17 @@ def scene_call(scene: Scene, rays: Rays) -> dict:
 
 
 def _scene_problems(scene: Scene, rays: Rays):
-    """``jskel.checks.traced`` on the camera rays, every object's ``traced_fields`` (under
-    ``object.`` for a single object, ``objects[i].`` in a scene), its placement (``xform``: scale
-    positive, rotation and offsets finite) and the lights' directions and radiance (finite)."""
+    """``jskel.checks.traced`` on the camera rays, every object's ``traced_fields`` (under its key
+    path as the file wrote it: ``object.``, ``objects[i].``), its placement unless it is the
+    identity (``xform``: scale positive, rotation and offsets finite) and the lights' directions
+    and radiance (finite)."""
     found = checks.traced("rays.origins", rays.origins) + checks.traced("rays.directions", rays.directions, "nonzero")
-    p, single = scene.params, scene.static.single
-    for i, (rep, obj, x) in enumerate(zip(scene.static.reps, p.objects, p.xforms)):
-        at = "object." if single else f"objects[{i}]."
+    p, st = scene.params, scene.static
+    for rep, obj, x, path, ident in zip(st.reps, p.objects, p.xforms, st.paths, st.identity):
+        at = path + "."
         for name, (a, kind, valid, ids) in registry.get(rep).traced_fields(obj).items():
             found += checks.traced(at + name, a, kind, valid, ids)
-        if not single:  # its placement (``SceneParams.xforms[i]``), by the field's name
+        if not ident:  # its placement (``SceneParams.xforms[i]``), by the field's name
             found += checks.traced(at + "xform.s", jnp.reshape(x.s, (1,)), "positive")
             for name in ("r", "c", "g"):
                 found += checks.traced(f"{at}xform.{name}", jnp.reshape(getattr(x, name), (1, -1)))
@@ -346,6 +342,6 @@ def _scene_problems(scene: Scene, rays: Rays):
 checked_scene_call = checks.checked(scene_call, _scene_problems)
 
 
-__all__ = ["Effects", "Queue", "Scene", "SceneHit", "build_scene", "build_single", "effects_of", "nearest", "occluded",
+__all__ = ["Effects", "Queue", "Scene", "SceneHit", "build_scene", "effects_of", "nearest", "occluded",
            "checked_scene_call", "scene_batch", "scene_call", "shade_level", "spawn", "spawned"]
 

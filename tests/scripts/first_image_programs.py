@@ -134,10 +134,10 @@ def main():
     from jskel.config import load as load_experiment
     from jskel.render import render
 
-    exp, obj = load_experiment(None if args.experiment == "default" else args.experiment, [])
+    exp = load_experiment(None if args.experiment == "default" else args.experiment, [])
     restore = _record()
     c0 = time.process_time()
-    render(exp, obj, progress=False)
+    render(exp, progress=False)
     print(json.dumps(dict(experiment=args.experiment, cold_render_cpu=round(time.process_time() - c0, 2))), flush=True)
     restore()
     for rec in list(_seen):

@@ -348,13 +348,16 @@ for trav in ("packets", "walks"):
 if wanted("render_implicit"):
     from jskel.config import validate  # noqa: E402
     from jskel.render import camera_of, camera_rays  # noqa: E402
-    from jskel.render._scene import Scene, build_single, scene_call  # noqa: E402
+    from jskel.render._build import place_objects  # noqa: E402
+    from jskel.render._scene import Scene, build_scene, scene_call  # noqa: E402
 
-    exp, obj = validate({"object": {"type": "implicit", "threshold": 0.5, "method": "lipschitz", "step": 0.01, "eps": 1e-3, "bisection": 40,
-                                    "balls": [{"center": [0, 0, 0], "radius": 1.0}, {"center": [0.5, 0.3, 0.1], "radius": 0.8}]},
-                         "camera": {"eye": [0.4, 0.5, 3.0], "target": [0.2, 0.1, 0], "up": [0, 1, 0], "fov_deg": 25, "width": 6, "height": 6},
-                         "lights": [{"direction": [0.3, 0.5, 1.0]}]})
-    params, static, b = build_single(exp, obj, np.float64)
+    exp = validate({"object": {"type": "implicit", "threshold": 0.5, "method": "lipschitz", "step": 0.01, "eps": 1e-3, "bisection": 40,
+                               "balls": [{"center": [0, 0, 0], "radius": 1.0}, {"center": [0.5, 0.3, 0.1], "radius": 0.8}]},
+                    "camera": {"eye": [0.4, 0.5, 3.0], "target": [0.2, 0.1, 0], "up": [0, 1, 0], "fov_deg": 25, "width": 6, "height": 6},
+                    "lights": [{"direction": [0.3, 0.5, 1.0]}]})
+    placed = place_objects(exp, np.float64)
+    params, static, _, _, _ = build_scene(exp, np.float64, placed)
+    b = placed[0].built
     rays = jax.tree_util.tree_map(jnp.asarray, camera_rays(exp, camera_of(exp), b.anchor, np.float64))  # (as device arrays: constants of a custom root)
     theta, params_of = implicit_free(b, None)
 

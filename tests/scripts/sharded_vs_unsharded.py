@@ -34,8 +34,8 @@ out = {"devices": jax.local_device_count()}
 for name, (path, extra) in cases.items():
     res = {}
     for dev in ("one", "all"):
-        exp, obj = config.load(path, ["camera.width=40", "camera.height=30", "render.chunk=150", "render.chunks_per_call=1", f"render.devices={dev}", *extra])
-        r = render(exp, obj, progress=False)
+        exp = config.load(path, ["camera.width=40", "camera.height=30", "render.chunk=150", "render.chunks_per_call=1", f"render.devices={dev}", *extra])
+        r = render(exp, progress=False)
         res[dev] = (r.hits, r.rgb, r.run["devices_used"])
     a, b = res["one"], res["all"]
     same = all(np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True) for x, y in zip(jax.tree_util.tree_leaves(a[0]), jax.tree_util.tree_leaves(b[0])))
@@ -53,12 +53,13 @@ from jskel import registry  # noqa: E402
 from jskel.probe.cast import cast_resident, resident_rays  # noqa: E402
 from jskel.camera import tile_inverse  # noqa: E402
 
-exp, obj = config.load("experiments/saguaro.yaml", ["camera.width=40", "camera.height=30", "render.chunk=150", "render.devices=all"])
-want = render(*config.load("experiments/saguaro.yaml", ["camera.width=40", "camera.height=30", "render.chunk=150", "render.devices=one"]),
-              progress=False).hits
+exp = config.load("experiments/saguaro.yaml", ["camera.width=40", "camera.height=30", "render.chunk=150", "render.devices=all"])
+obj = exp.objects[0].shape
+want = render(config.load("experiments/saguaro.yaml", ["camera.width=40", "camera.height=30", "render.chunk=150", "render.devices=one"]),
+             progress=False).hits
 built = registry.get(obj.type).build(obj, np.float32)
 chunks = resident_rays(exp, built)
-_, outs = cast_resident(exp, obj, built, chunks)
+_, outs = cast_resident(exp, built, chunks)
 inv = tile_inverse(40, 30, exp.render.tile)
 t = np.concatenate([np.asarray(o[0]) for o in outs])[:1200][inv]
 prim = np.concatenate([np.asarray(o[1]) for o in outs])[:1200][inv]

@@ -49,11 +49,11 @@ def _measured_compile(batch_fn, example_args, mesh=None):
 
 def measure(path, setting: str, runs: int) -> dict:
     overrides = [] if setting == "auto" else setting.split("+")
-    exp, obj = load_experiment(None if path == "default" else path, overrides)
+    exp = load_experiment(None if path == "default" else path, overrides)
     _seen.clear()
     before = program_counts()
     c0 = time.process_time()
-    render(exp, obj, progress=False)
+    render(exp, progress=False)
     cold_cpu = time.process_time() - c0
     after = program_counts()
     programs = after["compiled"] - before["compiled"]
@@ -62,7 +62,7 @@ def measure(path, setting: str, runs: int) -> dict:
     cpu, wall = [], []
     for _ in range(runs):
         c0, w0 = time.process_time(), time.perf_counter()
-        render(exp, obj, progress=False)
+        render(exp, progress=False)
         cpu.append(time.process_time() - c0)
         wall.append(time.perf_counter() - w0)
     big = max(_seen, key=lambda r: r["stablehlo_lines"]) if _seen else {}
