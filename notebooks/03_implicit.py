@@ -36,7 +36,7 @@ model = {"type": "implicit", "threshold": 0.5,
 # ## The field on the slice z = 0
 
 # %%
-built = implicit.build(validate({"object": model})[1])
+built = implicit.build(validate({"object": model}).objects[0].shape)
 n = 100 if SMALL else 300
 xs, ys = np.meshgrid(np.linspace(-2.2, 2.2, n), np.linspace(-1.2, 2.4, n))
 pts = np.stack([xs, ys, np.zeros_like(xs)], -1).reshape(-1, 3) - built.anchor

@@ -305,7 +305,8 @@ _TWO_SHAPES = {"is_scene", "single", "build_single", "render_scene"}
 def _two_shapes(p: Path) -> list[str]:
     """Where ``p`` still carries an experiment in two shapes: a name or attribute ``is_scene``,
     ``single``, ``build_single`` or ``render_scene``, or an ``(exp, obj)`` pair (assigned,
-    unpacked in a loop, or taken as a function's first two parameters)."""
+    unpacked in a loop, or taken as a function's first two parameters), or ``load(...)`` /
+    ``validate(...)`` indexed or unpacked with ``*`` as if they returned one."""
     found = []
     for node in ast.walk(ast.parse(p.read_text())):
         name = (node.attr if isinstance(node, ast.Attribute) else node.id if isinstance(node, ast.Name)
@@ -318,6 +319,10 @@ def _two_shapes(p: Path) -> list[str]:
                 found.append(f"{p.name}:{getattr(node, 'lineno', t.lineno)}: (exp, obj)")
         if isinstance(node, (ast.FunctionDef, ast.Lambda)) and [a.arg for a in node.args.args[:2]] == ["exp", "obj"]:
             found.append(f"{p.name}:{node.lineno}: def (exp, obj)")
+        if isinstance(node, (ast.Subscript, ast.Starred)) and isinstance(node.value, ast.Call):
+            f = node.value.func
+            if (f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", None)) in ("load", "validate"):
+                found.append(f"{p.name}:{node.lineno}: a pair taken from {ast.unparse(f)}(...)")
     return found
 
 
@@ -329,8 +334,9 @@ def test_an_experiment_reaches_the_code_as_one_value():
 
     with tempfile.TemporaryDirectory() as tmp:
         bad = Path(tmp) / "bad.py"
-        bad.write_text("exp, obj = load(p)\nif exp.is_scene: pass\ndef f(exp, obj): return g(single=True)\n")
-        assert len(_two_shapes(bad)) == 4, _two_shapes(bad)
+        bad.write_text("exp, obj = load(p)\nif exp.is_scene: pass\ndef f(exp, obj): return g(single=True)\n"
+                       "r = render(*validate(raw)); o = config.load(p)[1]\n")
+        assert len(_two_shapes(bad)) == 6, _two_shapes(bad)
     root = PKG.parent
     files = _sources() + sorted((root / "tests").rglob("*.py")) + sorted((root / "notebooks").glob("*.py"))
     found = [f for p in files if p.name != "test_structure.py" for f in _two_shapes(p)]

@@ -94,8 +94,9 @@ class CameraConfig(StrictModel):
 class LightConfig(StrictModel):
     """A light. ``directional``: ``direction`` points from the scene *towards* the light;
     ``point``: at ``position``, radiance falling off as 1 / distance^2 (``intensity`` is the
-    radiance at distance 1). ``shadows``: whether it casts shadows in a scene (``objects:``);
-    a single object has shadow rays only from a light whose section sets ``shadows: true``."""
+    radiance at distance 1). ``shadows``: whether it casts shadows; unset, true in a scene
+    (``objects:``) and false in a file's ``object:`` experiment, so such an experiment written
+    before shadows existed renders as it did (``ExperimentFile.experiment`` writes it out)."""
 
     type: Literal["directional", "point"] = "directional"
     """A light at infinity (``direction``) or at a point (``position``)."""
@@ -108,7 +109,7 @@ class LightConfig(StrictModel):
     intensity: Annotated[float, Field(ge=0.0)] = 1.0
     """Radiance scale (a point light's radiance at distance 1)."""
     shadows: bool = True
-    """Whether it casts shadows in a scene; a single object casts them only where this is set explicitly."""
+    """Whether it casts shadows (unset in a file's ``object:`` experiment: false)."""
 
     @field_validator("direction")
     @classmethod
@@ -190,8 +191,8 @@ class RenderConfig(StrictModel):
     alone, the host's per-call work saved); not with ``memory_mb``.
 
     ``spp`` jittered samples per pixel (the first at the pixel centre; AOVs come from it) from
-    ``seed``. Scenes (``objects:``) only: ``bounces`` bounds reflection and refraction depth;
-    ``lanes`` is the size of the dense sub-batches that compacted rays are traced in.
+    ``seed``. ``bounces`` bounds reflection and refraction depth; ``lanes`` is the size of the
+    dense sub-batches that compacted rays are traced in.
     """
 
     chunk: Annotated[int, Field(ge=1, le=1 << 24)] | Literal["auto"] = "auto"
@@ -213,16 +214,16 @@ class RenderConfig(StrictModel):
     steps: bool = False
     """Also write ``steps.npy`` (H, W): each pixel's camera ray's search steps (cells: the voxels
     and skipped tiles or blocks of the walk, or the linear search's samples), counted in one more
-    pass over the camera rays after the timed render. Single objects of a representation that
-    counts them (``Representation.steps_per_ray``; cells)."""
+    pass over the camera rays after the timed render. A scene of one object of a representation
+    that counts them (``Representation.steps_per_ray``; cells)."""
     seed: int = 0
     """Seed of the sample jitter."""
     bounces: Annotated[int, Field(ge=0, le=16)] = 2
-    """Scenes: reflection and refraction depth."""
+    """Reflection and refraction depth (a cell object's mode gives its own)."""
     lanes: Annotated[int, Field(ge=1, le=1 << 20)] = 256
-    """Scenes: rays per dense sub-batch that compacted rays are traced in."""
+    """Rays per dense sub-batch that compacted rays are traced in."""
     compaction: bool = True
-    """Scenes: gather the rays an effect needs (true) or trace every queue slot against every object (false, masking; for comparison)."""
+    """Gather the rays an effect needs (true) or trace every queue slot against every object (false, masking; for comparison)."""
 
 
 Unit = Annotated[float, Field(ge=0.0, le=1.0)]

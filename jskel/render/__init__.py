@@ -220,8 +220,9 @@ def render(exp: Experiment, progress: bool | None = None) -> RenderResult:
 def aovs_of(exp: Experiment, placed, static, first: dict, hits: Hit) -> dict:
     """A render's outputs beyond depth, normal, uv, prim and flags, each only where the
     experiment calls for what it shows: ``obj`` (the object hit, -1 on a miss) with two objects
-    or more; ``visibility`` (per light, 1 lit / 0 shadowed) where a light casts shadows;
-    ``secondary`` (secondary rays per pixel) where a material reflects or refracts;
+    or more; ``visibility`` (per light, 1 lit / 0 shadowed) where a light casts shadows, and
+    ``secondary`` (secondary rays per pixel) where a material reflects or refracts, both always
+    with two objects or more (a scene's files have always held them, read beside ``obj``);
     ``reflect_obj`` / ``refract_obj`` (where the path that starts with the pixel's first
     reflection / refraction ray ends: the object its last ray hit, -1 if it escaped or there is
     none; through a glass rod that is the object seen behind it; where a path branches, one of
@@ -229,12 +230,13 @@ def aovs_of(exp: Experiment, placed, static, first: dict, hits: Hit) -> dict:
     representation's own (``Representation.extra_aovs``, e.g. a cell object's ``cell``) on the
     pixels whose object it is."""
     eff, obj = static.effects, first["hit"].obj
+    several = len(placed) > 1
     out = {}
-    if len(placed) > 1:
+    if several:
         out["obj"] = obj
-    if eff.shadows:
+    if eff.shadows or several:
         out["visibility"] = first["visibility"]
-    if eff.bounces:
+    if eff.bounces or several:
         out["secondary"] = first["secondary"]
     if len(placed) > 1 and eff.reflection:
         out["reflect_obj"] = first["first_obj"][:, 0]
