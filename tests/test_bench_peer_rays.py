@@ -61,8 +61,9 @@ peer: skeleton
         seen["t"] = np.asarray(ref_hits.t, np.float64)
         return [{"peer": "stand-in", "rows_seen": len(rows)}]
 
-    rows = run_bench(file, [], peers=Peers(studies={"skeleton": study}))
+    rows = run_bench(file, [], out=tmp_path / "rows.jsonl", peers=Peers(studies={"skeleton": study}))
     assert rows[-1] == {"peer": "stand-in", "rows_seen": 1}
+    assert (tmp_path / "rows.png").exists()  # the error-against-time plot, named by the reference's scene
     o, d = (np.asarray(a, np.float64) for a in seen["rays"])
     assert o.shape == (32 * 24, 3)
     t_ref, y = _cylinder_t(o, d)

@@ -89,7 +89,7 @@ class Job(NamedTuple):
 class Group(NamedTuple):
     """A scene's jobs and its reference experiment (or None)."""
 
-    reference: tuple | None
+    reference: Any
     jobs: list[Job]
 
 
@@ -208,7 +208,7 @@ def plot_bench(bench: BenchFile, groups: list[Group], rows_by_group: list[list[d
     for group, rows in zip(groups, rows_by_group):
         if group.reference is None:
             continue
-        name = group.reference[0].name
+        name = group.reference.name
         png = out.with_name(f"{out.stem}_{name}.png") if len(groups) > 1 else out.with_suffix(".png")
         _plotted(plot_sweep([r for r in rows if "setting" in r], keys, bench.metric, png,
                             f"{name}: {bench.metric} vs time ({rows[0]['device']})"))

@@ -211,7 +211,7 @@ def render(exp: Experiment, progress: bool | None = None) -> RenderResult:
     fr = _integrate(exp, params, static, origin, dtype, prog)
     h = fr.first["hit"]
     # hit positions back to world coordinates (host, float64)
-    hits = Hit(h.t, np.asarray(h.position, np.float64) + origin, h.normal, h.uv, h.prim, fr.first["flags"])
+    hits = Hit(h.t, np.asarray(h.position, np.float64) + origin, h.normal, h.uv, h.prim, h.flags)
     aovs = aovs_of(exp, placed, static, fr.first, hits)
     run = run_record(exp, placed, static, fr, build_s, origin, objects_info, params, hits)
     return RenderResult(hits, fr.rgb, fr.image, run, aovs or None)
@@ -229,8 +229,9 @@ def aovs_of(exp: Experiment, placed, static, first: dict, hits: Hit) -> dict:
     the branches) with two objects or more; ``steps`` where ``render.steps`` asks; and each
     representation's own (``Representation.extra_aovs``, e.g. a cell object's ``cell``) on the
     pixels whose object it is."""
-    eff, obj = static.effects, first["hit"].obj
+    eff = static.effects
     several = len(placed) > 1
+    obj = first["obj"] if several else np.where(np.isfinite(hits.t), 0, -1)
     out = {}
     if several:
         out["obj"] = obj
@@ -278,14 +279,14 @@ def run_record(exp: Experiment, placed, static, fr, build_s: float, origin, obje
         "mrays_per_s": fr.rays / res.run_s / 1e6 if res.run_s > 0 else None,
         "programs": program_counts(),  # this process's so far: compiled by XLA, loaded from the persistent cache
         "spp": exp.render.spp,
-        "secondary_rays": int(np.sum(res.out["secondary"])),
+        "secondary_rays": int(np.sum(res.out["secondary"])) if "secondary" in res.out else 0,
         "hit_fraction": float(np.mean(np.isfinite(hits.t))),
         "origin": [float(x) for x in origin],
         "objects": objects_info,
         "info": info,
         "params_bytes": int(sum(getattr(x, "nbytes", 0) for x in jax.tree_util.tree_leaves(params))),
         "peak_host_mb": peak_rss_mb(),
-        "flags": _flag_counts(res.out["flags"]),
+        "flags": _flag_counts(res.out["hit"].flags),
     }
     eff = static.effects
     if eff.shadows or eff.reflection or eff.refraction:

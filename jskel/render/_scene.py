@@ -73,7 +73,7 @@ import jax.numpy as jnp
 
 from .. import checks, registry
 from ..numerics import safe_normalize
-from ..rays import FLAG_BAD_DIRECTION, FLAG_OVERFLOW, FLAG_TIR, Rays, or_flags_at
+from ..rays import FLAG_BAD_DIRECTION, FLAG_OVERFLOW, FLAG_TIR, Hit, Rays, or_flags_at
 from ..wavefront import compact_map
 from ..shading import facing, light_at, shade_local
 from ._build import Effects as Effects
@@ -271,7 +271,10 @@ def _piped(params: SceneParams, static: SceneStatic, q: Queue, rec: Records) -> 
 
 
 def scene_batch(static: SceneStatic):
-    """The per-chunk function ``(params, rays) -> dict of per-ray outputs`` for a scene."""
+    """The per-chunk function ``(params, rays) -> dict of per-ray outputs`` for a scene: only
+    what the render writes (``render.aovs_of``): the camera ray's ``hit`` with its pixel's flags
+    and ``rgb``; ``visibility`` and ``secondary`` where shadows and bounces exist or objects
+    are several; ``obj`` and ``first_obj`` (where reflected / refracted paths end) with several."""
     eff = static.effects
     levels = 1 + eff.bounces
     cap_factor = 2 if (eff.reflection and eff.refraction and levels > 1) else 1  # no level after the camera's: N
@@ -281,8 +284,19 @@ def scene_batch(static: SceneStatic):
         q = _camera_queue(rays, cap_factor * n)
         rec = Records(jnp.zeros((n, 3), dtype), jnp.zeros((n,), jnp.int32), jnp.full((n, 2), -1, jnp.int32),
                       jnp.zeros((n,), jnp.int32), _miss(n, dtype), jnp.ones((n, params.lights.radiance.shape[0]), dtype))
-        rec = (_piped if eff.shadows and len(static.reps) > 1 else _levels)(params, static, q, rec)
-        return {"hit": rec.aov, "rgb": rec.rgb, "visibility": rec.vis0, "flags": rec.flags, "first_obj": rec.first_obj, "secondary": rec.secondary}
+        several = len(static.reps) > 1
+        rec = (_piped if eff.shadows and several else _levels)(params, static, q, rec)
+        a = rec.aov
+        out = {"hit": Hit(a.t, a.position, a.normal, a.uv, a.prim, rec.flags), "rgb": rec.rgb}  # the pixel's flags
+        if eff.shadows or several:
+            out["visibility"] = rec.vis0
+        if eff.bounces or several:
+            out["secondary"] = rec.secondary
+        if several:  # what only names one object among several
+            out["obj"] = a.obj
+            if eff.reflection or eff.refraction:
+                out["first_obj"] = rec.first_obj
+        return out
 
     return batch
 
