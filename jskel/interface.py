@@ -100,15 +100,11 @@ class Preliminary(NamedTuple):
     t: (N,) ray parameter of the nearest hit, ``+inf`` on a miss.
     prim: (N,) int32 primitive id, -1 on a miss.
     payload: what :meth:`Representation.surface` needs to finish the hit (a pytree with leading
-      axis N, representation-defined; the base keeps the whole ``Hit`` there).
-    flags: (N,) int32 ``Hit.flags`` bits the cast already knows (a ray this object may have
-      lost), or None: the integrator keeps every object's, the nearest's or not, and finishes
-      only the nearest (``render._hits.nearest``), so a flag must be known here to survive."""
+      axis N, representation-defined; the base keeps the whole ``Hit`` there)."""
 
     t: jnp.ndarray
     prim: jnp.ndarray
     payload: Any = None
-    flags: Any = None
 
 
 #: the members a representation may give as module-level functions of its folder, picked up by
@@ -216,7 +212,7 @@ class Representation:
     def cast(self, params, static, rays: Rays) -> Preliminary:
         """First stage: t and primitive of every ray; by default the whole hit rides along."""
         h = self.intersect_batch(params, static, rays)
-        return Preliminary(h.t, h.prim, h, h.flags)
+        return Preliminary(h.t, h.prim, h)
 
     def surface(self, params, static, rays: Rays, pre: Preliminary) -> Hit:
         """Second stage: the hit's attributes from :meth:`cast`'s preliminary hit."""

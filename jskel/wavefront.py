@@ -19,8 +19,7 @@ from .rays import Rays
 
 def compact_map(fn: Callable, need: jnp.ndarray, rays: Rays, base, lanes: int):
     """``base`` with the entries where ``need`` (N,) holds replaced by ``fn(rays_sub)``, where
-    ``fn`` maps a Rays batch of ``lanes`` rays to a pytree like ``base``'s rows (``base`` may
-    also be a function ``(shapes of one sub-batch's output, N) -> base``). ``rays`` may
+    ``fn`` maps a Rays batch of ``lanes`` rays to a pytree like ``base``'s rows. ``rays`` may
     be any pytree of arrays with leading axis N (``fn`` then gets the same pytree of ``lanes``
     rows).
 
@@ -42,10 +41,7 @@ def compact_map(fn: Callable, need: jnp.ndarray, rays: Rays, base, lanes: int):
     lanes = min(lanes, n)
     order, count = first_set(pack_bits(need), n)
     order = jnp.concatenate([jnp.minimum(order, n - 1), jnp.zeros((lanes,), jnp.int32)])
-    sub = jax.tree_util.tree_map(lambda a: a[:lanes], rays)
-    fn_c, consts = jax.closure_convert(fn, sub)
-    if callable(base):  # from the shapes of one sub-batch's output (the converted jaxpr's, no new trace of fn)
-        base = base(jax.eval_shape(fn_c, sub, *consts), n)
+    fn_c, consts = jax.closure_convert(fn, jax.tree_util.tree_map(lambda a: a[:lanes], rays))
     return _compact(fn_c, lanes, order, count, consts, rays, base)
 
 

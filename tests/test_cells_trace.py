@@ -12,6 +12,7 @@ import pytest
 
 import reference as ref
 from jskel import cells, cli, executor
+from jskel.render import render
 from jskel.cells._membership import INSIDE, unpack
 from jskel.cells._search import first_hit
 from jskel.optics import reflect, refract
@@ -811,6 +812,32 @@ render: {{progress: false, steps: true}}
                      "render: {steps: true}\n")
     assert cli.main(["render", str(scene), "--out", str(tmp_path / "s")]) == 2
     assert "render.steps" in capsys.readouterr().err
+
+
+def test_render_steps_of_a_placed_object_are_those_of_the_object_where_it_stands(obj):
+    """A scene of one cell object moved by ``transform.translate``, seen by a camera moved the
+    same way, counts the steps of the object written where it stands (the camera rays are placed
+    in the object's frame before they are counted): the same steps on (nearly) every pixel; and
+    so does one turned 90 degrees about y and scaled by 1.5, seen by the camera turned and
+    scaled with it (R_y(90) written here: x -> -z, z -> x)."""
+    from jskel.config import validate
+
+    tmp, _, _, _ = obj
+    shape = {"type": "cells", "base": {"type": "torus", "major": 1.0, "minor": 0.45}, "tiles": 6,
+             "tile_map": {"type": "voronoi", "resolution": 16, "cells": 8, "seed": 0}, "cache": str(tmp / "cache")}
+    move = np.array([0.75, -0.5, 0.25])
+    cam = {"eye": [0, 2, 2.5], "target": [0, 0, 0], "width": 32, "height": 24}
+    moved = {**cam, "eye": list(np.add(cam["eye"], move)), "target": list(move)}
+    render_opts = {"progress": False, "steps": True}
+    here = render(validate({"object": shape, "camera": cam, "render": render_opts})).aovs["steps"]
+    there = render(validate({"objects": [{"shape": shape, "transform": {"translate": move.tolist()}}], "camera": moved,
+                             "render": render_opts})).aovs["steps"]
+    assert here.max() > 20 and np.mean(here == there) > 0.995, np.mean(here == there)
+    turn = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    turned = {**cam, "eye": list(1.5 * turn @ cam["eye"]), "target": [0.0, 0.0, 0.0], "up": list(turn @ [0.0, 1.0, 0.0])}
+    there = render(validate({"objects": [{"shape": shape, "transform": {"rotate_deg": [0, 90, 0], "scale": 1.5}}], "camera": turned,
+                             "render": render_opts})).aovs["steps"]
+    assert np.mean(here == there) > 0.99, np.mean(here == there)
 
 
 def test_tile_levels_are_the_largest_uniform_blocks(rng):

@@ -236,8 +236,7 @@ def cast(scene: FrustaScene, static: Static, rays: Rays) -> Preliminary:
         closer = relief[0] < t  # a tie keeps the plain segment, as _nearest_hit does
         t = jnp.where(closer, relief[0], t)
         prim = jnp.where(closer, g.frusta.sid[jnp.maximum(relief[3], 0)], prim)
-    flags = None if relief is None else jnp.where(relief[4] < t, FLAG_GRAZE, 0).astype(jnp.int32)  # _relief_flags at the cast
-    return Preliminary(t, prim.astype(jnp.int32), FrustaPayload(plain, relief), flags)
+    return Preliminary(t, prim.astype(jnp.int32), FrustaPayload(plain, relief))
 
 
 def surface(scene: FrustaScene, static: Static, rays: Rays, pre: Preliminary) -> Hit:

@@ -212,12 +212,12 @@ def render(exp: Experiment, progress: bool | None = None) -> RenderResult:
     h = fr.first["hit"]
     # hit positions back to world coordinates (host, float64)
     hits = Hit(h.t, np.asarray(h.position, np.float64) + origin, h.normal, h.uv, h.prim, h.flags)
-    aovs = aovs_of(exp, placed, static, fr.first, hits)
+    aovs = aovs_of(exp, placed, static, fr.first, hits, origin)
     run = run_record(exp, placed, static, fr, build_s, origin, objects_info, params, hits)
     return RenderResult(hits, fr.rgb, fr.image, run, aovs or None)
 
 
-def aovs_of(exp: Experiment, placed, static, first: dict, hits: Hit) -> dict:
+def aovs_of(exp: Experiment, placed, static, first: dict, hits: Hit, origin) -> dict:
     """A render's outputs beyond depth, normal, uv, prim and flags, each only where the
     experiment calls for what it shows: ``obj`` (the object hit, -1 on a miss) with two objects
     or more; ``visibility`` (per light, 1 lit / 0 shadowed) where a light casts shadows, and
@@ -251,7 +251,7 @@ def aovs_of(exp: Experiment, placed, static, first: dict, hits: Hit) -> dict:
             a = np.asarray(a)
             out[name] = a if name not in out else np.where(mine.reshape((-1,) + (1,) * (a.ndim - 1)), a, out[name])
     if exp.render.steps:
-        out["steps"] = steps_image(exp, placed[0], static.identity[0])
+        out["steps"] = steps_image(exp, placed[0], static.identity[0], origin)
     return out
 
 
@@ -311,13 +311,14 @@ def _check_steps(exp: Experiment) -> None:
         raise ValueError(f"render.steps: true: {exp.objects[0].at(0)}.type {rep.name!r} counts no search steps (cells do)")
 
 
-def steps_image(exp: Experiment, p, identity: bool) -> np.ndarray:
+def steps_image(exp: Experiment, p, identity: bool, origin) -> np.ndarray:
     """(H*W,) int32 in image order: each pixel-centre camera ray's search steps
     (``Representation.steps_per_ray``) of the one object ``p`` (a ``_build.Placed``), one more
-    pass over the rays of the render's first sample, in the object's frame."""
+    pass over the rays of the render's first sample, in the object's frame: relative to the
+    render's ``origin`` where its placement there is the identity (``SceneStatic.identity``)."""
     cam = camera_of(exp)  # ``exp`` as the render framed it
     if identity:
-        rays = cam.tiled_rays(exp.render.tile, anchor=p.built.anchor, dtype=dtype_of(exp))
+        rays = cam.tiled_rays(exp.render.tile, anchor=origin, dtype=dtype_of(exp))
     else:  # the camera rays placed in the object's frame on the host (float64), then cast
         o, d = cam.ray_arrays(anchor=np.zeros(3))
         order = tile_order(cam.width, cam.height, exp.render.tile)

@@ -25,10 +25,9 @@ Effects only where the scene calls for them, in both senses:
   the jaxpr and XLA's cost analysis);
 * per ray (wavefront style): every level of the ray tree is a fixed-capacity queue of rays.
   Each object traces only the queued rays that are live *and* cross its world bounding box,
-  gathered into dense sub-batches of ``lanes`` rays (``jskel.wavefront.compact_map``); with two
-  objects or more in two stages (``_hits.nearest``, Mitsuba's ``ray_intersect_preliminary`` /
-  ``compute_surface_interaction``): every object casts (t, primitive, payload), the nearest is
-  kept per ray, and only the winner finishes its hit (``surface``, ``albedo``); shadow rays
+  gathered into dense sub-batches of ``lanes`` rays (``jskel.wavefront.compact_map``), each
+  object's full hit merged into the nearest (casting every object and finishing only the
+  winner was measured and not kept: docs/choices.md#surface-once); shadow rays
   are gathered the same way per light, and an object tests only the shadow rays that no earlier
   object has already blocked (early out across objects). In a scene (not a scene of one) a
   level's shadow rays travel in the next step's batch, behind the next level's rays, as
