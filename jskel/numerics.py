@@ -34,8 +34,8 @@ def safe_div(num, den, fallback=0.0):
 
 def dot3(a, b):
     """Dot product over a last axis of 3, written out per component. Two reasons, both measured
-    on XLA CPU (jax 0.10.2): under vmap ``jnp.sum(a * b, -1)`` became a library reduction that
-    cost more than the shading around it (one of (4,096, 2, 3) took 0.28 ms a chunk), and in the
+    on XLA CPU: under vmap ``jnp.sum(a * b, -1)`` became a library reduction that cost more than
+    the shading around it (docs/choices.md#dot3-unrolled), and in the
     jitted distance of a 50-segment chain it came out wrong past the 655th point of a batch
     while the same ops run one by one were right."""
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]

@@ -12,6 +12,9 @@
   what both use is in probe/, and the CLI hands the peers to the harness;
 * no dated measurement sits in the package's source: figures that chose a constant or a code
   path live in docs/choices.md and the result files, where they are rerun and replaced;
+* no machine is named in the package's source (``2-core``, ``H100``, ``EPYC``, ...): a figure
+  measured on one lives, with its machine, in docs/choices.md (measure/files.py's CPU-model
+  format example aside);
 * no import runs back up: the package's import graph (imports inside functions counted) has no
   cycle, so its modules stand in floors;
 * an experiment reaches the code as one value (``config.Experiment``, a scene of one where a
@@ -149,6 +152,19 @@ def test_no_dated_measurement_is_left_in_the_source():
     anchors = {m.group(1) for m in re.finditer(r"^### (\S+)$", choices, re.M)}
     cited = {m.group(1) for p in _sources() for m in re.finditer(r"docs/choices\.md#([\w-]+)", p.read_text())}
     assert cited and cited <= anchors, sorted(cited - anchors)
+
+
+def test_no_machine_figure_is_left_in_the_source():
+    """No machine named in any module of the package (comments and docstrings included): a
+    figure measured on a machine is recorded in docs/choices.md with that machine, and the code
+    states the choice in words and points there. Only measure/files.py names a CPU model, as
+    the example of the format it writes. The pattern is checked to find a machine."""
+    machine = re.compile(r"2-core|H100|H200|EPYC|Xeon")
+    assert machine.search("# took 0.10 s on the H100") and machine.search("(1024x768, 2-core CPU)")
+    allowed = {PKG / "measure" / "files.py"}
+    found = [f"{p.relative_to(PKG.parent)}:{i}: {line.strip()}" for p in _sources() if p not in allowed
+             for i, line in enumerate(p.read_text().splitlines(), 1) if machine.search(line)]
+    assert not found, found
 
 
 def _imported(p: Path) -> set[str]:

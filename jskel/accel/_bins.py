@@ -192,10 +192,10 @@ def first_set(words, q: int):
     lie, in order, and how many bits are set; positions past the count are meaningless.
 
     ``jnp.nonzero(mask, size=q)`` does this with a prefix sum over the whole mask and a scatter
-    of every element; XLA on the CPU runs that prefix sum as a long ``reduce_window`` (44 us for
-    8,192 elements, against 4.5 us here, 2-core CPU). Here the prefix sum runs over the words'
-    popcounts (32 times fewer), each rank finds its word by binary search and its bit by a
-    binary search on the popcount of the word's low bits."""
+    of every element; XLA on the CPU runs that prefix sum as a long ``reduce_window``, many times
+    slower than this on 8,192 elements (docs/choices.md#first-set-words). Here the prefix sum
+    runs over the words' popcounts (32 times fewer), each rank finds its word by binary search
+    and its bit by a binary search on the popcount of the word's low bits."""
     nw = words.shape[0]
     pc = jax.lax.population_count(words).astype(jnp.int32)
     incl = jnp.cumsum(pc)

@@ -13,17 +13,18 @@ Traversal (``nearest``): near child first with a one-int bit trail in place of a
 its docstring); there is no stack, hence nothing to overflow, and the loop ends after at most
 2 x nodes steps. (``escape`` is the fixed pre-order variant: strip i's trailing 1 bits and step
 to the right sibling; it visited 2.4x more leaves on the L-system tree.) Why no per-ray stack
-and small ray groups: a throwaway prototype on the 2-core CPU (issue 6's filing) measured a
-per-ray stack 2x slower under vmap (its scatter), and groups of 32 to 64 rays 5-10x faster than
-4,096 because a vmapped while loop runs until its slowest ray ends; ``nearest_groups`` runs
-``lax.map`` over groups of ``group`` rays inside one compiled function.
+and small ray groups: a throwaway prototype (issue 6's filing) measured a per-ray stack slower
+under vmap (its scatter), and groups of a few dozen rays much faster than thousands, because a
+vmapped while loop runs until its slowest ray ends; ``nearest_groups`` runs ``lax.map`` over
+groups of ``group`` rays inside one compiled function.
 
-Measured on this CPU (palm, 1024x768, issue 6): groups of 8 rays 2.78 s, 64 rays 1.64 s, 512
-rays 1.53 s, 4,096 rays 3.05 s (per-iteration overhead of XLA's while loop against lanes waiting
-on the slowest ray); a wavefront that quarters its width as rays finish (gathering the active
-rays, so the tail runs at 256 then 64 lanes) gave 1.43-2.12 s and compiled 3-6x longer, so it
-was not kept. Traversal work per ray grows with log2(segments) at fixed coverage (about one more
-internal node per doubling; docs/performance.md, ``experiments/bench_scale_size.yaml``).
+Measured on the palm (1024x768, issue 6): groups of tens to hundreds of rays beat both 8 and
+4,096 (per-iteration overhead of XLA's while loop against lanes waiting on the slowest ray); a
+wavefront that quarters its width as rays finish (gathering the active rays, so the tail runs at
+256 then 64 lanes) was not clearly faster and compiled several times longer, so it was not kept
+(the figures: docs/choices.md#lbvh-groups). Traversal work per ray grows with log2(segments)
+at fixed coverage (about one more internal node per doubling; docs/performance.md,
+``experiments/bench_scale_size.yaml``).
 
 Why this structure and not a uniform grid with 3D-DDA: skeletons are long thin primitives of
 very different sizes (a palm's trunk and its leaflets), which a single grid resolution bounds
@@ -276,9 +277,9 @@ def nearest_packet(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, i
     Why: the loop is one scalar ``while_loop`` whose body branches with a real ``lax.cond``
     (leaf or internal node) instead of a vmapped loop that runs every lane until the slowest ray
     ends; on coherent rays (primary rays in 16 x 16 screen squares, ``camera.tile_order``) the
-    union of the rays' walks is short. Measured on the 2-core CPU (1024x768, packets of 256 vs
-    per-ray groups of 512): palm 0.78 s vs 1.51 s, dancing cacti 1.37 vs 2.54 s, oasis 2.19 vs
-    2.67 s, identical hits. Incoherent rays (random directions) make the union long: use
+    union of the rays' walks is short: at 1024x768 packets of 256 beat per-ray groups of 512 on
+    the palm, the dancing cacti and the oasis, with identical hits (docs/choices.md#lbvh-packets).
+    Incoherent rays (random directions) make the union long: use
     :func:`nearest` for those. Returns (Best of (P,) arrays, iterations of the packet's loop)."""
     n_leaves = bvh.lo.shape[0] // 2
     inv_d = _inv_d(d)

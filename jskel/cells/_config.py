@@ -40,8 +40,8 @@ class BaseShapeConfig(StrictModel):
     +y) or ``sphere``; a watertight triangle mesh file (read by trimesh) voxelized (``voxel_mesh``:
     ``path``, ``voxels`` along its longest side; fast for big meshes); or the ``object`` section
     of another representation, whose own ``inside`` decides exactly (a mesh file as
-    ``{type: mesh, path: ...}``: three BVH casts a point, about 30 us a point for 20,480
-    triangles on the 2-core CPU; a frusta skeleton; an implicit surface)."""
+    ``{type: mesh, path: ...}``: three BVH casts a point, docs/choices.md#voxel-mesh-voxels;
+    a frusta skeleton; an implicit surface)."""
 
     type: Literal["torus", "sphere", "voxel_mesh", "object"] = "torus"
     """The kind of base shape."""

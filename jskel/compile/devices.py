@@ -2,8 +2,9 @@
 
 On a CPU, ``render.devices: all`` shards a render's chunks over XLA host devices the way it shards
 them over GPUs; each device runs whole chunks, where XLA's own threading inside one chunk's small
-operations gains little (with 16 chunks per call the cacti's cast at 1024x768 took 0.068 s on two
-devices and 0.103 s on one, ``experiments/bench_scale_cpu_paths.yaml``, docs/performance.md). JAX makes one
+operations gains little (with 16 chunks per call the cacti's cast at 1024x768 ran faster on two
+devices than on one, ``experiments/bench_scale_cpu_paths.yaml``, docs/performance.md,
+docs/choices.md#host-devices). JAX makes one
 host device unless asked for more before its backend starts, so the CLI calls
 :func:`use_host_devices` first thing; in Python, call it right after ``import jskel`` (before any
 JAX operation) to get the same sharding::

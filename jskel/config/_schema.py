@@ -152,8 +152,9 @@ AUTO_CHUNK_ACCELERATOR = 1 << 20
 def chunk_of(render) -> int:
     """``render.chunk`` resolved: ``auto`` is 4,096 rays per call on the CPU (small calls keep
     per-ray work in cache; docs/performance.md's chunk rows) and 1,048,576 on an accelerator, where one call
-    per frame is what fills the device (on the H100 the per-ray walk of the palm at 1024x768 took
-    0.10 s in one call, 0.24 s in 65,536-ray calls; ``experiments/bench_scale_device.yaml``)."""
+    per frame is what fills the device (on a GPU the per-ray walk of the palm at 1024x768 ran
+    faster in one call than in 65,536-ray calls; ``experiments/bench_scale_device.yaml``,
+    docs/choices.md#auto-chunk)."""
     import jax
 
     if render.chunk != "auto":
@@ -167,9 +168,10 @@ AUTO_CHUNKS_PER_CALL_CPU = 64
 def chunks_per_call_of(render) -> int:
     """``render.chunks_per_call`` resolved: ``auto`` is 64 on the CPU and 1 on an accelerator,
     whose auto chunk is already a whole frame. Several chunks per call save the host's per-call
-    slicing, transfer and dispatch; on the 2-core CPU a 1024x768 frame runs as two calls of 64
-    chunks per device, the second with 32 traced (``executor.calls_grouping``); 64 was measured
-    against 1 and 16 in ``experiments/bench_scale_cpu_paths.yaml`` (docs/performance.md)."""
+    slicing, transfer and dispatch; with two host devices a 1024x768 frame runs as two calls of
+    64 chunks per device, the second with 32 traced (``executor.calls_grouping``); 64 was measured
+    against 1 and 16 in ``experiments/bench_scale_cpu_paths.yaml`` (docs/performance.md,
+    docs/choices.md#chunks-per-call)."""
     import jax
 
     if render.chunks_per_call != "auto":

@@ -153,8 +153,8 @@ def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: floa
     ``solver.jacobian: jaxopt``, kept as the reference the project's solver is checked
     against). ``dense``: jaxopt's Levenberg-Marquardt forms the Jacobian (forward mode) and
     solves its normal equations by Cholesky; otherwise it runs matrix-free conjugate gradients
-    on J^T J products. On the 24-unknown chain the matrix-free form took 35 s to compile against
-    11 s dense (2-core CPU)."""
+    on J^T J products. On the 24-unknown chain the matrix-free form took several times as long
+    to compile as the dense one (docs/choices.md#lm-dense)."""
     if normal is not None and name in ("lm", "gauss_newton"):
         return normal_solver(normal, damped=name == "lm")
     if name == "lbfgs":

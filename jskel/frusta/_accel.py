@@ -172,7 +172,7 @@ def nearest_bins(f: FrustaParams, fb: FrustaBVH, packet: int, candidates: int, p
     segments whose box one of its rays may meet; equal to brute force, ties included.
     ``group`` > 0: the batch's list is found through the tree's nodes of ``group`` leaf slots
     (``accel.batch_list``); in ``experiments/bench_scale_bins_knobs.yaml`` 32 beat 0 (every box)
-    in 11 of 12 settings on the 18,557-segment oasis, by up to 1.6x (1024 x 768, 2-core CPU).
+    in most settings on the 18,557-segment oasis (docs/choices.md#bins-group).
     ``walk_ratio`` > 0: a batch whose list holds more than ``walk_ratio`` segments per ray is
     cast by per-ray walks (:func:`nearest_groups`, groups of ``walk_group``) instead: segments
     smaller than a packet's footprint (``experiments/bench_scale_size.yaml``'s wall of small

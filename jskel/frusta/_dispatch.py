@@ -23,14 +23,14 @@ from ._relief_method import make_relief_t
 def traversal_of(cfg: FrustaConfig, plain_segments: int) -> str:
     """``object.traversal`` resolved: ``auto`` is the Pallas kernel on an accelerator; on the
     CPU, packet candidate lists (``bins``) from :data:`AUTO_BINS_SEGMENTS` plain segments and
-    per-ray walks below. On the H100 at 1024x768 the kernel took 13-16 ms on
-    the palm, oasis and cacti, XLA's per-ray walk over the whole frame 48-162 ms, and packets
-    4.6-9.2 s (a ``lax.map`` of scalar loops is bound by launches there). On the 2-core CPU bins
+    per-ray walks below. On a GPU at 1024x768 the kernel beat XLA's per-ray walk over the whole
+    frame several times on the palm, oasis and cacti, and the packets by far more (a ``lax.map``
+    of scalar loops is bound by launches there; docs/choices.md#pallas-kernel). On the CPU bins
     beat the BVH packets on every scene of ``experiments/bench_scale_bins.yaml`` (docs/performance.md); a
     render of ``experiments/scene_cacti.yaml`` (``--set objects.1.shape.traversal=...``), whose
     shadow and reflection rays reach the cacti too, was faster with bins as well (one warm
     render each way, not a committed bench). Below the threshold the walks' program compiles
-    3 s faster and their renders are at most a few times slower (see the constant)."""
+    faster and their renders are at most a few times slower (see the constant)."""
     if cfg.traversal != "auto":
         return cfg.traversal
     if jax.default_backend() != "cpu":

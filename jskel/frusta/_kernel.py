@@ -2,9 +2,9 @@
 
 Why a kernel: under ``vmap`` the per-ray walk (``accel.nearest``) is one XLA while loop over the
 whole batch, and every iteration computes every lane, finished or not, and ends when the
-batch's slowest ray does. On the H100 that costs 0.10 s for the palm's 786,432 primary rays
-(whole frame in one call; 0.24 s in 65,536-ray calls, 3.0 s in CPU-sized groups of 512) while
-the walk itself is a few dozen node visits per ray. Here the same walk runs in a Pallas (Triton)
+batch's slowest ray does. On a GPU that costs far more than the walk itself, a few dozen node
+visits per ray, and more still in smaller calls and CPU-sized groups (the palm's primary rays:
+docs/choices.md#pallas-kernel). Here the same walk runs in a Pallas (Triton)
 kernel: each program takes ``block`` consecutive rays (``block`` = 32 with one warp: a lane per
 thread, so finished rays idle only until their warp's slowest ray ends), keeps node, bit trail
 and best hit in registers, gathers a node's two child boxes and a leaf's packed segment rows
@@ -17,7 +17,7 @@ equal :func:`jskel.frusta._accel.nearest_groups` bit for bit (tested). On a GPU 
 compiled by Triton and XLA's loop by XLA; they may contract multiply-adds differently, so t can
 differ in the last bits there (the benchmark reports the agreement it measured).
 
-On the H100 it renders Table 1's scenes several times faster than XLA's walk over the whole
+On a GPU it renders Table 1's scenes several times faster than XLA's walk over the whole
 frame, with identical hits, and its cast is below Mitsuba's CUDA variant's
 (``experiments/bench_scale_kernel.yaml``, ``bench_scale.yaml``; the figures, dated:
 docs/choices.md#pallas-kernel).

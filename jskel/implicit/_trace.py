@@ -27,14 +27,14 @@ culling by ``intersect_batch``) and tests only their primitives. ``Quality.cull`
 * ``blocks``: every group's bounding sphere (``block_spheres``) is tested and the nearest
   ``block_capacity`` met are kept: P / block sphere tests per ray.
 
-Chosen by measurement (``experiments/bench_implicit_cull.yaml``, docs/performance.md): on 160 x 120 primary
-rays of the blob slabs (development A/B, same process, 2-core CPU), culling alone took 0.35 s
-(blocks, 32 kept) against 0.13 s (tree, 16 kept) at 5,000 blobs and 0.92 s against 0.15 s at
-50,000, with identical candidate sets and hits; whole traces 0.61 against 0.39 s and 1.34
-against 0.60 s. A leaf box is tighter than a block's sphere: the camera rays met 2.5 leaves on
-average (at most 8) at 5,000 blobs, while 26 % of them met more than 8 block spheres. Keeping 8
-leaves was faster still on camera rays (0.08 s) but 14 % of the random rays through a slab
-(``tests/test_implicit_cull.py``) overflowed into flat culling; 16 is the default.
+Chosen by measurement (``experiments/bench_implicit_cull.yaml``, docs/performance.md; the
+development A/B's figures: docs/choices.md#cull-tree): on primary rays of the blob slabs,
+culling through the tree (16 leaves kept) took a fraction of the blocks' time (32 kept) at
+5,000 and 50,000 blobs, with identical candidate sets and hits, and whole traces were faster
+too. A leaf box is tighter than a block's sphere: the camera rays met few leaves, while many of
+them met more than 8 block spheres. Keeping 8 leaves was faster still on camera rays but too
+many of the random rays through a slab (``tests/test_implicit_cull.py``) overflowed into flat
+culling; 16 is the default.
 
 Methods (``Quality.method``):
 

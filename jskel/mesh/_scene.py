@@ -282,8 +282,8 @@ class _Mesh(Representation, module=__name__):
 
     name = "mesh"
     Config = MeshConfig
-    #: as the frusta's (``frusta._scene._Frusta``): mesh_torus's render program compiled in
-    #: 1.1-1.2 s against 1.9 s and ran 14 % faster (the same command and machine)
+    #: as the frusta's (``frusta._scene._Frusta``): mesh_torus's render program compiled faster
+    #: and ran faster with them (docs/choices.md#elemental-emitters)
     cpu_compiler_options = {"xla_cpu_use_fusion_emitters": False}
 
     @staticmethod

@@ -9,9 +9,9 @@ tessellation, BVH build, cast. Mitsuba: skeleton, control-point update with its 
 
 Each frame is done ``runs`` times by every system in turn (jskel, Embree, Mitsuba, then again),
 and a frame's figure is the median of its runs; the row holds the median over frames. A shared
-2-core machine has slow spells (in one run of the cacti, jskel's per-frame cast read 0.165 s
-against the same run's static 0.113 s); one run per frame put some systems' frames in a spell
-and not others'.
+machine has slow spells (in one run of the cacti, jskel's per-frame cast read well above the
+same run's static cast; docs/choices.md#frames-interleaved); one run per frame put some
+systems' frames in a spell and not others'.
 """
 
 from __future__ import annotations
