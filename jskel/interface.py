@@ -330,8 +330,8 @@ def agreed_options(reps, statics) -> dict:
     (registered names) with static options ``statics`` (``Representation.compiler_options_for``):
     every option some of them set, except one they set to different values (it keeps XLA's
     default). A representation that sets none takes the others': the measured choice for the
-    mixed scenes (docs/performance.md: scene_cacti's render faster with the frusta's,
-    scene_effects' 1-3 % slower for 1.7-2.3 s less compile)."""
+    mixed scenes (docs/choices.md#elemental-emitters: scene_cacti's render faster with the
+    frusta's, scene_effects' slightly slower for a shorter compile)."""
     from . import registry
 
     out, clash = {}, set()

@@ -106,10 +106,10 @@ def packet_bounds(origins, directions, t_min, t_max):
 def _tree(op, x, axis: int):
     """``op``-reduction of x over ``axis`` by halving: elementwise ops that XLA fuses into one
     loop. XLA on the CPU sent ``x.min(-2)`` over a packet's (64, 64, 3) rays to a library
-    reduction costing about 6 us a call; the eight packet bounds of a 4,096-ray chunk were most
-    of an empty chunk's cost (development profile). Not for reductions whose result feeds a
-    big elementwise consumer: XLA then fuses the tree into it and recomputes it per element
-    (the packets' reach in the pair loop ran slower so)."""
+    reduction call; the eight packet bounds of a 4,096-ray chunk were most of an empty chunk's
+    cost (development profile, docs/choices.md#packet-bounds-tree). Not for reductions whose
+    result feeds a big elementwise consumer: XLA then fuses the tree into it and recomputes it
+    per element (the packets' reach in the pair loop ran slower so)."""
     x = jnp.moveaxis(x, axis, 0)
     while x.shape[0] > 1:
         h = x.shape[0] // 2
@@ -375,8 +375,9 @@ def _lane_test(batch: _Batch, na, rows, prim):
     step's ``na`` pairs fit, else q (a switch: one branch runs; a block's last step is often
     part-full, and the step's cost is its lanes). Each branch is its own program, so t is
     materialised once. ``batch.one_lane``: q lanes alone (one copy of the test). A third size,
-    q/4, was dropped: its copy of the pair test cost 0.15-0.4 s of compile on Table 1's scenes
-    for about 5 % of the cacti's cast time (docs/performance.md, Scale)."""
+    q/4, was dropped: its copy of the pair test lengthened the compile on Table 1's scenes and
+    saved only a few percent of the cacti's cast time
+    (docs/choices.md#bins-lane-counts)."""
     q = batch.q
     sizes = [m for m in (q // 2,) if m >= 16 and not batch.one_lane] + [q]
     if len(sizes) > 1:

@@ -89,7 +89,8 @@ def surface_points(v: np.ndarray, f: np.ndarray, spacing: float, budget: int = 1
     longest edge / spacing rounded up, and their corners are returned. This is the subdivision
     trimesh's ``voxelize_subdivide`` runs (every edge shorter than half a voxel), done in one
     vectorized pass per k instead of repeated splits of the mesh: on a 20,480-face icosphere at
-    256 voxels a side 19 s of the precompute went to that subdivision. Yields (M, 3) arrays of
+    256 voxels a side that subdivision was nearly all of the precompute
+    (docs/choices.md#voxel-mesh-subdivision). Yields (M, 3) arrays of
     at most about ``budget`` points (a triangle whose lattice is larger comes in bands of rows)."""
     p0, e1, e2 = v[f[:, 0]], v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]
     longest = np.sqrt(np.max([np.sum(e1 * e1, 1), np.sum(e2 * e2, 1), np.sum((e2 - e1) ** 2, 1)], axis=0))

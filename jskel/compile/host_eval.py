@@ -1,11 +1,12 @@
 """A JAX function run on the host by NumPy, from its jaxpr: no XLA compile.
 
 A build runs its jitted pieces (the frusta's float64 geometry, a small BVH) once on a few dozen
-rows. XLA:CPU compiles such a program in 0.2-0.7 s even at backend level 0 (1,646 StableHLO ops
-for the geometry), while NumPy evaluates its jaxpr in milliseconds: :class:`HostFn` traces the
-function once per argument shapes (``jax.make_jaxpr``, tenths of a second) and evaluates each
-equation with the NumPy function of its primitive. The function stays the one JAX function the
-device and the fit run (issue 25's "geometry once"); only who evaluates it changes.
+rows. XLA:CPU's compile of such a program, even at backend level 0 (1,646 StableHLO ops for the
+geometry), takes several times longer than NumPy's trace and evaluation of its jaxpr
+(docs/choices.md#host-build): :class:`HostFn` traces the function once per argument shapes
+(``jax.make_jaxpr``) and evaluates each equation with the NumPy function of its primitive. The
+function stays the one JAX function the device and the fit run (issue 25's "geometry once");
+only who evaluates it changes.
 
 Semantics follow XLA's where NumPy's differ: integer division and remainder round toward zero,
 gathers clamp their starts (``PROMISE_IN_BOUNDS``, ``CLIP``) or fill (``FILL_OR_DROP``),

@@ -43,10 +43,10 @@ DENSE_JACOBIAN_MAX = 1 << 24  # entries (residuals x unknowns) up to which jaxop
 
 
 # Jacobian entries (residuals x unknowns) from which ``solver.jacobian: auto`` assembles the
-# sparse normal equations. In the fitting benchmark (docs/performance.md, docs/bench_fit_*cpu.jsonl) LM took
-# the same steps either way, 3.04 s dense / 1.22 s sparse at 10,000 points x 24 unknowns and
-# 90.7 / 1.70 s at 10,000 x 204, and the dense form ran out of 24 GB at 10,000 x 2,004; at
-# 1,000 x 24 (below the threshold) jaxopt's dense form takes 0.94 s
+# sparse normal equations. In the fitting benchmark LM took the same steps either way; at
+# 10,000 points x 24 unknowns the sparse form was the faster, at 10,000 x 204 many times so, and
+# at 10,000 x 2,004 the dense form ran out of memory; at 1,000 x 24 (below the threshold) the two
+# took about the same time (docs/choices.md#sparse-from)
 SPARSE_FROM = 1 << 17
 
 
@@ -189,7 +189,8 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
     stepping loop records the loss after every iteration; with ``s.restarts > 1`` that many
     starts (the given one and perturbed copies) are solved in one call (:func:`over_batch`,
     each recording its loss curve) and the best is the result: one program, not a second
-    compile of the stepping loop (L-BFGS compiles for about a minute on 2 cores). A time budget
+    compile of the stepping loop (compiling was most of an L-BFGS fit's time when this was
+    chosen: docs/choices.md#restarts-one-program). A time budget
     (``max_seconds``) needs the host loop: then the best start is stepped again."""
     checks.raise_all(checks.nonfinite("points", points, f"of {len(points)} points"))  # every bad point by index, before any compile
     seg = segments_of(joints0, radii0, parents, "init.skeleton")

@@ -5,7 +5,8 @@ about eight places: the search's first iteration is unrolled before its loop, an
 hold separate evaluations for the bracketing phase, the zoom phase and a safeguarded step
 (``jaxopt/_src/zoom_linesearch.py``). For the fit, whose loss carries the cutting-plane
 geometry of every joint, that made one program of two L-BFGS starts about 41,500 jaxpr
-equations and 40 s of XLA compile on 2 cores. Here the search is the same algorithm, strong
+equations, whose XLA compile took over twice as long as this module's program for the same solve
+(docs/choices.md#lbfgs-one-evaluation). Here the search is the same algorithm, strong
 Wolfe conditions by bracketing and zoom (Nocedal and Wright 2006, *Numerical Optimization*,
 2nd ed., Alg. 3.5 and 3.6, cubic interpolation Eq. 3.59, safeguarded by bisection), written as
 a state machine: every pass of one ``while_loop`` evaluates the loss and gradient once at the

@@ -17,11 +17,12 @@ Numerical form (why it differs from Eq. 9-10 as printed):
   gives no side hit, and then only the caps can be hit.
 
 Segments are visited in blocks of ``block`` with ``lax.scan`` (a vmap over the block inside), so
-memory is O(block) per ray whatever the number of segments; padding segments never hit. Two CPU
-measurements (2 cores, 65,536 rays, one-off, at commit 027fc32) shaped this: dot products written out
-per component instead of ``jnp.sum(a * b, -1)`` took one segment from 32 ms to 3.4 ms; and a
-vmap over a block of 64 with a min/select reduction (0.22 s) beat a scan over single segments
-(0.54 s). The nearest candidate is therefore found by min and selects, not argmin.
+memory is O(block) per ray whatever the number of segments; padding segments never hit. Two
+one-off CPU measurements on 65,536 rays shaped this (docs/choices.md#segment-blocks): dot
+products written out per component instead of ``jnp.sum(a * b, -1)`` made one segment's test
+about nine times faster; and a vmap over a block of 64 with a min/select reduction took less
+than half the time of a scan over single segments. The nearest candidate is therefore found by
+min and selects, not argmin.
 """
 
 from __future__ import annotations
