@@ -123,13 +123,26 @@ def test_the_frusta_build_hands_xla_no_program(rng):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * 3.0)
         else:
             np.testing.assert_array_equal(a, b)
-    count_programs()
-    before = program_counts()
-    _build.build_frusta(j * 1.01, r, topo)
-    frusta.build(frusta.FrustaConfig.model_validate(
-        {"type": "frusta", "skeleton": {"joints": (j * 0.99).tolist(), "radii": r.tolist(), "parents": p.tolist()}, "accel": "bvh"}))
-    after = program_counts()
-    assert after["compiled"] + after["loaded"] == before["compiled"] + before["loaded"]
+    from jskel.compile import events
+
+    def handed(jj, rr, pp):
+        """Programs handed to XLA (compiled or loaded) while building (jj, rr, pp), and their names."""
+        count_programs()
+        before, names = program_counts(), {k: list(v) for k, v in events._by_name.items()}
+        _build.build_frusta(jj * 1.01, rr, topology(jj, pp, "skeleton"))
+        frusta.build(frusta.FrustaConfig.model_validate(
+            {"type": "frusta", "skeleton": {"joints": (jj * 0.99).tolist(), "radii": rr.tolist(), "parents": pp.tolist()}, "accel": "bvh"}))
+        after = program_counts()
+        return after["compiled"] + after["loaded"] - before["compiled"] - before["loaded"], {
+            k for k, v in events._by_name.items() if names.get(k) != v}
+
+    n, names = handed(j, r, p)
+    if n:  # the count is the process's: once in a full run one program landed in it from elsewhere. A build
+        # that used XLA hands it a program again for a skeleton of new shapes (a 40-joint chain), so the test
+        # still fails then
+        chain = np.cumsum(np.full((40, 3), [0.05, 0.2, 0.0]), axis=0)
+        n2, names2 = handed(chain, np.full(40, 0.1), np.arange(-1, 39))
+        assert n2 == 0, (names, names2)
 
 
 def _traced(calls):
