@@ -81,7 +81,8 @@ def _miss(n: int, dtype) -> SceneHit:
 
 def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live, any_hit=None) -> SceneHit:
     """Nearest hit over all objects of the ``live`` rays (others: misses). Each object traces
-    only the live rays that cross its bounding box, compacted into sub-batches of ``lanes``.
+    only the live rays that cross its bounding box before the nearest hit found so far,
+    compacted into sub-batches of ``lanes``.
 
     ``any_hit`` (N,) bool, optional, marks rows that only ask whether they meet some object in
     (t_min, t_max] (shadow rays cast in the same batch as the rays they light, so that each
@@ -97,7 +98,10 @@ def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live, any_hit=
     best = _miss(n, dtype)
     for ks in groups(params, static):
         def merge(best, p, x, k, rep=static.reps[ks[0]], st=static.statics[ks[0]], identity=static.identity[ks[0]]):
-            need = (live & _box_crossed(rays, x.lo, x.hi)) if static.compaction else jnp.ones_like(live)
+            # a ray whose nearest hit so far lies before the object's box cannot be won by it: it is
+            # not traced (the rays traced keep their own t_max, so each object's hits are as before)
+            ahead = rays._replace(t_max=jnp.minimum(rays.t_max, best.t))
+            need = (live & _box_crossed(ahead, x.lo, x.hi)) if static.compaction else jnp.ones_like(live)
             if any_hit is not None and static.compaction:
                 need = need & ~(any_hit & jnp.isfinite(best.t))
             fn = functools.partial(_object_hits, rep, st, p, x, k, identity=identity)
