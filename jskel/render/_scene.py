@@ -24,7 +24,9 @@ Effects only where the scene calls for them, in both senses:
   the static key, so a scene without them compiles a program without their work (a test reads
   the jaxpr and XLA's cost analysis);
 * per ray (wavefront style): every level of the ray tree is a fixed-capacity queue of rays.
-  Each object traces only the queued rays that are live *and* cross its world bounding box,
+  Each object traces only the queued rays that are live *and* cross its world bounding box
+  before the nearest hit the objects traced before it found (a ray stopped in front of the box
+  cannot be won by the object),
   gathered into dense sub-batches of ``lanes`` rays (``jskel.wavefront.compact_map``), each
   object's full hit merged into the nearest (casting every object and finishing only the
   winner was measured and not kept: docs/choices.md#surface-once); shadow rays
