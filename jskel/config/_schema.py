@@ -401,7 +401,7 @@ class ExperimentFile(_Common):
 
 class Experiment(_Common):
     """The one experiment value every entry takes (``jskel.render.render``, the benchmarks,
-    the sweeps, the fit, the viewer): a scene of ``objects`` (a file's single ``object:`` is a
+    the sweeps, the viewer): a scene of ``objects`` (a file's single ``object:`` is a
     scene of one, :meth:`ExperimentFile.experiment`), each object's ``shape`` already validated
     by its representation, with the camera, lights, shading, environment and render options."""
 

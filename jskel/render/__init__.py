@@ -189,7 +189,8 @@ def _flag_counts(flags) -> dict:
 
 def render(exp: Experiment, progress: bool | None = None) -> RenderResult:
     """Render one frame of an experiment (host function; the heavy work is jitted in chunks):
-    the one entry of the CLI, the benchmarks, the sweeps, the fit and the viewer.
+    the one entry of the CLI, the benchmarks, the sweeps, the latency benchmark, the peers'
+    studies and the viewer (the fit writes an experiment file, ``fitted.yaml``, and renders none).
 
     ``exp`` is the one experiment value (``config.load``): a scene, of one object where its
     file wrote ``object:``; see ``jskel.render._scene`` for the integrator. ``render.spp``

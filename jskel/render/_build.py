@@ -88,7 +88,8 @@ class SceneStatic(NamedTuple):
     effects: Effects
     lanes: int
     compaction: bool = True  # False: every queue slot traced against every object (masking; for the benchmark)
-    identity: tuple = ()  # per object: its placement is exactly the identity in the rays' frame (skipped)
+    identity: tuple = ()  # per object: its placement is exactly the identity in the rays' frame (skipped);
+    # static, so a scene of one turned or scaled away from it compiles once more (moving it does not: its rays follow its anchor)
     sky: bool = False  # a scene of one whose object carries its own environment: misses see it
     paths: tuple = ()  # per object: its key path as the file wrote it (``object``, ``objects[i]``), for messages
 
