@@ -6,6 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from jskel import registry
 from jskel.config import validate
@@ -18,8 +19,10 @@ CENTERS = ([0.0, 0.0, 0.0], [1.2, 0.0, -4.0], [-2.2, 0.0, -10.0])  # behind one 
 RADII = (1.0, 2.0, 2.0)  # each ball's box (centre +- radius) lies wholly behind the one before
 
 
-def test_an_object_behind_the_nearest_hit_so_far_is_not_traced(monkeypatch):
-    """Three implicit balls, three objects traced front to back (one group, in index order), one
+@pytest.mark.parametrize("listed", [(0, 1, 2), (2, 1, 0)], ids=["front-first", "back-first"])
+def test_an_object_behind_the_nearest_hit_so_far_is_not_traced(monkeypatch, listed):
+    """Three implicit balls, three objects of one group (traced nearest box first whatever the
+    order the file lists them in: front first, and back first), one
     behind another with their boxes apart and seen overlapping, so that many rays that meet a back
     ball have met a nearer one first: the objects' hits computed (``intersect_batch`` rows with a
     finite t, counted through a ``jax.debug.callback`` in a wrapped ``intersect_batch``) are as
@@ -36,7 +39,8 @@ def test_an_object_behind_the_nearest_hit_so_far_is_not_traced(monkeypatch):
         return h
 
     monkeypatch.setattr(type(rep), "intersect_batch", staticmethod(counted))
-    objects = [{"shape": {"type": "implicit", "threshold": 0.5, "balls": [{"center": c, "radius": r}]}} for c, r in zip(CENTERS, RADII)]
+    centers, radii = [CENTERS[i] for i in listed], [RADII[i] for i in listed]
+    objects = [{"shape": {"type": "implicit", "threshold": 0.5, "balls": [{"center": c, "radius": r}]}} for c, r in zip(centers, radii)]
     raw = {"objects": objects, "camera": {"eye": [0, 0, 5], "target": [0, 0, 0], "up": [0, 1, 0], "fov_deg": 30, "width": 8, "height": 8},
            "lights": [{"direction": [0.4, 0.9, 0.5], "shadows": False}]}
     params, static, eye, _, _ = build_scene(validate(raw), np.float32)
@@ -50,19 +54,22 @@ def test_an_object_behind_the_nearest_hit_so_far_is_not_traced(monkeypatch):
     jax.effects_barrier()
     rho = np.sqrt(1.0 - np.sqrt(0.5))
     t_ref, k_ref = np.full(N, np.inf), np.full(N, -1)
-    for k, (c, r) in reversed(list(enumerate(zip(CENTERS, RADII)))):  # the nearest last: the front ball overwrites
+    for k, (c, r) in enumerate(zip(centers, radii)):  # the balls' spheres do not meet: nearest by t
         oc = e - c
         b = d @ oc
         disc = b**2 - (oc @ oc - (rho * r) ** 2)
         t = np.where(disc > 0, -b - np.sqrt(np.maximum(disc, 0.0)), np.inf)
         t_ref, k_ref = np.where(t < t_ref, t, t_ref), np.where(t < t_ref, k, k_ref)
     hits = np.isfinite(t_ref)
-    assert 0.3 < hits.mean() < 0.95 and np.sum(k_ref == 1) >= 5 and np.sum(k_ref == 2) >= 5  # the back balls win somewhere
+    front = [listed.index(i) for i in range(3)]  # the objects' indices, front ball first
+    assert 0.3 < hits.mean() < 0.95 and np.sum(k_ref == front[1]) >= 5 and np.sum(k_ref == front[2]) >= 5  # the back balls win somewhere
     behind = 0  # rays that meet a back ball behind a nearer one: what tracing every box crossed would count again
-    for k in (1, 2):
-        oc = e - np.asarray(CENTERS[k])
+    for depth in (1, 2):
+        k = front[depth]
+        oc = e - np.asarray(centers[k])
         b = d @ oc
-        behind += int(np.sum((b**2 - (oc @ oc - (rho * RADII[k]) ** 2) > 0) & (k_ref >= 0) & (k_ref < k)))
+        nearer = np.isin(k_ref, front[:depth])
+        behind += int(np.sum((b**2 - (oc @ oc - (rho * radii[k]) ** 2) > 0) & nearer))
     assert behind >= 5
     np.testing.assert_array_equal(np.asarray(hit.obj), k_ref)
     np.testing.assert_allclose(np.asarray(hit.t, np.float64)[hits], t_ref[hits], atol=1e-3)

@@ -42,14 +42,33 @@ def _apply(m, v):
     return v[..., 0:1] * m[:, 0] + v[..., 1:2] * m[:, 1] + v[..., 2:3] * m[:, 2]
 
 
-def _box_crossed(rays: Rays, lo, hi):
-    """Slab test: does the ray's interval (t_min, t_max] meet the box [lo, hi]? (N,) bool."""
+def _box_entry(rays: Rays, lo, hi):
+    """Slab test: (crossed, near), each (N,): does the ray's interval (t_min, t_max] meet the box
+    [lo, hi], and at which t does the ray's line enter it."""
     inv = 1.0 / rays.directions  # +-inf for zero components: the slab then holds or fails whole
     t0 = (lo - rays.origins) * inv
     t1 = (hi - rays.origins) * inv
     near = jnp.max(jnp.where(jnp.isnan(t0), -jnp.inf, jnp.minimum(t0, t1)), axis=-1)
     far = jnp.min(jnp.where(jnp.isnan(t1), jnp.inf, jnp.maximum(t0, t1)), axis=-1)
-    return (near <= far) & (far >= rays.t_min) & (near <= rays.t_max)
+    return (near <= far) & (far >= rays.t_min) & (near <= rays.t_max), near
+
+
+def _box_crossed(rays: Rays, lo, hi):
+    """Does the ray's interval (t_min, t_max] meet the box [lo, hi]? (N,) bool."""
+    return _box_entry(rays, lo, hi)[0]
+
+
+def front_to_back(rays: Rays, live, lo, hi):
+    """(K,) int32: the order in which to trace K objects of boxes ``lo``/``hi`` (K, 3) for these
+    rays, nearest first: by the mean t at which the live rays that cross a box enter it (a box no
+    live ray crosses goes last). One order for the whole batch, computed in the program from the
+    rays' values, so a moved camera reorders without compiling again; an order only saves work
+    (:func:`nearest` merges with ties to the lower index, so any order gives the same hits)."""
+    crossed, near = jax.vmap(lambda a, b: _box_entry(rays, a, b))(lo, hi)  # (K, N)
+    use = crossed & live[None, :]
+    count = jnp.sum(use, axis=1)
+    mean = jnp.sum(jnp.where(use, jnp.maximum(near, rays.t_min[None, :]), 0.0), axis=1) / jnp.maximum(count, 1)
+    return jnp.argsort(jnp.where(count > 0, mean, jnp.inf), stable=True).astype(jnp.int32)
 
 
 def _to_object(x: XForm, rays: Rays) -> Rays:
@@ -82,7 +101,9 @@ def _miss(n: int, dtype) -> SceneHit:
 def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live, any_hit=None) -> SceneHit:
     """Nearest hit over all objects of the ``live`` rays (others: misses). Each object traces
     only the live rays that cross its bounding box before the nearest hit found so far,
-    compacted into sub-batches of ``lanes``.
+    compacted into sub-batches of ``lanes``. The objects of a group (:func:`groups`) are traced
+    nearest box first for the batch (:func:`front_to_back`), so that where boxes do not overlap
+    along a ray, only its nearest object finishes a hit for it; groups go in a fixed order.
 
     ``any_hit`` (N,) bool, optional, marks rows that only ask whether they meet some object in
     (t_min, t_max] (shadow rays cast in the same batch as the rays they light, so that each
@@ -109,9 +130,12 @@ def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live, any_hit=
 
         if len(ks) == 1:
             best = merge(best, params.objects[ks[0]], params.xforms[ks[0]], ks[0])
-        else:  # one traced copy of the object's tracing for the whole group
+        else:  # one traced copy of the object's tracing for the whole group, run nearest box first
             stack = functools.partial(jax.tree_util.tree_map, lambda *a: jnp.stack(a))
             each = (stack(*[params.objects[k] for k in ks]), stack(*[params.xforms[k] for k in ks]), jnp.asarray(ks, jnp.int32))
+            if static.compaction:
+                order = front_to_back(rays, live, each[1].lo, each[1].hi)
+                each = jax.tree_util.tree_map(lambda a: a[order], each)
             best = jax.lax.scan(lambda b, item: (merge(b, *item), None), best, each)[0]
     return best
 
