@@ -134,7 +134,8 @@ def nearest(params: SceneParams, static: SceneStatic, rays: Rays, live, any_hit=
             stack = functools.partial(jax.tree_util.tree_map, lambda *a: jnp.stack(a))
             each = (stack(*[params.objects[k] for k in ks]), stack(*[params.xforms[k] for k in ks]), jnp.asarray(ks, jnp.int32))
             if static.compaction:
-                order = front_to_back(rays, live, each[1].lo, each[1].hi)
+                seek = live if any_hit is None else live & ~any_hit  # the order serves the rows that seek the nearest
+                order = front_to_back(rays, seek, each[1].lo, each[1].hi)
                 each = jax.tree_util.tree_map(lambda a: a[order], each)
             best = jax.lax.scan(lambda b, item: (merge(b, *item), None), best, each)[0]
     return best
