@@ -62,9 +62,13 @@ def test_every_format_reads_the_same_triangles(files):
         np.testing.assert_allclose(got, want, atol=1e-6, err_msg=ext)
 
 
-def test_hits_match_a_float64_brute_force_and_the_closed_mesh_loses_no_ray(files):
+@pytest.mark.parametrize("traversal", ["packets", "bins"])
+def test_hits_match_a_float64_brute_force_and_the_closed_mesh_loses_no_ray(files, traversal):
+    """Each traversal (the BVH's packets, the packet candidate lists) against float64 brute
+    force, on rays from all around aimed at every vertex, every edge's midpoint and random points:
+    a ray through a shared vertex or edge is never lost."""
     m, paths = files
-    built = mesh.build(_cfg(paths["ply"], offset=(3.0, -2.0, 5.0), scale=1.5))
+    built = mesh.build(_cfg(paths["ply"], offset=(3.0, -2.0, 5.0), scale=1.5, traversal=traversal))
     tri = (m.vertices * 1.5 + [3.0, -2.0, 5.0])[m.faces]
     rng = np.random.default_rng(0)
     c = np.array([3.0, -2.0, 5.0])
@@ -297,7 +301,7 @@ def test_a_mesh_mirror_in_a_scene_reflects_and_shadows_frusta_implicit_and_cell_
 
 
 def test_packets_and_per_ray_walks_give_the_brute_force_hits(files):
-    """Both traversals against ``intersect_one`` (every triangle for every ray) on incoherent
+    """Every traversal (packets, walks, bins, and bins that hand long lists to walks) against ``intersect_one`` (every triangle for every ray) on incoherent
     rays: the same hits and misses, t within float rounding (the programs round the same test
     apart by an ulp), the same triangle but for ties."""
     _, paths = files
@@ -305,7 +309,9 @@ def test_packets_and_per_ray_walks_give_the_brute_force_hits(files):
     O = rng.normal(size=(N, 3)) * 2.0
     D = rng.uniform(-1.5, 1.5, (N, 3)) - O  # towards random points about the sphere, from anywhere (inside too)
     D /= np.linalg.norm(D, axis=1, keepdims=True)
-    hits = [_cast(mesh.build(_cfg(paths["ply"], traversal=kind)), O, D) for kind in ("packets", "walks")]
+    kinds = ({"traversal": "packets"}, {"traversal": "walks"}, {"traversal": "bins"},
+             {"traversal": "bins", "bin_walk_ratio": 0.1})  # lists past 0.1 triangles per ray: these rays walk
+    hits = [_cast(mesh.build(_cfg(paths["ply"], **kind)), O, D) for kind in kinds]
     b = mesh.build(_cfg(paths["ply"]))
     one = jax.jit(jax.vmap(lambda o, d, a, c: mesh.intersect_one(b.params, b.static, o, d, a, c)))
     ref = one(*make_rays(O - b.anchor, D))

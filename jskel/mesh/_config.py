@@ -34,9 +34,21 @@ class MeshConfig(StrictModel):
     """Face normals, or trimesh's area-weighted vertex normals interpolated by barycentric coordinates."""
     leaf: Annotated[int, Field(ge=1, le=64)] = 4
     """Triangles per BVH leaf."""
-    traversal: Literal["packets", "walks"] = "packets"
-    """One BVH walk per packet of ``packet`` coherent rays, or one per ray in vmapped groups of ``group``."""
+    traversal: Literal["auto", "packets", "walks", "bins"] = "auto"
+    """One BVH walk per packet of ``packet`` coherent rays, one per ray in vmapped groups of ``group``, or packet
+    candidate lists (``bins``: each packet of ``bin_packet`` rays tests only the triangles whose box it may meet);
+    ``auto``: bins on the CPU for large meshes, packets otherwise (``mesh.traversal_of``)."""
     packet: Annotated[int, Field(ge=1, le=65536)] = 64
     """``packets``: consecutive rays sharing one walk."""
     group: Annotated[int, Field(ge=1, le=65536)] = 64
-    """``walks``: rays per vmapped group of walks."""
+    """``walks``: rays per vmapped group of walks (and ``bins``' walks, for the chunks it hands them)."""
+    bin_packet: Annotated[int, Field(ge=1, le=65536)] = 64
+    """``bins``: consecutive rays sharing one candidate list."""
+    bin_candidates: Annotated[int, Field(ge=1, le=65536)] = 128
+    """``bins``: triangles tested against every packet at once."""
+    bin_pairs: Annotated[int, Field(ge=1, le=65536)] = 256
+    """``bins``: (packet, triangle) pairs cast at once."""
+    bin_group: Annotated[int, Field(ge=0, le=65536)] = 32
+    """``bins``: leaf slots per BVH node tested before its triangles (0: every triangle's box)."""
+    bin_walk_ratio: Annotated[float, Field(ge=0.0, le=1e6)] = 8.0
+    """``bins``: a chunk whose list holds more triangles per ray than this walks instead (0: never)."""

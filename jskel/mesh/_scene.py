@@ -57,6 +57,7 @@ class Static(NamedTuple):
     smooth: bool
     closed: bool = False
     packet: int = 0  # rays per shared walk (0: per-ray walks in groups of ``group``)
+    bins: tuple = ()  # bins: (rays per packet, candidates and pairs per step, slots per group, walk ratio); () for walks
 
 
 def read_mesh(path: str, where: str = "object.path") -> tuple[np.ndarray, np.ndarray, object]:
@@ -126,7 +127,26 @@ def build(cfg: MeshConfig, dtype=np.float32) -> Built:
                         jnp.asarray(np.asarray(cfg.color, np.float64), dtype), bvh, jnp.asarray(valid))
     info = {"triangles": int(f.shape[0]), "vertices": int(v.shape[0]), "watertight": bool(m.is_watertight), "closed": closed,
             "degenerate_triangles": int(np.sum(area2 == 0))}
-    return Built(params, Static(cfg.leaf, cfg.group, cfg.normals == "smooth", closed, cfg.packet if cfg.traversal == "packets" else 0), anchor, (lo, hi), info, primitives=int(f.shape[0]))
+    traversal = traversal_of(cfg, int(f.shape[0]))
+    bins = (cfg.bin_packet, cfg.bin_candidates, cfg.bin_pairs, cfg.bin_group, cfg.bin_walk_ratio) if traversal == "bins" else ()
+    static = Static(cfg.leaf, cfg.group, cfg.normals == "smooth", closed, cfg.packet if traversal == "packets" else 0, bins)
+    info["traversal"] = traversal
+    return Built(params, static, anchor, (lo, hi), info, primitives=int(f.shape[0]))
+
+
+# from this many triangles ``auto`` picks bins on the CPU, packets below: the bins' program
+# compiles longer, and on smaller meshes at the default frame size the render it saves does not
+# repay that within a few frames (docs/choices.md#mesh-bins)
+AUTO_BINS_TRIANGLES = 32768
+
+
+def traversal_of(cfg: MeshConfig, triangles: int) -> str:
+    """``object.traversal`` resolved: ``auto`` is ``bins`` on the CPU from
+    :data:`AUTO_BINS_TRIANGLES` triangles, else ``packets`` (on an accelerator too, where the
+    bins' scalar loops have not been measured)."""
+    if cfg.traversal != "auto":
+        return cfg.traversal
+    return "bins" if jax.default_backend() == "cpu" and triangles >= AUTO_BINS_TRIANGLES else "packets"
 
 
 def _padded(x: np.ndarray, rows: int) -> np.ndarray:
@@ -158,8 +178,50 @@ def _nearest_packet(p: MeshParams, static: Static, o, d, t_min, t_max):
     return jnp.where(best.idx >= 0, best.t, jnp.inf), best.idx
 
 
+def _bin_boxes(p: MeshParams):
+    """(lo, hi) (F', 3) of every triangle in its own order, empty (lo = +inf) for padding rows:
+    the boxes ``accel.nearest_binned`` lists. The tree's leaves are unions of these boxes, so a
+    triangle the tree keeps for a ray is in its packet's list (both conservative)."""
+    lo = jnp.minimum(jnp.minimum(p.v0, p.v1), p.v2)
+    hi = jnp.maximum(jnp.maximum(p.v0, p.v1), p.v2)
+    inf = jnp.asarray(jnp.inf, lo.dtype)
+    # widened as the build widens the tree's boxes (float32 rounding of the vertices)
+    pad = 4.0 * jnp.finfo(lo.dtype).eps * (jnp.max(jnp.where(p.valid[:, None], jnp.abs(hi) + jnp.abs(lo), 0.0)) + 1.0)
+    return jnp.where(p.valid[:, None], lo - pad, inf), jnp.where(p.valid[:, None], hi + pad, -inf)
+
+
+def nearest_bins(p: MeshParams, static: Static, rays: Rays):
+    """(t, idx) of a batch through packet candidate lists (``accel.nearest_binned``, the frusta's
+    ``bins``): each packet of ``bins[0]`` consecutive rays tests, densely, only the triangles
+    whose box one of its rays may meet, nearest first and pruned by its rays' best t; the
+    batch's list is found through the tree's nodes of ``bins[3]`` leaf slots. A batch whose
+    list holds more than ``bins[4]`` triangles per ray is cast by per-ray walks instead.
+    Equal to brute force (ties to the lowest triangle index)."""
+    packet, candidates, pairs, per, walk_ratio = static.bins
+    lo, hi = _bin_boxes(p)
+    n = rays.size
+
+    def pair_fn(ids, o, d, a, b):  # ids (Q,), rays (Q, G, ...): t (Q, G)
+        v0, v1, v2, vid = p.v0[ids], p.v1[ids], p.v2[ids], p.ids[ids]
+        one = jax.vmap(lambda v0, v1, v2, i, o, d, a, b: triangle_t(v0, v1, v2, o, d, a, b, i)[0], in_axes=(None, None, None, None, 0, 0, 0, 0))
+        return jax.vmap(one)(v0, v1, v2, vid, o, d, a, b)
+
+    def walks(o, d, a, b):
+        return accel.map_groups(jax.vmap(lambda *r: _nearest_one(p, static, *r)), static.group, o, d, a, b)
+
+    slots = p.bvh.order.shape[0]
+    ng = max(1, slots // max(per, 1))
+    groups = (p.bvh.lo[ng : 2 * ng], p.bvh.hi[ng : 2 * ng], p.bvh.order.reshape(ng, -1)) if per else None
+    fallback = walks if walk_ratio > 0 and int(walk_ratio * n) < lo.shape[0] else None
+    t, idx, _ = accel.nearest_binned(lo, hi, pair_fn, packet, candidates, pairs, *rays, groups, fallback, int(walk_ratio * n),
+                                     root=(p.bvh.lo[1], p.bvh.hi[1]))
+    return t, idx
+
+
 def _search(static: Static):
     def search(p: MeshParams, rays: Rays):
+        if static.bins:
+            return nearest_bins(p, static, rays)
         if static.packet > 0:
             return accel.map_groups(lambda *r: _nearest_packet(p, static, *r), static.packet, *rays)
         return accel.map_groups(jax.vmap(lambda o, d, a, b: _nearest_one(p, static, o, d, a, b)), static.group, *rays)
@@ -193,8 +255,8 @@ def cast(p: MeshParams, static: Static, rays: Rays) -> Preliminary:
 def occluded(p: MeshParams, static: Static, rays: Rays):
     """(N,) bool: does each ray meet a triangle in ``(t_min, t_max]`` (shadow rays)? Per-ray
     walks stop at the first leaf that holds a hit (``accel.nearest``'s ``any_hit``); packets
-    answer from :func:`cast`'s nearest t."""
-    if static.packet > 0:
+    and bins answer from :func:`cast`'s nearest t."""
+    if static.packet > 0 or static.bins:
         return jnp.isfinite(cast(p, static, rays).t)
     one = jax.vmap(lambda o, d, a, b: _nearest_one(p, static, o, d, a, b, any_hit=True))
     return jnp.isfinite(accel.map_groups(one, static.group, *rays)[0])

@@ -30,15 +30,21 @@ def cross3(a, b):
                       a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
 
 
+def pick(a, k):
+    """``a[..., k]`` for an axis index ``k`` in {0, 1, 2} (a traced scalar) by selects: exact, and
+    elementwise under vmap, where an indexed read by a per-ray index becomes a gather."""
+    return jnp.where(k == 0, a[..., 0], jnp.where(k == 1, a[..., 1], a[..., 2]))
+
+
 def ray_frame(d):
     """(kx, ky, kz, Sx, Sy, Sz) of ray direction ``d`` (3,): kz its dominant axis, (kx, ky) the
     other two in an order that keeps the winding, and the shear taking ``d`` to +z."""
     kz = jnp.argmax(jnp.abs(d))
     kx = (kz + 1) % 3
     ky = (kx + 1) % 3
-    dz = d[kz]
+    dz = pick(d, kz)
     kx, ky = jnp.where(dz < 0, ky, kx), jnp.where(dz < 0, kx, ky)
-    return kx, ky, kz, d[kx] / dz, d[ky] / dz, 1.0 / dz
+    return kx, ky, kz, pick(d, kx) / dz, pick(d, ky) / dz, 1.0 / dz
 
 
 def _edge(p, q, ip, iq):
@@ -61,7 +67,7 @@ def triangle_t(v0, v1, v2, o, d, t_min, t_max, ids=None):
 
     def project(v):
         a = v - o
-        ax, ay, az = jnp.take(a, kx, axis=-1), jnp.take(a, ky, axis=-1), jnp.take(a, kz, axis=-1)
+        ax, ay, az = pick(a, kx), pick(a, ky), pick(a, kz)
         return ax - sx * az, ay - sy * az, sz * az
 
     ax, ay, az = project(v0)

@@ -100,4 +100,7 @@ def embree_same_mesh(exp, ref_hits, runs: int, rows: list[dict], options: StudyO
         row["jskel_cast_over_peer"] = round(jsk["cast_s_median"] / med, 2)
     if jsk.get("render_s_median"):
         row["jskel_over_peer"] = round(jsk["render_s_median"] / med, 2)
+    # every setting's ratios, for a sweep of traversals
+    row["jskel_over_peer_each"] = [{"setting": r.get("setting"), "cast": round(r["cast_s_median"] / med, 2) if r.get("cast_s_median") else None,
+                                    "render": round(r["render_s_median"] / med, 2) if r.get("render_s_median") else None} for r in rows]
     return [row]
