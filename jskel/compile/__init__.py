@@ -15,5 +15,7 @@ the cell objects' precomputed maps with ``cache: auto``) lives under jskel's cac
 * ``host_eval``: small programs (a build's geometry and tree) evaluated by NumPy from their
   jaxprs instead of compiled;
 * ``call_layout``: the host layout of one compiled call (chunks per call, padding);
-* ``devices``: XLA's host devices, an explicit call.
+* ``devices``: XLA's host devices, an explicit call;
+* ``isa``: the vector instruction set XLA compiles CPU programs for (recorded by benchmarks, part
+  of a stored executable's key).
 """

@@ -6,8 +6,8 @@ before it can look the compiled program up. Here the executor (``executor.compil
 looks for the executable itself first: on a miss of its in-process cache it loads a file keyed
 by a hash of everything the program depends on (:func:`entry_key`: jskel's own source files,
 the JAX and jaxlib versions, the backend, device kind and count, the batch function's qualified
-name, the arguments' tree structure with its static aux data, their shapes and dtypes, x64 and
-``XLA_FLAGS``) and deserializes it (``jax.experimental.serialize_executable``); only without one
+name, the arguments' tree structure with its static aux data, their shapes and dtypes, x64,
+``XLA_FLAGS`` and the CPU's vector ISA, ``isa.cpu_isa``) and deserializes it (``jax.experimental.serialize_executable``); only without one
 does it trace and compile, then stores the result.
 
 Entries are pickles, that is code, so they are loaded only from a directory this user owns and
@@ -44,6 +44,7 @@ import jaxlib
 import numpy as np
 
 from . import events
+from .isa import cpu_isa
 from .policy import _warn, unsafe_reason
 
 MAGIC = b"jskel-executable-2 "
@@ -184,6 +185,7 @@ def entry_key(fn, args, mesh=None) -> str | None:
         None if mesh is None else tuple(d.id for d in mesh.devices.flat),
         name, tree_text, tuple((tuple(np.shape(x)), str(jax.numpy.result_type(x))) for x in leaves),
         bool(jax.config.jax_enable_x64), str(jax.config.jax_default_matmul_precision), os.environ.get("XLA_FLAGS", ""),
+        cpu_isa(),  # a cache directory shared by machines: AVX-512 code is never loaded where the CPU lacks it
     )
     return hashlib.sha256(repr(parts).encode()).hexdigest()
 

@@ -11,6 +11,11 @@ fitting benchmark (``jskel.fit``). Rows are JSON lines, also appended to ``--out
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 from typing import Annotated, Any, Literal, NamedTuple
 
@@ -18,6 +23,7 @@ from pydantic import Field
 
 from .. import registry
 from ..compile.cache import count_programs, program_counts
+from ..compile.isa import with_max_isa, xla_isa
 from ..config import ConfigError, StrictModel, chunk_of, load, read_yaml
 from ..fit import FitBenchFile, run_fit_bench
 from ..probe.cast import timed_cast
@@ -68,6 +74,10 @@ class BenchFile(StrictModel):
     hold): ``cast_s_median`` in each row."""
     labels: list[str] | None = None
     """A name per sweep setting (rows and the bar chart of a timing-only sweep)."""
+    isa: list[Literal["default", "SSE4_2", "AVX", "AVX2", "AVX512"]] = []
+    """CPU vector ISAs to run the whole file under, one fresh process each with ``--xla_cpu_max_isa`` set
+    (``default``: the CPU's own), rows together in one output; each row's ``isa`` says which XLA compiled for.
+    Empty: this process's. Peers run at their own ISA in every pass."""
 
     def settings(self) -> list[dict]:
         """The sweep's settings (``grid.expand``; none without a sweep)."""
@@ -105,7 +115,7 @@ def timed_render(exp, runs: int, warmup: int) -> tuple[dict, object]:
            "rays": r["rays"], "dtype": exp.render.dtype, "chunk": chunk_of(exp.render), "compile_s": round(r["compile_s"], 4),
            "render_s_median": round(s.median, 4), "render_s_min": round(s.min, 4), "render_s_max": round(s.max, 4),
            "runs": runs, "mrays_per_s": round(r["rays"] / s.median / 1e6, 4), "hit_fraction": round(r["hit_fraction"], 4),
-           "device": r["device"], "jax": r["jax"], "jskel": r["jskel"]}
+           "device": r["device"], "jax": r["jax"], "jskel": r["jskel"], "isa": xla_isa()}
     # the build of warm runs (the first also compiles the jitted BVH build for new shapes)
     # what the first render's compile_s was: programs XLA compiled, programs JAX's persistent
     # cache served, executables loaded from disk (with none compiled it was a load: run the
@@ -233,6 +243,8 @@ def run_bench(file, overrides: list[str], runs: int | None = None, out=None, x64
     if isinstance(raw, dict) and "fit" in raw:
         return run_fit_bench(read_model(FitBenchFile, file, overrides).fit, JsonLines(out, command))
     bench = read_model(BenchFile, file, overrides)
+    if bench.isa:
+        return run_per_isa(bench, file, overrides, runs, out, x64, command)
     groups = groups_of(bench, file, X64 if x64 else [])
     emit = JsonLines(out, command)
     if bench.peer is not None:  # before anything renders
@@ -241,3 +253,34 @@ def run_bench(file, overrides: list[str], runs: int | None = None, out=None, x64
     if out is not None:
         plot_bench(bench, groups, rows_by_group, Path(out))
     return [r for g in rows_by_group for r in g]
+
+
+def run_pass(argv: list[str], env: dict) -> subprocess.CompletedProcess:
+    """One ISA's pass of :func:`run_per_isa`: the process, its rows to the file its ``--out`` names."""
+    return subprocess.run(argv, env=env, stdout=subprocess.DEVNULL)
+
+
+def run_per_isa(bench: BenchFile, file, overrides: list[str], runs: int | None, out, x64: bool, command: str | None) -> list[dict]:
+    """The bench file run once per ISA of ``bench.isa``, each in a fresh ``python -m jskel bench``
+    whose ``XLA_FLAGS`` cap the ISA (``compile.isa.with_max_isa``: XLA reads them when its CPU
+    backend starts, so one process cannot compile for two), one after the other; their rows,
+    each with its ``isa``, go to one output (plots: none). Returns the rows."""
+    emit = JsonLines(out, command)
+    rows: list[dict] = []
+    for isa in bench.isa:
+        with tempfile.TemporaryDirectory() as tmp:
+            part = Path(tmp) / "rows.jsonl"
+            argv = [sys.executable, "-m", "jskel", "bench", str(file), *(a for o in overrides for a in ("--set", o)), "--set", "isa=[]",
+                    "--out", str(part), *(["--runs", str(runs)] if runs else []), *(["--x64"] if x64 else [])]
+            env = {**os.environ, "XLA_FLAGS": with_max_isa(isa)}
+            emit({"isa_pass": isa, "xla_flags": env["XLA_FLAGS"]}, keep=False)
+            done = run_pass(argv, env)
+            got = [json.loads(line) for line in part.read_text().splitlines() if line.strip()] if part.exists() else []
+        for row in got:
+            row.pop("run", None)  # the pass's own provenance: this file's run, and the row's isa, say it
+            row["isa_pass"] = isa
+            emit(row)
+            rows.append(row)
+        if done.returncode != 0:
+            raise RuntimeError(f"isa: the {isa} pass exited with {done.returncode} ({' '.join(argv)})")
+    return rows
