@@ -43,7 +43,8 @@ class MeshConfig(StrictModel):
     group: Annotated[int, Field(ge=1, le=65536)] = 64
     """``walks``: rays per vmapped group of walks (and ``bins``' walks, for the chunks it hands them)."""
     bin_packet: Annotated[int, Field(ge=1, le=65536)] = 64
-    """``bins``: consecutive rays sharing one candidate list."""
+    """``bins``: consecutive rays sharing one candidate list (64 and ``bin_pairs`` 256 were best or within the spread
+    under AVX-512 and AVX2 alike: docs/choices.md#mesh-bins-isa)."""
     bin_candidates: Annotated[int, Field(ge=1, le=65536)] = 128
     """``bins``: triangles tested against every packet at once."""
     bin_pairs: Annotated[int, Field(ge=1, le=65536)] = 256
