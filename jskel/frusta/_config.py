@@ -216,7 +216,8 @@ class FrustaConfig(StrictModel):
     """How rays find their segments: candidate lists of packets of coherent rays (``bins``, the CPU default), BVH
     packets, per-ray BVH walks under vmap, or the Pallas kernel (the accelerator default); ``auto`` picks by backend."""
     bin_packet: Annotated[int, Field(ge=1, le=65536)] = 64
-    """``bins``: consecutive rays sharing one candidate list."""
+    """``bins``: consecutive rays sharing one candidate list (64 and ``bin_pairs`` 256 within 9 % of the best under
+    AVX-512 and AVX2 alike: docs/choices.md#bins-isa)."""
     bin_candidates: Annotated[int, Field(ge=1, le=65536)] = 128
     """``bins``: segments tested against every packet at once."""
     bin_pairs: Annotated[int, Field(ge=1, le=65536)] = 256
