@@ -321,3 +321,33 @@ def test_packets_and_per_ray_walks_give_the_brute_force_hits(files):
         hit = np.isfinite(h.t)
         np.testing.assert_allclose(h.t[hit], np.asarray(ref.t)[hit], rtol=1e-6, atol=0)
         assert np.mean(h.prim == np.asarray(ref.prim)) > 0.999
+
+
+def test_axis_aligned_rays_at_a_cube_hit_every_face_exactly_through_every_traversal(tmp_path):
+    """A cube (flat, axis-aligned faces: boxes of zero thickness but for their padding) cast by
+    rays whose directions are exactly along an axis (two components exactly 0: the packets'
+    direction intervals are single points, the slab tests' inverses infinite), aimed at a grid over
+    each face that includes the faces' diagonals (the edge shared by a face's two triangles):
+    every ray hits, at t = the distance to the face's plane (float64 closed form), finite, with
+    the face's outward normal, for bins, packets and walks alike."""
+    path = tmp_path / "cube.ply"
+    trimesh.creation.box(extents=(2.0, 2.0, 2.0)).export(path)
+    g = np.linspace(-0.95, 0.95, 16)  # includes points on both diagonals of every face
+    u, v = (a.reshape(-1) for a in np.meshgrid(g, g))
+    O, D, T, Nrm = [], [], [], []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            o = np.zeros((u.size, 3))
+            o[:, (axis + 1) % 3], o[:, (axis + 2) % 3] = u, v
+            o[:, axis] = -sign * 4.0  # 4 from the centre, looking along sign * axis
+            d = np.zeros((u.size, 3))
+            d[:, axis] = sign
+            n = np.zeros(3)
+            n[axis] = -sign
+            O.append(o), D.append(d), T.append(np.full(u.size, 3.0)), Nrm.append(np.broadcast_to(n, (u.size, 3)))
+    O, D, T, Nrm = (np.concatenate(x) for x in (O, D, T, Nrm))
+    for kind in ("bins", "packets", "walks"):
+        h = _cast(mesh.build(_cfg(str(path), traversal=kind)), O, D)
+        assert np.all(np.isfinite(h.t)), (kind, int(np.sum(~np.isfinite(h.t))))
+        np.testing.assert_allclose(h.t, T, rtol=1e-6, err_msg=kind)
+        np.testing.assert_allclose(h.normal, Nrm, atol=1e-6, err_msg=kind)
