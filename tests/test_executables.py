@@ -25,8 +25,20 @@ def _affine(a, x):
     return a * x + 1.0
 
 
+# a constant of this process in the compiled program (times a traced zero, so that it stays
+# there): JAX's persistent cache (the tests' .jax_cache, kept between runs in one checkout) then
+# never serves it from an earlier run, and a program that cache serves is not stored
+# (``executables.counts()['from_jax_cache']``): a second run of this file in one checkout found
+# nothing stored. Within the process, JAX's own in-memory cache of ``_affine_here`` serves repeats.
+_PID = float(os.getpid())
+
+
+def _affine_here(a, x):
+    return _affine(a, x) + (a - a) * _PID
+
+
 def _compile():
-    return jax.jit(_affine).lower(*ARGS).compile()
+    return jax.jit(_affine_here).lower(*ARGS).compile()
 
 
 def _get():
@@ -103,7 +115,8 @@ def test_an_unsharded_program_is_loaded_onto_its_one_device_of_two(tmp_path):
             f"ex.use_dir({str(tmp_path / 'x')!r}); a = (np.float32(3), np.arange(8, dtype=np.float32)); "
             "c = ex.compiled_for(operator.mul, a, None, lambda: jax.jit(operator.mul).lower(*a).compile()); "
             "print(json.dumps([np.asarray(c(*a)).tolist(), ex.counts()['loaded'], len(jax.devices())]))")
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    # JAX's persistent cache of this test's own (an earlier run's would serve the program, which is then not stored)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_COMPILATION_CACHE_DIR=str(tmp_path / "jax"))
     for loaded in (0, 1):
         p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
         assert p.returncode == 0 and "warning" not in p.stderr, p.stderr[-2000:]
@@ -123,7 +136,7 @@ def _entry_for(n: int):
     """(output, the entry's path) of ``_affine`` on ``n`` values: one entry per size."""
     args = (np.float32(3.0), np.arange(n, dtype=np.float32))
     before = set(executables._state["dir"].glob("*.jx"))
-    out = executables.compiled_for(_affine, args, None, lambda: jax.jit(_affine).lower(*args).compile())(*args)
+    out = executables.compiled_for(_affine, args, None, lambda: jax.jit(_affine_here).lower(*args).compile())(*args)
     np.testing.assert_array_equal(out, 3.0 * np.arange(n) + 1.0)
     new = set(executables._state["dir"].glob("*.jx")) - before
     return new.pop() if new else None
