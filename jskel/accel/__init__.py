@@ -5,6 +5,7 @@ lists for packets of coherent rays (``_bins``); reverse-mode derivatives of a wa
 from its winning primitive (``_tangent``)."""
 
 from ._bins import always as always
+from ._bins import bin_groups as bin_groups
 from ._bins import fenced as fenced
 from ._bins import first_set as first_set
 from ._bins import nearest_binned as nearest_binned
@@ -26,4 +27,4 @@ from ._lbvh import ray_box as ray_box
 from ._tangent import hold as hold
 from ._tangent import nearest_tangent as nearest_tangent
 
-__all__ = ["BVH", "Best", "always", "build", "collect", "descend", "escape", "fenced", "first_set", "hold", "leaves_for", "map_groups", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "nearest_tangent", "pack_bits", "packet_meets", "pad_groups", "ray_box"]
+__all__ = ["BVH", "Best", "always", "bin_groups", "build", "collect", "descend", "escape", "fenced", "first_set", "hold", "leaves_for", "map_groups", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "nearest_tangent", "pack_bits", "packet_meets", "pad_groups", "ray_box"]

@@ -159,6 +159,14 @@ def batch_list(whole, lo, hi, groups=None):
     return out, n1
 
 
+def bin_groups(tree, per: int):
+    """The BVH ``tree``'s nodes at the level whose subtrees hold ``per`` leaf slots: their boxes
+    and slots, the ``groups`` that :func:`batch_list` tests before their primitives."""
+    slots = tree.order.shape[0]
+    ng = max(1, slots // max(per, 1))
+    return tree.lo[ng : 2 * ng], tree.hi[ng : 2 * ng], tree.order.reshape(ng, -1)
+
+
 def fenced(pred, fn: Callable):
     """``fn()``, computed in a conditional whose predicate ``pred`` is true at run time but
     unknown to the compiler: its results are materialised once, as a fusion boundary.

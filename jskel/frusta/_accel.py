@@ -14,7 +14,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..accel import BVH, Best, build, hold, map_groups, nearest, nearest_binned, nearest_packet
+from ..accel import BVH, Best, bin_groups, build, hold, map_groups, nearest, nearest_binned, nearest_packet
 from ..numerics import dot3, safe_div
 from ._intersect import CAP_BOTTOM, SIDE, FrustaParams, _cone_roots, _segment_t, recentre
 
@@ -148,14 +148,6 @@ def nearest_groups(f: FrustaParams, bvh, leaf: int, group: int, origins, directi
     coherent rays waste the fewest lanes."""
     one = jax.vmap(lambda o, d, a, b: nearest_bvh(f, bvh, leaf, o, d, a, b, any_hit))
     return map_groups(one, group, origins, directions, t_min, t_max)
-
-
-def bin_groups(tree: BVH, per: int):
-    """The tree's nodes at the level whose subtrees hold ``per`` leaf slots: their boxes and
-    slots, the groups that ``accel.batch_list`` tests before their primitives."""
-    slots = tree.order.shape[0]
-    ng = max(1, slots // max(per, 1))
-    return tree.lo[ng : 2 * ng], tree.hi[ng : 2 * ng], tree.order.reshape(ng, -1)
 
 
 # up to this many segments (the plain group's size bucket, so no new program) ``nearest_bins``

@@ -31,7 +31,8 @@ from ._triangle import cross3, triangle_t
 class MeshParams(NamedTuple):
     """Device pytree: triangles' vertices relative to the anchor (kept as vertices: the
     watertight test needs shared vertices bit-equal), unit face normals, corner normals (smooth
-    shading; (1, 3, 3) zeros when flat), colour, the BVH, and which rows are triangles. The
+    shading; (1, 3, 3) zeros when flat), colour, the BVH, which rows are triangles, and each
+    triangle's box (the BVH's and the bins' both). The
     rows are those of a size bucket (``executor.size_bucket``, at least the F triangles), so a
     mesh of similar size shares every program; a padding row is a point at the anchor that no
     ray meets and no winding number counts (``valid`` False, out of the BVH)."""
@@ -45,6 +46,8 @@ class MeshParams(NamedTuple):
     color: jnp.ndarray  # (3,)
     bvh: accel.BVH
     valid: jnp.ndarray  # (F',) bool: a triangle of the mesh (False: padding)
+    box_lo: jnp.ndarray  # (F', 3) each triangle's box, as the BVH is built from it (lo = +inf for padding)
+    box_hi: jnp.ndarray  # (F', 3) (hi = -inf for padding)
 
 
 class Static(NamedTuple):
@@ -121,10 +124,13 @@ def build(cfg: MeshConfig, dtype=np.float32) -> Built:
     tri, ids, n = _padded(tri, rows), _padded(f.astype(np.int32), rows), _padded(n, rows)
     vn = vn if vn.shape[0] == 1 else _padded(vn, rows)
     valid = np.arange(rows) < f.shape[0]
-    bvh = _build_bvh(jnp.asarray(tri.min(1) - pad, dtype), jnp.asarray(tri.max(1) + pad, dtype), jnp.asarray(valid), cfg.leaf)
+    box_lo = np.where(valid[:, None], tri.min(1) - pad, np.inf)
+    box_hi = np.where(valid[:, None], tri.max(1) + pad, -np.inf)
+    bvh = _build_bvh(jnp.asarray(box_lo, dtype), jnp.asarray(box_hi, dtype), jnp.asarray(valid), cfg.leaf)
     v0, v1, v2 = (jnp.asarray(tri[:, k], dtype) for k in range(3))
     params = MeshParams(v0, v1, v2, jnp.asarray(ids), jnp.asarray(n, dtype), jnp.asarray(vn, dtype),
-                        jnp.asarray(np.asarray(cfg.color, np.float64), dtype), bvh, jnp.asarray(valid))
+                        jnp.asarray(np.asarray(cfg.color, np.float64), dtype), bvh, jnp.asarray(valid),
+                        jnp.asarray(box_lo, dtype), jnp.asarray(box_hi, dtype))
     info = {"triangles": int(f.shape[0]), "vertices": int(v.shape[0]), "watertight": bool(m.is_watertight), "closed": closed,
             "degenerate_triangles": int(np.sum(area2 == 0))}
     traversal = traversal_of(cfg, int(f.shape[0]))
@@ -178,27 +184,15 @@ def _nearest_packet(p: MeshParams, static: Static, o, d, t_min, t_max):
     return jnp.where(best.idx >= 0, best.t, jnp.inf), best.idx
 
 
-def _bin_boxes(p: MeshParams):
-    """(lo, hi) (F', 3) of every triangle in its own order, empty (lo = +inf) for padding rows:
-    the boxes ``accel.nearest_binned`` lists. The tree's leaves are unions of these boxes, so a
-    triangle the tree keeps for a ray is in its packet's list (both conservative)."""
-    lo = jnp.minimum(jnp.minimum(p.v0, p.v1), p.v2)
-    hi = jnp.maximum(jnp.maximum(p.v0, p.v1), p.v2)
-    inf = jnp.asarray(jnp.inf, lo.dtype)
-    # widened as the build widens the tree's boxes (float32 rounding of the vertices)
-    pad = 4.0 * jnp.finfo(lo.dtype).eps * (jnp.max(jnp.where(p.valid[:, None], jnp.abs(hi) + jnp.abs(lo), 0.0)) + 1.0)
-    return jnp.where(p.valid[:, None], lo - pad, inf), jnp.where(p.valid[:, None], hi + pad, -inf)
-
-
 def nearest_bins(p: MeshParams, static: Static, rays: Rays):
     """(t, idx) of a batch through packet candidate lists (``accel.nearest_binned``, the frusta's
     ``bins``): each packet of ``bins[0]`` consecutive rays tests, densely, only the triangles
-    whose box one of its rays may meet, nearest first and pruned by its rays' best t; the
-    batch's list is found through the tree's nodes of ``bins[3]`` leaf slots. A batch whose
+    whose box (``box_lo``/``box_hi``, those the tree is built from, so both are conservative
+    alike) one of its rays may meet, nearest first and pruned by its rays' best t; the batch's
+    list is found through the tree's nodes of ``bins[3]`` leaf slots. A batch whose
     list holds more than ``bins[4]`` triangles per ray is cast by per-ray walks instead.
     Equal to brute force (ties to the lowest triangle index)."""
     packet, candidates, pairs, per, walk_ratio = static.bins
-    lo, hi = _bin_boxes(p)
     n = rays.size
 
     def pair_fn(ids, o, d, a, b):  # ids (Q,), rays (Q, G, ...): t (Q, G)
@@ -209,11 +203,9 @@ def nearest_bins(p: MeshParams, static: Static, rays: Rays):
     def walks(o, d, a, b):
         return accel.map_groups(jax.vmap(lambda *r: _nearest_one(p, static, *r)), static.group, o, d, a, b)
 
-    slots = p.bvh.order.shape[0]
-    ng = max(1, slots // max(per, 1))
-    groups = (p.bvh.lo[ng : 2 * ng], p.bvh.hi[ng : 2 * ng], p.bvh.order.reshape(ng, -1)) if per else None
-    fallback = walks if walk_ratio > 0 and int(walk_ratio * n) < lo.shape[0] else None
-    t, idx, _ = accel.nearest_binned(lo, hi, pair_fn, packet, candidates, pairs, *rays, groups, fallback, int(walk_ratio * n),
+    groups = accel.bin_groups(p.bvh, per) if per else None
+    fallback = walks if walk_ratio > 0 and int(walk_ratio * n) < p.box_lo.shape[0] else None
+    t, idx, _ = accel.nearest_binned(p.box_lo, p.box_hi, pair_fn, packet, candidates, pairs, *rays, groups, fallback, int(walk_ratio * n),
                                      root=(p.bvh.lo[1], p.bvh.hi[1]))
     return t, idx
 
