@@ -91,6 +91,72 @@ def test_collect_finds_every_leaf_the_ray_meets_and_flags_more_than_it_keeps():
         assert np.all(slots[i][k[i]:] == -1)
 
 
+def numpy_leaves_met(lo, hi, O, D):
+    """(R, L) whether each ray (t >= 0) meets each box, and (R, L) whether it passes within
+    float32's reach of a box's boundary (a corner, an edge, the origin on a face): float64 slab
+    tests written here."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta = (lo[None] - O[:, None]) / D[:, None]
+        tb = (hi[None] - O[:, None]) / D[:, None]
+    inside = (O[:, None] >= lo[None]) & (O[:, None] <= hi[None])
+    ta = np.where(D[:, None] == 0, np.where(inside, -np.inf, np.inf), ta)  # outside a slab: entry at +inf
+    tb = np.where(D[:, None] == 0, np.inf, tb)
+    t0 = np.max(np.minimum(ta, tb), -1)
+    t1 = np.min(np.maximum(ta, tb), -1)
+    meets = (t0 <= t1) & (t1 >= 0) & np.all(lo <= hi, -1)[None]
+    with np.errstate(invalid="ignore"):
+        edge = ~(np.abs(t1 - t0) > 1e-4 * (1 + np.abs(t0))) | (np.abs(t1) <= 1e-4)
+    return meets, edge & np.all(lo <= hi, -1)[None]  # an empty box (padding) has no boundary
+
+
+@pytest.mark.parametrize("listed", [24, 48])
+def test_collect_packets_finds_every_leaf_a_ray_meets_and_spills_incoherent_packets(listed):
+    """``accel.collect_packets`` against float64 NumPy slab tests of every leaf box: on packets
+    of coherent rays (from one eye into a narrow cone; one packet axis-parallel) every ray's
+    leaves, overflow exactly when more are met than kept; a packet of random rays meets more
+    leaves than its list holds and is flagged, never answered short."""
+    rng = np.random.default_rng(5)
+    p, leaf, cap, g = 300, 4, 12, 64
+    c = rng.uniform(-1, 1, size=(p, 3))
+    half = rng.uniform(0.02, 0.15, size=(p, 3))
+    bvh = accel.build(jnp.float32(c - half), jnp.float32(c + half), jnp.ones(p, bool), leaf)
+    n_leaves = bvh.lo.shape[0] // 2
+    Os, Ds = [], []
+    for k in range(6):  # coherent packets: one eye, directions within a few degrees
+        eye = rng.normal(size=3)
+        eye *= 2.5 / np.linalg.norm(eye)
+        aim = rng.uniform(-0.6, 0.6, size=3) - eye
+        d = aim / np.linalg.norm(aim) + 0.03 * rng.normal(size=(g, 3))
+        Os.append(np.tile(eye, (g, 1)))
+        Ds.append(d)
+    Os.append(np.column_stack([np.full(g, -2.0), rng.uniform(-0.3, 0.3, (g, 2))]))  # axis-parallel: d = (1, 0, 0)
+    Ds.append(np.tile([1.0, 0.0, 0.0], (g, 1)))
+    Os.append(rng.uniform(-1, 1, size=(g, 3)))  # one incoherent packet
+    Ds.append(rng.normal(size=(g, 3)))
+    O, D = np.concatenate(Os), np.concatenate(Ds)
+    fn = jax.jit(lambda o, d: accel.collect_packets(bvh, o, d, jnp.zeros(o.shape[0]), jnp.full(o.shape[0], jnp.inf), cap, g, listed))
+    slots, count, over, spill = (np.asarray(x) for x in fn(jnp.float32(O), jnp.float32(D)))
+    lo, hi = np.asarray(bvh.lo, np.float64)[n_leaves:], np.asarray(bvh.hi, np.float64)[n_leaves:]
+    meets, edge = numpy_leaves_met(lo, hi, O, D)
+    n = meets.sum(1)
+    union = meets.reshape(-1, g, n_leaves).any(1).sum(1)  # leaves each packet's rays meet
+    spilled = spill.reshape(-1, g)
+    assert np.all(spilled == spilled[:, :1])  # a packet's rays are flagged together
+    assert np.all(spilled[union > listed])  # a list too short for its packet is never trusted
+    if listed == 48:  # only the random packet's list overflowed
+        assert spilled[-1, 0] and not np.any(spilled[:-1])
+    else:
+        assert spilled[:-1, 0].sum() in range(1, 7)
+    assert np.any(n[:-g] > cap) and ((n[:-g] > 0) & (n[:-g] <= cap)).sum() > 100  # both cases are tested
+    decided = ~np.any(edge, 1) & ~spill
+    assert decided.sum() > (300 if listed == 48 else 150)
+    np.testing.assert_array_equal(over[decided], n[decided] > cap)
+    for i in np.nonzero(decided & ~over)[0]:
+        k = count[i]
+        assert sorted(slots[i][:k].tolist()) == np.nonzero(meets[i])[0].tolist()
+        assert np.all(slots[i][k:] == -1)
+
+
 def test_an_any_hit_walk_answers_whether_and_stops_at_its_first_hit():
     """``accel.nearest(..., any_hit=True)`` (shadow rays) over 400 spheres: whether each ray meets
     a sphere in ``(t_min, t_max]`` equals a float64 NumPy test of every sphere (rays within 1e-4

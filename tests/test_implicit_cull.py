@@ -126,14 +126,37 @@ def test_block_overflow_is_flagged_never_dropped(slab, how):
     assert np.all(over[blocks_crossed >= 2])  # a ray whose primitives lie in two blocks meets both blocks' bounds
 
 
+def camera_rays(lo, hi, width=64, height=64, tile=8):
+    """A pinhole's rays over the box (lo, hi), in ``tile`` x ``tile`` squares of the image one
+    after another (the order ``camera.tile_order`` gives a render's rays), written here."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    c, size = 0.5 * (lo + hi), np.linalg.norm(hi - lo)
+    eye = c + size * np.array([0.3, 0.9, 0.6])
+    fwd = (c - eye) / np.linalg.norm(c - eye)
+    right = np.cross(fwd, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    ys, xs = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
+    order = np.lexsort((((ys % tile) * tile + xs % tile).ravel(), ((ys // tile) * (width // tile) + xs // tile).ravel()))
+    u, v = ((xs.ravel()[order] + 0.5) / width - 0.5), ((ys.ravel()[order] + 0.5) / height - 0.5)
+    D = fwd[None] + 0.5 * u[:, None] * right[None] + 0.5 * v[:, None] * up[None]
+    return np.tile(eye, (width * height, 1)), D / np.linalg.norm(D, axis=1, keepdims=True)
+
+
 def test_blocks_render_the_same_image_as_flat_culling():
+    """The tree (leaves walked per ray, or found through packets of rays, ``cull: packets``)
+    and the block spheres trace the same hits as flat culling (every primitive tested), on a
+    camera's rays in screen tiles (the packets' lists hold their leaves) and on random rays (an
+    incoherent packet's list overflows, and its rays are walked)."""
     rng = np.random.default_rng(11)
     hits = []
-    for bs, how in ((0, "tree"), (16, "tree"), (16, "blocks")):
+    for bs, how in ((0, "tree"), (16, "tree"), (16, "blocks"), (16, "packets")):
         built = blob_model(1500, block_size=bs, cull=how)
         if not hits:
             lo, hi = built.bounds
             O, D = ref.random_rays(rng, np.asarray(lo), np.asarray(hi), N_RAYS, spread=0.3)
+            Oc, Dc = camera_rays(lo, hi)
+            O, D = np.concatenate([Oc, O]), np.concatenate([Dc, D])
         key = built.static
         fn = lambda p, r, key=key: implicit.intersect_batch(p, key, r)  # overflowing rays retraced flat
         out = map_chunks(fn, built.params, make_rays(O - built.anchor, D), chunk=N_RAYS, progress=False).out
@@ -142,7 +165,7 @@ def test_blocks_render_the_same_image_as_flat_culling():
     ok = np.asarray(flat.flags) == 0
     assert ok.mean() > 0.95  # only candidate-list overflows remain (the same rays every way)
     h = np.isfinite(flat.t) & ok
-    assert h.mean() > 0.1
+    assert h.mean() > 0.1 and h[:N_RAYS].mean() > 0.1  # the camera's rays hit too
     for blocked in hits[1:]:
         np.testing.assert_array_equal(flat.flags, blocked.flags)
         np.testing.assert_array_equal(h, np.isfinite(blocked.t) & ok)

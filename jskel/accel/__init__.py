@@ -11,6 +11,7 @@ from ._bins import first_set as first_set
 from ._bins import nearest_binned as nearest_binned
 from ._bins import pack_bits as pack_bits
 from ._bins import packet_meets as packet_meets
+from ._collect import collect_packets as collect_packets
 from ._groups import map_groups as map_groups
 from ._groups import pad_groups as pad_groups
 from ._lbvh import BVH as BVH
@@ -27,4 +28,4 @@ from ._lbvh import ray_box as ray_box
 from ._tangent import hold as hold
 from ._tangent import nearest_tangent as nearest_tangent
 
-__all__ = ["BVH", "Best", "always", "bin_groups", "build", "collect", "descend", "escape", "fenced", "first_set", "hold", "leaves_for", "map_groups", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "nearest_tangent", "pack_bits", "packet_meets", "pad_groups", "ray_box"]
+__all__ = ["BVH", "Best", "always", "bin_groups", "build", "collect", "collect_packets", "descend", "escape", "fenced", "first_set", "hold", "leaves_for", "map_groups", "morton_codes", "nearest", "nearest_binned", "nearest_packet", "nearest_tangent", "pack_bits", "packet_meets", "pad_groups", "ray_box"]

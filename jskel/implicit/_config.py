@@ -267,8 +267,10 @@ class ImplicitConfig(StrictModel):
     block_capacity: Annotated[int, Field(ge=1, le=4096)] | None = None
     """Culling blocks kept per ray (more: the ray is retraced with flat culling); unset: 16 for ``tree``,
     32 for ``blocks`` (block spheres are looser than the tree's leaf boxes)."""
-    cull: Literal["blocks", "tree"] = "tree"
-    """How a ray finds its blocks: walk the shared BVH, or test every block sphere."""
+    cull: Literal["blocks", "tree", "packets"] = "tree"
+    """How a ray finds its blocks: walk the shared BVH (``tree``), find the same leaves for packets
+    of 64 rays at once (``packets``, ``accel.collect_packets``; not faster on the CPU's blob
+    slabs, docs/choices.md#cull-packets), or test every block sphere (``blocks``)."""
     early_exit: bool = True
     """March in a loop that ends at the bracket, instead of exactly ``steps`` steps."""
     color: RGB = (0.75, 0.45, 0.3)

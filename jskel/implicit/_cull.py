@@ -90,20 +90,25 @@ def influence_tree(prims: Prims, block: int) -> accel.BVH:
 
 
 def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_capacity: int = 0, how: str = "tree",
-         nearest: bool = True) -> Candidates:
+         nearest: bool = True, leaves=None) -> Candidates:
     """Candidates of one ray (Sec. 4.2: discard primitives whose influence the ray misses),
     through the block level first when the model has more blocks than ``block_capacity``:
     ``how="blocks"`` tests every block sphere and keeps the ``block_capacity`` nearest met;
-    ``how="tree"`` walks the shared BVH (:func:`influence_tree`) for the leaves met
+    ``how="tree"`` (or ``"packets"``) takes the leaves met of the shared BVH
+    (:func:`influence_tree`): ``leaves = (leaves (block_capacity,), overflow)`` found for the
+    whole batch (:func:`leaves_batch`), or, where not given, by walking it for this ray
     (``accel.collect``). Either way more blocks than kept sets ``OVERFLOW``. ``nearest``: keep
     the candidates ordered by their spheres' entries (the marches); the exact tracer needs no
     order."""
     p = prims.a.shape[0]
     ids = None
     block_overflow = jnp.asarray(False)
-    if how == "tree" and blocks_used(p, block, block_capacity):
+    if how in ("tree", "packets") and blocks_used(p, block, block_capacity):
         bvh = influence_tree(prims, block)
-        leaves, _, block_overflow = accel.collect(bvh, o, d, t_min, t_max, block_capacity)
+        if leaves is None:
+            leaves, _, block_overflow = accel.collect(bvh, o, d, t_min, t_max, block_capacity)
+        else:
+            leaves, block_overflow = leaves
         # the spheres of the leaves' primitives only, a leaf's rows contiguous in the tree's
         # order (one slice of block x 5 values per leaf, not five gathers per primitive); the
         # candidates' whole records are gathered after, C of them
@@ -126,6 +131,27 @@ def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_
         return _kept(prims, ids, c[ids], r[ids], prims.valid[ids] & jnp.repeat(bok, block), o, d, t_min, t_max, capacity, block_overflow, nearest)
     c, r = influence_spheres(prims)
     return _kept(prims, ids, c, r, prims.valid, o, d, t_min, t_max, capacity, block_overflow, nearest)
+
+
+PACKET = 64  # rays per packet: 8 x 8 pixels in ``camera.tile_order``'s default tile
+LISTED = 64  # leaves a packet's list holds (more: its rays are walked)
+
+
+def leaves_batch(bvh: accel.BVH, rays, block_capacity: int, lanes: int, packets: bool):
+    """(leaves (N, block_capacity), overflow (N,)): the leaves of ``bvh`` that each ray of the
+    batch meets, as :func:`cull` takes them. Walked per ray (``accel.collect``), or with
+    ``packets`` through each packet's list (``accel.collect_packets``: the same leaves, found
+    by dense box tests instead of a vmapped loop), walking only the rays of packets whose
+    list overflowed (``wavefront.compact_map``)."""
+    from ..wavefront import compact_map
+
+    def walk(sub):
+        return jax.vmap(lambda o, d, a, b: accel.collect(bvh, o, d, a, b, block_capacity))(*sub)[::2]
+
+    if not packets:
+        return walk(rays)
+    leaves, _, over, spill = accel.collect_packets(bvh, *rays, block_capacity, PACKET, LISTED)
+    return compact_map(walk, spill, rays, (leaves, over), lanes)
 
 
 def _words(mask):

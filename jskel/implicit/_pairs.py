@@ -3,11 +3,13 @@
 ``_cull.cull`` gathers and tests every slot of a ray's leaf list (``block_capacity`` leaves of
 ``block`` primitives: 256 sphere tests a ray by default) although a camera ray meets fewer than
 two leaves on average (the blob slabs: 1.8 at 5,000 blobs, ``docs/performance.md``). Here the
-walk (``accel.collect``) is the same, and the pairs of a ray and a leaf it met are gathered into
+leaves are found as there (``accel.collect``, or with ``cull: packets`` ``accel.collect_packets``:
+``_cull.leaves_batch``), and the pairs of a ray and a leaf it met are gathered into
 dense sub-batches (``wavefront.compact_map``), each pair testing its leaf's primitives'
 spheres of influence (Rouiller 2011, Sec. 4.2) and returning one word of hit bits; a ray then
 keeps the first ``capacity`` primitives met (``accel.first_set`` over its words): in the walk's
-order of its leaves, then the tree's (Morton) order within a leaf. The candidates are those of ``cull(..., nearest=False)``, the ray's window (its
+order of its leaves (the walk's, or the tree's for packets), then the tree's (Morton) order
+within a leaf. The candidates are those of ``cull(..., nearest=False)``, the ray's window (its
 spheres' union) the same."""
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from .. import accel
 from ..rays import Rays
 from ..wavefront import compact_map
 from ._field import Prims
-from ._cull import Candidates, _sphere_interval, _words, influence_spheres, influence_tree
+from ._cull import Candidates, _sphere_interval, _words, influence_spheres, influence_tree, leaves_batch
 
 
 def usable(block: int) -> bool:
@@ -27,10 +29,11 @@ def usable(block: int) -> bool:
     return 0 < block <= 32
 
 
-def cull_batch(prims: Prims, rays: Rays, capacity: int, block: int, block_capacity: int, lanes: int) -> Candidates:
-    """The :class:`_cull.Candidates` (leading axis N) of every ray of ``rays``."""
+def cull_batch(prims: Prims, rays: Rays, capacity: int, block: int, block_capacity: int, lanes: int, packets: bool = False) -> Candidates:
+    """The :class:`_cull.Candidates` (leading axis N) of every ray of ``rays``, the leaves met
+    found by :func:`_cull.leaves_batch` (``packets``: through the packets' lists)."""
     bvh = influence_tree(prims, block)
-    leaves, _, over = jax.vmap(lambda o, d, a, b: accel.collect(bvh, o, d, a, b, block_capacity))(*rays)
+    leaves, over = leaves_batch(bvh, rays, block_capacity, lanes, packets)
     n, s = leaves.shape
     c, r = influence_spheres(prims)
     order = jnp.maximum(bvh.order, 0)  # -1 for padding and invalid primitives

@@ -20,7 +20,7 @@ from ._config import ImplicitConfig
 from ._field import Prims, shaped_field
 from ._primitives import csg_shape, expand, primitives
 from ._projectors import Projector, Skin, displace_params, project, projector_arrays, rest_position
-from ._cull import blocks_used, cull
+from ._cull import blocks_used, cull, influence_tree, leaves_batch
 from ._trace import NO_BRACKET, OVERFLOW, Quality, Tuning, certify, lipschitz_from, surface_one, trace_one
 
 
@@ -131,7 +131,7 @@ def build(cfg: ImplicitConfig, dtype=np.float32) -> Built:
     tubes = bool(np.any(a != b))
     q = Quality(cfg.method, cfg.capacity, early_exit=cfg.early_exit, shape=shape, tubes=tubes,
                 degree=8 if np.any((ra != rb) & np.any(a != b, axis=1)) else 4,
-                block=cfg.block_size, block_capacity=cfg.block_capacity or (16 if cfg.cull == "tree" else 32), cull=cfg.cull)
+                block=cfg.block_size, block_capacity=cfg.block_capacity or (32 if cfg.cull == "blocks" else 16), cull=cfg.cull)
     static = Static(q, kinds, textured)
     info = {"primitives": int(p), "padded_primitives": int(n), "bones": len(cfg.bones), "frame": cfg.frame, "max_field_bound": fmax}
     # width of the last bisection bracket: how far a returned hit may lie from F = T; the
@@ -186,13 +186,14 @@ def skin_of(rig, anchor, dtype) -> Skin:
     return Skin(on_device(heads - anchor, dtype), on_device(tails - anchor, dtype), on_device(infl, dtype), on_device(to_rest, dtype))
 
 
-def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min, t_max, deferred: bool = False):
+def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min, t_max, deferred: bool = False, leaves=None):
     """First hit of one ray; (u, v) from the projector applied at the rest-pose position.
     ``deferred`` (``bisection``): (hit, (candidates, origin, direction, Certify job)) with the
     certifying march left to :func:`intersect_batch`; (``exact``): the last is whether the ray
-    is uncertified, its march left to the batch."""
+    is uncertified, its march left to the batch. ``leaves``: the ray's BVH leaves found for its
+    batch (``_cull.leaves_batch``); unset, culling walks the tree for this ray."""
     q = static.quality
-    cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity, q.block, q.block_capacity, q.cull, q.method != "exact")
+    cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity, q.block, q.block_capacity, q.cull, q.method != "exact", leaves)
     out = trace_one(cand, scene.tune, origin, direction, t_min, t_max, q, deferred)
     t, flags = out[:2]
     pos, n, prim = surface_one(cand, scene.tune, origin, direction, t, q)
@@ -215,11 +216,15 @@ def intersect_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int
         return _exact_batch(scene, static, rays, lanes)
     deferred = q.method == "bisection"
 
-    def one(st: Static, defer: bool):
-        return jax.vmap(lambda o, d, a, b: intersect_one(scene, st, o, d, a, b, defer))
+    def one(st: Static, defer: bool, leaves=None):
+        return lambda *r: jax.vmap(lambda o, d, a, b, lv: intersect_one(scene, st, o, d, a, b, defer, lv))(*r, leaves)
 
-    out = one(static, deferred)(*rays)
-    if blocks_used(scene.prims.a.shape[0], q.block, q.block_capacity):
+    blocks = blocks_used(scene.prims.a.shape[0], q.block, q.block_capacity)
+    leaves = None
+    if q.cull == "packets" and blocks:  # every ray's leaves through its packet's list, for the batch
+        leaves = leaves_batch(influence_tree(scene.prims, q.block), rays, q.block_capacity, lanes, True)
+    out = one(static, deferred, leaves)(*rays)
+    if blocks:
         flat = static._replace(quality=q._replace(block=0))
         if not deferred:
             return compact_map(lambda sub: one(flat, False)(*sub), (out.flags & OVERFLOW) != 0, rays, out, lanes)
@@ -257,8 +262,8 @@ def _exact_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int) -
         return jax.vmap(lambda o, d, a, b: cull(scene.prims, o, d, a, b, q.capacity, block, q.block_capacity, q.cull, False))
 
     blocks = blocks_used(scene.prims.a.shape[0], q.block, q.block_capacity)
-    if q.cull == "tree" and blocks and _pairs.usable(q.block):
-        cand = _pairs.cull_batch(scene.prims, rays, q.capacity, q.block, q.block_capacity, lanes)
+    if q.cull in ("tree", "packets") and blocks and _pairs.usable(q.block):
+        cand = _pairs.cull_batch(scene.prims, rays, q.capacity, q.block, q.block_capacity, lanes, q.cull == "packets")
     else:
         cand = culled(q.block)(*rays)
     if blocks:  # rays that met more blocks than kept: culled again flat, then traced with the rest

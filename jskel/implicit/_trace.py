@@ -24,6 +24,12 @@ culling by ``intersect_batch``) and tests only their primitives. ``Quality.cull`
   inside point; it did not pay off on his GPU for his model sizes (App. A, Sec. 4.3's
   conclusion). Here the leaves overlap (each primitive is in one leaf) and every leaf met is
   kept, so the candidate list and the march are those of flat culling exactly.
+* ``packets``: the tree's leaves that each ray meets, found for a batch at once by packets of
+  64 consecutive rays (``accel.collect_packets``: dense box tests of each packet's bounds
+  against every leaf, then of each ray against its packet's list), so the same candidates as
+  ``tree`` without a per-ray loop; the rays of a packet whose list overflows are walked.
+  Equal hits; on the CPU not faster than the walk on the blob slabs, and 1 s more to compile
+  (docs/choices.md#cull-packets), so not the default.
 * ``blocks``: every group's bounding sphere (``block_spheres``) is tested and the nearest
   ``block_capacity`` met are kept: P / block sphere tests per ray.
 
