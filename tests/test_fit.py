@@ -252,9 +252,60 @@ def test_fit_command_writes_a_file_jskel_renders(tmp_path, capsys):
     np.testing.assert_array_equal(swc.joints, sk["joints"])  # the same float64 values through both files
     np.testing.assert_array_equal(swc.radii, sk["radii"])
     np.testing.assert_array_equal(swc.parents, sk["parents"])
+    # fitted.ply: the surface as triangles, every vertex on one of the fitted cones (256 lateral
+    # triangles a segment at level 2) or a cap's centre on an axis, checked in float64 here
+    import trimesh
+
+    mesh = trimesh.load(tmp_path / "out" / "fitted.ply", process=False)
+    j, r, par = np.asarray(sk["joints"]), np.asarray(sk["radii"]), np.asarray(sk["parents"])
+    child = np.nonzero(par >= 0)[0]
+    a, b, r1, r2 = j[par[child]], j[child], r[par[child]], r[child]
+    axis = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+    h = np.linalg.norm(b - a, axis=1)
+    rel = mesh.vertices[:, None, :] - a[None]  # (V, S, 3)
+    y = np.einsum("vsk,sk->vs", rel, axis)
+    rho = np.linalg.norm(rel - y[..., None] * axis[None], axis=-1)
+    on_cone = np.abs(rho - (r1 + (r2 - r1) * y / h)) < 1e-9 * (1 + np.abs(y)) + 1e-9
+    within = (y > -r1 - r2) & (y < h + r1 + r2)  # between its cutting planes, which tilt at joints
+    assert np.all(np.any((on_cone | (rho < 1e-9)) & within, axis=1))
+    assert len(mesh.faces) >= 256 * len(child) and info["surface"]["faces"] == len(mesh.faces) and info["surface"]["file"] == "fitted.ply"
     assert main(["render", str(fitted), "--out", str(tmp_path / "render"), "--set", "camera.width=64", "--set", "camera.height=48"]) == 0
     depth = np.load(tmp_path / "render" / "depth.npy")
     assert 0.05 < np.mean(np.isfinite(depth)) < 0.95  # framed: the branch is in view, not filling it
+
+
+def test_an_outside_weight_makes_the_radius_enclose_the_points():
+    """``solver.outside``: points outside the surface weigh ``outside`` times those inside (their
+    squared residuals). On a cylinder of radius 0.3 sampled with radial noise, the l2 fit's
+    radius is the mean radial distance with 1 and the ``outside / (1 + outside)`` expectile with
+    16, both computed here in float64 from the points (and then about 15 % of them outside, not
+    half)."""
+    rng = np.random.default_rng(11)
+    n = 3000
+    y = rng.uniform(0.15, 1.85, n)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    rho = 0.3 + 0.02 * rng.normal(size=n)
+    pts = np.column_stack([rho * np.cos(phi), y, rho * np.sin(phi)])
+    joints, radii, parents = np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0]]), np.array([0.3, 0.3]), np.array([-1, 0])
+
+    def expectile(w):  # r with w * sum (rho - r)_+ = sum (r - rho)_+, by bisection
+        lo, hi = rho.min(), rho.max()
+        for _ in range(100):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if w * np.sum(np.maximum(rho - mid, 0)) > np.sum(np.maximum(mid - rho, 0)) else (lo, mid)
+        return 0.5 * (lo + hi)
+
+    for w in (1.0, 16.0):
+        s = SolverConfig(name="lm", loss="l2", maxiter=200, tol=1e-9, jacobian="dense", outside=w, validity=0.0)
+        res = fit_points(pts, joints, radii, parents, s)
+        want = expectile(w)
+        np.testing.assert_allclose(res.radii.mean(), want, rtol=2e-3)  # at the expectile (the noise tapers it a little)
+        np.testing.assert_allclose(res.radii, want, rtol=1e-2)
+        out = np.mean(rho > res.radii.mean())
+        assert abs(out - np.mean(rho > want)) < 0.03 and ((0.4 < out < 0.6) if w == 1.0 else (out < 0.2))
+    sparse = fit_points(pts, joints, radii, parents, s.model_copy(update={"jacobian": "sparse"}))  # the other normal equations
+    np.testing.assert_allclose(sparse.radii, res.radii, rtol=1e-4)
+    assert expectile(16.0) > expectile(1.0) + 0.02  # the two fits lie more than a noise sigma apart
 
 
 def test_bad_fit_input_is_one_line_and_exit_2(tmp_path, capsys):

@@ -134,6 +134,12 @@ class SolverConfig(StrictModel):
     """Stop the stepping loop after this long (reported); unset: no limit."""
     validity: Annotated[float, Field(ge=0.0)] = 1.0
     """Weight of the penalty keeping shared cutting planes cutting ellipses (0: off)."""
+    outside: Annotated[float, Field(gt=0.0, le=1e6)] = 1.0
+    """Weight of a point outside the fitted surface against one inside at the same distance
+    (the squared residual's). Above 1 the surface wraps the points: for points sampled on a
+    closed surface (a mesh's vertices, a scan), whose skeleton should enclose them rather than
+    halve their noise. With ``l2``, radii then sit at the ``outside / (1 + outside)``
+    expectile of the points' radial spread instead of its mean."""
     jacobian: Literal["auto", "dense", "sparse", "jaxopt"] = "auto"
     """``lm`` / ``gauss_newton``: dense or sparse normal equations, ``auto`` (sparse for big problems), or jaxopt's solvers."""
 

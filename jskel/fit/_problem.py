@@ -2,7 +2,8 @@
 
 The unknowns are the joints (J,3) and radii (J,) of a skeleton of fixed topology; the residual
 of a point is its signed distance to the frusta surface (``_distance``), made robust (Huber or
-Cauchy) so outliers pull linearly or less, plus ``sqrt(smoothness)`` times the second
+Cauchy) so outliers pull linearly or less, and weighted more outside the surface than inside
+where asked (``solver.outside``: radii that enclose points sampled on a closed surface), plus ``sqrt(smoothness)`` times the second
 differences of the joints along each chain and the plane-validity penalty. Radii stay positive
 by construction: ``r = min_radius + softplus(u)`` with ``u`` the free parameter.
 
@@ -41,6 +42,7 @@ class Problem(NamedTuple):
     min_radius: float
     validity: float
     candidates: int
+    outside: float = 1.0
 
 
 VALID_MARGIN = 2.0 * ELLIPSE_MARGIN  # the penalty starts where |n . m| - sin(half-angle) falls below this
@@ -48,7 +50,17 @@ VALID_MARGIN = 2.0 * ELLIPSE_MARGIN  # the penalty starts where |n . m| - sin(ha
 
 def problem_of(seg: Segments, s: SolverConfig) -> Problem:
     triples = tuple((int(seg.start[a]), int(seg.start[b]), int(seg.end[b])) for a, b in zip(seg.cont_a, seg.cont_b))
-    return Problem(seg, triples, s.loss, float(s.scale), float(s.smoothness), float(s.min_radius), float(s.validity), int(s.candidates))
+    return Problem(seg, triples, s.loss, float(s.scale), float(s.smoothness), float(s.min_radius), float(s.validity), int(s.candidates),
+                   float(s.outside))
+
+
+def point_residuals(d, pr: Problem):
+    """The robust residuals of signed distances ``d`` (positive outside), those outside the
+    surface weighted by ``sqrt(outside)`` (``solver.outside``: their squares by ``outside``)."""
+    r = _solvers.robust_residuals(d, pr.loss, pr.scale)
+    if pr.outside == 1.0:
+        return r
+    return jnp.where(d > 0, np.sqrt(pr.outside), 1.0) * r
 
 
 def radii_of(u, pr: Problem):
@@ -87,7 +99,7 @@ def residuals(x, points, pr: Problem):
     joints, u = unpack(x)
     g = geometry(joints, radii_of(u, pr), pr.seg)  # once, for the distances and the plane margins
     d = distances_of(g, pr.seg, points, pr.candidates)[0]
-    r = _solvers.robust_residuals(d, pr.loss, pr.scale)
+    r = point_residuals(d, pr)
     return jnp.concatenate([r, penalty_rows(joints, g, pr).reshape(-1)])
 
 
@@ -100,7 +112,7 @@ def normal_equations(x, points, pr: Problem):
         return g, penalty_rows(joints, g, pr)
 
     return _normal.normal_equations(x, points, model, pr.seg, x.shape[-1] // 4, pr.candidates,
-                                    lambda d: _solvers.robust_residuals(d, pr.loss, pr.scale))
+                                    lambda d: point_residuals(d, pr))
 
 
 def dense_equations(x, points, pr: Problem):

@@ -1,5 +1,6 @@
 """What ``python -m jskel fit FILE --out DIR`` runs (issue 10): read or synthesise the points,
-start, solve, and write ``fitted.yaml`` (an experiment ``jskel render`` renders), ``fit.json``
+start, solve, and write ``fitted.yaml`` (an experiment ``jskel render`` renders), the skeleton
+as SWC and its surface as a PLY mesh (issue 53: output the field's tools read), ``fit.json``
 and ``fit.png``."""
 
 from __future__ import annotations
@@ -17,6 +18,9 @@ from ._fit import FitResult, fit_points
 from ._measures import measures
 from ._points import load_points
 from ._starts import perturbed, starting_skeleton
+
+
+MESH_LEVEL = 2  # fitted.ply: 256 triangles a segment, 32 generators around
 
 
 def framing_camera(joints, radii, width: int = 480, height: int = 360, fov: float = 40.0) -> dict:
@@ -91,7 +95,8 @@ def plot_fit(path: Path, res: FitResult, points: np.ndarray, d: np.ndarray, titl
 def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
     """Run a fit file: read or synthesise the points, start, solve; write ``fitted.yaml`` (an
     experiment ``jskel render`` renders), ``fitted.swc`` (the skeleton as SWC, ids 1..J, type 0),
-    ``fit.json`` and ``fit.png``. Returns fit.json's dict."""
+    ``fitted.ply`` (the frusta surface as triangles, ``frusta.export_mesh`` at level 2: within
+    r (1 - cos(pi / 32)) of the cones), ``fit.json`` and ``fit.png``. Returns fit.json's dict."""
     import json
 
     import yaml
@@ -110,7 +115,10 @@ def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
     (out / "fitted.yaml").write_text(f"# fitted by `jskel fit` ({cfg.solver.name}, {cfg.solver.loss} loss)\n"
                                      + yaml.safe_dump(fitted_experiment(cfg, res), sort_keys=False))
     skeletons.write_swc(out / "fitted.swc", skeletons.from_arrays(res.joints, res.radii, res.parents))  # for neuron/plant tools
+    fitted = frusta.FrustaConfig.model_validate(fitted_experiment(cfg, res)["object"])
+    mesh = frusta.export_mesh(out / "fitted.ply", fitted, MESH_LEVEL)  # the surface as triangles, for mesh tools
     info = fit_info(cfg, res, how, pinfo, points, d, exact, margin)
+    info["surface"] = {k: v for k, v in mesh.items() if k != "path"} | {"file": "fitted.ply"}
     if truth is not None and len(truth[0]) == len(res.joints) and np.array_equal(truth[2], res.parents):
         info["truth"] = truth_errors(res, truth, pinfo["skeleton_length"])
     from ..render import environment
