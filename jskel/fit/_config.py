@@ -50,14 +50,18 @@ class PointsConfig(StrictModel):
 
 
 class EstimateConfig(StrictModel):
-    """A skeleton estimated from the points. ``pca_chain``: ``segments`` segments along the
+    """A skeleton estimated from the points. ``contraction``: the topology from the points
+    themselves (Laplacian contraction, then balls joined where their points are neighbours:
+    ``jskel/fit/_contract.py``). ``pca_chain``: ``segments`` segments along the
     cloud's principal axis (a single tube, roughly straight). ``mst``: a minimum spanning tree
     over the centroids of occupied voxels of edge ``voxel`` (x the cloud's extent), simplified
     to joints about ``segment`` (x extent) apart, twigs shorter than ``prune`` voxels cut; needs
     voxels wider than the tubes and narrower than the gaps between branches."""
 
-    method: Literal["pca_chain", "mst"] = "pca_chain"
-    """A chain along the principal axis, or a minimum spanning tree over occupied voxels."""
+    method: Literal["pca_chain", "mst", "contraction"] = "pca_chain"
+    """A chain along the principal axis, a minimum spanning tree over occupied voxels, or the
+    points contracted onto curves by their Laplacian (Cao et al. 2010), whose branches the
+    skeleton follows."""
     segments: Annotated[int, Field(ge=1, le=4096)] = 5
     """``pca_chain``: number of segments."""
     voxel: Annotated[float, Field(gt=0.0, le=1.0)] = 0.08
@@ -65,7 +69,14 @@ class EstimateConfig(StrictModel):
     segment: Annotated[float, Field(gt=0.0, le=1.0)] = 0.15
     """``mst``: spacing of the simplified joints, a fraction of the cloud's extent."""
     prune: Annotated[float, Field(ge=0.0, le=1000.0)] = 3.0
-    """``mst``: twigs shorter than this many voxel edges are cut."""
+    """``mst``: twigs shorter than this many voxel edges are cut; ``contraction``: this many balls."""
+    neighbours: Annotated[int, Field(ge=3, le=64)] = 10
+    """``contraction``: the nearest points whose mean the Laplacian pulls each point towards."""
+    ball: Annotated[float, Field(gt=0.0, le=1.0)] = 0.04
+    """``contraction``: radius of the balls that group the contracted points into nodes, a
+    fraction of the cloud's extent (smaller than the gaps between branches)."""
+    max_points: Annotated[int, Field(ge=16, le=1_000_000)] = 20000
+    """``contraction``: larger clouds are first reduced to about this many points by a voxel grid."""
 
 
 class InitConfig(StrictModel):
