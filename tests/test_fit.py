@@ -274,6 +274,66 @@ def test_fit_command_writes_a_file_jskel_renders(tmp_path, capsys):
     assert 0.05 < np.mean(np.isfinite(depth)) < 0.95  # framed: the branch is in view, not filling it
 
 
+def test_topology_edits_between_rounds_recover_the_chain(tmp_path):
+    """``edits``: the start is the bent chain with a twig that no points need and a joint too
+    many on its straight first segment. The first round's fit lays the twig along the chain
+    (where it takes points it does not need); the edits prune it and merge the straight joint;
+    the next round edits nothing, and its fit is the true chain (same joints in the same order):
+    joints within 2 % of the length, radii within 5 %; each edit in fit.json."""
+    twig = BENT[3] + np.array([2.2, 0.3, 0.0])
+    mid = 0.5 * (BENT[0] + BENT[1])
+    start_j = np.concatenate([BENT[:1], [mid], BENT[1:], [twig]])
+    start_r = np.concatenate([BENT_R[:1], [0.48], BENT_R[1:], [0.2]])
+    start_p = [-1, 0, 1, 2, 3, 4, 5, 4]
+    f = _fit_file(tmp_path, init={"skeleton": {"joints": start_j.tolist(), "radii": start_r.tolist(), "parents": start_p}},
+                  edits={"rounds": 4, "merge_angle": 6.0})
+    assert main(["fit", str(f), "--out", str(tmp_path / "out")]) == 0
+    info = json.loads((tmp_path / "out" / "fit.json").read_text())
+    kinds = sorted((e["edit"], e["joint"]) for e in info["edits"])
+    assert kinds == [("merge", 1), ("prune", 7)] and all(e["round"] == 1 for e in info["edits"]), info["edits"]
+    assert info["rounds"] == 2  # the second round edited nothing
+    assert info["truth"]["joint_error_max_of_length"] < 0.02 and info["truth"]["radius_error_max_rel"] < 0.05
+
+
+def test_each_topology_edit_where_the_points_call_for_it():
+    """``_topology.edited`` on skeletons and points written here (no fit): a tip without points
+    and a tip laid along another segment are pruned, a real branch is kept; a joint on a
+    straight line and a segment shorter than ``merge_length`` are merged, a 30-degree joint is
+    kept; the segment that cuts a 40-degree bend of the points is split at its middle, the
+    others are not. Joints come out renumbered breadth first."""
+    from jskel.fit._config import EditsConfig
+    from jskel.fit._topology import edited
+
+    rng = np.random.default_rng(2)
+
+    def tube(a, b, r, n):  # points on the cylinder around a -> b
+        ax = (b - a) / np.linalg.norm(b - a)
+        u = np.cross(ax, [0.3, 0.1, 0.9])
+        u /= np.linalg.norm(u)
+        w = np.cross(ax, u)
+        t, phi = rng.uniform(0, 1, n), rng.uniform(0, 2 * np.pi, n)
+        return a + t[:, None] * (b - a) + r * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * w)
+
+    cfg = EditsConfig(prune_points=5, merge_length=0.02, merge_angle=10.0, split_residual=3.0)
+    # the points: a trunk up to (0, 4.5, 0) that then bends by 60 degrees, and a branch from (0, 3, 0)
+    bend_top = np.array([1.7321, 5.5, 0.0])
+    pts = np.concatenate([tube(np.zeros(3), np.array([0.0, 4.5, 0.0]), 0.2, 1500), tube(np.array([0.0, 4.5, 0.0]), bend_top, 0.2, 600),
+                          tube(np.array([0.0, 3.0, 0.0]), np.array([-1.5, 3.5, 0.0]), 0.15, 500)])
+    joints = np.array([[0, 0, 0], [0, 1.0, 0], [0, 2.0, 0], [0, 3.0, 0], [-0.01, 3.0, 0], [-1.5, 3.5, 0], bend_top, [0, 3.5, 0],
+                       [1.0, 0.9, 2.0], [0.05, 2.5, 0.0]])
+    radii = np.array([0.2, 0.2, 0.2, 0.2, 0.15, 0.15, 0.2, 0.2, 0.1, 0.2])
+    parents = np.array([-1, 0, 1, 2, 3, 4, 7, 3, 1, 2])
+    # 1: a joint on a straight line -> merged; 4: 0.01 from its parent (< 0.02 x extent) -> merged;
+    # 5: the branch's tip (its points) -> kept; 6: the segment 7 -> 6 cuts the bend -> split;
+    # 8: a twig with no points -> pruned; 9: a twig inside the trunk (the trunk's points) -> pruned
+    j, r, p, log = edited(pts, joints, radii, parents, cfg, 0.01 * 5.0, 5.0, 1)
+    got = sorted((e["edit"], e["joint"], e.get("why", "")) for e in log)
+    assert got == [("merge", 1, "straight"), ("merge", 4, "short"), ("prune", 8, ""), ("prune", 9, ""), ("split", 6, "")], log
+    assert len(j) == len(joints) - 4 + 1 and p[0] == -1 and np.all(p[1:] < np.arange(1, len(p)))  # breadth first
+    assert np.sum(np.bincount(p[p >= 0], minlength=len(p)) >= 2) == 1  # one branch point left, at (0, 3, 0) or its merge
+    assert np.min(np.linalg.norm(j - 0.5 * (joints[7] + bend_top), axis=1)) < 1e-12  # the new joint, mid-segment
+
+
 def test_an_outside_weight_makes_the_radius_enclose_the_points():
     """``solver.outside``: points outside the surface weigh ``outside`` times those inside (their
     squared residuals). On a cylinder of radius 0.3 sampled with radial noise, the l2 fit's

@@ -155,6 +155,26 @@ class SolverConfig(StrictModel):
     """``lm`` / ``gauss_newton``: dense or sparse normal equations, ``auto`` (sparse for big problems), or jaxopt's solvers."""
 
 
+class EditsConfig(StrictModel):
+    """Topology edits between rounds of the fit (``jskel/fit/_topology.py``): after each round
+    but the last, tips that fewer than ``prune_points`` points are nearest to are pruned,
+    segments shorter than ``merge_length`` (x extent) and joints where a chain turns by less
+    than ``merge_angle`` degrees are merged, and segments whose points lie further than
+    ``split_residual`` robust scales from them (root mean square) are split; every edit is
+    logged in fit.json. The rounds stop early when a round edits nothing."""
+
+    rounds: Annotated[int, Field(ge=1, le=20)] = 3
+    """Fits in all, with edits between them."""
+    prune_points: Annotated[int, Field(ge=0, le=1_000_000)] = 5
+    """A tip segment with fewer nearest points is pruned."""
+    merge_length: Annotated[float, Field(ge=0.0, le=1.0)] = 0.01
+    """A segment shorter than this fraction of the extent is merged into its parent joint."""
+    merge_angle: Annotated[float, Field(ge=0.0, le=90.0)] = 10.0
+    """A joint where its chain turns by less than this (degrees) is removed."""
+    split_residual: Annotated[float, Field(gt=0.0)] = 3.0
+    """A segment whose points' RMS distance exceeds this many ``solver.scale`` x extent is split."""
+
+
 class FitFile(StrictModel):
     """A fit: points, a start, a solver; the output experiment uses ``camera`` (framed on the
     fitted skeleton when omitted)."""
@@ -167,6 +187,8 @@ class FitFile(StrictModel):
     """The starting skeleton."""
     solver: SolverConfig = SolverConfig()
     """The solver and its loss."""
+    edits: EditsConfig | None = None
+    """Topology edits between rounds of the fit; unset: one fit of the start's topology."""
     camera: CameraConfig | None = None
     """The output experiment's camera; unset: framed on the fitted skeleton."""
     dtype: Literal["float32", "float64"] = "float32"

@@ -108,7 +108,7 @@ def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
     j0, r0, parents, how = starting_skeleton(cfg, points, truth)
     if cfg.init.perturb > 0:
         j0, r0 = perturbed(j0, r0, parents, cfg.init.perturb, np.random.default_rng(cfg.init.seed))
-    res = fit_points(points, j0, r0, parents, cfg.solver, dtype, seed=cfg.init.seed, perturb=cfg.init.perturb)
+    res, edits, rounds = fitted_in_rounds(cfg, points, j0, r0, parents, dtype)
     d, exact, margin = measures(points, res.joints, res.radii, res.parents, cfg.solver.candidates, dtype)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -119,6 +119,7 @@ def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
     mesh = frusta.export_mesh(out / "fitted.ply", fitted, MESH_LEVEL)  # the surface as triangles, for mesh tools
     info = fit_info(cfg, res, how, pinfo, points, d, exact, margin)
     info["surface"] = {k: v for k, v in mesh.items() if k != "path"} | {"file": "fitted.ply"}
+    info["rounds"], info["edits"] = rounds, edits
     if truth is not None and len(truth[0]) == len(res.joints) and np.array_equal(truth[2], res.parents):
         info["truth"] = truth_errors(res, truth, pinfo["skeleton_length"])
     from ..render import environment
@@ -128,6 +129,27 @@ def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
     plot_fit(out / "fit.png", res, points, d, f"{cfg.name}: {cfg.solver.name} ({cfg.solver.loss}), {len(points)} points, "
                                             f"{res.iterations} iterations, {res.seconds:.2f} s")
     return info
+
+
+def fitted_in_rounds(cfg: FitFile, points, joints, radii, parents, dtype):
+    """(the last round's FitResult, the edits' log, rounds run): fits of the start's topology
+    with topology edits between them (``cfg.edits``, ``_topology.edited``), until a round edits
+    nothing or ``edits.rounds`` fits are done; one fit without ``edits``. Each new topology
+    compiles its own solver program."""
+    from ._topology import edited
+
+    rounds = cfg.edits.rounds if cfg.edits is not None else 1
+    log = []
+    ext = float(np.max(np.ptp(points, axis=0)))
+    for k in range(rounds):
+        res = fit_points(points, joints, radii, parents, cfg.solver, dtype, seed=cfg.init.seed, perturb=cfg.init.perturb if k == 0 else 0.0)
+        if k == rounds - 1:
+            return res, log, k + 1
+        joints, radii, parents, done = edited(points, res.joints, res.radii, res.parents, cfg.edits, cfg.solver.scale * ext, ext, k + 1)
+        log.extend(done)
+        if not done:
+            return res, log, k + 1
+    raise AssertionError("unreachable")
 
 
 def fitted_experiment(cfg: FitFile, res: FitResult) -> dict:
