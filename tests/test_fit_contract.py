@@ -96,3 +96,17 @@ def test_fit_command_starts_from_the_contraction(tmp_path):
     sk = yaml.safe_load((tmp_path / "out" / "fitted.yaml").read_text())["object"]["skeleton"]
     assert np.sum(degrees(np.asarray(sk["parents"])) >= 3) == 2
     assert info["residuals"]["median_abs"] < 0.01 * length and info["residuals"]["inlier_fraction"] > 0.95
+
+
+def test_a_real_mesh_bench_names_what_it_cannot_read():
+    """``fit_real.meshes`` (``peers.skeletonizer.mesh_path``): an unknown package, a missing
+    name or a mesh the package does not ship is a ValueError naming the spec (the [peers]
+    packages themselves are never needed by the tests)."""
+    from jskel.peers.skeletonizer import mesh_path
+
+    for spec, words in (("trimesh:box", "is not package:name"), ("navis:", "is not package:name"), ("skeletor", "is not package:name")):
+        with pytest.raises(ValueError, match=words) as e:
+            mesh_path(spec)
+        assert repr(spec) in str(e.value)
+    with pytest.raises(ValueError, match="'navis:nosuchneuron'"):
+        mesh_path("navis:nosuchneuron")  # not installed, or installed without that mesh: either way named

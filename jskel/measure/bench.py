@@ -242,6 +242,9 @@ def run_bench(file, overrides: list[str], runs: int | None = None, out=None, x64
     raw = read_yaml(file)
     if isinstance(raw, dict) and "fit" in raw:
         return run_fit_bench(read_model(FitBenchFile, file, overrides).fit, JsonLines(out, command))
+    if isinstance(raw, dict) and "fit_real" in raw:  # real meshes beside a skeletonizer (a peer)
+        model, fn = needed(peers.fit_real, "fit_real", "skeletor")
+        return fn(read_model(model, file, overrides).fit_real, JsonLines(out, command))
     bench = read_model(BenchFile, file, overrides)
     if bench.isa:
         return run_per_isa(bench, file, overrides, runs, out, x64, command)

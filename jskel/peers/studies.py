@@ -9,6 +9,7 @@ from .skeleton_study import skeleton
 from ..probe.study import Peers
 from ..probe.study import StudyOptions as StudyOptions
 from .mitsuba_image import prepare
+from .skeletonizer import RealFitBenchFile, run_real_fit_bench
 
 STUDIES = {
     "embree_mesh": mesh_studies.embree_mesh,
@@ -18,6 +19,6 @@ STUDIES = {
 }
 
 #: every peer, as the harness's commands take them
-PEERS = Peers(STUDIES, mesh_studies.embree_mesh, prepare)
+PEERS = Peers(STUDIES, mesh_studies.embree_mesh, prepare, (RealFitBenchFile, run_real_fit_bench))
 
 __all__ = ["PEERS", "STUDIES", "StudyOptions"]

@@ -29,11 +29,14 @@ class Peers(NamedTuple):
     other: ``studies`` by the name a bench file's ``peer:`` gives them, each a study as above;
     ``mesh``: a sweep's ``peer: embree_mesh`` (a study too); ``mitsuba_image``: the latency
     benchmark's Mitsuba process, ``(exp, folder, variant) -> (command or None, image path
-    or why not)``. An empty default: a file that asks for a peer not given is refused."""
+    or why not)``; ``fit_real``: a bench file with a ``fit_real:`` section, fits of real meshes
+    beside a skeletonizer (``peers.skeletonizer``). An empty default: a file that asks for a
+    peer not given is refused."""
 
     studies: Mapping[str, Callable] = {}
     mesh: Callable | None = None
     mitsuba_image: Callable | None = None
+    fit_real: tuple | None = None  # (the file's model, its runner (section, emit) -> rows): a ``fit_real:`` bench
 
 
 def shape_of(exp, key: str):

@@ -1,0 +1,166 @@
+"""Fitting real shapes against a dedicated skeletonizer (issue 53): ``python -m jskel bench
+FILE`` with a ``fit_real:`` section (``experiments/bench_fit_real.yaml``).
+
+For each real mesh that a maintained package ships (skeletor's example neuron; navis' example
+neurons; both GPL-3.0, so read from the installed ``[peers]`` packages, never committed here):
+
+* **jskel**: ``subsamples`` clouds of ``points`` points sampled on the mesh's surface (seeds
+  0, 1, ...), each given the contraction start (``fit._contract``) and fitted (the fit file's
+  solver, its optional ``edits``), start and fit timed, compile included;
+* **skeletor**: the mesh skeletonized as skeletor's documentation does it (``pre.fix_mesh``,
+  then ``skeletonize.by_wavefront`` with ``waves=1, step_size=1``; radii its own), timed;
+* both measured the same way: the signed distance (``fit.point_distances``: the frusta
+  surface jskel renders) from ``fresh`` points sampled anew on the mesh (a seed of their own,
+  the same points for both) to the skeleton's surface: mean and median of its magnitude, the
+  share of points outside, segments and branch points.
+
+A summary row per mesh gives jskel's mean distance over skeletor's for each subsample, the
+segment counts' ratio and the subsamples' spread (largest over smallest mean distance less 1,
+branch points of each), for the issue's stability requirement.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field
+
+from ..config import StrictModel
+from ..fit import EditsConfig, SolverConfig
+
+#: where a package keeps its example meshes, relative to the package
+MESH_DIRS = {"skeletor": "data", "navis": "data/obj"}
+
+
+class StartBench(StrictModel):
+    """The contraction start's options (``init.estimate`` of a fit file)."""
+
+    neighbours: Annotated[int, Field(ge=3, le=64)] = 10
+    ball: Annotated[float, Field(gt=0.0, le=1.0)] = 0.005
+    segment: Annotated[float, Field(gt=0.0, le=1.0)] = 0.015
+    prune: Annotated[float, Field(ge=0.0, le=1000.0)] = 3.0
+    max_points: Annotated[int, Field(ge=16, le=1_000_000)] = 20000
+
+
+class RealFitBench(StrictModel):
+    """``fit_real:`` section of a bench file."""
+
+    meshes: list[str] = ["skeletor:722817260", "navis:754534424"]
+    """``package:name``: the example mesh ``name``.obj that the installed package ships."""
+    points: Annotated[int, Field(ge=100, le=10_000_000)] = 20000
+    """Points sampled on the surface for each fit."""
+    fresh: Annotated[int, Field(ge=100, le=10_000_000)] = 5000
+    """Points sampled anew to measure every skeleton."""
+    subsamples: Annotated[int, Field(ge=1, le=100)] = 3
+    """Fits from that many clouds (seeds 0, 1, ...)."""
+    start: StartBench = StartBench()
+    """The contraction start."""
+    solver: SolverConfig = SolverConfig(name="lm", loss="huber", scale=0.002, maxiter=60, candidates=8, outside=4.0)
+    """The fit's solver."""
+    edits: EditsConfig | None = None
+    """Topology edits between rounds; unset: one fit."""
+
+
+class RealFitBenchFile(StrictModel):
+    fit_real: RealFitBench
+
+
+def mesh_path(spec: str) -> Path:
+    """The .obj file of ``package:name`` (ValueError naming the spec when the package is not
+    installed, unknown, or has no such mesh)."""
+    pkg, _, name = spec.partition(":")
+    if pkg not in MESH_DIRS or not name:
+        raise ValueError(f"fit_real.meshes: {spec!r} is not package:name with a package of {sorted(MESH_DIRS)}")
+    found = importlib.util.find_spec(pkg)
+    if found is None or not found.submodule_search_locations:
+        raise ValueError(f"fit_real.meshes: {spec!r} needs {pkg} installed (pip install -e \".[peers]\")")
+    path = Path(list(found.submodule_search_locations)[0]) / MESH_DIRS[pkg] / f"{name}.obj"
+    if not path.is_file():
+        raise ValueError(f"fit_real.meshes: {spec!r}: no {path}")
+    return path
+
+
+def degrees_of(parents) -> np.ndarray:
+    parents = np.asarray(parents)
+    return np.bincount(np.concatenate([parents[parents >= 0], np.nonzero(parents >= 0)[0]]), minlength=len(parents))
+
+
+def measured(fresh, joints, radii, parents) -> dict:
+    """The issue's measures of a skeleton against fresh surface points."""
+    from ..fit import point_distances
+
+    d = point_distances(fresh, joints, radii, parents)
+    deg = degrees_of(parents)
+    return {"segments": int(np.sum(np.asarray(parents) >= 0)), "branch_points": int(np.sum(deg >= 3)), "tips": int(np.sum(deg == 1)),
+            "mean_abs": float(np.mean(np.abs(d))), "median_abs": float(np.median(np.abs(d))), "outside_share": float(np.mean(d > 0))}
+
+
+def skeletor_skeleton(mesh):
+    """(joints, radii, parents, seconds) of skeletor's wavefront skeleton of ``mesh``; radii
+    below a thousandth of the largest are raised to it (skeletor gives 0 at some tips; the
+    frusta need a positive radius)."""
+    import skeletor as sk
+
+    t = time.perf_counter()
+    fixed = sk.pre.fix_mesh(mesh, remove_disconnected=5, inplace=False)
+    skel = sk.skeletonize.by_wavefront(fixed, waves=1, step_size=1, progress=False)
+    seconds = time.perf_counter() - t
+    swc = skel.swc
+    pos = {int(v): i for i, v in enumerate(swc.node_id.values)}
+    parents = np.array([pos.get(int(p), -1) for p in swc.parent_id.values])
+    radii = swc.radius.values.astype(float)
+    return swc[["x", "y", "z"]].values.astype(float), np.maximum(radii, 1e-3 * radii.max()), parents, seconds
+
+
+def jskel_skeleton(points, b: RealFitBench):
+    """(joints, radii, parents, timings) of the contraction start and the fit (with edits)."""
+    from ..fit import FitFile, contraction_skeleton, fitted_in_rounds
+
+    s = b.start
+    t = time.perf_counter()
+    j, r, p, info = contraction_skeleton(points, s.neighbours, s.ball, s.segment, s.prune, s.max_points)
+    start_s = time.perf_counter() - t
+    cfg = FitFile.model_validate({"points": {"file": "-"}, "solver": b.solver.model_dump(), "edits": None if b.edits is None else b.edits.model_dump()})
+    t = time.perf_counter()
+    res, edits, rounds = fitted_in_rounds(cfg, points, j, r, p, np.float32)
+    fit_s = time.perf_counter() - t
+    return res.joints, res.radii, res.parents, {"start_s": round(start_s, 3), "fit_s": round(fit_s, 3), "compile_s": round(res.compile_s, 3),
+                                                "seconds": round(start_s + fit_s, 3), "iterations": res.iterations, "rounds": rounds,
+                                                "edits": len(edits), "start_segments": int(np.sum(p >= 0)), **info}
+
+
+def run_real_fit_bench(b: RealFitBench, emit) -> list[dict]:
+    """Run the benchmark (module docstring), calling ``emit(row)`` for each row as measured."""
+    import trimesh
+
+    rows = []
+
+    def out(row):
+        emit(row)
+        rows.append(row)
+
+    for spec in b.meshes:
+        path = mesh_path(spec)
+        surface = trimesh.load(path, process=False)
+        base = {"source": spec, "vertices": int(len(surface.vertices)), "faces": int(len(surface.faces)), "extent": float(np.max(np.ptp(surface.vertices, axis=0)))}
+        fresh = np.asarray(trimesh.sample.sample_surface(surface, b.fresh, seed=1000)[0], np.float64)
+        j, r, p, sk_s = skeletor_skeleton(surface)
+        peer = {**base, "system": "skeletor", "seconds": round(sk_s, 3), **measured(fresh, j, r, p)}
+        out(peer)
+        mine = []
+        for k in range(b.subsamples):
+            pts = np.asarray(trimesh.sample.sample_surface(surface, b.points, seed=k)[0], np.float64)
+            j, r, p, times = jskel_skeleton(pts, b)
+            row = {**base, "system": "jskel", "subsample": k, "points": b.points, **times, **measured(fresh, j, r, p)}
+            out(row)
+            mine.append(row)
+        means = [m["mean_abs"] for m in mine]
+        out({**base, "summary": True, "jskel_over_skeletor_mean_abs": [round(m / peer["mean_abs"], 3) for m in means],
+             "jskel_over_skeletor_segments": [round(m["segments"] / peer["segments"], 3) for m in mine],
+             "subsample_mean_abs_spread": round(max(means) / min(means) - 1, 3), "subsample_branch_points": [m["branch_points"] for m in mine],
+             "jskel_seconds": [m["seconds"] for m in mine], "skeletor_seconds": peer["seconds"]})
+    return rows
