@@ -71,17 +71,7 @@ def test_collect_finds_every_leaf_the_ray_meets_and_flags_more_than_it_keeps():
     walk = jax.jit(jax.vmap(lambda o, d: accel.collect(bvh, o, d, 0.0, jnp.inf, cap)))
     slots, k, over = (np.asarray(x) for x in walk(jnp.float32(O), jnp.float32(D)))
     lo, hi = np.asarray(bvh.lo, np.float64)[n_leaves:], np.asarray(bvh.hi, np.float64)[n_leaves:]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ta = (lo[None] - O[:, None]) / D[:, None]
-        tb = (hi[None] - O[:, None]) / D[:, None]
-    inside = (O[:, None] >= lo[None]) & (O[:, None] <= hi[None])
-    ta = np.where(D[:, None] == 0, np.where(inside, -np.inf, np.inf), ta)  # outside a slab: entry at +inf
-    tb = np.where(D[:, None] == 0, np.inf, tb)
-    t0 = np.max(np.minimum(ta, tb), -1)
-    t1 = np.min(np.maximum(ta, tb), -1)
-    meets = (t0 <= t1) & (t1 >= 0) & np.all(lo <= hi, -1)[None]
-    with np.errstate(invalid="ignore"):
-        edge = ~(np.abs(t1 - t0) > 1e-4 * (1 + np.abs(t0))) | (np.abs(t1) <= 1e-4)  # a corner, an edge or the origin on a face
+    meets, edge = numpy_leaves_met(lo, hi, O, D)  # edge: a corner, an edge or the origin on a face
     count = meets.sum(1)
     assert count.max() > cap and (count == 0).sum() > 10 and ((count > 0) & (count <= cap)).sum() > 100
     decided = ~np.any(edge, 1)
