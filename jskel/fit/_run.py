@@ -108,7 +108,7 @@ def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
     j0, r0, parents, how = starting_skeleton(cfg, points, truth)
     if cfg.init.perturb > 0:
         j0, r0 = perturbed(j0, r0, parents, cfg.init.perturb, np.random.default_rng(cfg.init.seed))
-    res, edits, rounds = fitted_in_rounds(cfg, points, j0, r0, parents, dtype)
+    res, edits, rounds = fitted_in_rounds(cfg.solver, cfg.edits, points, j0, r0, parents, dtype, cfg.init.seed, cfg.init.perturb)
     d, exact, margin = measures(points, res.joints, res.radii, res.parents, cfg.solver.candidates, dtype)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -131,25 +131,27 @@ def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
     return info
 
 
-def fitted_in_rounds(cfg: FitFile, points, joints, radii, parents, dtype):
+def fitted_in_rounds(solver, edits, points, joints, radii, parents, dtype, seed: int = 1, perturb: float = 0.0):
     """(the last round's FitResult, the edits' log, rounds run): fits of the start's topology
-    with topology edits between them (``cfg.edits``, ``_topology.edited``), until a round edits
-    nothing or ``edits.rounds`` fits are done; one fit without ``edits``. Each new topology
-    compiles its own solver program."""
+    by ``solver`` with topology edits between them (``edits``, ``_topology.edited``), until a
+    round edits nothing or ``edits.rounds`` fits are done; one fit without ``edits``. Each new
+    topology compiles its own solver program; ``seed`` and ``perturb`` are the first round's
+    restarts' (``fit_points``)."""
     from ._topology import edited
 
-    rounds = cfg.edits.rounds if cfg.edits is not None else 1
+    rounds = edits.rounds if edits is not None else 1
     log = []
     ext = float(np.max(np.ptp(points, axis=0)))
-    for k in range(rounds):
-        res = fit_points(points, joints, radii, parents, cfg.solver, dtype, seed=cfg.init.seed, perturb=cfg.init.perturb if k == 0 else 0.0)
-        if k == rounds - 1:
-            return res, log, k + 1
-        joints, radii, parents, done = edited(points, res.joints, res.radii, res.parents, cfg.edits, cfg.solver.scale * ext, ext, k + 1)
+    k = 0
+    while True:
+        res = fit_points(points, joints, radii, parents, solver, dtype, seed=seed, perturb=perturb if k == 0 else 0.0)
+        k += 1
+        if k == rounds:
+            return res, log, k
+        joints, radii, parents, done = edited(points, res.joints, res.radii, res.parents, edits, solver.scale * ext, ext, k)
         log.extend(done)
         if not done:
-            return res, log, k + 1
-    raise AssertionError("unreachable")
+            return res, log, k
 
 
 def fitted_experiment(cfg: FitFile, res: FitResult) -> dict:

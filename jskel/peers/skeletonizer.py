@@ -118,15 +118,14 @@ def skeletor_skeleton(mesh):
 
 def jskel_skeleton(points, b: RealFitBench):
     """(joints, radii, parents, timings) of the contraction start and the fit (with edits)."""
-    from ..fit import FitFile, contraction_skeleton, fitted_in_rounds
+    from ..fit import contraction_skeleton, fitted_in_rounds
 
     s = b.start
     t = time.perf_counter()
     j, r, p, info = contraction_skeleton(points, s.neighbours, s.ball, s.segment, s.prune, s.max_points)
     start_s = time.perf_counter() - t
-    cfg = FitFile.model_validate({"points": {"file": "-"}, "solver": b.solver.model_dump(), "edits": None if b.edits is None else b.edits.model_dump()})
     t = time.perf_counter()
-    res, edits, rounds = fitted_in_rounds(cfg, points, j, r, p, np.float32)
+    res, edits, rounds = fitted_in_rounds(b.solver, b.edits, points, j, r, p, np.float32)
     fit_s = time.perf_counter() - t
     return res.joints, res.radii, res.parents, {"start_s": round(start_s, 3), "fit_s": round(fit_s, 3), "compile_s": round(res.compile_s, 3),
                                                 "seconds": round(start_s + fit_s, 3), "iterations": res.iterations, "rounds": rounds,
