@@ -118,3 +118,39 @@ def refill_loop(start: Callable, advance: Callable, done: Callable, emit: Callab
 
     init = (jnp.minimum(count, lanes).astype(jnp.int32), items, lane < count, ctx, st, acc)
     return jax.lax.while_loop(lambda c: jnp.any(c[2]), body, init)[-1]
+
+
+PACKET = 64  # rays per packet: 8 x 8 pixels in ``camera.tile_order``'s default tile
+LISTED = 64  # leaves a packet's list holds (more: its rays are walked)
+
+
+def leaves_of(bvh, rays, capacity: int, lanes: int, packets: bool):
+    """(leaves (N, capacity) int32, -1 in unused slots; overflow (N,): the ray met more leaves
+    than ``capacity``): the leaves of ``bvh`` (``accel.BVH``) that each ray of the batch meets.
+    Walked per ray (``accel.collect``), or with ``packets`` through each packet's list
+    (``accel.collect_packets``: the same leaves, found by dense box tests instead of a vmapped
+    loop), walking only the rays of packets whose list overflowed (:func:`compact_map`). Shared
+    by the representations that take every leaf a ray meets: the implicit primitives' culling
+    and the frusta's relief shells."""
+    from . import accel
+
+    def walk(sub):
+        return jax.vmap(lambda o, d, a, b: accel.collect(bvh, o, d, a, b, capacity))(*sub)[::2]
+
+    if not packets:
+        return walk(rays)
+    leaves, _, over, spill = accel.collect_packets(bvh, *rays, capacity, PACKET, LISTED)
+    return compact_map(walk, spill, rays, (leaves, over), lanes)
+
+
+def leaves_after(bvh, rays, need, capacity: int, skip, lanes: int):
+    """(leaves, overflow) as :func:`leaves_of` gives them, for the rays ``need`` (N,) marks
+    (the rest: no leaf), each walked past its first ``skip`` leaves (``accel.collect``'s
+    ``skip``, may be traced): the continuation of a list that overflowed."""
+    from . import accel
+
+    def walk(sub):
+        return jax.vmap(lambda o, d, a, b: accel.collect(bvh, o, d, a, b, capacity, skip))(*sub)[::2]
+
+    n = need.shape[0]
+    return compact_map(walk, need, rays, (jnp.full((n, capacity), -1, jnp.int32), jnp.zeros((n,), bool)), lanes)

@@ -79,6 +79,20 @@ def test_collect_finds_every_leaf_the_ray_meets_and_flags_more_than_it_keeps():
     for i in np.nonzero(decided & ~over)[0]:
         assert sorted(slots[i][: k[i]].tolist()) == np.nonzero(meets[i])[0].tolist()
         assert np.all(slots[i][k[i]:] == -1)
+    # an overflowing list continued by walking again past the slots taken (``skip``, traced):
+    # the rounds together list every leaf met, each once
+    again = jax.jit(jax.vmap(lambda o, d, s: accel.collect(bvh, o, d, 0.0, jnp.inf, cap, s), in_axes=(0, 0, None)))
+    rows = np.nonzero(decided & over)[0]
+    assert rows.size > 20
+    lists, still = [slots[rows]], over[rows]
+    for r in range(1, -(-int(count.max()) // cap)):
+        s_r, _, o_r = (np.asarray(x) for x in again(jnp.float32(O[rows]), jnp.float32(D[rows]), jnp.int32(r * cap)))
+        lists.append(np.where(still[:, None], s_r, -1))
+        still = still & o_r
+    assert not np.any(still)
+    for j, i in enumerate(rows):
+        got = np.concatenate([l_[j] for l_ in lists])
+        assert sorted(got[got >= 0].tolist()) == np.nonzero(meets[i])[0].tolist()
 
 
 def numpy_leaves_met(lo, hi, O, D):

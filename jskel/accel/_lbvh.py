@@ -228,7 +228,7 @@ def nearest(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Be
     return best, visits, leaves
 
 
-def collect(bvh: BVH, o, d, t_min, t_max, capacity: int):
+def collect(bvh: BVH, o, d, t_min, t_max, capacity: int, skip=0):
     """Every leaf whose box the ray's (t_min, t_max] meets, for primitives that all contribute
     along the ray (the influence spheres of skeletal implicit surfaces, Rouiller 2011 Sec. 4.2,
     where the field sums every primitive it is inside, so there is no nearest hit to prune by).
@@ -238,7 +238,10 @@ def collect(bvh: BVH, o, d, t_min, t_max, capacity: int):
     the slots, not a scatter under vmap). The walk stops as soon as a leaf finds the slots full,
     so a ray costs the internal nodes above its leaves plus at most capacity + 1 leaves.
     Returns (leaves (capacity,) int32 leaf indices, -1 in unused slots, in walk order; count
-    written; overflow: more leaves met than slots, the list is then not every leaf met)."""
+    written; overflow: more leaves met than slots, the list is then not every leaf met).
+    ``skip`` (may be traced): the walk's first ``skip`` leaves are passed over, not written, so
+    a ray that overflowed is continued by walking it again with ``skip`` = the slots already
+    taken (the walk's order is the same every time)."""
     n_leaves = bvh.lo.shape[0] // 2
     inv_d = _inv_d(d)
     lanes = jnp.arange(capacity, dtype=jnp.int32)
@@ -252,8 +255,8 @@ def collect(bvh: BVH, o, d, t_min, t_max, capacity: int):
         at_leaf = node >= n_leaves
         nxt, ntrail = descend(node, trail, bvh.children[jnp.where(at_leaf, 0, node)], meets)
         pn, pt = pop(node, trail)
-        full = k >= capacity
-        slots = jnp.where(at_leaf & (lanes == k), node - n_leaves, slots)
+        full = k - skip >= capacity
+        slots = jnp.where(at_leaf & (lanes == k - skip), node - n_leaves, slots)
         k = k + (at_leaf & ~full).astype(jnp.int32)
         over = over | (at_leaf & full)
         node = jnp.where(at_leaf, jnp.where(full, 0, pn), nxt)
@@ -262,7 +265,7 @@ def collect(bvh: BVH, o, d, t_min, t_max, capacity: int):
     root = ray_box(bvh.lo[1], bvh.hi[1], o, inv_d, t_min, t_max)
     st = (jnp.where(root, 1, 0).astype(jnp.int32), jnp.uint32(0), jnp.int32(0), jnp.full((capacity,), -1, jnp.int32), jnp.asarray(False))
     _, _, k, slots, over = jax.lax.while_loop(lambda st: st[0] > 0, body, st)
-    return slots, k, over
+    return slots, jnp.maximum(k - skip, 0), over
 
 
 def nearest_packet(bvh: BVH, leaf_fn: Callable, leaf: int, o, d, t_min, t_max, init: Best):

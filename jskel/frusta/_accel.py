@@ -93,6 +93,14 @@ def build_bvh(f: FrustaParams, leaf: int) -> FrustaBVH:
     return FrustaBVH(tree, _pack(f, tree.order), jnp.where(f.valid[:, None], lo, inf), jnp.where(f.valid[:, None], hi, -inf))
 
 
+def shell_bvh(f: FrustaParams, leaf: int) -> BVH:
+    """``accel.BVH`` over the outer solids of relief segments' shells (radii grown by each row's
+    ``shell``), for culling their (ray, segment) pairs by the leaves each ray meets
+    (``_intersect.nearest_leaves_compact``)."""
+    lo, hi = segment_boxes(f._replace(r1=f.r1 + f.shell, r2=f.r2 + f.shell))
+    return build(lo, hi, f.valid, leaf)
+
+
 def _leaf_best(f: FrustaParams, fb: FrustaBVH, leaf: int, slots, o, d, t_min, t_hi):
     """Best of one ray against one leaf's segments (their rows arrive in one gather)."""
     seg = _unpack(jax.lax.dynamic_slice_in_dim(fb.rows, slots[0], leaf), f)

@@ -177,6 +177,11 @@ class ReliefConfig(StrictModel):
     count), with ``uv`` approximate or exact as the march."""
     segments: list[Annotated[int, Field(ge=0)]] | None = None
     """Indices of the segments that carry relief; unset: all."""
+    cull: Literal["auto", "blocks", "tree", "packets"] = "auto"
+    """Which (ray, segment) pairs reach the shell test: every segment of each block of ``object.block`` segments
+    that a ray of the batch reaches (``blocks``), or the segments of the BVH leaves each ray meets, found by
+    per-ray walks (``tree``) or for packets of 64 coherent rays at once (``packets``); ``auto`` picks
+    ``tree`` from 32 relief segments, else ``blocks`` (docs/choices.md#relief-cull)."""
 
 
 class FrustaConfig(StrictModel):

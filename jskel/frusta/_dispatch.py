@@ -11,9 +11,10 @@ import jax.numpy as jnp
 from ..accel import hold
 from ..interface import Object
 from ..rays import Rays
+from ..wavefront import leaves_after, leaves_of
 from ._accel import nearest_bins, nearest_groups, nearest_packets
 from ._config import FrustaConfig
-from ._intersect import _segment_t, nearest_batch, nearest_batch_compact, nearest_one
+from ._intersect import _segment_t, nearest_batch, nearest_batch_compact, nearest_leaves_compact, nearest_one
 from ._kernel import nearest_kernel
 from ._pack import FrustaScene, Group, Static
 from ._relief import enters_shell
@@ -46,6 +47,27 @@ AUTO_BINS_SEGMENTS = 64
 
 # below this many plain segments the block scan beat the BVH (docs/choices.md#auto-bins-segments)
 AUTO_BVH_SEGMENTS = 16
+
+
+def relief_cull_of(rel, relief_segments: int) -> str:
+    """``object.relief.cull`` resolved: ``auto`` is ``tree`` from :data:`AUTO_RELIEF_TREE`
+    relief segments, ``blocks`` below (and without relief). The per-ray walks beat the packets'
+    lists here (faster and compiled sooner on the palm and the L-system tree): a relief ray's
+    pairs cost far more than finding its leaves."""
+    if rel is None:
+        return "blocks"
+    if rel.cull != "auto":
+        return rel.cull
+    return "tree" if relief_segments >= AUTO_RELIEF_TREE else "blocks"
+
+
+# from this many relief segments ``auto`` culls their pairs by the BVH leaves each ray meets
+# (between 18 segments, where both took the same time, and 54, where the tree was faster:
+# docs/choices.md#relief-cull)
+AUTO_RELIEF_TREE = 32
+
+# BVH leaves listed per ray and round for the relief's pairs (a ray meeting more takes another round)
+RELIEF_LEAVES = 32
 
 
 # the exact relief traversal's persistent lanes and iterations between refills: the cast's time
@@ -91,10 +113,25 @@ def _relief_search(static: Static):
         if static.relief.method == "exact":  # its pairs take uneven numbers of iterations: persistent lanes
             from . import _relief_exact
 
-            cap = min(rays.origins.shape[0], EXACT_LANES)
+            cap = min(cap, EXACT_LANES)
             lanes = _relief_exact.lane_fns(sc.maps, static.relief, EXACT_STEPS)
-        return tuple(nearest_batch_compact(g.frusta, g.block_c, g.block_r, enters_shell, seg_fn, *rays, static.relief_block, cap,
-                                           undecided=True, seg_c=g.seg_c, seg_r=g.seg_r, lanes=lanes))
+        if static.relief_cull == "blocks":
+            return tuple(nearest_batch_compact(g.frusta, g.block_c, g.block_r, enters_shell, seg_fn, *rays, static.relief_block, cap,
+                                               undecided=True, seg_c=g.seg_c, seg_r=g.seg_r, lanes=lanes))
+        # the pairs of each ray's own leaves, RELIEF_LEAVES at a time: a ray that meets more is
+        # walked again past the leaves it took (after a packet's list, from its first leaf)
+        n = rays.origins.shape[0]
+        walk_lanes = min(n, 1024)
+        packets = static.relief_cull == "packets"
+
+        def first():
+            return leaves_of(g.bvh, rays, RELIEF_LEAVES, walk_lanes, packets)
+
+        def after(need, r):
+            return leaves_after(g.bvh, rays, need, RELIEF_LEAVES, (r - packets) * RELIEF_LEAVES, walk_lanes)
+
+        return tuple(nearest_leaves_compact(g.frusta, g.bvh.order, static.leaf, first, after, enters_shell, seg_fn, *rays, cap,
+                                            g.seg_c, g.seg_r, undecided=True, lanes=lanes))
 
     def winner(sc: FrustaScene, rays: Rays, out):
         t, idx = out[0], out[3]

@@ -343,74 +343,28 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
     as its own finishes, ``steps`` iterations between refills (``wavefront.refill_loop``),
     instead of sub-batches that each wait for their slowest pair.
     """
-    from ..accel import first_set, pack_bits
-    from ..wavefront import compact_map, refill_loop
-
     n = origins.shape[0]
     dtype = origins.dtype
+    rays = (origins, directions, t_min, t_max)
     dd = dot3(directions, directions)
     vpre = jax.vmap(jax.vmap(pre_fn, in_axes=(0, None, None, None, None)), in_axes=(None, 0, 0, 0, 0))
-    vseg = jax.vmap(seg_fn, in_axes=(0, 0, 0, 0, 0))
 
     def touches(c, r):
         return _rays_touch_sphere(origins, directions, dd, t_min, t_max, c, r)
 
-    def admitted(blk, sc, sr):
-        """(n * block,) bool: the pairs ``pre_fn`` admits (ray-major)."""
-        if sc is None:
-            return vpre(blk, origins, directions, t_min, t_max).reshape(-1)
-        near = jax.vmap(touches, out_axes=1)(sc, sr).reshape(-1)  # (n, block): the segment's sphere
-        rays_ = jax.lax.stop_gradient((origins, directions, t_min, t_max))  # a decision: nothing to differentiate
-
-        def test(idx):
-            ray, sj = idx // block, idx % block
-            seg = jax.tree_util.tree_map(lambda a: jax.lax.stop_gradient(a)[sj], blk)
-            return jax.vmap(pre_fn)(seg, *(a[ray] for a in rays_))
-
-        return compact_map(test, near, jnp.arange(near.shape[0], dtype=jnp.int32), jnp.zeros_like(near), cap)
-
     def step(carry, xs):
         blk, base, c, r, sc, sr = xs
 
+        def seg_of(pair):
+            return base + pair % block
+
         def work(carry):
-            ok = admitted(blk, sc, sr)  # (n * block,)
-            order, count = first_set(pack_bits(ok), ok.shape[0])
-            order = jnp.concatenate([jnp.minimum(order, ok.shape[0] - 1), jnp.zeros((cap,), jnp.int32)])
-
-            def merge(acc, pair, live, t, s_, code, und):
-                bt, bs, bc, bi, *bu = acc
-                ray = jnp.where(live, pair // block, n)  # n: dropped by the scatters
-                rc = jnp.minimum(ray, n - 1)
-                t = jnp.where(live, t, jnp.inf)
-                bu = [b_.at[ray].min(u_, mode="drop") for b_, u_ in zip(bu, und)]  # (dropped where not live)
-                new_t = bt.at[ray].min(t, mode="drop")
-                win = live & (t == new_t[rc]) & (t < bt[rc])
-                wr = jnp.where(win, ray, n)
-                bs = bs.at[wr].set(s_, mode="drop")
-                bc = bc.at[wr].set(code, mode="drop")
-                bi = bi.at[wr].set(base + pair % block, mode="drop")
-                return (new_t, bs, bc, bi, *bu)
-
-            def gathered(pair):
-                rc = jnp.minimum(pair // block, n - 1)
-                seg = jax.tree_util.tree_map(lambda a: a[pair % block], blk)
-                return seg, origins[rc], directions[rc], t_min[rc], t_max[rc]
-
-            if lanes is not None:
-                begin, advance, done, finish, steps = lanes
-                return refill_loop(lambda p: jax.vmap(begin)(*gathered(p)), jax.vmap(advance), jax.vmap(done),
-                                   lambda acc, p, ctx, st, fin: merge(acc, p, fin, *jax.vmap(finish)(ctx, st)),
-                                   order, count, cap, steps, carry)
-
-            def sub(state):
-                j, acc = state
-                lane = j * cap + jnp.arange(cap, dtype=jnp.int32)
-                pair = jax.lax.dynamic_slice(order, (j * cap,), (cap,))
-                t, s_, code, *und = vseg(*gathered(pair))
-                return j + 1, merge(acc, pair, lane < count, t, s_, code, und)
-
-            _, out = jax.lax.while_loop(lambda st: st[0] * cap < count, sub, (jnp.int32(0), carry))
-            return out
+            if sc is None:
+                ok = vpre(blk, origins, directions, t_min, t_max).reshape(-1)  # (n * block,), ray-major
+            else:
+                near = jax.vmap(touches, out_axes=1)(sc, sr).reshape(-1)  # (n, block): the segment's sphere
+                ok = _admitted(params, pre_fn, rays, near, seg_of, block, cap)
+            return _cast_pairs(params, seg_fn, rays, *_set_pairs(ok, cap), lambda p: p // block, seg_of, cap, lanes, carry)
 
         return jax.lax.cond(jnp.any(touches(c, r)), work, lambda c_: c_, carry), None
 
@@ -420,6 +374,139 @@ def nearest_batch_compact(params: FrustaParams, block_c, block_r, pre_fn, seg_fn
     spheres = (None, None) if seg_c is None else (seg_c.reshape(nblk, block, 3), seg_r.reshape(nblk, block))
     out, _ = jax.lax.scan(step, init, (_blocks(params, block), bases, block_c, block_r, *spheres))
     return out
+
+
+def nearest_leaves_compact(params: FrustaParams, order, leaf: int, first, after, pre_fn, seg_fn, origins, directions, t_min, t_max, cap: int,
+                           seg_c, seg_r, undecided: bool = False, lanes=None):
+    """:func:`nearest_batch_compact` over each ray's own candidates instead of every block: the
+    segments of the BVH leaves the ray meets. ``first() -> (leaves (N, C) leaf indices, -1 in
+    unused slots, overflow (N,))`` lists them (``wavefront.leaves_of``); ``after(need, r) ->
+    (leaves, overflow)`` lists the next ones of the rays ``need`` whose list overflowed in
+    round r - 1 (``wavefront.leaves_after``); ``order``: the tree's (L * leaf,) segment row of
+    each leaf slot, -1 for padding.
+
+    Each round numbers the (ray, listed leaf slot) candidates by a prefix sum of the rays' list
+    lengths, so its work follows the candidates listed, not N x C x ``leaf`` (a mask of every
+    slot and its compaction cost 5x the march on the relief column's 4,096 camera rays):
+    ``cap`` candidates at a time are tested against their segment's sphere (``seg_c``,
+    ``seg_r``) and ``pre_fn``, the admitted appended to a list, which ``seg_fn`` casts in
+    sub-batches of ``cap`` (or the persistent ``lanes``), merged by scatter-min (a pair listed
+    twice merges to the same result). Rounds run while a ray's list overflows, in one
+    ``while_loop``, so ``seg_fn`` is compiled once. The same pairs as the blocks wherever a
+    leaf's box bounds its segments' shells."""
+    n = origins.shape[0]
+    rays = (origins, directions, t_min, t_max)
+    rays_ = jax.lax.stop_gradient(rays)  # the admission is a decision: nothing to differentiate
+    params_ = jax.lax.stop_gradient(params)
+    init = _no_hits(n, origins.dtype) + ((jnp.full((n,), jnp.inf, origins.dtype),) if undecided else ())
+
+    def one_round(r, need, acc):
+        leaves, over = jax.lax.cond(r == 0, lambda _: first(), lambda nd: after(nd, r), need)
+        c = leaves.shape[1]
+        per = jnp.sum(leaves >= 0, axis=1, dtype=jnp.int32) * leaf  # candidates per ray
+        end = jnp.cumsum(per)
+        total = end[-1]
+        size = n * c * leaf + cap  # every slot admitted, at most
+
+        def admit(st):
+            j, m, buf_r, buf_s = st
+            k = j * cap + jnp.arange(cap, dtype=jnp.int32)
+            ray = jnp.minimum(jnp.searchsorted(end, k, side="right").astype(jnp.int32), n - 1)
+            local = k - (end[ray] - per[ray])
+            lf = leaves[ray, jnp.minimum(local // leaf, c - 1)]
+            seg = jnp.where((k < total) & (lf >= 0), order[jnp.maximum(lf, 0) * leaf + local % leaf], -1)
+            row = jnp.maximum(seg, 0)
+            o, d, a, b = (x[ray] for x in rays_)
+            near = _rays_touch_sphere(o, d, dot3(d, d), a, b, seg_c[row], seg_r[row]) & (seg >= 0)
+            sg = jax.tree_util.tree_map(lambda x: x[row], params_)
+            ok = near & jax.vmap(pre_fn)(sg, o, d, a, b)
+            at = jnp.where(ok, m + jnp.cumsum(ok.astype(jnp.int32)) - 1, size)  # appended in order; size: dropped
+            return j + 1, m + jnp.sum(ok, dtype=jnp.int32), buf_r.at[at].set(ray, mode="drop"), buf_s.at[at].set(row, mode="drop")
+
+        zeros = jnp.zeros((size,), jnp.int32)
+        _, m, buf_r, buf_s = jax.lax.while_loop(lambda st: st[0] * cap < total, admit, (jnp.int32(0), jnp.int32(0), zeros, zeros))
+        acc = _cast_pairs(params, seg_fn, rays, jnp.arange(size, dtype=jnp.int32), m, lambda p: buf_r[p], lambda p: buf_s[p], cap, lanes, acc)
+        return acc, need & over
+
+    def body(st):
+        r, need, acc = st
+        acc, need = one_round(r, need, acc)
+        return r + 1, need, acc
+
+    _, _, out = jax.lax.while_loop(lambda st: jnp.any(st[1]), body, (jnp.int32(0), jnp.ones((n,), bool), init))
+    return out
+
+
+def _admitted(params: FrustaParams, pre_fn, rays, near, seg_of, per_ray: int, cap: int):
+    """(pairs,) bool: the pairs ``near`` marks that ``pre_fn`` admits, ``pre_fn`` run only on
+    those (``wavefront.compact_map``). Pair p is ray p // ``per_ray`` and segment row
+    ``seg_of(p)``."""
+    from ..wavefront import compact_map
+
+    rays_ = jax.lax.stop_gradient(rays)  # a decision: nothing to differentiate
+
+    def test(idx):
+        seg = jax.tree_util.tree_map(lambda a: jax.lax.stop_gradient(a)[seg_of(idx)], params)
+        return jax.vmap(pre_fn)(seg, *(a[idx // per_ray] for a in rays_))
+
+    return compact_map(test, near, jnp.arange(near.shape[0], dtype=jnp.int32), jnp.zeros_like(near), cap)
+
+
+def _cast_pairs(params: FrustaParams, seg_fn, rays, order, count, ray_of, seg_of, cap: int, lanes, carry):
+    """``carry`` (the running best (t, s, code, index, *undecided) of every ray) with the pairs
+    ``order[:count]`` (int32 codes, padded with at least ``cap`` entries; code p is ray
+    ``ray_of(p)`` and segment row ``seg_of(p)``) cast by ``seg_fn`` and merged by scatter-min:
+    in sub-batches of ``cap``, or through the persistent ``lanes``
+    (:func:`nearest_batch_compact`)."""
+    from ..wavefront import refill_loop
+
+    origins, directions, t_min, t_max = rays
+    n = origins.shape[0]
+    vseg = jax.vmap(seg_fn, in_axes=(0, 0, 0, 0, 0))
+
+    def merge(acc, pair, live, t, s_, code, und):
+        bt, bs, bc, bi, *bu = acc
+        ray = jnp.where(live, ray_of(pair), n)  # n: dropped by the scatters
+        rc = jnp.minimum(ray, n - 1)
+        t = jnp.where(live, t, jnp.inf)
+        bu = [b_.at[ray].min(u_, mode="drop") for b_, u_ in zip(bu, und)]  # (dropped where not live)
+        new_t = bt.at[ray].min(t, mode="drop")
+        win = live & (t == new_t[rc]) & (t < bt[rc])
+        wr = jnp.where(win, ray, n)
+        bs = bs.at[wr].set(s_, mode="drop")
+        bc = bc.at[wr].set(code, mode="drop")
+        bi = bi.at[wr].set(seg_of(pair), mode="drop")
+        return (new_t, bs, bc, bi, *bu)
+
+    def gathered(pair):
+        rc = jnp.minimum(ray_of(pair), n - 1)
+        seg = jax.tree_util.tree_map(lambda a: a[seg_of(pair)], params)
+        return seg, origins[rc], directions[rc], t_min[rc], t_max[rc]
+
+    if lanes is not None:
+        begin, advance, done, finish, steps = lanes
+        return refill_loop(lambda p: jax.vmap(begin)(*gathered(p)), jax.vmap(advance), jax.vmap(done),
+                           lambda acc, p, ctx, st, fin: merge(acc, p, fin, *jax.vmap(finish)(ctx, st)),
+                           order, count, cap, steps, carry)
+
+    def sub(state):
+        j, acc = state
+        lane = j * cap + jnp.arange(cap, dtype=jnp.int32)
+        pair = jax.lax.dynamic_slice(order, (j * cap,), (cap,))
+        t, s_, code, *und = vseg(*gathered(pair))
+        return j + 1, merge(acc, pair, lane < count, t, s_, code, und)
+
+    _, out = jax.lax.while_loop(lambda st: st[0] * cap < count, sub, (jnp.int32(0), carry))
+    return out
+
+
+def _set_pairs(ok, cap: int):
+    """(order, count): the indices of ``ok``'s set entries (``accel.first_set``), padded with
+    ``cap`` entries, as :func:`_cast_pairs` takes them."""
+    from ..accel import first_set, pack_bits
+
+    order, count = first_set(pack_bits(ok), ok.shape[0])
+    return jnp.concatenate([jnp.minimum(order, ok.shape[0] - 1), jnp.zeros((cap,), jnp.int32)]), count
 
 
 def inside_one(params: FrustaParams, point) -> jnp.ndarray:

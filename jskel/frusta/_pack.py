@@ -22,7 +22,7 @@ class Group(NamedTuple):
     frusta: FrustaParams
     block_c: jnp.ndarray  # (B,3) bounding sphere centre of each block of segments
     block_r: jnp.ndarray  # (B,) its radius
-    bvh: object = None  # accel.BVH over the group's segments when ``accel: bvh``
+    bvh: object = None  # plain: ``_accel.FrustaBVH`` when ``accel: bvh``; relief: an ``accel.BVH`` over the shells' boxes unless ``cull: blocks``
     seg_c: jnp.ndarray | None = None  # relief: (S,3) bounding sphere centre of each segment's outer solid
     seg_r: jnp.ndarray | None = None  # relief: (S,) its radius (-1: padding)
 
@@ -59,6 +59,7 @@ class Static(NamedTuple):
     kernel_block: int = 32
     kernel_warps: int = 1
     bins: tuple = (64, 128, 256, 32, 1.5)  # bins: rays per packet, candidates and pairs per step, slots per group, walk ratio
+    relief_cull: str = "blocks"  # relief: blocks | tree | packets (resolved from ``object.relief.cull``)
 
 
 def _pad(a: np.ndarray, n: int, fill) -> np.ndarray:

@@ -19,10 +19,10 @@ from ..interface import Built, Object, Preliminary, Representation
 from ..wavefront import compact_map
 from ..rays import FLAG_GRAZE, Hit, Rays
 from ..textures import bilinear_wrap, load_height_map, load_texture
-from ._accel import build_bvh, nearest_groups, winner_ts
+from ._accel import build_bvh, nearest_groups, shell_bvh, winner_ts
 from ._build import FrustaArrays, _bucket, piece_bounds
 from ._config import FrustaConfig
-from ._dispatch import AUTO_BVH_SEGMENTS, _plain_search, _relief_search, _stats_batch, traversal_of
+from ._dispatch import AUTO_BVH_SEGMENTS, _plain_search, _relief_search, _stats_batch, relief_cull_of, traversal_of
 from ._edits import host_frusta, skeleton_arrays
 from ._export import export_mesh
 from ._intersect import Quality
@@ -75,7 +75,8 @@ def build(cfg: FrustaConfig, dtype=np.float32) -> Built:
     static = Static(Quality(normals=cfg.normals, block=plain_block), cfg.texture is not None, rq, relief_block,
                     "none" if cfg.accel == "none" else ("bvh" if plain is not None and plain.bvh is not None else "blocks"),
                     cfg.leaf, cfg.group, cfg.packet, traversal_of(cfg, s - relief_ids.size), cfg.kernel_block, cfg.kernel_warps,
-                    (cfg.bin_packet, cfg.bin_candidates, cfg.bin_pairs, cfg.bin_group, float(cfg.bin_walk_ratio)))
+                    (cfg.bin_packet, cfg.bin_candidates, cfg.bin_pairs, cfg.bin_group, float(cfg.bin_walk_ratio)),
+                    relief_cull_of(rel, relief_ids.size))
     info = dict(info, segments=int(s), joints=int(j.shape[0]), relief_segments=int(relief_ids.size),
                 accel=static.accel, traversal=static.traversal if static.accel == "bvh" else None)  # what ``auto`` chose
     return Built(scene, static, anchor, (lo, hi), info, primitives=int(s), surface_tolerance=_tolerance(cfg, arrays, relief_ids, dtype))
@@ -129,6 +130,8 @@ def _relief_group(cfg: FrustaConfig, arrays: FrustaArrays, ids, anchor, dtype):
     shell = np.zeros(arrays.h.shape[0])
     shell[ids] = rel.thickness
     relief, block = make_group(arrays, ids, anchor, cfg.block, dtype, shell)
+    if relief_cull_of(rel, ids.size) != "blocks":
+        relief = relief._replace(bvh=jax.tree_util.tree_map(on_device, _shell_bvh_host(relief.frusta, cfg.leaf)))
     height = load_height_map(rel.map)
     mip = None
     if rel.method == "exact":  # one (max, min) pair per pyramid cell: one gather reads both
@@ -162,6 +165,7 @@ def _relief_quality(rel, arrays: FrustaArrays, ids, map_shape) -> ReliefQuality:
 # (docs/choices.md#host-build); the device rebuild of an animated frame runs the same
 # ``build_bvh`` inside its program
 _build_bvh_host = HostFn(build_bvh, static_argnums=(1,))
+_shell_bvh_host = HostFn(shell_bvh, static_argnums=(1,))
 
 
 def _nearest_hit(a: Hit, b: Hit) -> Hit:

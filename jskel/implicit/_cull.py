@@ -96,7 +96,7 @@ def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_
     ``how="blocks"`` tests every block sphere and keeps the ``block_capacity`` nearest met;
     ``how="tree"`` (or ``"packets"``) takes the leaves met of the shared BVH
     (:func:`influence_tree`): ``leaves = (leaves (block_capacity,), overflow)`` found for the
-    whole batch (:func:`leaves_batch`), or, where not given, by walking it for this ray
+    whole batch (``wavefront.leaves_of``), or, where not given, by walking it for this ray
     (``accel.collect``). Either way more blocks than kept sets ``OVERFLOW``. ``nearest``: keep
     the candidates ordered by their spheres' entries (the marches); the exact tracer needs no
     order."""
@@ -131,27 +131,6 @@ def cull(prims: Prims, o, d, t_min, t_max, capacity: int, block: int = 0, block_
         return _kept(prims, ids, c[ids], r[ids], prims.valid[ids] & jnp.repeat(bok, block), o, d, t_min, t_max, capacity, block_overflow, nearest)
     c, r = influence_spheres(prims)
     return _kept(prims, ids, c, r, prims.valid, o, d, t_min, t_max, capacity, block_overflow, nearest)
-
-
-PACKET = 64  # rays per packet: 8 x 8 pixels in ``camera.tile_order``'s default tile
-LISTED = 64  # leaves a packet's list holds (more: its rays are walked)
-
-
-def leaves_batch(bvh: accel.BVH, rays, block_capacity: int, lanes: int, packets: bool):
-    """(leaves (N, block_capacity), overflow (N,)): the leaves of ``bvh`` that each ray of the
-    batch meets, as :func:`cull` takes them. Walked per ray (``accel.collect``), or with
-    ``packets`` through each packet's list (``accel.collect_packets``: the same leaves, found
-    by dense box tests instead of a vmapped loop), walking only the rays of packets whose
-    list overflowed (``wavefront.compact_map``)."""
-    from ..wavefront import compact_map
-
-    def walk(sub):
-        return jax.vmap(lambda o, d, a, b: accel.collect(bvh, o, d, a, b, block_capacity))(*sub)[::2]
-
-    if not packets:
-        return walk(rays)
-    leaves, _, over, spill = accel.collect_packets(bvh, *rays, block_capacity, PACKET, LISTED)
-    return compact_map(walk, spill, rays, (leaves, over), lanes)
 
 
 def _words(mask):

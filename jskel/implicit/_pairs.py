@@ -4,7 +4,7 @@
 ``block`` primitives: 256 sphere tests a ray by default) although a camera ray meets fewer than
 two leaves on average (the blob slabs: 1.8 at 5,000 blobs, ``docs/performance.md``). Here the
 leaves are found as there (``accel.collect``, or with ``cull: packets`` ``accel.collect_packets``:
-``_cull.leaves_batch``), and the pairs of a ray and a leaf it met are gathered into
+``wavefront.leaves_of``), and the pairs of a ray and a leaf it met are gathered into
 dense sub-batches (``wavefront.compact_map``), each pair testing its leaf's primitives'
 spheres of influence (Rouiller 2011, Sec. 4.2) and returning one word of hit bits; a ray then
 keeps the first ``capacity`` primitives met (``accel.first_set`` over its words): in the walk's
@@ -19,9 +19,9 @@ import jax.numpy as jnp
 
 from .. import accel
 from ..rays import Rays
-from ..wavefront import compact_map
+from ..wavefront import compact_map, leaves_of
 from ._field import Prims
-from ._cull import Candidates, _sphere_interval, _words, influence_spheres, influence_tree, leaves_batch
+from ._cull import Candidates, _sphere_interval, _words, influence_spheres, influence_tree
 
 
 def usable(block: int) -> bool:
@@ -31,9 +31,9 @@ def usable(block: int) -> bool:
 
 def cull_batch(prims: Prims, rays: Rays, capacity: int, block: int, block_capacity: int, lanes: int, packets: bool = False) -> Candidates:
     """The :class:`_cull.Candidates` (leading axis N) of every ray of ``rays``, the leaves met
-    found by :func:`_cull.leaves_batch` (``packets``: through the packets' lists)."""
+    found by ``wavefront.leaves_of`` (``packets``: through the packets' lists)."""
     bvh = influence_tree(prims, block)
-    leaves, over = leaves_batch(bvh, rays, block_capacity, lanes, packets)
+    leaves, over = leaves_of(bvh, rays, block_capacity, lanes, packets)
     n, s = leaves.shape
     c, r = influence_spheres(prims)
     order = jnp.maximum(bvh.order, 0)  # -1 for padding and invalid primitives

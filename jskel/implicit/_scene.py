@@ -15,12 +15,12 @@ from ..executor import size_bucket
 from ..interface import Built, Representation
 from ..numerics import dot3, on_device
 from ..rays import Hit, Rays, masked_hit
-from ..wavefront import compact_map
+from ..wavefront import compact_map, leaves_of
 from ._config import ImplicitConfig
 from ._field import Prims, shaped_field
 from ._primitives import csg_shape, expand, primitives
 from ._projectors import Projector, Skin, displace_params, project, projector_arrays, rest_position
-from ._cull import blocks_used, cull, influence_tree, leaves_batch
+from ._cull import blocks_used, cull, influence_tree
 from ._trace import NO_BRACKET, OVERFLOW, Quality, Tuning, certify, lipschitz_from, surface_one, trace_one
 
 
@@ -191,7 +191,7 @@ def intersect_one(scene: ImplicitScene, static: Static, origin, direction, t_min
     ``deferred`` (``bisection``): (hit, (candidates, origin, direction, Certify job)) with the
     certifying march left to :func:`intersect_batch`; (``exact``): the last is whether the ray
     is uncertified, its march left to the batch. ``leaves``: the ray's BVH leaves found for its
-    batch (``_cull.leaves_batch``); unset, culling walks the tree for this ray."""
+    batch (``wavefront.leaves_of``); unset, culling walks the tree for this ray."""
     q = static.quality
     cand = cull(scene.prims, origin, direction, t_min, t_max, q.capacity, q.block, q.block_capacity, q.cull, q.method != "exact", leaves)
     out = trace_one(cand, scene.tune, origin, direction, t_min, t_max, q, deferred)
@@ -222,7 +222,7 @@ def intersect_batch(scene: ImplicitScene, static: Static, rays: Rays, lanes: int
     blocks = blocks_used(scene.prims.a.shape[0], q.block, q.block_capacity)
     leaves = None
     if q.cull == "packets" and blocks:  # every ray's leaves through its packet's list, for the batch
-        leaves = leaves_batch(influence_tree(scene.prims, q.block), rays, q.block_capacity, lanes, True)
+        leaves = leaves_of(influence_tree(scene.prims, q.block), rays, q.block_capacity, lanes, True)
     out = one(static, deferred, leaves)(*rays)
     if blocks:
         flat = static._replace(quality=q._replace(block=0))
