@@ -79,6 +79,33 @@ def test_contraction_finds_the_branch_points_the_tips_and_the_axes(name):
     assert 1 <= info["contraction_steps"] < 20
 
 
+def test_a_branch_beyond_a_gap_in_the_samples_is_joined_not_dropped(monkeypatch):
+    """Points cut away across one branch near its base (a slab wider than the neighbourhoods
+    reach): the groups beyond are a piece of their own, which is joined to the tree by its
+    shortest edge (``_trees.joined_pieces``), so the branch points and tips are the truth's;
+    with pieces never joined (the largest kept alone) the branch and its branch point are lost."""
+    from jskel.fit import _contract
+
+    global TREE_R
+    j, r, p = TREES["fork"]
+    TREE_R = r
+    pts, length = noisy_cloud("fork", 6000, 0.001, 0.02, 3)
+    a, b = j[3], j[5]  # the branch from (0.7, 2.7, 0) to (1.2, 3.5, 0.2)
+    axis = (b - a) / np.linalg.norm(b - a)
+    rel = pts - (a + 0.3 * (b - a))
+    along = rel @ axis
+    off_axis = np.linalg.norm(rel - along[:, None] * axis, axis=1)
+    pts = pts[(np.abs(along) > 0.06) | (off_axis > 3 * r[3])]  # a gap in this branch alone
+    true_deg = degrees(p)
+    est_j, est_r, est_p, _ = contraction_skeleton(pts, 10, 0.04, 0.1, 3.0, 4000)
+    deg = degrees(est_p)
+    assert np.sum(deg >= 3) == np.sum(true_deg >= 3) and np.sum(deg == 1) == np.sum(true_deg == 1)
+    assert np.min(np.linalg.norm(est_j - b, axis=1)) < 0.1 * length  # the branch reaches its tip
+    monkeypatch.setattr(_contract, "PIECE_GROUPS", 10**9)
+    est_j, est_r, est_p, _ = contraction_skeleton(pts, 10, 0.04, 0.1, 3.0, 4000)
+    assert np.sum(degrees(est_p) == 1) < np.sum(true_deg == 1)
+
+
 def test_fit_command_starts_from_the_contraction(tmp_path):
     """``init.estimate.method: contraction`` through ``jskel fit``: the start's topology (two
     branch points) is kept by the fit, whose surface lies within the points' noise of them."""

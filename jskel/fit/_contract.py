@@ -27,7 +27,8 @@ Sec. 4 (topology): the contracted points are grouped by farthest-point sampling 
 radius ``ball`` x extent; two groups are joined when a point of one has a neighbour (in the
 original cloud's neighbourhoods) in the other. The paper collapses the resulting graph's
 triangles edge by edge; here the minimum spanning tree of the group graph (weighted by the
-groups' distance) is taken, its twigs shorter than ``prune`` balls cut, branch nodes less than
+groups' distance) is taken, pieces it leaves apart joined to the largest where they are near
+(``_trees.joined_pieces``), its twigs shorter than ``prune`` balls cut, branch nodes less than
 two balls apart merged (:func:`merged_branches`: a junction of four branches is split into two
 of three by the balls) and its chains simplified to joints ``segment`` x extent apart
 (``_trees``, shared with the ``mst`` start). A joint is its group's contracted centroid (on the
@@ -201,12 +202,19 @@ def merged_branches(adj: dict, cen: np.ndarray, reach: float) -> tuple[dict, np.
     return adj, cen
 
 
+#: a piece of the groups' graph that its neighbourhoods leave apart from the largest is joined
+#: to it when it holds at least this many groups and lies within this many balls of it (a branch
+#: beyond a sparse stretch; an outlier's few groups stay out)
+PIECE_GROUPS = 3
+PIECE_REACH = 6.0
+
+
 def contraction_skeleton(points: np.ndarray, neighbours: int, ball: float, segment: float, prune: float, max_points: int,
                          steps: int = 20):
     """(joints, radii, parents, info) of a skeleton estimated by Laplacian contraction (module
     docstring); ``ball``, ``segment`` and ``prune`` are fractions of the cloud's extent (prune:
     of balls). info: the contraction's steps, groups and the points it ran on."""
-    from ._trees import axis_radii, cut_twigs, largest_piece, simplified, spanning_tree_of
+    from ._trees import axis_radii, cut_twigs, joined_pieces, simplified, spanning_tree_of
 
     stray = sparse_points(points, neighbours)
     kept_points = np.nonzero(~stray)[0]
@@ -227,7 +235,8 @@ def contraction_skeleton(points: np.ndarray, neighbours: int, ball: float, segme
     # groups joined where a point of one has a neighbour in the other
     a, b = lab[np.repeat(np.arange(len(reps)), nbr.shape[1])], lab[nbr.reshape(-1)]
     pairs = np.unique(np.sort(np.column_stack([a, b])[a != b], axis=1), axis=0)
-    adj = cut_twigs(largest_piece(spanning_tree_of(cen, pairs)), cen, prune * ball * ext)
+    # pieces of at least PIECE_GROUPS groups within PIECE_REACH balls of the rest are joined to it
+    adj = cut_twigs(joined_pieces(spanning_tree_of(cen, pairs), cen, PIECE_GROUPS, PIECE_REACH * ball * ext), cen, prune * ball * ext)
     adj, cen = merged_branches(adj, cen, 2.0 * ball * ext)
     kept, parents = simplified(adj, cen, segment * ext)
     joints = cen[kept]

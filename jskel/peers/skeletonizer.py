@@ -40,9 +40,9 @@ class StartBench(StrictModel):
     """The contraction start's options (``init.estimate`` of a fit file)."""
 
     neighbours: Annotated[int, Field(ge=3, le=64)] = 10
-    ball: Annotated[float, Field(gt=0.0, le=1.0)] = 0.005
-    segment: Annotated[float, Field(gt=0.0, le=1.0)] = 0.015
-    prune: Annotated[float, Field(ge=0.0, le=1000.0)] = 3.0
+    ball: Annotated[float, Field(gt=0.0, le=1.0)] = 0.003
+    segment: Annotated[float, Field(gt=0.0, le=1.0)] = 0.01
+    prune: Annotated[float, Field(ge=0.0, le=1000.0)] = 2.0
     max_points: Annotated[int, Field(ge=16, le=1_000_000)] = 20000
 
 
