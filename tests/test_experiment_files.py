@@ -23,7 +23,7 @@ FILES = sorted((ROOT / "experiments").glob("*.yaml"))
 
 def kind_of(raw: dict) -> str:
     """The command a file is for, from its top-level keys (as ``jskel bench`` dispatches)."""
-    if "latency" in raw or "fit" in raw or "fit_real" in raw or "scenes" in raw:
+    if "latency" in raw or "fit" in raw or "fit_real" in raw or "fit_trees" in raw or "scenes" in raw:
         return "bench"
     if "base" in raw:
         return "sweep"
@@ -51,6 +51,10 @@ def validate_file(path: Path, kind: str, raw: dict) -> int:
     if "fit" in raw:
         files.read_model(FitBenchFile, path, [])
         return 1
+    if "fit_trees" in raw:
+        from jskel.fit import TreeBenchFile
+
+        return len(files.read_model(TreeBenchFile, path, []).fit_trees.iterations)
     if "fit_real" in raw:  # the model the CLI's peers hand the harness (its packages imported only when it runs)
         from jskel.peers.skeletonizer import RealFitBenchFile
 

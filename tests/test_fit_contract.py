@@ -137,3 +137,23 @@ def test_a_real_mesh_bench_names_what_it_cannot_read():
         assert repr(spec) in str(e.value)
     with pytest.raises(ValueError, match="'navis:nosuchneuron'"):
         mesh_path("navis:nosuchneuron")  # not installed, or installed without that mesh: either way named
+
+
+def test_the_tree_bench_measures_a_skeleton_against_its_truth():
+    """``fit._tree_bench.compared`` (the synthetic-tree bench's row): the truth against itself is
+    exact (every branch point matched, joints on the axes, nothing uncovered, every radius within
+    5 %); with a branch cut off, its tip's axis is uncovered by that branch's length; with the
+    radii 10 % too wide, none is within 5 % and the median error is 10 %."""
+    from jskel.fit._tree_bench import compared
+
+    j, r, p = TREES["crown"]
+    same = compared(j, r, p, j, r, p)
+    assert same["branch_points_matched_share"] == 1.0 and same["fitted_branch_points"] == same["branch_points"] == 2
+    assert same["joint_off_axis_max_of_length"] == 0.0 and same["axis_uncovered_max_of_length"] == 0.0
+    assert same["radius_within_5pct_share"] == 1.0 and same["radius_error_median_rel"] == 0.0
+    keep = np.arange(len(p)) != 7  # the branch from joint 4 to its tip 7
+    cut = compared(j, r, p, j[keep], r[keep], np.array([q if q < 7 else q - 1 for q in p[keep]]))
+    tip_branch = np.linalg.norm(j[7] - j[4]) / same["length"]
+    assert abs(cut["axis_uncovered_max_of_length"] - tip_branch) < 1e-3 and cut["fitted_tips"] == same["tips"]  # joint 4 now a tip
+    wide = compared(j, r, p, j, 1.1 * r, p)
+    assert wide["radius_within_5pct_share"] == 0.0 and abs(wide["radius_error_median_rel"] - 0.1) < 1e-3

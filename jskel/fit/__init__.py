@@ -19,6 +19,8 @@ Public API:
 
 from ._bench import FitBenchFile as FitBenchFile
 from ._bench import run_fit_bench as run_fit_bench
+from ._tree_bench import TreeBenchFile as TreeBenchFile
+from ._tree_bench import run_tree_bench as run_tree_bench
 from ._config import EditsConfig as EditsConfig
 from ._config import FitFile as FitFile
 from ._config import SolverConfig as SolverConfig
@@ -46,6 +48,6 @@ from ._starts import pca_chain as pca_chain
 from ._starts import perturbed as perturbed
 from ._solvers import robust_residuals as robust_residuals
 
-__all__ = ["EditsConfig", "FitBenchFile", "FitFile", "FitResult", "SolverConfig", "contraction_skeleton", "fitted_in_rounds", "Segments", "checked_distances", "culling_exact", "cutting_planes", "plane_margins", "distances", "fit_many", "fit_points", "geometry", "load_points", "run_fit_bench",
+__all__ = ["EditsConfig", "FitBenchFile", "TreeBenchFile", "run_tree_bench", "FitFile", "FitResult", "SolverConfig", "contraction_skeleton", "fitted_in_rounds", "Segments", "checked_distances", "culling_exact", "cutting_planes", "plane_margins", "distances", "fit_many", "fit_points", "geometry", "load_points", "run_fit_bench",
            "mst_skeleton", "pca_chain", "perturbed", "point_distances", "read_points", "robust_residuals", "run_fit",
            "sample_surface", "segments_of", "signed_distance"]

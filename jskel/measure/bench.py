@@ -25,7 +25,7 @@ from .. import registry
 from ..compile.cache import count_programs, program_counts
 from ..compile.isa import with_max_isa, xla_isa
 from ..config import ConfigError, StrictModel, chunk_of, load, read_yaml
-from ..fit import FitBenchFile, run_fit_bench
+from ..fit import FitBenchFile, TreeBenchFile, run_fit_bench, run_tree_bench
 from ..probe.cast import timed_cast
 from ..probe.metrics import compare
 from ..probe.study import Peers, StudyOptions, needed, shape_of
@@ -242,6 +242,8 @@ def run_bench(file, overrides: list[str], runs: int | None = None, out=None, x64
     raw = read_yaml(file)
     if isinstance(raw, dict) and "fit" in raw:
         return run_fit_bench(read_model(FitBenchFile, file, overrides).fit, JsonLines(out, command))
+    if isinstance(raw, dict) and "fit_trees" in raw:  # branching synthetic truths
+        return run_tree_bench(read_model(TreeBenchFile, file, overrides).fit_trees, JsonLines(out, command))
     if isinstance(raw, dict) and "fit_real" in raw:  # real meshes beside a skeletonizer (a peer)
         model, fn = needed(peers.fit_real, "fit_real", "skeletor")
         return fn(read_model(model, file, overrides).fit_real, JsonLines(out, command))

@@ -1,0 +1,140 @@
+"""Branching synthetic truths for the fit (issue 53), ``python -m jskel bench
+experiments/bench_fit_trees.yaml``: the bracketed L-system trees of ``jskel.scenes``
+(``lsystem_tree``, each junction a parent and three children) at several iteration counts
+(6 to 486 segments), sampled on their surface with Gaussian noise and uniform outliers, started
+from the points' Laplacian contraction (``_contract``) and fitted with topology edits between
+rounds (``fitted_in_rounds``). Each row measures the fit against the truth it came from, in
+float64 on the host:
+
+* topology: branch points (degree >= 3) and tips in number; the true branch points matched one
+  to one to the fitted ones by an assignment (a junction of three children may come out as two
+  of two, so the truth's are matched to the fitted ones near them: the share within 10 % of the
+  tree's total length);
+* joints: each fitted joint's distance to the nearest true axis (a joint on an axis is exact),
+  and each true axis point's distance to the nearest fitted axis (a branch the fit lacks),
+  both as fractions of the total length;
+* radii: each fitted joint's radius against the true radius at its nearest axis point (the
+  share within 5 %, the median relative error);
+* seconds (start, fit with its compiles).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated
+
+import numpy as np
+from pydantic import Field
+
+from ..config import StrictModel
+from ._config import EditsConfig, SolverConfig
+
+
+class StartOptions(StrictModel):
+    """The contraction start's options (fractions of the cloud's extent; ``prune`` in balls)."""
+
+    neighbours: Annotated[int, Field(ge=3, le=64)] = 10
+    ball: Annotated[float, Field(gt=0.0, le=1.0)] = 0.01
+    segment: Annotated[float, Field(gt=0.0, le=1.0)] = 0.02
+    prune: Annotated[float, Field(ge=0.0, le=1000.0)] = 2.0
+    max_points: Annotated[int, Field(ge=16, le=1_000_000)] = 40000
+
+
+class TreeBench(StrictModel):
+    """``fit_trees:`` section of a bench file."""
+
+    iterations: list[Annotated[int, Field(ge=1, le=6)]] = [1, 3, 5]
+    """The L-system's iteration counts (1: 6 segments, 3: 54, 5: 486)."""
+    points_per_segment: Annotated[int, Field(ge=10, le=100_000)] = 100
+    """Surface points sampled per true segment."""
+    noise: Annotated[float, Field(ge=0.0)] = 0.003
+    """Gaussian noise, world units (the trees' thinnest radius is 0.03)."""
+    outliers: Annotated[float, Field(ge=0.0, le=1.0)] = 0.02
+    """Fraction of uniform outliers."""
+    seed: int = 0
+    start: StartOptions = StartOptions()
+    solver: SolverConfig = SolverConfig(name="lm", loss="huber", scale=0.002, maxiter=60, candidates=8)
+    edits: EditsConfig | None = EditsConfig(rounds=3)
+
+
+class TreeBenchFile(StrictModel):
+    fit_trees: TreeBench
+
+
+def _degrees(parents) -> np.ndarray:
+    parents = np.asarray(parents)
+    return np.bincount(np.concatenate([parents[parents >= 0], np.nonzero(parents >= 0)[0]]), minlength=len(parents))
+
+
+def _axis_samples(j, r, p, per: int = 50):
+    """Points along every segment's axis and the radius there (float64)."""
+    kids = np.nonzero(np.asarray(p) >= 0)[0]
+    t = np.linspace(0.0, 1.0, per)
+    a, b = j[p[kids]], j[kids]
+    x = a[:, None] + t[None, :, None] * (b - a)[:, None]
+    rr = r[p[kids]][:, None] + t[None] * (r[kids] - r[p[kids]])[:, None]
+    return x.reshape(-1, 3), rr.reshape(-1)
+
+
+def compared(j, r, p, fj, fr, fp) -> dict:
+    """The row's measures of the fitted skeleton (fj, fr, fp) against the truth (j, r, p)."""
+    from scipy.optimize import linear_sum_assignment
+    from scipy.spatial import cKDTree
+
+    p, fp = np.asarray(p), np.asarray(fp)
+    length = float(np.sum(np.linalg.norm(j[p[p >= 0]] - j[p >= 0], axis=1)))
+    ax, ar = _axis_samples(j, r, p)
+    fax, _ = _axis_samples(fj, fr, fp)
+    d_joint, near = cKDTree(ax).query(fj)
+    d_cover, _ = cKDTree(fax).query(ax)
+    deg, fdeg = _degrees(p), _degrees(fp)
+    tb, fb = j[deg >= 3], fj[fdeg >= 3]
+    matched = 0.0
+    if len(tb) and len(fb):
+        cost = np.linalg.norm(tb[:, None] - fb[None], axis=-1)
+        row, col = linear_sum_assignment(cost)
+        matched = float(np.sum(cost[row, col] <= 0.1 * length)) / len(tb)
+    rel = np.abs(fr / ar[near] - 1.0)
+    inner = d_joint < 0.5 * ar[near]  # joints on a true axis (a joint off every axis has no true radius)
+    return {"segments": int(np.sum(p >= 0)), "fitted_segments": int(np.sum(fp >= 0)),
+            "branch_points": int(np.sum(deg >= 3)), "fitted_branch_points": int(np.sum(fdeg >= 3)),
+            "tips": int(np.sum(deg == 1)), "fitted_tips": int(np.sum(fdeg == 1)),
+            "branch_points_matched_share": round(matched, 4),
+            "joint_off_axis_max_of_length": round(float(d_joint.max()) / length, 5),
+            "joint_off_axis_median_of_length": round(float(np.median(d_joint)) / length, 6),
+            "axis_uncovered_max_of_length": round(float(d_cover.max()) / length, 5),
+            "radius_within_5pct_share": round(float(np.mean(rel[inner] <= 0.05)) if inner.any() else 0.0, 4),
+            "radius_error_median_rel": round(float(np.median(rel[inner])) if inner.any() else float("nan"), 4),
+            "length": round(length, 4)}
+
+
+def run_tree_bench(b: TreeBench, emit) -> list[dict]:
+    """Run the benchmark (module docstring), calling ``emit(row)`` for each row as measured."""
+    from ..scenes import GENERATORS
+    from ._contract import contraction_skeleton
+    from ._points import sample_surface
+    from ._run import fitted_in_rounds
+
+    rows = []
+    for it in b.iterations:
+        j, r, p = (np.asarray(x, np.float64) for x in GENERATORS["lsystem_tree"](1, {"iterations": it})[:3])
+        p = p.astype(np.int64)
+        rng = np.random.default_rng(b.seed)
+        n = b.points_per_segment * int(np.sum(p >= 0))
+        pts = sample_surface(j, r, p, n, rng) + rng.normal(0.0, b.noise, (n, 3))
+        k = int(round(b.outliers * n))
+        lo, hi = pts.min(0), pts.max(0)
+        pts[rng.choice(n, k, replace=False)] = rng.uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), (k, 3))
+        s = b.start
+        t = time.perf_counter()
+        j0, r0, p0, info = contraction_skeleton(pts, s.neighbours, s.ball, s.segment, s.prune, s.max_points)
+        start_s = time.perf_counter() - t
+        t = time.perf_counter()
+        res, edits, rounds = fitted_in_rounds(b.solver, b.edits, pts, j0, r0, p0, np.float32)
+        fit_s = time.perf_counter() - t
+        row = {"iterations": it, "points": n, "noise": b.noise, "outliers": b.outliers, **compared(j, r, p, res.joints, res.radii, res.parents),
+               "start": compared(j, r, p, j0, r0, p0), "start_s": round(start_s, 3), "fit_s": round(fit_s, 3), "compile_s": round(res.compile_s, 3),
+               "rounds": rounds, "edits": len(edits), "fit_iterations": res.iterations}
+        emit(row)
+        rows.append(row)
+    return rows
