@@ -35,10 +35,15 @@ class StartOptions(StrictModel):
     """The contraction start's options (fractions of the cloud's extent; ``prune`` in balls)."""
 
     neighbours: Annotated[int, Field(ge=3, le=64)] = 10
+    """Nearest neighbours of each point (its umbrella)."""
     ball: Annotated[float, Field(gt=0.0, le=1.0)] = 0.01
+    """Radius of the groups' balls, x the extent."""
     segment: Annotated[float, Field(gt=0.0, le=1.0)] = 0.02
+    """Joints' spacing along a chain, x the extent."""
     prune: Annotated[float, Field(ge=0.0, le=1000.0)] = 2.0
+    """Twigs shorter than this many balls are cut."""
     max_points: Annotated[int, Field(ge=16, le=1_000_000)] = 40000
+    """Points contracted (a voxel grid reduces more)."""
 
 
 class TreeBench(StrictModel):
@@ -53,13 +58,20 @@ class TreeBench(StrictModel):
     outliers: Annotated[float, Field(ge=0.0, le=1.0)] = 0.02
     """Fraction of uniform outliers."""
     seed: int = 0
+    """Seed of the samples, their noise and the outliers."""
     start: StartOptions = StartOptions()
+    """The contraction start."""
     solver: SolverConfig = SolverConfig(name="lm", loss="huber", scale=0.002, maxiter=60, candidates=8)
+    """The fit's solver."""
     edits: EditsConfig | None = EditsConfig(rounds=3)
+    """Topology edits between rounds; unset: one fit."""
 
 
 class TreeBenchFile(StrictModel):
+    """A bench file whose ``fit_trees:`` section is the branching synthetic-tree benchmark."""
+
     fit_trees: TreeBench
+    """The benchmark's settings."""
 
 
 def _degrees(parents) -> np.ndarray:
