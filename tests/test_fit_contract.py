@@ -157,3 +157,12 @@ def test_the_tree_bench_measures_a_skeleton_against_its_truth():
     assert abs(cut["axis_uncovered_max_of_length"] - tip_branch) < 1e-3 and cut["fitted_tips"] == same["tips"]  # joint 4 now a tip
     wide = compared(j, r, p, j, 1.1 * r, p)
     assert wide["radius_within_5pct_share"] == 0.0 and abs(wide["radius_error_median_rel"] - 0.1) < 1e-3
+
+
+def test_a_bench_start_other_than_the_contraction_is_named():
+    """The benches' start (``fit.contracted_and_fitted``) is the contraction: another
+    ``method`` is a ValueError naming the section's key and the value, before any work."""
+    from jskel.fit import EstimateConfig, SolverConfig, contracted_and_fitted
+
+    with pytest.raises(ValueError, match=r"fit_trees\.start\.method: .*'mst'"):
+        contracted_and_fitted(np.zeros((10, 3)), EstimateConfig(method="mst"), SolverConfig(name="lm"), None, "fit_trees")

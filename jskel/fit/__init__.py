@@ -22,6 +22,7 @@ from ._bench import run_fit_bench as run_fit_bench
 from ._tree_bench import TreeBenchFile as TreeBenchFile
 from ._tree_bench import run_tree_bench as run_tree_bench
 from ._config import EditsConfig as EditsConfig
+from ._config import EstimateConfig as EstimateConfig
 from ._config import FitFile as FitFile
 from ._config import SolverConfig as SolverConfig
 from ._contract import contraction_skeleton as contraction_skeleton
@@ -41,6 +42,7 @@ from ._measures import point_distances as point_distances
 from ._points import load_points as load_points
 from ._points import read_points as read_points
 from ._points import sample_surface as sample_surface
+from ._run import contracted_and_fitted as contracted_and_fitted
 from ._run import fitted_in_rounds as fitted_in_rounds
 from ._run import run_fit as run_fit
 from ._starts import mst_skeleton as mst_skeleton
@@ -48,6 +50,6 @@ from ._starts import pca_chain as pca_chain
 from ._starts import perturbed as perturbed
 from ._solvers import robust_residuals as robust_residuals
 
-__all__ = ["EditsConfig", "FitBenchFile", "TreeBenchFile", "run_tree_bench", "FitFile", "FitResult", "SolverConfig", "contraction_skeleton", "fitted_in_rounds", "Segments", "checked_distances", "culling_exact", "cutting_planes", "plane_margins", "distances", "fit_many", "fit_points", "geometry", "load_points", "run_fit_bench",
+__all__ = ["EditsConfig", "contracted_and_fitted", "EstimateConfig", "FitBenchFile", "TreeBenchFile", "run_tree_bench", "FitFile", "FitResult", "SolverConfig", "contraction_skeleton", "fitted_in_rounds", "Segments", "checked_distances", "culling_exact", "cutting_planes", "plane_margins", "distances", "fit_many", "fit_points", "geometry", "load_points", "run_fit_bench",
            "mst_skeleton", "pca_chain", "perturbed", "point_distances", "read_points", "robust_residuals", "run_fit",
            "sample_surface", "segments_of", "signed_distance"]

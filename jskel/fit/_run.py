@@ -154,6 +154,27 @@ def fitted_in_rounds(solver, edits, points, joints, radii, parents, dtype, seed:
             return res, log, k
 
 
+def contracted_and_fitted(points, start, solver, edits, section: str):
+    """The benches' start and fit of ``points``: the contraction start of ``start`` (an
+    ``EstimateConfig`` whose ``method`` must be ``contraction``; ValueError naming
+    ``section``.start.method otherwise), then :func:`fitted_in_rounds`. Returns ((joints, radii,
+    parents, info) of the start, (FitResult, edits' log, rounds), seconds {start_s, fit_s,
+    compile_s})."""
+    import time
+
+    from ._contract import contraction_skeleton
+
+    if start.method != "contraction":
+        raise ValueError(f"{section}.start.method: the bench starts from the contraction (got {start.method!r})")
+    t = time.perf_counter()
+    first = contraction_skeleton(points, start.neighbours, start.ball, start.segment, start.prune, start.max_points)
+    start_s = time.perf_counter() - t
+    t = time.perf_counter()
+    res, log, rounds = fitted_in_rounds(solver, edits, points, *first[:3], np.float32)
+    fit_s = time.perf_counter() - t
+    return first, (res, log, rounds), {"start_s": round(start_s, 3), "fit_s": round(fit_s, 3), "compile_s": round(res.compile_s, 3)}
+
+
 def fitted_experiment(cfg: FitFile, res: FitResult) -> dict:
     """The experiment of the fitted skeleton (``fitted.yaml``): a frusta object and a camera,
     the fit file's or one that frames the skeleton."""

@@ -21,29 +21,13 @@ float64 on the host:
 
 from __future__ import annotations
 
-import time
 from typing import Annotated
 
 import numpy as np
 from pydantic import Field
 
 from ..config import StrictModel
-from ._config import EditsConfig, SolverConfig
-
-
-class StartOptions(StrictModel):
-    """The contraction start's options (fractions of the cloud's extent; ``prune`` in balls)."""
-
-    neighbours: Annotated[int, Field(ge=3, le=64)] = 10
-    """Nearest neighbours of each point (its umbrella)."""
-    ball: Annotated[float, Field(gt=0.0, le=1.0)] = 0.01
-    """Radius of the groups' balls, x the extent."""
-    segment: Annotated[float, Field(gt=0.0, le=1.0)] = 0.02
-    """Joints' spacing along a chain, x the extent."""
-    prune: Annotated[float, Field(ge=0.0, le=1000.0)] = 2.0
-    """Twigs shorter than this many balls are cut."""
-    max_points: Annotated[int, Field(ge=16, le=1_000_000)] = 40000
-    """Points contracted (a voxel grid reduces more)."""
+from ._config import EditsConfig, EstimateConfig, SolverConfig
 
 
 class TreeBench(StrictModel):
@@ -59,8 +43,8 @@ class TreeBench(StrictModel):
     """Fraction of uniform outliers."""
     seed: int = 0
     """Seed of the samples, their noise and the outliers."""
-    start: StartOptions = StartOptions()
-    """The contraction start."""
+    start: EstimateConfig = EstimateConfig(method="contraction", ball=0.01, segment=0.02, prune=2.0, max_points=40000)
+    """The contraction start (``init.estimate`` of a fit file; ``method: contraction``)."""
     solver: SolverConfig = SolverConfig(name="lm", loss="huber", scale=0.002, maxiter=60, candidates=8)
     """The fit's solver."""
     edits: EditsConfig | None = EditsConfig(rounds=3)
@@ -125,9 +109,8 @@ def compared(j, r, p, fj, fr, fp) -> dict:
 def run_tree_bench(b: TreeBench, emit) -> list[dict]:
     """Run the benchmark (module docstring), calling ``emit(row)`` for each row as measured."""
     from ..scenes import GENERATORS
-    from ._contract import contraction_skeleton
     from ._points import sample_surface
-    from ._run import fitted_in_rounds
+    from ._run import contracted_and_fitted
 
     rows = []
     for it in b.iterations:
@@ -139,15 +122,9 @@ def run_tree_bench(b: TreeBench, emit) -> list[dict]:
         k = int(round(b.outliers * n))
         lo, hi = pts.min(0), pts.max(0)
         pts[rng.choice(n, k, replace=False)] = rng.uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), (k, 3))
-        s = b.start
-        t = time.perf_counter()
-        j0, r0, p0, info = contraction_skeleton(pts, s.neighbours, s.ball, s.segment, s.prune, s.max_points)
-        start_s = time.perf_counter() - t
-        t = time.perf_counter()
-        res, edits, rounds = fitted_in_rounds(b.solver, b.edits, pts, j0, r0, p0, np.float32)
-        fit_s = time.perf_counter() - t
+        (j0, r0, p0, _), (res, edits, rounds), secs = contracted_and_fitted(pts, b.start, b.solver, b.edits, "fit_trees")
         row = {"iterations": it, "points": n, "noise": b.noise, "outliers": b.outliers, **compared(j, r, p, res.joints, res.radii, res.parents),
-               "start": compared(j, r, p, j0, r0, p0), "start_s": round(start_s, 3), "fit_s": round(fit_s, 3), "compile_s": round(res.compile_s, 3),
+               "start": compared(j, r, p, j0, r0, p0), **secs,
                "rounds": rounds, "edits": len(edits), "fit_iterations": res.iterations}
         emit(row)
         rows.append(row)

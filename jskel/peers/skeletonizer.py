@@ -30,20 +30,10 @@ import numpy as np
 from pydantic import Field
 
 from ..config import StrictModel
-from ..fit import EditsConfig, SolverConfig
+from ..fit import EditsConfig, EstimateConfig, SolverConfig
 
 #: where a package keeps its example meshes, relative to the package
 MESH_DIRS = {"skeletor": "data", "navis": "data/obj"}
-
-
-class StartBench(StrictModel):
-    """The contraction start's options (``init.estimate`` of a fit file)."""
-
-    neighbours: Annotated[int, Field(ge=3, le=64)] = 10
-    ball: Annotated[float, Field(gt=0.0, le=1.0)] = 0.003
-    segment: Annotated[float, Field(gt=0.0, le=1.0)] = 0.01
-    prune: Annotated[float, Field(ge=0.0, le=1000.0)] = 2.0
-    max_points: Annotated[int, Field(ge=16, le=1_000_000)] = 20000
 
 
 class RealFitBench(StrictModel):
@@ -57,7 +47,7 @@ class RealFitBench(StrictModel):
     """Points sampled anew to measure every skeleton."""
     subsamples: Annotated[int, Field(ge=1, le=100)] = 3
     """Fits from that many clouds (seeds 0, 1, ...)."""
-    start: StartBench = StartBench()
+    start: EstimateConfig = EstimateConfig(method="contraction", ball=0.003, segment=0.01, prune=2.0)
     """The contraction start."""
     solver: SolverConfig = SolverConfig(name="lm", loss="huber", scale=0.002, maxiter=60, candidates=8, outside=4.0)
     """The fit's solver."""
@@ -118,18 +108,11 @@ def skeletor_skeleton(mesh):
 
 def jskel_skeleton(points, b: RealFitBench):
     """(joints, radii, parents, timings) of the contraction start and the fit (with edits)."""
-    from ..fit import contraction_skeleton, fitted_in_rounds
+    from ..fit import contracted_and_fitted
 
-    s = b.start
-    t = time.perf_counter()
-    j, r, p, info = contraction_skeleton(points, s.neighbours, s.ball, s.segment, s.prune, s.max_points)
-    start_s = time.perf_counter() - t
-    t = time.perf_counter()
-    res, edits, rounds = fitted_in_rounds(b.solver, b.edits, points, j, r, p, np.float32)
-    fit_s = time.perf_counter() - t
-    return res.joints, res.radii, res.parents, {"start_s": round(start_s, 3), "fit_s": round(fit_s, 3), "compile_s": round(res.compile_s, 3),
-                                                "seconds": round(start_s + fit_s, 3), "iterations": res.iterations, "rounds": rounds,
-                                                "edits": len(edits), "start_segments": int(np.sum(p >= 0)), **info}
+    (_, _, p, info), (res, edits, rounds), secs = contracted_and_fitted(points, b.start, b.solver, b.edits, "fit_real")
+    return res.joints, res.radii, res.parents, {**secs, "seconds": round(secs["start_s"] + secs["fit_s"], 3), "iterations": res.iterations,
+                                                "rounds": rounds, "edits": len(edits), "start_segments": int(np.sum(p >= 0)), **info}
 
 
 def run_real_fit_bench(b: RealFitBench, emit) -> list[dict]:
