@@ -54,7 +54,8 @@ def validate_file(path: Path, kind: str, raw: dict) -> int:
     if "fit_trees" in raw:
         from jskel.fit import TreeBenchFile
 
-        return len(files.read_model(TreeBenchFile, path, []).fit_trees.iterations)
+        b = files.read_model(TreeBenchFile, path, []).fit_trees
+        return len(b.iterations) + len(b.segments)
     if "fit_real" in raw:  # the model the CLI's peers hand the harness (its packages imported only when it runs)
         from jskel.peers.skeletonizer import RealFitBenchFile
 

@@ -166,3 +166,38 @@ def test_a_bench_start_other_than_the_contraction_is_named():
 
     with pytest.raises(ValueError, match=r"fit_trees\.start\.method: .*'mst'"):
         contracted_and_fitted(np.zeros((10, 3)), EstimateConfig(method="mst"), SolverConfig(name="lm"), None, "fit_trees")
+
+
+def test_grown_trees_branch_in_threes_and_their_tubes_never_touch():
+    """``fit._tree_bench.grown_tree``, the bench's truth: the segment count asked for, every
+    branch point of three segments, and any two segments more than a joint apart farther from
+    each other than their radii plus most of the 0.3 gap (closest points of the two axes,
+    closed form in float64; the generator samples each axis at 11 points)."""
+    from jskel.fit._tree_bench import grown_tree
+
+    j, r, p = grown_tree(60, 3)
+    assert len(j) == 61 and np.all(p[1:] < np.arange(1, 61)) and set(degrees(p)[1:]) <= {1, 2, 3}
+    kids = np.arange(1, 61)
+
+    def closest(a0, a1, b0, b1):  # segment-segment distance (Ericson's clamped closed form)
+        d1, d2, rr = a1 - a0, b1 - b0, a0 - b0
+        a, e, f = d1 @ d1, d2 @ d2, d2 @ rr
+        c, b = d1 @ rr, d1 @ d2
+        den = a * e - b * b
+        s = np.clip((b * f - c * e) / den, 0, 1) if den > 1e-12 else 0.0
+        t = (b * s + f) / e
+        if t < 0:
+            t, s = 0.0, np.clip(-c / a, 0, 1)
+        elif t > 1:
+            t, s = 1.0, np.clip((b - c) / a, 0, 1)
+        return np.linalg.norm(a0 + s * d1 - (b0 + t * d2))
+
+    far = 0
+    for x in kids:
+        for y in kids[kids > x]:
+            ends = {x, p[x], y, p[y]}
+            if len(ends) < 4 or p[p[x]] in (p[y], y) or p[p[y]] in (p[x], x):
+                continue  # neighbours: sharing a joint, or one joint between them
+            far += 1
+            assert closest(j[p[x]], j[x], j[p[y]], j[y]) > max(r[x], r[p[x]]) + max(r[y], r[p[y]]) + 0.2
+    assert far > 1000

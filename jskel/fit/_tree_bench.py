@@ -1,7 +1,7 @@
 """Branching synthetic truths for the fit (issue 53), ``python -m jskel bench
-experiments/bench_fit_trees.yaml``: the bracketed L-system trees of ``jskel.scenes``
-(``lsystem_tree``, each junction a parent and three children) at several iteration counts
-(6 to 486 segments), sampled on their surface with Gaussian noise and uniform outliers, started
+experiments/bench_fit_trees.yaml``: random grown trees whose tubes never touch
+(:func:`grown_tree`, 5 to 500 segments) and the bracketed L-system trees of ``jskel.scenes``
+(``lsystem_tree``, each junction a parent and three children, 6 to 486 segments), sampled on their surface with Gaussian noise and uniform outliers, started
 from the points' Laplacian contraction (``_contract``) and fitted with topology edits between
 rounds (``fitted_in_rounds``). Each row measures the fit against the truth it came from, in
 float64 on the host:
@@ -33,8 +33,10 @@ from ._config import EditsConfig, EstimateConfig, SolverConfig
 class TreeBench(StrictModel):
     """``fit_trees:`` section of a bench file."""
 
-    iterations: list[Annotated[int, Field(ge=1, le=6)]] = [1, 3, 5]
+    iterations: list[Annotated[int, Field(ge=1, le=6)]] = []
     """The L-system's iteration counts (1: 6 segments, 3: 54, 5: 486)."""
+    segments: list[Annotated[int, Field(ge=1, le=5000)]] = [5, 50, 500]
+    """Segment counts of random grown trees whose tubes never touch (:func:`grown_tree`)."""
     points_per_segment: Annotated[int, Field(ge=10, le=100_000)] = 100
     """Surface points sampled per true segment."""
     noise: Annotated[float, Field(ge=0.0)] = 0.003
@@ -56,6 +58,56 @@ class TreeBenchFile(StrictModel):
 
     fit_trees: TreeBench
     """The benchmark's settings."""
+
+
+def grown_tree(segments: int, seed: int, length: float = 1.0, gap: float = 0.3):
+    """(joints, radii, parents) of a random branching tree of ``segments`` segments of
+    ``length`` (host, float64): each new segment leaves a joint with fewer than two children
+    (so every branch point has three segments) turned 20-50 degrees from its parent's direction
+    and leaning up, and is kept only where its axis passes more than the two radii plus ``gap``
+    from every segment but its neighbours': no two tubes touch, so the topology can be read
+    from the surface (the L-system's crown at 486 segments has 157 pairs of segments, more than
+    a joint apart, within their radii plus 0.05 of each other). Radii taper from 0.25 by 0.85
+    a generation down to 0.05."""
+    rng = np.random.default_rng(seed)
+    joints, parents, depth, dirs, kids = [np.zeros(3)], [-1], [0], [np.array([0.0, 1.0, 0.0])], [0]
+    radius = lambda k: max(0.05, 0.25 * 0.85**k)  # noqa: E731
+    t = np.linspace(0.0, 1.0, 11)
+    tries = 0
+    while len(joints) < segments + 1:
+        tries += 1
+        if tries > 200 * (segments + 1):
+            raise ValueError(f"fit_trees.segments: no room found for {segments} segments")
+        i = int(rng.integers(len(joints)))
+        if kids[i] >= 2:
+            continue
+        axis = np.cross(dirs[i], rng.normal(size=3))
+        axis /= np.linalg.norm(axis)
+        a = np.radians(rng.uniform(20.0, 50.0))
+        d = dirs[i] * np.cos(a) + np.cross(axis, dirs[i]) * np.sin(a) + axis * (axis @ dirs[i]) * (1 - np.cos(a))
+        d = d + np.array([0.0, 0.3, 0.0])
+        d /= np.linalg.norm(d)
+        new = joints[i] + length * d
+        rn = radius(depth[i] + 1)
+        q = np.asarray(parents[1:])
+        kid = np.arange(1, len(joints))
+        ok = (kid != i) & (q != i) & (q != parents[i])  # not the segments at joint i
+        if ok.any():
+            jj = np.asarray(joints)
+            a0, a1 = jj[q[ok]], jj[kid[ok]]
+            mine = joints[i][None] + t[:, None] * (new - joints[i])[None]  # (11, 3) along the new axis
+            theirs = a0[:, None] + t[None, :, None] * (a1 - a0)[:, None]  # (S, 11, 3)
+            dist = np.min(np.linalg.norm(theirs[:, :, None] - mine[None, None], axis=-1), axis=(1, 2))
+            rr = np.maximum(np.asarray([radius(depth[k]) for k in kid[ok]]), np.asarray([radius(depth[k]) for k in q[ok]]))
+            if np.any(dist <= rr + rn + gap):
+                continue
+        joints.append(new)
+        parents.append(i)
+        depth.append(depth[i] + 1)
+        dirs.append(d)
+        kids.append(0)
+        kids[i] += 1
+    return np.array(joints), np.array([radius(k) for k in depth]), np.array(parents)
 
 
 def _degrees(parents) -> np.ndarray:
@@ -113,8 +165,10 @@ def run_tree_bench(b: TreeBench, emit) -> list[dict]:
     from ._run import contracted_and_fitted
 
     rows = []
-    for it in b.iterations:
-        j, r, p = (np.asarray(x, np.float64) for x in GENERATORS["lsystem_tree"](1, {"iterations": it})[:3])
+    truths = [("lsystem", it, GENERATORS["lsystem_tree"](1, {"iterations": it})[:3]) for it in b.iterations]
+    truths += [("grown", n_seg, grown_tree(n_seg, b.seed)) for n_seg in b.segments]
+    for kind, size, tree in truths:
+        j, r, p = (np.asarray(x, np.float64) for x in tree)
         p = p.astype(np.int64)
         rng = np.random.default_rng(b.seed)
         n = b.points_per_segment * int(np.sum(p >= 0))
@@ -123,7 +177,7 @@ def run_tree_bench(b: TreeBench, emit) -> list[dict]:
         lo, hi = pts.min(0), pts.max(0)
         pts[rng.choice(n, k, replace=False)] = rng.uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), (k, 3))
         (j0, r0, p0, _), (res, edits, rounds), secs = contracted_and_fitted(pts, b.start, b.solver, b.edits, "fit_trees")
-        row = {"iterations": it, "points": n, "noise": b.noise, "outliers": b.outliers, **compared(j, r, p, res.joints, res.radii, res.parents),
+        row = {"tree": kind, "size": size, "points": n, "noise": b.noise, "outliers": b.outliers, **compared(j, r, p, res.joints, res.radii, res.parents),
                "start": compared(j, r, p, j0, r0, p0), **secs,
                "rounds": rounds, "edits": len(edits), "fit_iterations": res.iterations}
         emit(row)
