@@ -176,7 +176,13 @@ def run_tree_bench(b: TreeBench, emit) -> list[dict]:
         k = int(round(b.outliers * n))
         lo, hi = pts.min(0), pts.max(0)
         pts[rng.choice(n, k, replace=False)] = rng.uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), (k, 3))
-        (j0, r0, p0, _), (res, edits, rounds), secs = contracted_and_fitted(pts, b.start, b.solver, b.edits, "fit_trees")
+        try:
+            (j0, r0, p0, _), (res, edits, rounds), secs = contracted_and_fitted(pts, b.start, b.solver, b.edits, "fit_trees")
+        except ValueError as e:  # a start the points cannot fit, a diverged solver: a row that says so
+            row = {"tree": kind, "size": size, "points": n, "error": str(e)}
+            emit(row)
+            rows.append(row)
+            continue
         row = {"tree": kind, "size": size, "points": n, "noise": b.noise, "outliers": b.outliers, **compared(j, r, p, res.joints, res.radii, res.parents),
                "start": compared(j, r, p, j0, r0, p0), **secs,
                "rounds": rounds, "edits": len(edits), "fit_iterations": res.iterations}
