@@ -201,3 +201,16 @@ def test_grown_trees_branch_in_threes_and_their_tubes_never_touch():
             far += 1
             assert closest(j[p[x]], j[x], j[p[y]], j[y]) > max(r[x], r[p[x]]) + max(r[y], r[p[y]]) + 0.2
     assert far > 1000
+
+
+def test_crossing_pairs_counts_tubes_that_touch_more_than_a_joint_apart():
+    """``fit._tree_bench.crossing_pairs`` (a bench row's count): a chain whose fourth segment
+    crosses its first (at (1, 0, 0)) has one such pair; lifted 1 clear of it, none (its
+    neighbours, which share a joint, never count)."""
+    from jskel.fit._tree_bench import crossing_pairs
+
+    j = np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [1, 2, 0], [1, -1, 0]], float)
+    r, p = np.full(5, 0.1), np.array([-1, 0, 1, 2, 3])
+    assert crossing_pairs(j, r, p) == 1
+    j[4] = [1, 1, 0]
+    assert crossing_pairs(j, r, p) == 0

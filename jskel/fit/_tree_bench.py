@@ -1,7 +1,8 @@
 """Branching synthetic truths for the fit (issue 53), ``python -m jskel bench
 experiments/bench_fit_trees.yaml``: random grown trees whose tubes never touch
 (:func:`grown_tree`, 5 to 500 segments) and the bracketed L-system trees of ``jskel.scenes``
-(``lsystem_tree``, each junction a parent and three children, 6 to 486 segments), sampled on their surface with Gaussian noise and uniform outliers, started
+(``lsystem_tree``, each junction a parent and three children, 6 to 486 segments; every row
+counts its truth's :func:`crossing_pairs`), sampled on their surface with Gaussian noise and uniform outliers, started
 from the points' Laplacian contraction (``_contract``) and fitted with topology edits between
 rounds (``fitted_in_rounds``). Each row measures the fit against the truth it came from, in
 float64 on the host:
@@ -60,19 +61,45 @@ class TreeBenchFile(StrictModel):
     """The benchmark's settings."""
 
 
+def _axis_gaps(a0, a1, b0, b1, samples: int = 11):
+    """(S,) the least distance between the axis a0-a1 (3,) and each axis b0-b1 (S, 3), from
+    ``samples`` points along each (float64; at most a sample spacing too long)."""
+    t = np.linspace(0.0, 1.0, samples)
+    mine = a0[None] + t[:, None] * (a1 - a0)[None]
+    theirs = b0[:, None] + t[None, :, None] * (b1 - b0)[:, None]
+    return np.min(np.linalg.norm(theirs[:, :, None] - mine[None, None], axis=-1), axis=(1, 2))
+
+
+def crossing_pairs(j, r, p, gap: float = 0.05) -> int:
+    """Pairs of segments more than a joint apart (their joints and their joints' parents all
+    distinct) whose axes pass within their larger radii plus ``gap`` of each other: tubes that
+    touch or cross, where the topology cannot be read from the surface."""
+    p = np.asarray(p)
+    kids = np.nonzero(p >= 0)[0]
+    near = [{k, p[k], p[p[k]] if p[k] >= 0 else -1} - {-1} for k in kids]  # a segment's joints and their parents
+    reach = np.maximum(r[kids], r[p[kids]])
+    count = 0
+    for a in range(len(kids) - 1):  # host loop over segments, at the bench's set-up
+        apart = np.array([not (near[a] & near[b]) for b in range(a + 1, len(kids))])
+        if apart.any():
+            y = kids[a + 1:][apart]
+            d = _axis_gaps(j[p[kids[a]]], j[kids[a]], j[p[y]], j[y])
+            count += int(np.sum(d < reach[a] + reach[a + 1:][apart] + gap))
+    return count
+
+
 def grown_tree(segments: int, seed: int, length: float = 1.0, gap: float = 0.3):
     """(joints, radii, parents) of a random branching tree of ``segments`` segments of
     ``length`` (host, float64): each new segment leaves a joint with fewer than two children
     (so every branch point has three segments) turned 20-50 degrees from its parent's direction
     and leaning up, and is kept only where its axis passes more than the two radii plus ``gap``
     from every segment but its neighbours': no two tubes touch, so the topology can be read
-    from the surface (the L-system's crown at 486 segments has 157 pairs of segments, more than
-    a joint apart, within their radii plus 0.05 of each other). Radii taper from 0.25 by 0.85
+    from the surface (the L-system's crown at 486 segments has such pairs: the bench's
+    ``crossing_pairs``). Radii taper from 0.25 by 0.85
     a generation down to 0.05."""
     rng = np.random.default_rng(seed)
     joints, parents, depth, dirs, kids = [np.zeros(3)], [-1], [0], [np.array([0.0, 1.0, 0.0])], [0]
     radius = lambda k: max(0.05, 0.25 * 0.85**k)  # noqa: E731
-    t = np.linspace(0.0, 1.0, 11)
     tries = 0
     while len(joints) < segments + 1:
         tries += 1
@@ -94,10 +121,7 @@ def grown_tree(segments: int, seed: int, length: float = 1.0, gap: float = 0.3):
         ok = (kid != i) & (q != i) & (q != parents[i])  # not the segments at joint i
         if ok.any():
             jj = np.asarray(joints)
-            a0, a1 = jj[q[ok]], jj[kid[ok]]
-            mine = joints[i][None] + t[:, None] * (new - joints[i])[None]  # (11, 3) along the new axis
-            theirs = a0[:, None] + t[None, :, None] * (a1 - a0)[:, None]  # (S, 11, 3)
-            dist = np.min(np.linalg.norm(theirs[:, :, None] - mine[None, None], axis=-1), axis=(1, 2))
+            dist = _axis_gaps(joints[i], new, jj[q[ok]], jj[kid[ok]])
             rr = np.maximum(np.asarray([radius(depth[k]) for k in kid[ok]]), np.asarray([radius(depth[k]) for k in q[ok]]))
             if np.any(dist <= rr + rn + gap):
                 continue
@@ -179,11 +203,11 @@ def run_tree_bench(b: TreeBench, emit) -> list[dict]:
         try:
             (j0, r0, p0, _), (res, edits, rounds), secs = contracted_and_fitted(pts, b.start, b.solver, b.edits, "fit_trees")
         except ValueError as e:  # a start the points cannot fit, a diverged solver: a row that says so
-            row = {"tree": kind, "size": size, "points": n, "error": str(e)}
+            row = {"tree": kind, "size": size, "crossing_pairs": crossing_pairs(j, r, p), "points": n, "error": str(e)}
             emit(row)
             rows.append(row)
             continue
-        row = {"tree": kind, "size": size, "points": n, "noise": b.noise, "outliers": b.outliers, **compared(j, r, p, res.joints, res.radii, res.parents),
+        row = {"tree": kind, "size": size, "crossing_pairs": crossing_pairs(j, r, p), "points": n, "noise": b.noise, "outliers": b.outliers, **compared(j, r, p, res.joints, res.radii, res.parents),
                "start": compared(j, r, p, j0, r0, p0), **secs,
                "rounds": rounds, "edits": len(edits), "fit_iterations": res.iterations}
         emit(row)
