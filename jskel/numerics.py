@@ -113,6 +113,21 @@ def differentiable_root(g, t):
                                lambda gt, y: safe_div(y, gt(jnp.ones_like(y)), 0.0))
 
 
+def frozen(tree):
+    """``tree`` with the derivative of every floating leaf cut (``lax.stop_gradient``); other
+    leaves (ints, bools, Python constants) as they are. The input of a loop that only *finds* a
+    root: under ``jax.jvp`` or ``jax.linearize`` JAX would otherwise carry tangents through
+    every iteration (doubling the loop in the derivative's program) only for
+    :func:`differentiable_root` to drop them."""
+
+    def one(a):
+        if isinstance(a, jax.Array | np.ndarray) and jnp.issubdtype(a.dtype, jnp.floating):
+            return jax.lax.stop_gradient(a)
+        return a
+
+    return jax.tree_util.tree_map(one, tree)
+
+
 def euler_xyz(deg) -> np.ndarray:
     """Rotation matrix (3,3) float64 for XYZ Euler angles in degrees, X applied first:
     ``R = Rz @ Ry @ Rx`` (host; the convention of bones' keyframes and scene transforms)."""

@@ -18,7 +18,7 @@ from ._intersect import _segment_t, nearest_batch, nearest_batch_compact, neares
 from ._kernel import nearest_kernel
 from ._pack import FrustaScene, Group, Static
 from ._relief import enters_shell
-from ._relief_method import make_relief_t
+from ._relief_method import make_relief_root, make_relief_t
 
 
 def traversal_of(cfg: FrustaConfig, plain_segments: int) -> str:
@@ -102,9 +102,9 @@ def _plain_search(static: Static):
 def _relief_search(static: Static):
     """(t, s, code, idx, t_undecided) of a batch against the relief segments (marched only for
     the (ray, segment) pairs whose ray enters a shell; t_undecided the least t where a march
-    could not exclude a crossing, ``_relief``), and its closed-form ``winner``: the march and
-    bisection of the winning segment alone, differentiated by the implicit-function theorem
-    (``_relief``)."""
+    could not exclude a crossing, ``_relief``), and its closed-form ``winner``: the winning
+    segment's crossing at the s the search found, differentiated by the implicit-function
+    theorem without marching again (``_relief_method.make_relief_root``)."""
 
     def search(sc: FrustaScene, rays: Rays):
         seg_fn = make_relief_t(sc.maps, static.relief)
@@ -138,7 +138,8 @@ def _relief_search(static: Static):
         hit = jnp.isfinite(t)
         seg = jax.tree_util.tree_map(lambda x: x[jnp.maximum(idx, 0)], sc.relief.frusta)
         seg, o, d = hold(hit, (seg, rays.origins, rays.directions))  # (the maps are shared by every ray)
-        tt, ss = jax.vmap(make_relief_t(sc.maps, static.relief))(seg, o, d, rays.t_min, rays.t_max)[:2]
+        s_root = jnp.where(hit, out[1], 0.0)
+        tt, ss = jax.vmap(make_relief_root(sc.maps, static.relief))(seg, o, d, rays.t_min, rays.t_max, s_root)
         return tt, ss, None, None, None
 
     return search, winner

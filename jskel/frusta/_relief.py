@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..numerics import differentiable_root, dot3, eps_of, safe_div, safe_normalize, safe_sqrt
+from ..numerics import differentiable_root, dot3, eps_of, frozen, safe_div, safe_normalize, safe_sqrt
 from ..rays import masked_hit
 from ._intersect import CAP_BOTTOM, CAP_TOP, FrustaParams, recentre, side_roots
 
@@ -188,30 +188,52 @@ def _relief_t(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, o, d, t_min
     n_steps, n_bis = maps.steps, maps.bisection
     inf = jnp.asarray(jnp.inf, o.dtype)
     t0, e, s_a, s_b, ok, entry, from_outside = _shell_window(seg, o, d, t_min, t_max)
-    sample = _sampler(maps, q, seg, e, d, s_a, s_b)
-
-    def gap(s):
-        w, _, hgt, _, _ = sample(s)
-        return w - hgt
+    # the march and bisection only find the crossing: they run on inputs whose derivatives are
+    # cut (numerics.frozen), so a derivative's program holds them once, not with a tangent
+    # copy; the crossing's derivative is the implicit-function theorem's at it (_root_at)
+    sample = _sampler(frozen(maps), q, *frozen((seg, e, d, s_a, s_b)))
 
     def below(s):
-        return gap(s) <= 0  # exactly w <= h: a float difference is 0 only when equal
+        w, _, hgt, _, _ = sample(s)
+        return w - hgt <= 0  # exactly w <= h: a float difference is 0 only when equal
 
     first = sample(s_a)
     b0 = first[0] - first[2] <= 0
     inside0 = (~from_outside) & b0  # the march starts below the relief surface
     hit_at_entry = from_outside & b0
     period = maps.scale[0] * maps.height.shape[1]
-    found, lo, hi, s_und = _march(sample, maps.slope, period, inside0, hit_at_entry, first, s_a, s_b, n_steps, q.early_exit)
+    found, lo, hi, s_und = _march(sample, frozen(maps.slope), period, inside0, hit_at_entry, first, *frozen((s_a, s_b)), n_steps, q.early_exit)
     lo, hi = _bisect(below, inside0, lo, hi, n_bis)
-    # the crossing found by the march and bisection, differentiable by the implicit-function
-    # theorem (numerics.differentiable_root); an entry hit is the shell's own analytic root
-    s_hit = jnp.where(hit_at_entry, s_a, differentiable_root(gap, 0.5 * (lo + hi)))
+    s_hit = _root_at(maps, q, seg, e, d, s_a, s_b, hit_at_entry, 0.5 * (lo + hi))
     t = t0 + s_hit
     good = ok & found & (t > t_min) & (t <= t_max)
     code = jnp.where(hit_at_entry, entry, RELIEF)
     t_und = jnp.where(ok & jnp.isfinite(s_und), t0 + s_und, inf)
     return jnp.where(good, t, inf), s_hit, code.astype(jnp.int32), t_und
+
+
+def _root_at(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, e, d, s_a, s_b, hit_at_entry, root):
+    """s of the crossing at ``root`` (found by the march and bisection), differentiable by the
+    implicit-function theorem (``numerics.differentiable_root`` of w - h there); an entry hit is
+    the shell's own analytic root s_a."""
+    sample = _sampler(maps, q, seg, e, d, s_a, s_b)
+
+    def gap(s):
+        w, _, hgt, _, _ = sample(s)
+        return w - hgt
+
+    return jnp.where(hit_at_entry, s_a, differentiable_root(gap, root))
+
+
+def relief_root(maps: ReliefMaps, q: ReliefQuality, seg: FrustaParams, o, d, t_min, t_max, s_root):
+    """(t, s) of a ray's crossing of one relief segment at ``s_root``, the s :func:`_relief_t`
+    found for it, with the derivatives :func:`_relief_t` gives it but no march: the closed
+    form a traversal's derivative takes from its winner (``accel.nearest_tangent``). Its value
+    is s_root's (s_a's at an entry hit)."""
+    t0, e, s_a, s_b, ok, entry, from_outside = _shell_window(seg, o, d, t_min, t_max)
+    first = _sampler(frozen(maps), q, *frozen((seg, e, d, s_a, s_b)))(s_a)
+    s_hit = _root_at(maps, q, seg, e, d, s_a, s_b, from_outside & (first[0] - first[2] <= 0), jax.lax.stop_gradient(s_root))
+    return t0 + s_hit, s_hit
 
 
 def _shell_window(seg: FrustaParams, o, d, t_min, t_max):

@@ -49,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..numerics import differentiable_root, dot3, eps_of, safe_div, safe_sqrt
+from ..numerics import differentiable_root, dot3, eps_of, frozen, safe_div, safe_sqrt
 from ._intersect import FrustaParams
 from ._relief import _TWO_PI, RELIEF, _angle_u, _least_of_upper, _shell_window, bilinear_taps, exact_v
 
@@ -250,7 +250,17 @@ def relief_t(maps, q, seg: FrustaParams, o, d, t_min, t_max):
     """(t, s, code, t_undecided) of one ray against one relief segment (``_relief_method.make_relief_t``)
     by the exact traversal."""
     ln, st = begin(maps, q, seg, o, d, t_min, t_max)
-    return hit_of(maps, q, ln, *search(maps, q, ln, st))
+    # the walk only finds the crossing: on inputs whose derivatives are cut (numerics.frozen),
+    # so a derivative's program holds it once; hit_of differentiates the root it found
+    return hit_of(maps, q, ln, *search(frozen(maps), q, frozen(ln), frozen(st)))
+
+
+def relief_root(maps, q, seg: FrustaParams, o, d, t_min, t_max, s_root):
+    """(t, s) of a ray's crossing of one relief segment at ``s_root``, the s :func:`relief_t`
+    found for it, with :func:`relief_t`'s derivatives but no walk (``_relief.relief_root``)."""
+    ln, _ = begin(frozen(maps), q, seg, o, d, t_min, t_max)
+    t, s = hit_of(maps, q, ln, True, jax.lax.stop_gradient(s_root), jnp.asarray(jnp.inf, ln.e.dtype))[:2]
+    return t, s
 
 
 def hit_of(maps, q, ln: Lane, found, root, s_und):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 
+from . import _relief, _relief_exact
 from ._relief import ReliefMaps, ReliefQuality, _relief_t
 from ._relief_exact import relief_t
 
@@ -17,3 +18,10 @@ def make_relief_t(maps: ReliefMaps, q: ReliefQuality):
     step that could not exclude a crossing (``_relief._step_undecided``; inf where none; the
     exact walk's first undecided interval)."""
     return functools.partial(relief_t if q.method == "exact" else _relief_t, maps, q)
+
+
+def make_relief_root(maps: ReliefMaps, q: ReliefQuality):
+    """``(seg, o, d, t_min, t_max, s_root) -> (t, s)``: the crossing :func:`make_relief_t`'s test
+    found at ``s_root``, with that test's derivatives (the implicit-function theorem's at the
+    root) and no march or walk: what a traversal's derivative needs of its winner."""
+    return functools.partial(_relief_exact.relief_root if q.method == "exact" else _relief.relief_root, maps, q)
