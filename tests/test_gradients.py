@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 # every check the script runs by default, with how many it makes of each
 EXPECTED = {f"frusta_{m}": 8 for m in ("none", "blocks", "bins", "packets", "walks", "kernel", "skeleton")} | {
-    "relief_fixed": 8, "relief_early": 8, "relief_exact": 8, "relief_exact_bent": 8, "relief_exact_texels": 8}
+    "relief_fixed": 8, "relief_exact_bent": 8, "relief_exact_texels": 8}
 EXPECTED |= {f"implicit_{m}": 8 for m in ("lipschitz", "bisection", "naive", "exact", "exact_tubes")} | {"cells_first_hit": 8, "cells_refraction": 8, "cells_voxels": 8}
 EXPECTED |= {"mesh_packets": 8, "mesh_walks": 8}
 # hypothesis' three examples and the two ends, at scales 1e-10 .. 1e10
