@@ -172,7 +172,8 @@ def test_grown_trees_branch_in_threes_and_their_tubes_never_touch():
     """``fit._tree_bench.grown_tree``, the bench's truth: the segment count asked for, every
     branch point of three segments, and any two segments more than a joint apart farther from
     each other than their radii plus most of the 0.3 gap (closest points of the two axes,
-    closed form in float64; the generator samples each axis at 11 points)."""
+    closed form in float64; the generator samples each axis at 11 points), and each of two
+    segments leaving one joint with its far end that far from the other's axis."""
     from jskel.fit._tree_bench import grown_tree
 
     j, r, p = grown_tree(60, 3)
@@ -201,6 +202,12 @@ def test_grown_trees_branch_in_threes_and_their_tubes_never_touch():
             far += 1
             assert closest(j[p[x]], j[x], j[p[y]], j[y]) > max(r[x], r[p[x]]) + max(r[y], r[p[y]]) + 0.2
     assert far > 1000
+    two = np.nonzero(np.bincount(p[p >= 0], minlength=len(p)) == 2)[0]
+    assert two.size > 10
+    for i in two:  # siblings part: each far end clear of the other's tube
+        a, b = np.nonzero(p == i)[0]
+        for x, y in ((a, b), (b, a)):
+            assert closest(j[x], j[x], j[i], j[y]) > r[x] + r[y] + 0.2
 
 
 def test_crossing_pairs_counts_tubes_that_touch_more_than_a_joint_apart():
@@ -214,3 +221,63 @@ def test_crossing_pairs_counts_tubes_that_touch_more_than_a_joint_apart():
     assert crossing_pairs(j, r, p) == 1
     j[4] = [1, 1, 0]
     assert crossing_pairs(j, r, p) == 0
+
+
+def test_the_contraction_stops_once_its_points_lie_on_curves(monkeypatch):
+    """``_contract.linearity`` reads 1 on a line, 1/2 on a square grid and 1/3 in a cubic one
+    (the interior points' neighbours: a segment, a 3 x 3 square, a 3 x 3 x 3 cube, whose
+    covariances are closed forms); and on a grown tree of 50 segments the
+    contraction stops when the neighbourhoods are curves, with its points' median distance
+    from the true axes under half the radius there (float64 nearest axis samples). Contracted
+    until the area's plateau instead (``LINEAR_STOP`` out of reach), the curves shorten and
+    the points drift more than a radius off the axes."""
+    from scipy.spatial import cKDTree
+
+    from jskel.fit import _contract
+    from jskel.fit._tree_bench import grown_tree
+
+    line = np.column_stack([np.arange(50.0), np.zeros(50), np.zeros(50)])
+    g = np.stack(np.meshgrid(np.arange(15.0), np.arange(15.0)), -1).reshape(-1, 2)
+    grid = np.column_stack([g, np.zeros(len(g))])
+    cube = np.stack(np.meshgrid(*[np.arange(10.0)] * 3), -1).reshape(-1, 3)
+    lin = [_contract.linearity(x, _contract.neighbourhoods(x, k)) for x, k in ((line, 4), (grid, 8), (cube, 26))]
+    assert lin[0] > 0.999 and abs(lin[1] - 0.5) < 0.01 and abs(lin[2] - 1 / 3) < 0.01
+
+    j, r, p = grown_tree(50, 0)
+    rng = np.random.default_rng(0)
+    pts = sample_surface(j, r, p, 5000, rng) + rng.normal(0.0, 0.003, (5000, 3))
+    nbr = _contract.neighbourhoods(pts, 10)
+    t = np.linspace(0, 1, 100)[:, None]
+    kids = np.nonzero(p >= 0)[0]
+    ax = np.concatenate([j[p[k]] + t * (j[k] - j[p[k]]) for k in kids])
+    ar = np.concatenate([r[p[k]] + t[:, 0] * (r[k] - r[p[k]]) for k in kids])
+
+    def off_axis(con):
+        d, near = cKDTree(ax).query(con)
+        return float(np.median(d / ar[near]))
+
+    con, steps = _contract.contract(pts, nbr, 20)
+    assert off_axis(con) < 0.5 and _contract.linearity(con, nbr) >= _contract.LINEAR_STOP
+    monkeypatch.setattr(_contract, "LINEAR_STOP", 2.0)
+    late, more = _contract.contract(pts, nbr, 20)
+    assert more > steps and off_axis(late) > 1.0
+
+
+def test_twigs_shorter_than_the_tube_is_wide_are_cut(monkeypatch):
+    """On the 5-segment grown tree (one branch point, three tips; tubes of radius 0.15-0.25,
+    sampled with noise and 2 % outliers), the balls (0.005 of the extent) are far narrower
+    than the tubes, so the contracted surface leaves short spurs: cut when shorter than the
+    spread of their groups' points (``_contract.TWIG_RADII``), the start has the truth's branch
+    point and tips; with only the balls' ``prune`` it has a score of branch points."""
+    from jskel.fit import _contract
+    from jskel.fit._tree_bench import grown_tree
+
+    j, r, p = grown_tree(5, 0)
+    rng = np.random.default_rng(0)
+    pts = sample_surface(j, r, p, 500, rng) + rng.normal(0.0, 0.003, (500, 3))
+    lo, hi = pts.min(0), pts.max(0)
+    pts[rng.choice(500, 10, replace=False)] = rng.uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), (10, 3))
+    deg = degrees(contraction_skeleton(pts, 10, 0.005, 0.03, 2.0, 40000)[2])
+    assert np.sum(deg >= 3) == 1 and np.sum(deg == 1) == 3
+    monkeypatch.setattr(_contract, "TWIG_RADII", 0.0)
+    assert np.sum(degrees(contraction_skeleton(pts, 10, 0.005, 0.03, 2.0, 40000)[2]) >= 3) > 5

@@ -21,7 +21,8 @@ positions, the same units as W_H's term, so no scale enters. It stops when the m
 neighbourhood area has shrunk below 10^-6 of its start (the paper's criterion), or, as a tube's
 neighbourhoods stay spread along its axis, when a step shrinks it by less than 5 % (the
 surface has collapsed onto curves; that step is not kept: further steps only pull the curves'
-ends in, measured on a branching tree), or after ``steps`` steps.
+ends in, measured on a branching tree), or once the neighbourhoods have collapsed onto curves
+(``LINEAR_STOP``: the area keeps shrinking as the curves shorten), or after ``steps`` steps.
 
 Sec. 4 (topology): the contracted points are grouped by farthest-point sampling in balls of
 radius ``ball`` x extent; two groups are joined when a point of one has a neighbour (in the
@@ -50,6 +51,12 @@ import numpy as np
 WL_START, WL_GROWTH, WL_MAX = 1.0, 3.0, 2048.0
 AREA_STOP = 1e-6  # stop when the mean neighbourhood area is below this fraction of its start
 PLATEAU = 0.05  # or when a step shrinks it by less than this fraction: the surface has collapsed onto curves
+#: or when the neighbourhoods are curves: the median point's neighbours spread along one direction
+#: with this share of their variance (``linearity``). Past it, W_L pulls the points along the
+#: curves (their ends in, branches towards their junctions) and off the tubes' axes: on grown
+#: trees of 50 and 500 segments the contracted points' median distance from the true axis was
+#: 0.27 and 0.21 radii at that step and 2.2 and 3.0 radii five steps on, where the area's plateau stopped
+LINEAR_STOP = 0.99
 
 
 def reduced(points: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -134,12 +141,21 @@ def contract(points: np.ndarray, nbr: np.ndarray, steps: int) -> tuple[np.ndarra
             done -= 1
             break
         p, prev = step, a.mean()
-        if a.mean() < AREA_STOP * a0.mean():
+        if a.mean() < AREA_STOP * a0.mean() or linearity(p, nbr) >= LINEAR_STOP:
             break
         wl = min(wl * WL_GROWTH, WL_MAX * WL_START)
         wh = np.sqrt(a0 / np.maximum(a, 1e-30 * a0.mean()))
         wh = np.minimum(wh, 1e4)  # a collapsed neighbourhood pins its points, within floats
     return p, done
+
+
+def linearity(p: np.ndarray, nbr: np.ndarray) -> float:
+    """The median over the points of the share of their neighbourhood's spread along its main
+    direction (the largest eigenvalue of the neighbours' covariance over the trace): 1/3 on a
+    blob, about 1/2 on a surface, 1 on a curve."""
+    nb = p[nbr] - p[nbr].mean(1, keepdims=True)
+    ev = np.linalg.eigvalsh(np.einsum("mki,mkj->mij", nb, nb))
+    return float(np.median(ev[:, 2] / np.maximum(ev.sum(1), 1e-300)))
 
 
 def groups(contracted: np.ndarray, radius: float) -> np.ndarray:
@@ -207,6 +223,9 @@ def merged_branches(adj: dict, cen: np.ndarray, reach: float) -> tuple[dict, np.
 #: beyond a sparse stretch; an outlier's few groups stay out)
 PIECE_GROUPS = 3
 PIECE_REACH = 6.0
+#: a twig is cut when shorter than this many times its junction group's spread (the median
+#: distance of the group's points from its contracted centre: about the tube's radius there)
+TWIG_RADII = 1.0
 
 
 def contraction_skeleton(points: np.ndarray, neighbours: int, ball: float, segment: float, prune: float, max_points: int,
@@ -236,7 +255,14 @@ def contraction_skeleton(points: np.ndarray, neighbours: int, ball: float, segme
     a, b = lab[np.repeat(np.arange(len(reps)), nbr.shape[1])], lab[nbr.reshape(-1)]
     pairs = np.unique(np.sort(np.column_stack([a, b])[a != b], axis=1), axis=0)
     # pieces of at least PIECE_GROUPS groups within PIECE_REACH balls of the rest are joined to it
-    adj = cut_twigs(joined_pieces(spanning_tree_of(cen, pairs), cen, PIECE_GROUPS, PIECE_REACH * ball * ext), cen, prune * ball * ext)
+    # a twig shorter than TWIG_RADII times its junction's spread (a bump of the tube's surface
+    # that the contraction left, not a branch) is cut too
+    dist = np.linalg.norm(reps - cen[lab], axis=1)
+    order = np.argsort(lab, kind="stable")
+    starts = np.searchsorted(lab[order], np.arange(ng))
+    spread = np.array([np.median(d) if len(d) else 0.0 for d in np.split(dist[order], starts[1:])])
+    adj = cut_twigs(joined_pieces(spanning_tree_of(cen, pairs), cen, PIECE_GROUPS, PIECE_REACH * ball * ext), cen, prune * ball * ext,
+                    TWIG_RADII * spread)
     adj, cen = merged_branches(adj, cen, 2.0 * ball * ext)
     kept, parents = simplified(adj, cen, segment * ext)
     joints = cen[kept]

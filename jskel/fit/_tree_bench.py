@@ -93,8 +93,9 @@ def grown_tree(segments: int, seed: int, length: float = 1.0, gap: float = 0.3):
     ``length`` (host, float64): each new segment leaves a joint with fewer than two children
     (so every branch point has three segments) turned 20-50 degrees from its parent's direction
     and leaning up, and is kept only where its axis passes more than the two radii plus ``gap``
-    from every segment but its neighbours': no two tubes touch, so the topology can be read
-    from the surface (the L-system's crown at 486 segments has such pairs: the bench's
+    from every segment but its neighbours', and whose far end and a sibling's (a segment leaving
+    the same joint) each pass as far from the other's axis: no two tubes touch but where they
+    meet, and siblings part within their length, so the topology can be read from the surface (the L-system's crown at 486 segments has such pairs: the bench's
     ``crossing_pairs``). Radii taper from 0.25 by 0.85
     a generation down to 0.05."""
     rng = np.random.default_rng(seed)
@@ -119,11 +120,18 @@ def grown_tree(segments: int, seed: int, length: float = 1.0, gap: float = 0.3):
         q = np.asarray(parents[1:])
         kid = np.arange(1, len(joints))
         ok = (kid != i) & (q != i) & (q != parents[i])  # not the segments at joint i
+        jj = np.asarray(joints)
         if ok.any():
-            jj = np.asarray(joints)
             dist = _axis_gaps(joints[i], new, jj[q[ok]], jj[kid[ok]])
             rr = np.maximum(np.asarray([radius(depth[k]) for k in kid[ok]]), np.asarray([radius(depth[k]) for k in q[ok]]))
             if np.any(dist <= rr + rn + gap):
+                continue
+        sib = kid[q == i]  # a sibling leaving joint i too: each one's far end clear of the other's tube
+        if sib.size:
+            rs = np.asarray([radius(depth[k]) for k in sib])
+            to_theirs = _axis_gaps(new, new, jj[np.full(sib.size, i)], jj[sib])
+            to_mine = np.array([_axis_gaps(jj[k], jj[k], joints[i][None], new[None])[0] for k in sib])
+            if np.any(np.minimum(to_theirs, to_mine) <= rs + rn + gap):
                 continue
         joints.append(new)
         parents.append(i)

@@ -91,9 +91,10 @@ def joined_pieces(adj: dict, cen, min_nodes: int, reach: float) -> dict:
     return out
 
 
-def cut_twigs(adj: dict, cen, reach: float) -> dict:
-    """Twigs cut: a leaf's path to the first branch node, when shorter than ``reach`` (up to
-    four rounds, as cutting one twig can leave another)."""
+def cut_twigs(adj: dict, cen, reach: float, node_reach=None) -> dict:
+    """Twigs cut: a leaf's path to the first branch node, when shorter than ``reach`` or than
+    the median of ``node_reach`` (an array over the nodes, where given) over the path's nodes
+    and that branch node (up to four rounds, as cutting one twig can leave another)."""
     for _ in range(4):
         cut = set()
         for leaf in [u for u in adj if len(adj[u]) == 1]:
@@ -107,7 +108,7 @@ def cut_twigs(adj: dict, cen, reach: float) -> dict:
                 if len(adj[cur]) != 2:
                     break
                 path.append(cur)
-            if len(adj[cur]) > 2 and length < reach:
+            if len(adj[cur]) > 2 and length < (reach if node_reach is None else max(reach, float(np.median(node_reach[path + [cur]])))):
                 cut.update(path)
         if not cut:
             break
