@@ -44,8 +44,9 @@ Every argument is stepped in its own unit (``leaf_scales``: s for lengths and po
 unit vectors and ratios), and only rays whose t is smooth within the step are checked
 (``smooth``: a kink of t, at a silhouette, a cutting plane, a texel or voxel edge, makes
 finite differences disagree with themselves); cell hits within 1e-3 of a voxel edge are left
-out besides. And four of the implicit grid's balls (the Lipschitz march) the same way, each
-primitive moved whole as ``implicit_free`` moves it (a program per example).
+out besides. And four of the implicit grid's balls (the Lipschitz march, and the bisection) the
+same way, each primitive moved whole as ``implicit_moved`` moves it (one program for every
+example, as for the others).
 
 And the fitting's signed point-to-frusta distance (issue 10) against joints, radii and the point.
 
@@ -205,30 +206,21 @@ def skeleton_free(b, cfg):
     return (jnp.asarray(joints - b.anchor), jnp.asarray(radii)), params_of
 
 
-def implicit_free_in(s):
-    """:func:`implicit_free` with the shift in units of ``s`` (the radii's factor and the
-    threshold have none): a step of 1e-6 moves each by 1e-6 of its own size."""
-
-    def free(b, cfg):
-        th, params_of = implicit_free(b, cfg)
-        return (th[0] / s, th[1], th[2]), lambda t: params_of((t[0] * s, t[1], t[2]))
-
-    return free
+def implicit_moved(sc, th):
+    """The implicit params ``sc`` with each primitive shifted whole by ``th[0]`` (both ends),
+    its radii times ``th[1]`` and the threshold ``th[2]``."""
+    shift, rscale, T = th
+    p = sc.prims
+    prims = p._replace(a=p.a + shift, b=p.b + shift, ra=p.ra * rscale, rb=p.rb * rscale)
+    return sc._replace(prims=prims, tune=sc.tune._replace(threshold=T))
 
 
 def implicit_free(b, cfg):
     """A ball is a segment of length 0, whose field is not differentiable in its two ends apart:
     each primitive moves as a whole (one shift of both ends), its radii scale together, and the
-    threshold moves."""
+    threshold moves (:func:`implicit_moved`)."""
     sc = b.params
-    p = sc.prims
-
-    def params_of(th):
-        shift, rscale, T = th
-        prims = p._replace(a=p.a + shift, b=p.b + shift, ra=p.ra * rscale, rb=p.rb * rscale)
-        return sc._replace(prims=prims, tune=sc.tune._replace(threshold=T))
-
-    return (jnp.zeros_like(p.a), jnp.ones_like(p.ra), sc.tune.threshold), params_of
+    return (jnp.zeros_like(sc.prims.a), jnp.ones_like(sc.prims.ra), sc.tune.threshold), lambda th: implicit_moved(sc, th)
 
 
 which = set(sys.argv[1].split(",")) if len(sys.argv) > 1 else None  # a subset of the checks, by name
@@ -384,12 +376,16 @@ _PROGRAMS: dict = {}
 
 
 def keyed_program(rep, static, tree, floats):
-    """``both(args, fixed, v, u) -> (t, J v, J^T u)`` of the batch's t in ``args`` = (the params'
-    float leaves ``floats``, the ray origins), with ``fixed`` = (every leaf, directions, t_min,
-    t_max) held: one jitted function per key, so new values compile nothing."""
-    key = (rep.name, static, tree, tuple(floats))
+    """``both(args, fixed, v, u) -> (t, J v, J^T u)`` of the batch's t in ``args`` = (theta, the
+    ray origins), with ``fixed`` = (every leaf, directions, t_min, t_max) held: theta is the
+    params' float leaves ``floats`` (a tuple of leaf indices), or, with ``floats`` a function
+    ``(params, theta) -> params`` (:func:`implicit_moved`), what it moves the params by. One
+    jitted function per key, so new values compile nothing."""
+    key = (rep.name, static, tree, floats if callable(floats) else tuple(floats))
     if key not in _PROGRAMS:
         def g(theta, o, leaves, d, a, b):
+            if callable(floats):
+                return intersect(Object(floats(tree.unflatten(leaves), theta), static, rep.name), Rays(o, d, a, b)).t
             mixed = list(leaves)
             for i, v in zip(floats, theta):
                 mixed[i] = v
@@ -445,25 +441,32 @@ def leaf_scales(rep, at_s, at_1):
     return out
 
 
-def scaled_check(name, raw, origins, directions, s, units, n=8, h=1e-6):
+def scaled_check(name, raw, origins, directions, s, units, n=8, h=1e-6, moves=None):
     """``check_jvp`` and ``check_vjp`` of the first ``n`` hit rays' t / s (so that derivatives are
     of order 1 at every scale and the checks' tolerances mean the same) in every float leaf of
     the params and the ray origins, each argument in its own unit (``units``, from
-    :func:`leaf_scales`; the origins in s), at finite-difference steps of ``h`` of that unit."""
+    :func:`leaf_scales`; the origins in s), at finite-difference steps of ``h`` of that unit.
+    With ``moves`` (:func:`implicit_moved`) the params are not free leaf by leaf but moved by it:
+    its shift in units of s, its radii's factor and threshold in 1 (``units`` unused)."""
     rep = registry.get(raw["type"])
     b = rep.build(rep.Config.model_validate(raw), np.float64)
     d = np.asarray(directions, float)
     rays = make_rays(np.asarray(origins) - b.anchor, d / np.linalg.norm(d, axis=1, keepdims=True), dtype=np.float64)
     leaves, tree = jax.tree_util.tree_flatten(b.params)
-    floats = [i for i, a in enumerate(leaves) if jnp.issubdtype(a.dtype, jnp.floating)]
-    floats, units = zip(*[(i, u) for i, u in zip(floats, units) if u is not None])
-    program = keyed_program(rep, b.static, tree, list(floats))
+    if moves is None:
+        floats = [i for i, a in enumerate(leaves) if jnp.issubdtype(a.dtype, jnp.floating)]
+        floats, units = zip(*[(i, u) for i, u in zip(floats, units) if u is not None])
+        program = keyed_program(rep, b.static, tree, list(floats))
+        theta = [leaves[i] for i in floats]
+    else:
+        program = keyed_program(rep, b.static, tree, moves)
+        theta, units = list(implicit_free(b, None)[0]), (s, 1.0, 1.0)
     unit = ([jnp.asarray(u, jnp.float64) for u in units], jnp.asarray(s, jnp.float64))
     scale = lambda a: jax.tree_util.tree_map(lambda x, w: x * w, a, unit)  # noqa: E731
     # arguments in units: x = unit * a, so J_a v = J_x (unit v), J_a^T u = unit (J_x^T u)
     # and t in units of s: y = t / s, J = J_t / s, J^T u = J_t^T (u / s)
     both = lambda a, fixed, v, u: (lambda y, jv, jt: (y / s, jv / s, scale(jt)))(*program(scale(a), fixed, scale(v), u / s))  # noqa: E731
-    args = ([leaves[i] / w for i, w in zip(floats, unit[0])], rays.origins / s)
+    args = ([x / w for x, w in zip(theta, unit[0])], rays.origins / s)
     fixed = (leaves, rays.directions, rays.t_min, rays.t_max)
     zero = jax.tree_util.tree_map(jnp.zeros_like, args)
     nothing = jnp.zeros_like(rays.t_min)
@@ -552,9 +555,8 @@ def scaled_checks(kind):
         o = o - back * d / np.linalg.norm(d, axis=1, keepdims=True)
         # t's rounding grows with the distance: the step that balances it against the curvature
         h = 1e-6 * max(1.0, (1.0 + back / 4.0) ** (1.0 / 3.0))
-        if base == "fuzz_implicit":  # each primitive moved whole (``implicit_free``): a program per example
-            check_batch(kind, scaled_raw(kind, s, off), off + s * o, d, free=implicit_free_in(s), eps=h, record=False, unit=s)
-            checked[kind] = checked.get(kind, 0) + 1
+        if base == "fuzz_implicit":  # each primitive moved whole (``implicit_moved``), one program for every example
+            scaled_check(kind, scaled_raw(kind, s, off), off + s * o, d, s, None, h=h, moves=implicit_moved)
             return
         units = leaf_scales(registry.get(scaled_raw(kind, 1.0, 0 * off)["type"]), scaled_raw(kind, s, 0 * off), scaled_raw(kind, 1.0, 0 * off))
         scaled_check(kind, scaled_raw(kind, s, off), off + s * o, d, s, units, h=h)
