@@ -263,12 +263,13 @@ def test_the_contraction_stops_once_its_points_lie_on_curves(monkeypatch):
     assert more > steps and off_axis(late) > 1.0
 
 
-def test_twigs_shorter_than_the_tube_is_wide_are_cut(monkeypatch):
+def test_twigs_that_end_inside_the_tube_they_leave_are_cut(monkeypatch):
     """On the 5-segment grown tree (one branch point, three tips; tubes of radius 0.15-0.25,
     sampled with noise and 2 % outliers), the balls (0.005 of the extent) are far narrower
-    than the tubes, so the contracted surface leaves short spurs: cut when shorter than the
-    spread of their groups' points (``_contract.TWIG_RADII``), the start has the truth's branch
-    point and tips; with only the balls' ``prune`` it has a score of branch points."""
+    than the tubes, so the contracted surface leaves short spurs: cut when their end lies within
+    the spread of the nearest group's points off them (``_contract.TWIG_RADII``: inside the
+    tube), the start has the truth's branch point and tips; with only the balls' ``prune`` it
+    has a score of branch points."""
     from jskel.fit import _contract
     from jskel.fit._tree_bench import grown_tree
 

@@ -29,7 +29,7 @@ radius ``ball`` x extent; two groups are joined when a point of one has a neighb
 original cloud's neighbourhoods) in the other. The paper collapses the resulting graph's
 triangles edge by edge; here the minimum spanning tree of the group graph (weighted by the
 groups' distance) is taken, pieces it leaves apart joined to the largest where they are near
-(``_trees.joined_pieces``), its twigs shorter than ``prune`` balls cut, branch nodes less than
+(``_trees.joined_pieces``), its twigs shorter than ``prune`` balls or ending inside the tube they leave cut, branch nodes less than
 two balls apart merged (:func:`merged_branches`: a junction of four branches is split into two
 of three by the balls) and its chains simplified to joints ``segment`` x extent apart
 (``_trees``, shared with the ``mst`` start). A joint is its group's contracted centroid (on the
@@ -223,8 +223,9 @@ def merged_branches(adj: dict, cen: np.ndarray, reach: float) -> tuple[dict, np.
 #: beyond a sparse stretch; an outlier's few groups stay out)
 PIECE_GROUPS = 3
 PIECE_REACH = 6.0
-#: a twig is cut when shorter than this many times its junction group's spread (the median
-#: distance of the group's points from its contracted centre: about the tube's radius there)
+#: a twig is cut when its end lies within this many times the spread of the nearest group off
+#: it (the median distance of that group's points from its contracted centre: about the tube's
+#: radius there): it ends inside the tube it leaves
 TWIG_RADII = 1.0
 
 
@@ -255,8 +256,8 @@ def contraction_skeleton(points: np.ndarray, neighbours: int, ball: float, segme
     a, b = lab[np.repeat(np.arange(len(reps)), nbr.shape[1])], lab[nbr.reshape(-1)]
     pairs = np.unique(np.sort(np.column_stack([a, b])[a != b], axis=1), axis=0)
     # pieces of at least PIECE_GROUPS groups within PIECE_REACH balls of the rest are joined to it
-    # a twig shorter than TWIG_RADII times its junction's spread (a bump of the tube's surface
-    # that the contraction left, not a branch) is cut too
+    # a twig whose end lies within TWIG_RADII times the spread of the nearest group off it (a
+    # bump of the tube's surface that the contraction left, not a branch) is cut too
     dist = np.linalg.norm(reps - cen[lab], axis=1)
     order = np.argsort(lab, kind="stable")
     starts = np.searchsorted(lab[order], np.arange(ng))

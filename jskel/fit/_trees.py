@@ -91,12 +91,18 @@ def joined_pieces(adj: dict, cen, min_nodes: int, reach: float) -> dict:
     return out
 
 
-def cut_twigs(adj: dict, cen, reach: float, node_reach=None) -> dict:
-    """Twigs cut: a leaf's path to the first branch node, when shorter than ``reach`` or than
-    the median of ``node_reach`` (an array over the nodes, where given) over the path's nodes
-    and that branch node (up to four rounds, as cutting one twig can leave another)."""
+def cut_twigs(adj: dict, cen, reach: float, spread=None) -> dict:
+    """Twigs cut: a leaf's path to the first branch node, when shorter than ``reach``, or, with
+    ``spread`` (an array over the nodes: about the tube's radius there), when the leaf lies
+    within the spread of the nearest node off its path: a twig that ends inside the tube it
+    leaves is a bump of that tube's surface, not a branch (up to four rounds, as cutting one
+    twig can leave another)."""
+    from scipy.spatial import cKDTree
+
     for _ in range(4):
         cut = set()
+        nodes = np.array(sorted(adj))
+        tree = cKDTree(cen[nodes]) if spread is not None and len(nodes) > 1 else None
         for leaf in [u for u in adj if len(adj[u]) == 1]:
             path, prev, cur, length = [leaf], None, leaf, 0.0
             while True:
@@ -108,7 +114,16 @@ def cut_twigs(adj: dict, cen, reach: float, node_reach=None) -> dict:
                 if len(adj[cur]) != 2:
                     break
                 path.append(cur)
-            if len(adj[cur]) > 2 and length < (reach if node_reach is None else max(reach, float(np.median(node_reach[path + [cur]])))):
+            if len(adj[cur]) <= 2:
+                continue
+            inside = False
+            if tree is not None:
+                k = min(len(nodes), len(path) + 1)
+                dist, idx = tree.query(cen[leaf], k)
+                mine = set(path)
+                off = [(d, int(nodes[i])) for d, i in zip(np.atleast_1d(dist), np.atleast_1d(idx)) if int(nodes[i]) not in mine]
+                inside = bool(off) and off[0][0] < spread[off[0][1]]
+            if length < reach or inside:
                 cut.update(path)
         if not cut:
             break
