@@ -53,9 +53,10 @@ AREA_STOP = 1e-6  # stop when the mean neighbourhood area is below this fraction
 PLATEAU = 0.05  # or when a step shrinks it by less than this fraction: the surface has collapsed onto curves
 #: or when the neighbourhoods are curves: the median point's neighbours spread along one direction
 #: with this share of their variance (``linearity``). Past it, W_L pulls the points along the
-#: curves (their ends in, branches towards their junctions) and off the tubes' axes: on grown
-#: trees of 50 and 500 segments the contracted points' median distance from the true axis was
-#: 0.27 and 0.21 radii at that step and 2.2 and 3.0 radii five steps on, where the area's plateau stopped
+#: curves (their ends in, branches towards their junctions) and off the tubes' axes: on the
+#: grown tree of 50 segments the contracted points' median distance from the true axes is under
+#: half a radius at that step and over a radius where the area's plateau stops
+#: (tests/test_fit_contract.py)
 LINEAR_STOP = 0.99
 
 
@@ -255,13 +256,14 @@ def contraction_skeleton(points: np.ndarray, neighbours: int, ball: float, segme
     # groups joined where a point of one has a neighbour in the other
     a, b = lab[np.repeat(np.arange(len(reps)), nbr.shape[1])], lab[nbr.reshape(-1)]
     pairs = np.unique(np.sort(np.column_stack([a, b])[a != b], axis=1), axis=0)
-    # pieces of at least PIECE_GROUPS groups within PIECE_REACH balls of the rest are joined to it
-    # a twig whose end lies within TWIG_RADII times the spread of the nearest group off it (a
-    # bump of the tube's surface that the contraction left, not a branch) is cut too
+    # each group's spread: the median distance of its points from its contracted centre
     dist = np.linalg.norm(reps - cen[lab], axis=1)
     order = np.argsort(lab, kind="stable")
     starts = np.searchsorted(lab[order], np.arange(ng))
     spread = np.array([np.median(d) if len(d) else 0.0 for d in np.split(dist[order], starts[1:])])
+    # pieces of at least PIECE_GROUPS groups within PIECE_REACH balls of the rest are joined to
+    # it; a twig whose end lies within TWIG_RADII times the spread of the nearest group off it (a
+    # bump of the tube's surface that the contraction left, not a branch) is cut
     adj = cut_twigs(joined_pieces(spanning_tree_of(cen, pairs), cen, PIECE_GROUPS, PIECE_REACH * ball * ext), cen, prune * ball * ext,
                     TWIG_RADII * spread)
     adj, cen = merged_branches(adj, cen, 2.0 * ball * ext)

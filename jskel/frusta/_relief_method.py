@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import functools
 
-from . import _relief, _relief_exact
-from ._relief import ReliefMaps, ReliefQuality, _relief_t
+from ._relief import ReliefMaps, ReliefQuality, _relief_t, relief_root
+from ._relief_exact import relief_root as exact_root
 from ._relief_exact import relief_t
 
 
@@ -24,4 +24,4 @@ def make_relief_root(maps: ReliefMaps, q: ReliefQuality):
     """``(seg, o, d, t_min, t_max, s_root) -> (t, s)``: the crossing :func:`make_relief_t`'s test
     found at ``s_root``, with that test's derivatives (the implicit-function theorem's at the
     root) and no march or walk: what a traversal's derivative needs of its winner."""
-    return functools.partial(_relief_exact.relief_root if q.method == "exact" else _relief.relief_root, maps, q)
+    return functools.partial(exact_root if q.method == "exact" else relief_root, maps, q)
