@@ -138,7 +138,7 @@ class SolverConfig(StrictModel):
     restarts: Annotated[int, Field(ge=1, le=4096)] = 1
     """Fits from that many perturbed starts in one call; the best is kept."""
     min_radius: Annotated[float, Field(ge=0.0, le=1.0)] = 1e-4
-    """Smallest radius, a fraction of the extent (radii = min + softplus(u))."""
+    """Smallest radius, a fraction of the extent (radii = min + s softplus(u / s), ``_problem.RADIUS_SOFTNESS``)."""
     candidates: Annotated[int, Field(ge=0, le=4096)] = 8
     """Nearest segments each point is measured against (0: all)."""
     max_seconds: Annotated[float, Field(gt=0.0)] | None = None
@@ -157,8 +157,9 @@ class SolverConfig(StrictModel):
 
 class EditsConfig(StrictModel):
     """Topology edits between rounds of the fit (``jskel/fit/_topology.py``): after each round
-    but the last, tips that fewer than ``prune_points`` points are nearest to are pruned,
-    segments shorter than ``merge_length`` (x extent) and joints where a chain turns by less
+    but the last, tips that fewer than ``prune_points`` points are nearest to and tip branches
+    shorter than ``spur_radii`` radii are pruned, segments shorter than ``merge_length`` (x
+    extent) or ``merge_radii`` radii and joints where a chain turns by less
     than ``merge_angle`` degrees are merged, and segments whose points lie further than
     ``split_residual`` robust scales from them (root mean square) are split; every edit is
     logged in fit.json. The rounds stop early when a round edits nothing."""
@@ -169,6 +170,12 @@ class EditsConfig(StrictModel):
     """A tip segment with fewer nearest points is pruned."""
     merge_length: Annotated[float, Field(ge=0.0, le=1.0)] = 0.01
     """A segment shorter than this fraction of the extent is merged into its parent joint."""
+    merge_radii: Annotated[float, Field(ge=0.0, le=100.0)] = 2.0
+    """A segment shorter than this many times its mean radius is merged too (a frustum shorter
+    than its width: its cutting planes turn with every small move of its joints)."""
+    spur_radii: Annotated[float, Field(ge=0.0, le=100.0)] = 2.0
+    """A tip branch (from a tip to the first joint with another branch) shorter than this many
+    times that joint's radius is pruned whole: a bump of the tube it leaves, not a branch."""
     merge_angle: Annotated[float, Field(ge=0.0, le=90.0)] = 10.0
     """A joint where its chain turns by less than this (degrees) is removed."""
     split_residual: Annotated[float, Field(gt=0.0)] = 3.0

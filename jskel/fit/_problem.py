@@ -5,11 +5,19 @@ of a point is its signed distance to the frusta surface (``_distance``), made ro
 Cauchy) so outliers pull linearly or less, and weighted more outside the surface than inside
 where asked (``solver.outside``: radii that enclose points sampled on a closed surface), plus ``sqrt(smoothness)`` times the second
 differences of the joints along each chain and the plane-validity penalty. Radii stay positive
-by construction: ``r = min_radius + softplus(u)`` with ``u`` the free parameter.
+by construction: ``r = min_radius + s softplus(u / s)`` with ``u`` the free parameter.
 
 The problem is solved in normalised coordinates (points centred on their mean and divided by
 their largest extent), so tolerances, damping, the robust scale and the smoothness weight mean
 the same thing for a twig and a tree; :class:`Normaliser` maps to and from world units.
+
+The radius parameter is the radius itself wherever the radius is more than a few
+:data:`RADIUS_SOFTNESS` (``r = min_radius + s softplus(u / s)``, ``dr/du`` = 0.99 at r = 5 s):
+Levenberg-Marquardt's damping ``mu I`` then treats radii and joints on one scale. With a plain
+``softplus(u)`` the radius of a tube 0.005 of the extent wide moved 0.005 for a unit of ``u``, so
+its curvature in ``J^T J`` was 4e-5 of a joint's, and once a rejected step had raised ``mu`` the
+radii stopped moving: on the 50-segment grown tree of ``experiments/bench_fit_trees.yaml`` the
+fit left them where the start put them (median error 14 % against the truth).
 """
 
 from __future__ import annotations
@@ -63,8 +71,14 @@ def point_residuals(d, pr: Problem):
     return jnp.where(d > 0, np.sqrt(pr.outside), 1.0) * r
 
 
+#: ``s`` of the radius parameter ``r = min_radius + s softplus(u / s)`` (normalised units: a
+#: fraction of the extent); module docstring
+RADIUS_SOFTNESS = 1e-3
+
+
 def radii_of(u, pr: Problem):
-    return pr.min_radius + jax.nn.softplus(u)
+    """The radii (J,) of the radius parameters ``u`` (J,), normalised units."""
+    return pr.min_radius + RADIUS_SOFTNESS * jax.nn.softplus(u / RADIUS_SOFTNESS)
 
 
 def unpack(x):
@@ -139,13 +153,14 @@ class Normaliser(NamedTuple):
 
     def start(self, joints, radii, pr: Problem):
         j = (np.asarray(joints, np.float64) - self.centre) / self.extent
-        return np.concatenate([j.reshape(-1), _softplus_inv(np.asarray(radii, np.float64) / self.extent - pr.min_radius)])
+        u = RADIUS_SOFTNESS * _softplus_inv((np.asarray(radii, np.float64) / self.extent - pr.min_radius) / RADIUS_SOFTNESS)
+        return np.concatenate([j.reshape(-1), u])
 
     def world(self, x, pr: Problem):
         """Joints and radii in world units (float64 NumPy: :func:`radii_of` on the host, so no
         device operation compiles a program of its own)."""
         joints, u = unpack(np.asarray(x, np.float64))
-        r = (pr.min_radius + np.logaddexp(u, 0.0)) * self.extent
+        r = (pr.min_radius + RADIUS_SOFTNESS * np.logaddexp(u / RADIUS_SOFTNESS, 0.0)) * self.extent
         return joints * self.extent + self.centre, r
 
 
