@@ -334,6 +334,66 @@ def test_each_topology_edit_where_the_points_call_for_it():
     assert np.min(np.linalg.norm(j - 0.5 * (joints[7] + bend_top), axis=1)) < 1e-12  # the new joint, mid-segment
 
 
+def test_the_radius_parameter_is_the_radius_above_a_few_softnesses():
+    """``_problem.radii_of``: ``r = min_radius + s softplus(u / s)``; the start's inverse gives
+    back the radius (float64), and ``dr/du`` is the logistic ``1 / (1 + exp(-u / s))``, at least
+    1 - exp(-5) once ``r - min_radius`` is 5 s or more (so LM's damping moves radii as it moves
+    joints); 0 < r for any u."""
+    from jskel.fit._problem import RADIUS_SOFTNESS, Normaliser, problem_of, radii_of
+    from jskel.fit._distance import segments_of
+
+    joints, parents = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 2.0, 0.0]]), np.array([-1, 0, 1])
+    pr = problem_of(segments_of(joints, np.full(3, 0.1), parents), SolverConfig())
+    nz = Normaliser(np.zeros(3), 1.0)
+    s = RADIUS_SOFTNESS
+    for r in (pr.min_radius + 5 * s, 0.01, 0.3):
+        u = nz.start(joints, np.full(3, r), pr)[9:]
+        with jax.enable_x64(True):
+            uu = jnp.asarray(u, jnp.float64)
+            np.testing.assert_allclose(np.asarray(radii_of(uu, pr)), r, rtol=1e-12)
+            slope = np.asarray(jax.vmap(jax.grad(lambda v: radii_of(v, pr)))(uu))
+        np.testing.assert_allclose(slope, 1.0 / (1.0 + np.exp(-u / s)), rtol=1e-12)
+        assert np.all(slope >= 1.0 - np.exp(-5.0) - 1e-12)
+        np.testing.assert_allclose(nz.world(np.concatenate([joints.reshape(-1), u]), pr)[1], r, rtol=1e-12)
+    assert np.all(np.asarray(radii_of(np.array([-50.0, -1.0, 0.0]), pr)) > 0)
+
+
+def test_spurs_and_frusta_shorter_than_their_width_are_edited_away():
+    """``edits.spur_radii`` and ``edits.merge_radii`` on a skeleton and points written here (no
+    fit): a trunk of radius 0.3 with a 0.33-long twig from its joint at y = 2, whose tip lies
+    inside the trunk's tube (0.4 of its radius from its axis) and which has points of its own
+    that the trunk does not explain (so only the spur rule removes it), and a straight branch of
+    radius 0.15 from y = 3 with a 0.26-long segment in its chain (under 2 x its mean radius 0.15,
+    over merge_length x extent). With both rules: the spur pruned, the short segment merged; with
+    both rules off, neither."""
+    from jskel.fit._config import EditsConfig
+    from jskel.fit._topology import edited
+
+    rng = np.random.default_rng(5)
+
+    def tube(a, b, r, n):
+        ax = (b - a) / np.linalg.norm(b - a)
+        u = np.cross(ax, [0.3, 0.1, 0.9])
+        u /= np.linalg.norm(u)
+        w = np.cross(ax, u)
+        t, phi = rng.uniform(0, 1, n), rng.uniform(0, 2 * np.pi, n)
+        return a + t[:, None] * (b - a) + r * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * w)
+
+    tip = np.array([-1.5, 3.5, 0.0])
+    pts = np.concatenate([tube(np.zeros(3), np.array([0.0, 4.5, 0.0]), 0.3, 3000), tube(np.array([0.0, 2.05, 0.0]), np.array([0.12, 2.3, 0.0]), 0.04, 200),
+                          tube(np.array([0.0, 3.0, 0.0]), tip, 0.15, 800)])
+    b1, b2 = np.array([0.0, 3.0, 0.0]) + 0.5 * (tip - [0.0, 3.0, 0.0]), np.array([0.0, 3.0, 0.0]) + (0.5 + 0.26 / np.linalg.norm(tip - [0, 3, 0])) * (tip - [0.0, 3.0, 0.0])
+    joints = np.array([[0, 0, 0], [0, 2.0, 0], [0, 3.0, 0], [0, 4.5, 0], [0.12, 2.3, 0], b1, b2, tip])
+    radii = np.array([0.3, 0.3, 0.3, 0.3, 0.04, 0.15, 0.15, 0.15])
+    parents = np.array([-1, 0, 1, 2, 1, 2, 5, 6])
+    kw = dict(prune_points=5, merge_length=0.02, merge_angle=10.0, split_residual=3.0)
+    _, _, _, log = edited(pts, joints, radii, parents, EditsConfig(**kw), 0.01 * 5.0, 5.0, 1)
+    got = sorted((e["edit"], e["joint"], e.get("why", "")) for e in log)
+    assert got == [("merge", 6, "short"), ("prune", 4, "spur")], log
+    _, _, _, log = edited(pts, joints, radii, parents, EditsConfig(**kw, spur_radii=0.0, merge_radii=0.0), 0.01 * 5.0, 5.0, 1)
+    assert not [e for e in log if e.get("why") in ("spur", "short")], log
+
+
 def test_an_outside_weight_makes_the_radius_enclose_the_points():
     """``solver.outside``: points outside the surface weigh ``outside`` times those inside (their
     squared residuals). On a cylinder of radius 0.3 sampled with radial noise, the l2 fit's

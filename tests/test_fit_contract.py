@@ -282,3 +282,39 @@ def test_twigs_that_end_inside_the_tube_they_leave_are_cut(monkeypatch):
     assert np.sum(deg >= 3) == 1 and np.sum(deg == 1) == 3
     monkeypatch.setattr(_contract, "TWIG_RADII", 0.0)
     assert np.sum(degrees(contraction_skeleton(pts, 10, 0.005, 0.03, 2.0, 40000)[2]) >= 3) > 5
+
+
+def test_the_five_segment_grown_tree_is_recovered_from_its_points():
+    """The bench's smallest branching truth (``grown_tree(5, 0)``: one branch point, three tips,
+    radii 0.18-0.25; 500 surface points, noise 0.003, 2 % outliers), started from the points'
+    contraction and fitted by LM with topology edits as ``experiments/bench_fit_trees.yaml``:
+    the issue's targets, measured here in float64 against the truth's axes. The topology is the
+    truth's (branch points and tips by degree), every fitted joint lies within 2 % of the total
+    length from a true axis and every joint's radius within 5 % of the true radius at its
+    nearest axis point. With the radius parameter of ``softplus(u)`` (radii that stop moving
+    once LM's damping grows) the joints were 4.4 % off and the median radius 5.8 %."""
+    from jskel.fit._config import EditsConfig, EstimateConfig, SolverConfig
+    from jskel.fit._run import contracted_and_fitted
+    from jskel.fit._tree_bench import grown_tree
+
+    j, r, p = grown_tree(5, 0)
+    rng = np.random.default_rng(0)
+    pts = sample_surface(j, r, p, 500, rng) + rng.normal(0.0, 0.003, (500, 3))
+    lo, hi = pts.min(0), pts.max(0)
+    pts[rng.choice(500, 10, replace=False)] = rng.uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), (10, 3))
+    start = EstimateConfig(method="contraction", neighbours=10, ball=0.005, segment=0.03, prune=2.0, max_points=40000)
+    solver = SolverConfig(name="lm", loss="huber", scale=0.002, maxiter=60, candidates=8)
+    _, (res, _, _), _ = contracted_and_fitted(pts, start, solver, EditsConfig(rounds=3), "fit_trees")
+    fj, fr, fp = res.joints, res.radii, np.asarray(res.parents)
+    deg = degrees(fp)
+    assert np.sum(deg >= 3) == 1 and np.sum(deg == 1) == 3, deg
+    # the truth's axes, densely, with the radius interpolated along each
+    t = np.linspace(0.0, 1.0, 400)[:, None]
+    kids = np.nonzero(p >= 0)[0]
+    ax = np.concatenate([j[p[k]] + t * (j[k] - j[p[k]]) for k in kids])
+    ar = np.concatenate([r[p[k]] + t[:, 0] * (r[k] - r[p[k]]) for k in kids])
+    length = np.sum(np.linalg.norm(j[kids] - j[p[kids]], axis=1))
+    dist = np.linalg.norm(fj[:, None] - ax[None], axis=-1)
+    near = np.argmin(dist, 1)
+    assert dist.min(1).max() < 0.02 * length, dist.min(1).max() / length
+    assert np.all(np.abs(fr / ar[near] - 1.0) < 0.05), fr / ar[near] - 1.0

@@ -158,8 +158,8 @@ class SolverConfig(StrictModel):
 class EditsConfig(StrictModel):
     """Topology edits between rounds of the fit (``jskel/fit/_topology.py``): after each round
     but the last, tips that fewer than ``prune_points`` points are nearest to and tip branches
-    shorter than ``spur_radii`` radii are pruned, segments shorter than ``merge_length`` (x
-    extent) or ``merge_radii`` radii and joints where a chain turns by less
+    ending within ``spur_radii`` radii of the tube they leave are pruned, segments shorter than
+    ``merge_length`` (x extent) or ``merge_radii`` radii and joints where a chain turns by less
     than ``merge_angle`` degrees are merged, and segments whose points lie further than
     ``split_residual`` robust scales from them (root mean square) are split; every edit is
     logged in fit.json. The rounds stop early when a round edits nothing."""
@@ -171,11 +171,13 @@ class EditsConfig(StrictModel):
     merge_length: Annotated[float, Field(ge=0.0, le=1.0)] = 0.01
     """A segment shorter than this fraction of the extent is merged into its parent joint."""
     merge_radii: Annotated[float, Field(ge=0.0, le=100.0)] = 2.0
-    """A segment shorter than this many times its mean radius is merged too (a frustum shorter
-    than its width: its cutting planes turn with every small move of its joints)."""
-    spur_radii: Annotated[float, Field(ge=0.0, le=100.0)] = 2.0
-    """A tip branch (from a tip to the first joint with another branch) shorter than this many
-    times that joint's radius is pruned whole: a bump of the tube it leaves, not a branch."""
+    """A segment shorter than this many times its mean radius, whose far joint has at most one
+    child, is merged too (a frustum shorter than its width: its cutting planes turn with every
+    small move of its joints)."""
+    spur_radii: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
+    """A tip branch (from a tip to the first joint with another branch) whose tip lies within
+    this many radii of another segment's axis at that joint is pruned whole: a bump of the tube
+    it leaves, not a branch."""
     merge_angle: Annotated[float, Field(ge=0.0, le=90.0)] = 10.0
     """A joint where its chain turns by less than this (degrees) is removed."""
     split_residual: Annotated[float, Field(gt=0.0)] = 3.0
