@@ -5,6 +5,7 @@ gradients runs in ``tests/scripts/gradients_f64.py``, see ``test_gradients.py``.
 
 from __future__ import annotations
 
+import functools
 import json
 
 import jax
@@ -295,6 +296,16 @@ def test_topology_edits_between_rounds_recover_the_chain(tmp_path):
     assert info["truth"]["joint_error_max_of_length"] < 0.02 and info["truth"]["radius_error_max_rel"] < 0.05
 
 
+def _tube(rng, a, b, r, n):
+    """``n`` points on the cylinder of radius ``r`` around the axis a -> b, uniform in t and angle."""
+    ax = (b - a) / np.linalg.norm(b - a)
+    u = np.cross(ax, [0.3, 0.1, 0.9])
+    u /= np.linalg.norm(u)
+    w = np.cross(ax, u)
+    t, phi = rng.uniform(0, 1, n), rng.uniform(0, 2 * np.pi, n)
+    return a + t[:, None] * (b - a) + r * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * w)
+
+
 def test_each_topology_edit_where_the_points_call_for_it():
     """``_topology.edited`` on skeletons and points written here (no fit): a tip without points
     and a tip laid along another segment are pruned, a real branch is kept; a joint on a
@@ -305,14 +316,7 @@ def test_each_topology_edit_where_the_points_call_for_it():
     from jskel.fit._topology import edited
 
     rng = np.random.default_rng(2)
-
-    def tube(a, b, r, n):  # points on the cylinder around a -> b
-        ax = (b - a) / np.linalg.norm(b - a)
-        u = np.cross(ax, [0.3, 0.1, 0.9])
-        u /= np.linalg.norm(u)
-        w = np.cross(ax, u)
-        t, phi = rng.uniform(0, 1, n), rng.uniform(0, 2 * np.pi, n)
-        return a + t[:, None] * (b - a) + r * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * w)
+    tube = functools.partial(_tube, rng)
 
     cfg = EditsConfig(prune_points=5, merge_length=0.02, merge_angle=10.0, split_residual=3.0)
     # the points: a trunk up to (0, 4.5, 0) that then bends by 60 degrees, and a branch from (0, 3, 0)
@@ -369,15 +373,7 @@ def test_spurs_and_frusta_shorter_than_their_width_are_edited_away():
     from jskel.fit._config import EditsConfig
     from jskel.fit._topology import edited
 
-    rng = np.random.default_rng(5)
-
-    def tube(a, b, r, n):
-        ax = (b - a) / np.linalg.norm(b - a)
-        u = np.cross(ax, [0.3, 0.1, 0.9])
-        u /= np.linalg.norm(u)
-        w = np.cross(ax, u)
-        t, phi = rng.uniform(0, 1, n), rng.uniform(0, 2 * np.pi, n)
-        return a + t[:, None] * (b - a) + r * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * w)
+    tube = functools.partial(_tube, np.random.default_rng(5))
 
     tip = np.array([-1.5, 3.5, 0.0])
     pts = np.concatenate([tube(np.zeros(3), np.array([0.0, 4.5, 0.0]), 0.3, 3000), tube(np.array([0.0, 2.05, 0.0]), np.array([0.12, 2.3, 0.0]), 0.04, 200),
