@@ -15,7 +15,7 @@ The radius parameter is the radius itself wherever the radius is more than a few
 :data:`RADIUS_SOFTNESS` (``r = min_radius + s softplus(u / s)``, ``dr/du`` = 0.99 at r = 5 s):
 Levenberg-Marquardt's damping ``mu I`` then treats radii and joints on one scale. With a plain
 ``softplus(u)`` the radius of a tube 0.005 of the extent wide moved 0.005 for a unit of ``u``, so
-its curvature in ``J^T J`` was 4e-5 of a joint's, and once a rejected step had raised ``mu`` the
+its curvature in ``J^T J`` was 2.5e-5 of a joint's, and once a rejected step had raised ``mu`` the
 radii stopped moving: on the 50-segment grown tree of ``experiments/bench_fit_trees.yaml`` the
 fit left them where the start put them (median error 14 % against the truth).
 """

@@ -9,11 +9,11 @@ Between rounds (``edits.rounds``) the fitted skeleton is edited on the host, eac
   takes points it does not need); and a spur, a tip branch (from a tip up to the first joint
   with another child) whose tip lies within ``spur_radii`` radii of the axis of another segment
   at that joint, is removed whole: it ends inside the tube it leaves, a bump of that tube's
-  surface (the 50-segment grown tree's fit kept such twigs at its thick base, 0.7-1.7 radii
-  long, their tips 0.3-0.9 radii from the trunk's axis). A test by the spur's length against the
-  joint's radius instead also cut real branches of the L-system tree's crown, where the
-  start's stubs of crossing tubes are short and a junction's radius swells (69 % of its 121
-  branch points matched, against 80 % without the rule, in one-off runs at 2357df4);
+  surface (the 50-segment grown tree's fit kept such twigs at its thick base, their tips inside
+  the trunk's tube). A test by the spur's length against the joint's radius instead also cut
+  real branches of the L-system tree's crown, where the start's stubs of crossing tubes are
+  short and a junction's radius swells (fewer of its branch points matched, in development
+  runs of that rule, which is not kept);
 * **merge**: a segment shorter than ``merge_length`` x the cloud's extent, or one whose far
   joint has at most one child shorter than ``merge_radii`` times its mean radius (a frustum
   shorter than its width, whose cutting planes turn with every small move of its joints), is
@@ -161,8 +161,8 @@ def edited(points, joints, radii, parents, cfg, scale: float, extent: float, rou
             continue
         length = float(np.linalg.norm(joints[c] - joints[p]))
         # a frustum shorter than its width, unless its far joint branches (collapsing a branch
-        # joint into its parent moved the 5-segment grown tree's junction off its axes: joints
-        # within 2.7 % of the length instead of 0.2 %, one-off runs)
+        # joint into its parent moved the 5-segment grown tree's junction off its axes, in
+        # development runs of that rule)
         wide = cfg.merge_radii * 0.5 * (radii[c] + radii[p]) if len(children(c)) <= 1 else 0.0
         if length < max(cfg.merge_length * extent, wide):
             changed.update([c, p] + children(p) + children(c))
