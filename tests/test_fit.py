@@ -390,6 +390,32 @@ def test_spurs_and_frusta_shorter_than_their_width_are_edited_away():
     assert not [e for e in log if e.get("why") in ("spur", "short")], log
 
 
+def test_a_neck_is_merged_into_its_nearest_neighbour():
+    """``edits.neck_ratio`` on a skeleton and points written here (no fit): a straight tube of
+    radius 0.2 along y from 0 to 3 whose chain has joints at y = 0, 1, 1.3, 2, 3, the one at
+    y = 1.3 of radius 0.02 (a tenth of its neighbours'). It is merged into the joint at y = 1
+    (0.3 away, against 0.7), leaving the chain 0, 1, 2, 3 with the radii 0.2; a tip as thin
+    (nothing beyond it) is not a neck, and with ``neck_ratio: 0`` nothing is merged."""
+    from jskel.fit._config import EditsConfig
+    from jskel.fit._topology import edited
+
+    pts = _tube(np.random.default_rng(8), np.zeros(3), np.array([0.0, 3.0, 0.0]), 0.2, 3000)
+    joints = np.array([[0, 0, 0], [0, 1.0, 0], [0, 1.3, 0], [0, 2.0, 0], [0, 3.0, 0]])
+    radii = np.array([0.2, 0.2, 0.02, 0.2, 0.2])
+    parents = np.array([-1, 0, 1, 2, 3])
+    kw = dict(prune_points=5, merge_length=0.02, merge_radii=0.0, merge_angle=0.0, split_residual=100.0)  # necks alone
+    j, r, p, log = edited(pts, joints, radii, parents, EditsConfig(**kw), 0.01 * 3.0, 3.0, 1)
+    assert [(e["edit"], e["joint"], e["into"], e["why"]) for e in log] == [("merge", 2, 1, "neck")], log
+    np.testing.assert_array_equal(p, [-1, 0, 1, 2])
+    np.testing.assert_allclose(j[:, 1], [0.0, 1.0, 2.0, 3.0])
+    np.testing.assert_allclose(r, 0.2)
+    _, _, _, log = edited(pts, joints, radii, parents, EditsConfig(**kw, neck_ratio=0.0), 0.01 * 3.0, 3.0, 1)
+    assert log == [], log
+    thin_tip = np.array([0.2, 0.2, 0.2, 0.2, 0.02])
+    _, _, _, log = edited(pts, joints, thin_tip, parents, EditsConfig(**kw), 0.01 * 3.0, 3.0, 1)
+    assert not [e for e in log if e.get("why") == "neck"], log
+
+
 def test_an_outside_weight_makes_the_radius_enclose_the_points():
     """``solver.outside``: points outside the surface weigh ``outside`` times those inside (their
     squared residuals). On a cylinder of radius 0.3 sampled with radial noise, the l2 fit's

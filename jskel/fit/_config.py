@@ -178,6 +178,9 @@ class EditsConfig(StrictModel):
     """A tip branch (from a tip to the first joint with another branch) whose tip lies within
     this many radii of another segment's axis at that joint is pruned whole: a bump of the tube
     it leaves, not a branch."""
+    neck_ratio: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
+    """A joint whose radius is below this fraction of every neighbour's (a neck) is merged into
+    its nearest neighbour: a connection the fit has hidden inside the tubes around it."""
     merge_angle: Annotated[float, Field(ge=0.0, le=90.0)] = 10.0
     """A joint where its chain turns by less than this (degrees) is removed."""
     split_residual: Annotated[float, Field(gt=0.0)] = 3.0

@@ -14,7 +14,13 @@ Between rounds (``edits.rounds``) the fitted skeleton is edited on the host, eac
   real branches of the L-system tree's crown, where the start's stubs of crossing tubes are
   short and a junction's radius swells (fewer of its branch points matched, in development
   runs of that rule, which is not kept);
-* **merge**: a segment shorter than ``merge_length`` x the cloud's extent, or one whose far
+* **merge**: a neck, a joint with a parent and a child whose radius is below ``neck_ratio`` of
+  every neighbour's, is merged into its nearest neighbour (its other neighbours joined to that
+  one): the fit hides a wrong connection inside the tubes around it by shrinking the joint
+  between them, at little cost to the loss. In development runs on the 5-segment grown tree of
+  ``experiments/bench_fit_trees.yaml``, fits of some draws of its points joined the side branch
+  to the trunk above the true junction through such a joint, which moved the junction and left
+  the radii around it far from the truth's (``fit_trees.draws`` measures it); then a segment shorter than ``merge_length`` x the cloud's extent, or one whose far
   joint has at most one child shorter than ``merge_radii`` times its mean radius (a frustum
   shorter than its width, whose cutting planes turn with every small move of its joints), is
   collapsed into its parent joint (its children move to the parent, placed at the midpoint); a joint with one
@@ -155,6 +161,25 @@ def edited(points, joints, radii, parents, cfg, scale: float, extent: float, rou
     # segment explains their points within one robust scale as well; an edit changes segments
     # (by child joint) and may move a joint, and no later edit this round uses either
     changed, moved = set(), set()
+    # necks: a joint much thinner than every neighbour, merged into the nearest of them
+    for c in range(len(par)):
+        p = int(par[c])
+        if not alive[c] or p < 0 or c in changed or c in moved:
+            continue
+        near = [p] + children(c)
+        if len(near) < 2 or radii[c] >= cfg.neck_ratio * min(radii[k] for k in near) or set(near) & (changed | moved):
+            continue
+        n = min(near, key=lambda k: float(np.linalg.norm(joints[k] - joints[c])))
+        changed.update(near + [c])
+        moved.update(near + [c])
+        for k in children(c):
+            if k != n:
+                par[k] = n
+        if n != p:
+            par[n] = p
+        alive[c] = False
+        log.append({"round": round_, "edit": "merge", "joint": c, "into": n, "why": "neck", "radius": float(radii[c]),
+                    "neighbours_min": float(min(radii[k] for k in near))})
     for c in range(len(par)):
         p = int(par[c])
         if not alive[c] or p < 0 or c in changed or p in moved:

@@ -45,7 +45,10 @@ class TreeBench(StrictModel):
     outliers: Annotated[float, Field(ge=0.0, le=1.0)] = 0.02
     """Fraction of uniform outliers."""
     seed: int = 0
-    """Seed of the samples, their noise and the outliers."""
+    """Seed of the grown trees and of the first draw of the samples, their noise and the outliers."""
+    draws: Annotated[int, Field(ge=1, le=100)] = 1
+    """Draws of the points per truth (seeds ``seed``, ``seed + 1``, ...): the same tree sampled
+    again, so a row shows whether its result holds beyond one draw (each row names its ``draw``)."""
     start: EstimateConfig = EstimateConfig(method="contraction", ball=0.01, segment=0.02, prune=2.0, max_points=40000)
     """The contraction start (``init.estimate`` of a fit file; ``method: contraction``)."""
     solver: SolverConfig = SolverConfig(name="lm", loss="huber", scale=0.002, maxiter=60, candidates=8)
@@ -187,6 +190,7 @@ def compared(j, r, p, fj, fr, fp) -> dict:
             "axis_uncovered_max_of_length": round(float(d_cover.max()) / length, 5),
             "radius_within_5pct_share": round(float(np.mean(rel[inner] <= 0.05)) if inner.any() else 0.0, 4),
             "radius_error_median_rel": round(float(np.median(rel[inner])) if inner.any() else float("nan"), 4),
+            "radius_error_max_rel": round(float(np.max(rel[inner])) if inner.any() else float("nan"), 4),
             "length": round(length, 4)}
 
 
@@ -199,10 +203,10 @@ def run_tree_bench(b: TreeBench, emit) -> list[dict]:
     rows = []
     truths = [("lsystem", it, GENERATORS["lsystem_tree"](1, {"iterations": it})[:3]) for it in b.iterations]
     truths += [("grown", n_seg, grown_tree(n_seg, b.seed)) for n_seg in b.segments]
-    for kind, size, tree in truths:
+    for (kind, size, tree), draw in ((t, d) for t in truths for d in range(b.draws)):
         j, r, p = (np.asarray(x, np.float64) for x in tree)
         p = p.astype(np.int64)
-        rng = np.random.default_rng(b.seed)
+        rng = np.random.default_rng(b.seed + draw)
         n = b.points_per_segment * int(np.sum(p >= 0))
         pts = sample_surface(j, r, p, n, rng) + rng.normal(0.0, b.noise, (n, 3))
         k = int(round(b.outliers * n))
@@ -211,11 +215,11 @@ def run_tree_bench(b: TreeBench, emit) -> list[dict]:
         try:
             (j0, r0, p0, _), (res, edits, rounds), secs = contracted_and_fitted(pts, b.start, b.solver, b.edits, "fit_trees")
         except ValueError as e:  # a start the points cannot fit, a diverged solver: a row that says so
-            row = {"tree": kind, "size": size, "crossing_pairs": crossing_pairs(j, r, p), "points": n, "error": str(e)}
+            row = {"tree": kind, "size": size, "draw": draw, "crossing_pairs": crossing_pairs(j, r, p), "points": n, "error": str(e)}
             emit(row)
             rows.append(row)
             continue
-        row = {"tree": kind, "size": size, "crossing_pairs": crossing_pairs(j, r, p), "points": n, "noise": b.noise, "outliers": b.outliers, **compared(j, r, p, res.joints, res.radii, res.parents),
+        row = {"tree": kind, "size": size, "draw": draw, "crossing_pairs": crossing_pairs(j, r, p), "points": n, "noise": b.noise, "outliers": b.outliers, **compared(j, r, p, res.joints, res.radii, res.parents),
                "start": compared(j, r, p, j0, r0, p0), **secs,
                "rounds": rounds, "edits": len(edits), "fit_iterations": res.iterations}
         emit(row)
