@@ -143,7 +143,8 @@ def test_the_tree_bench_measures_a_skeleton_against_its_truth():
     """``fit._tree_bench.compared`` (the synthetic-tree bench's row): the truth against itself is
     exact (every branch point matched, joints on the axes, nothing uncovered, every radius within
     5 %); with a branch cut off, its tip's axis is uncovered by that branch's length; with the
-    radii 10 % too wide, none is within 5 % and the median error is 10 %."""
+    radii 10 % too wide, none is within 5 % and the median and largest errors are 10 %; a branch
+    point moved by half its radius is that far from the truth's, in radii."""
     from jskel.fit._tree_bench import compared
 
     j, r, p = TREES["crown"]
@@ -157,6 +158,12 @@ def test_the_tree_bench_measures_a_skeleton_against_its_truth():
     assert abs(cut["axis_uncovered_max_of_length"] - tip_branch) < 1e-3 and cut["fitted_tips"] == same["tips"]  # joint 4 now a tip
     wide = compared(j, r, p, j, 1.1 * r, p)
     assert wide["radius_within_5pct_share"] == 0.0 and abs(wide["radius_error_median_rel"] - 0.1) < 1e-3
+    assert same["radius_error_max_rel"] == 0.0 and abs(wide["radius_error_max_rel"] - 0.1) < 1e-3
+    assert same["branch_point_offset_max_radii"] == 0.0
+    bp = int(np.nonzero(degrees(p) >= 3)[0][0])
+    moved = j.copy()
+    moved[bp] += [0.0, 0.0, 0.5 * r[bp]]  # half its radius off the truth
+    assert abs(compared(j, r, p, moved, r, p)["branch_point_offset_max_radii"] - 0.5) < 1e-3
 
 
 def test_a_bench_start_other_than_the_contraction_is_named():

@@ -173,18 +173,22 @@ def compared(j, r, p, fj, fr, fp) -> dict:
     d_cover, _ = cKDTree(fax).query(ax)
     deg, fdeg = _degrees(p), _degrees(fp)
     tb, fb = j[deg >= 3], fj[fdeg >= 3]
-    matched = 0.0
+    matched, offset = 0.0, None
     if len(tb) and len(fb):
         cost = np.linalg.norm(tb[:, None] - fb[None], axis=-1)
         row, col = linear_sum_assignment(cost)
         unit = float(np.median(np.linalg.norm(j[p[p >= 0]] - j[p >= 0], axis=1)))
-        matched = float(np.sum(cost[row, col] <= unit)) / len(tb)
+        ok = cost[row, col] <= unit
+        matched = float(np.sum(ok)) / len(tb)
+        if ok.any():  # how far a matched branch point sits from the true one, in the true radius there
+            offset = round(float(np.max(cost[row, col][ok] / r[deg >= 3][row[ok]])), 3)
     rel = np.abs(fr / ar[near] - 1.0)
     inner = d_joint < 0.5 * ar[near]  # joints on a true axis (a joint off every axis has no true radius)
     return {"segments": int(np.sum(p >= 0)), "fitted_segments": int(np.sum(fp >= 0)),
             "branch_points": int(np.sum(deg >= 3)), "fitted_branch_points": int(np.sum(fdeg >= 3)),
             "tips": int(np.sum(deg == 1)), "fitted_tips": int(np.sum(fdeg == 1)),
             "branch_points_matched_share": round(matched, 4),
+            "branch_point_offset_max_radii": offset,
             "joint_off_axis_max_of_length": round(float(d_joint.max()) / length, 5),
             "joint_off_axis_median_of_length": round(float(np.median(d_joint)) / length, 6),
             "axis_uncovered_max_of_length": round(float(d_cover.max()) / length, 5),
