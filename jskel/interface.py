@@ -110,7 +110,7 @@ class Preliminary(NamedTuple):
 #: the members a representation may give as module-level functions of its folder, picked up by
 #: ``Representation.__init_subclass__(module=...)``
 FUNCTION_MEMBERS = ("build", "intersect_one", "intersect_batch", "cast", "surface", "occluded", "albedo", "inside",
-                    "steps_per_ray", "traversal_stats", "traced_fields")
+                    "steps_per_ray", "traversal_stats", "pair_test_seconds", "traced_fields")
 
 
 def missing_members(cls) -> list[str]:
@@ -267,6 +267,11 @@ class Representation:
 
     def traversal_stats(self, built: Built, rays: Rays, chunk: int = 4096) -> dict:
         """Deterministic work counts per ray (nodes, leaves) for the benchmarks; {} if none."""
+        return {}
+
+    def pair_test_seconds(self, built: Built, rays: Rays) -> dict:
+        """The innermost (ray, primitive) test timed alone, for the benchmarks' ``pair_test``
+        (``pair_test_ns_median``, ``pair_tests_timed``, ``pair_test_compile_s``); {} if none."""
         return {}
 
     def traced_fields(self, params) -> dict:

@@ -170,7 +170,7 @@ def test_bench_cost_against_size_writes_rows_with_traversal_counts_and_a_plot(tm
     spec.write_text(
         f"width: 48\nheight: 64\nruns: 1\nwarmup: 0\nscenes: [{root / 'experiments' / 'saguaro.yaml'}]\n"
         "set: [object.accel=bvh, 'camera.eye=[0.1, 3.3, 9.5]', 'camera.target=[0.1, 3.3, 0]', camera.fov_deg=40]\n"
-        "sweep: {object.skeleton.replicate: [1, 4]}\nstats: true\n"
+        "sweep: {object.skeleton.replicate: [1, 4]}\nstats: true\ncast: true\npair_test: true\n"
     )
     out = tmp_path / "size.jsonl"
     assert cli.main(["bench", str(spec), "--out", str(out)]) == 0
@@ -187,7 +187,24 @@ def test_bench_cost_against_size_writes_rows_with_traversal_counts_and_a_plot(tm
         want = frusta.traversal_stats(*_wall(k))
         assert r["nodes_per_ray_mean"] == pytest.approx(want["nodes_per_ray_mean"], abs=1e-3)
         assert r["leaves_per_ray_mean"] == pytest.approx(want["leaves_per_ray_mean"], abs=1e-3)
+        # ``pair_test``: the (ray, segment) test timed alone, and the share of the cast its tests
+        # per ray would take at that rate (the row's own figures, recomputed here)
+        assert r["pair_tests_timed"] == 1 << 18 and r["pair_test_ns_median"] > 0 and r["pair_test_compile_s"] > 0
+        per_ray = r.get("bin_tests_per_ray_mean", r["leaf_tests_per_ray_mean"])
+        assert r["pair_test_share_of_cast"] == pytest.approx(per_ray * r["rays"] * r["pair_test_ns_median"] * 1e-9 / r["cast_s_median"], abs=1e-4)
     assert "rows" not in capsys.readouterr().err
+
+
+def test_a_pair_test_of_a_representation_without_one_is_named():
+    """``pair_test`` on a scene whose representation times no pair test (an implicit surface):
+    a ConfigError naming the key and the representation, not a row without the figure."""
+    from jskel.config import ConfigError, load
+    from jskel.measure.bench import pair_test_row
+
+    root = __import__("pathlib").Path(__file__).resolve().parent.parent
+    exp = load(root / "experiments" / "gecko.yaml", ["camera.width=8", "camera.height=8"])
+    with pytest.raises(ConfigError, match=r"pair_test: .*'implicit'"):
+        pair_test_row(exp, {})
 
 
 def test_tile_order_lists_tiles_and_squares_within_them():

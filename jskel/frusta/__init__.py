@@ -56,7 +56,8 @@ from ._edits import skeleton_arrays as skeleton_arrays
 from ._scene import surface as surface
 from ._pack import to_params as to_params
 from ._skeleton import topology as topology
+from ._scene import pair_test_seconds as pair_test_seconds
 from ._scene import traversal_stats as traversal_stats
 from ._skeleton import validate_skeleton as validate_skeleton
 
-__all__ = ["ANIMATED", "ELLIPSE_MARGIN", "PIECE_REACH", "FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaPayload", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cast", "cone_sin", "cutting_planes", "export_mesh", "frusta_from_skeleton", "frusta_mesh", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "joint_planes", "load_height_map", "make_group", "mesh_format", "minor_semi_axis", "piece_reach", "plane_reach", "rebuilder", "relief_memory", "rim_points", "segment_axes", "skeleton_arrays", "surface", "to_params", "topology", "traversal_stats", "validate_skeleton"]
+__all__ = ["ANIMATED", "ELLIPSE_MARGIN", "PIECE_REACH", "FrustaArrays", "FrustaConfig", "FrustaParams", "FrustaPayload", "FrustaScene", "Group", "Quality", "RELIEF_TEXTURES", "REPRESENTATION", "ReliefMaps", "ReliefQuality", "SkeletonConfig", "Static", "albedo", "block_spheres", "build", "build_frusta", "cast", "cone_sin", "cutting_planes", "export_mesh", "frusta_from_skeleton", "frusta_mesh", "host_frusta", "inside", "intersect", "intersect_batch", "intersect_one", "joint_planes", "load_height_map", "make_group", "mesh_format", "minor_semi_axis", "pair_test_seconds", "piece_reach", "plane_reach", "rebuilder", "relief_memory", "rim_points", "segment_axes", "skeleton_arrays", "surface", "to_params", "topology", "traversal_stats", "validate_skeleton"]

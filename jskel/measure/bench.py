@@ -72,6 +72,10 @@ class BenchFile(StrictModel):
     cast: bool = False
     """Also time the cast alone (nearest t and primitive of every ray, no shading; what the peers' cast times
     hold): ``cast_s_median`` in each row."""
+    pair_test: bool = False
+    """Frusta: also time the (ray, segment) test alone on pairs of the scene's rays and segments
+    (``frusta.pair_test_seconds``: ``pair_test_ns_median``) and, with ``stats`` and ``cast``,
+    the share of the cast it takes (``pair_test_share_of_cast``)."""
     labels: list[str] | None = None
     """A name per sweep setting (rows and the bar chart of a timing-only sweep)."""
     isa: list[Literal["default", "SSE4_2", "AVX", "AVX2", "AVX512"]] = []
@@ -147,6 +151,25 @@ def traversal_stats(exp) -> dict:
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in stats.items()}
 
 
+def pair_test_row(exp, row: dict) -> dict:
+    """The representation's pair test timed alone on the experiment's camera rays
+    (``pair_test_seconds``: the frusta's; ConfigError for one that times none) and, where ``row``
+    has the cast's median and the pair tests per ray (bins: ``bin_tests_per_ray_mean``, which
+    counts walked chunks' leaves too; walks: ``leaf_tests_per_ray_mean``), the share of the
+    cast those tests take at that rate."""
+    obj = shape_of(exp, "pair_test")
+    rep = registry.get(obj.type)
+    built = rep.build(obj, dtype_of(exp))
+    rays = camera_of(framed(exp, built.bounds)).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
+    out = rep.pair_test_seconds(built, rays)
+    if not out:
+        raise ConfigError([f"pair_test: the scene's representation {obj.type!r} times no pair test"])
+    per_ray = row.get("bin_tests_per_ray_mean", row.get("leaf_tests_per_ray_mean"))
+    if out and per_ray is not None and row.get("cast_s_median"):
+        out["pair_test_share_of_cast"] = round(per_ray * row["rays"] * out["pair_test_ns_median"] * 1e-9 / row["cast_s_median"], 4)
+    return out
+
+
 def groups_of(bench: BenchFile, file, extra: list[str]) -> list[Group]:
     """Every scene's jobs, each experiment validated before anything compiles; ``extra``
     overrides (e.g. ``--x64``'s) apply to every scene after the bench's own."""
@@ -171,6 +194,8 @@ def job_row(bench: BenchFile, job: Job, runs: int, ref) -> dict:
     row["file"] = job.file
     if bench.stats:
         row.update(traversal_stats(job.exp))
+    if bench.pair_test:
+        row.update(pair_test_row(job.exp, row))
     if job.setting is not None:
         row["setting"] = job.setting
         if bench.labels is not None:
