@@ -319,16 +319,19 @@ def traversal_stats(built: Built, rays: Rays, chunk: int = 4096) -> dict:
 
 @jax.jit
 def _pair_tests(seg, origins, directions, t_min, t_max):
-    return jax.vmap(_segment_t)(seg, origins, directions, t_min, t_max)[0]
+    """t of every (segment, ray) pair: (S, N), segments outer, as the bins test a list."""
+    return jax.vmap(jax.vmap(_segment_t, in_axes=(None, 0, 0, 0, 0)), in_axes=(0, None, None, None, None))(
+        seg, origins, directions, t_min, t_max)[0]
 
 
-def pair_test_seconds(built: Built, rays: Rays, pairs: int = 1 << 18, runs: int = 5, seed: int = 0) -> dict:
+def pair_test_seconds(built: Built, rays: Rays, segments: int = 64, ray_count: int = 4096, runs: int = 5, seed: int = 0) -> dict:
     """The (ray, segment) test alone (``_intersect._segment_t``, the innermost work of every
-    traversal), timed on ``pairs`` pairs of the given rays and the scene's plain segments drawn
-    at random (the test is branch-free selects, so its cost does not depend on which pairs):
-    its compile apart, then the median of ``runs`` warm runs, as nanoseconds per pair. With a
-    row's pair tests per ray it says what share of a cast the tests take. Empty without plain
-    segments."""
+    traversal), timed on every pair of ``segments`` of the scene's plain segments and
+    ``ray_count`` of the given rays, both drawn at random: a block whose parameters stay in
+    cache, as a bin's list meets its packets' rays (the test is branch-free selects, so its cost
+    does not depend on which pairs hit). Its compile apart, then the median of ``runs`` warm
+    runs, as nanoseconds per pair. With a row's pair tests per ray it says what share of a cast
+    the tests take. Empty without plain segments."""
     import time
 
     if built.params.plain is None:
@@ -336,7 +339,7 @@ def pair_test_seconds(built: Built, rays: Rays, pairs: int = 1 << 18, runs: int 
     f = built.params.plain.frusta
     valid = np.nonzero(np.asarray(f.valid))[0]
     rng = np.random.default_rng(seed)
-    ri, si = rng.integers(0, rays.size, pairs), valid[rng.integers(0, len(valid), pairs)]
+    ri, si = rng.integers(0, rays.size, ray_count), valid[rng.integers(0, len(valid), segments)]
     seg = jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a)[si]), f)
     args = (seg,) + tuple(jnp.asarray(np.asarray(a)[ri]) for a in (rays.origins, rays.directions, rays.t_min, rays.t_max))
     t = time.perf_counter()
@@ -348,6 +351,7 @@ def pair_test_seconds(built: Built, rays: Rays, pairs: int = 1 << 18, runs: int 
         t = time.perf_counter()
         _pair_tests(*args).block_until_ready()
         warm.append(time.perf_counter() - t)
+    pairs = segments * ray_count
     return {"pair_tests_timed": pairs, "pair_test_compile_s": round(compile_s, 4),
             "pair_test_ns_median": round(float(np.median(warm)) / pairs * 1e9, 3)}
 
