@@ -324,13 +324,15 @@ def _pair_tests(seg, origins, directions, t_min, t_max):
         seg, origins, directions, t_min, t_max)[0]
 
 
-def pair_test_seconds(built: Built, rays: Rays, segments: int = 64, ray_count: int = 4096, runs: int = 5, seed: int = 0) -> dict:
+def pair_test_seconds(built: Built, rays: Rays, segments: int = 64, ray_count: int = 4096, runs: int = 7, repeats: int = 20,
+                      seed: int = 0) -> dict:
     """The (ray, segment) test alone (``_intersect._segment_t``, the innermost work of every
     traversal), timed on every pair of ``segments`` of the scene's plain segments and
     ``ray_count`` of the given rays, both drawn at random: a block whose parameters stay in
     cache, as a bin's list meets its packets' rays (the test is branch-free selects, so its cost
     does not depend on which pairs hit). Its compile apart, then the median of ``runs`` warm
-    runs, as nanoseconds per pair. With a row's pair tests per ray it says what share of a cast
+    runs of ``repeats`` calls each, as nanoseconds per pair (one call takes about a
+    millisecond, short enough for the machine's noise to move a median of single calls). With a row's pair tests per ray it says what share of a cast
     the tests take. Empty without plain segments."""
     import time
 
@@ -349,8 +351,10 @@ def pair_test_seconds(built: Built, rays: Rays, segments: int = 64, ray_count: i
     warm = []
     for _ in range(runs):  # host loop over timed runs
         t = time.perf_counter()
-        _pair_tests(*args).block_until_ready()
-        warm.append(time.perf_counter() - t)
+        for _ in range(repeats):
+            out = _pair_tests(*args)
+        out.block_until_ready()
+        warm.append((time.perf_counter() - t) / repeats)
     pairs = segments * ray_count
     return {"pair_tests_timed": pairs, "pair_test_compile_s": round(compile_s, 4),
             "pair_test_ns_median": round(float(np.median(warm)) / pairs * 1e9, 3)}
