@@ -303,7 +303,7 @@ def test_the_five_segment_grown_tree_is_recovered_from_its_points():
     point lies on the side branch 1.3 true radii from the true one (asserted within 2), the
     trunk's chain going out along the branch's base and back, and the joint at the true
     junction, inside that union of tubes, came out 4.4 % off on one CPU (AMD EPYC, AVX-512) and
-    7.1 % on this workplace's CI machine from the same points; so 5 % there is not met on every
+    7.1 % on the CI machine (`.ci/run`) from the same points; so 5 % there is not met on every
     CPU (``experiments/bench_fit_draws.yaml`` measures how often the whole target holds). With
     the radius parameter of ``softplus(u)`` (radii that stop moving once LM's damping grows) the
     joints were 4.4 % off and the median radius 5.8 %."""
