@@ -158,8 +158,9 @@ class SolverConfig(StrictModel):
 class EditsConfig(StrictModel):
     """Topology edits between rounds of the fit (``jskel/fit/_topology.py``): after each round
     but the last, tips that fewer than ``prune_points`` points are nearest to and tip branches
-    ending within ``spur_radii`` radii of the tube they leave are pruned, segments shorter than
-    ``merge_length`` (x extent) or ``merge_radii`` radii and joints where a chain turns by less
+    ending within ``spur_radii`` radii of the tube they leave are pruned, joints thinner than
+    ``neck_ratio`` of every neighbour, segments shorter than ``merge_length`` (x extent) or
+    ``merge_radii`` radii and joints where a chain turns by less
     than ``merge_angle`` degrees are merged, and segments whose points lie further than
     ``split_residual`` robust scales from them (root mean square) are split; every edit is
     logged in fit.json. The rounds stop early when a round edits nothing."""

@@ -20,11 +20,12 @@ Between rounds (``edits.rounds``) the fitted skeleton is edited on the host, eac
   between them, at little cost to the loss. In development runs on the 5-segment grown tree of
   ``experiments/bench_fit_trees.yaml``, fits of some draws of its points joined the side branch
   to the trunk above the true junction through such a joint, which moved the junction and left
-  the radii around it far from the truth's (``fit_trees.draws`` measures it); then a segment shorter than ``merge_length`` x the cloud's extent, or one whose far
-  joint has at most one child shorter than ``merge_radii`` times its mean radius (a frustum
-  shorter than its width, whose cutting planes turn with every small move of its joints), is
-  collapsed into its parent joint (its children move to the parent, placed at the midpoint); a joint with one
-  parent and one child whose two segments turn by less than ``merge_angle`` degrees is removed
+  the radii around it far from the truth's (``fit_trees.draws`` measures it); then a segment
+  shorter than ``merge_length`` x the cloud's extent, or one whose far joint has at most one
+  child shorter than ``merge_radii`` times its mean radius (a frustum shorter than its width,
+  whose cutting planes turn with every small move of its joints), is collapsed into its parent
+  joint (its children move to the parent, placed at the midpoint); a joint with one parent and
+  one child whose two segments turn by less than ``merge_angle`` degrees is removed
   (the two segments become one) where the one segment leaves their points' RMS distance
   within 5 % of the two's (``STRAIGHT``);
 * **split**: a segment whose nearest points lie, root mean square, more than ``split_residual``

@@ -139,14 +139,20 @@ def timed_render(exp, runs: int, warmup: int) -> tuple[dict, object]:
     return row, first
 
 
+def _built_and_rays(exp, key: str):
+    """(representation, built object, the camera's rays in the render's tile order) of an
+    experiment of one object (``probe.study.shape_of``, ``key`` naming what asks)."""
+    obj = shape_of(exp, key)
+    rep = registry.get(obj.type)
+    built = rep.build(obj, dtype_of(exp))
+    return rep, built, camera_of(framed(exp, built.bounds)).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
+
+
 def traversal_stats(exp) -> dict:
     """The representation's deterministic work counts per ray (empty where it declares none),
     over the camera's rays in the render's order (screen tiles: packets and bins depend on it),
     of an experiment of one object (``probe.study.shape_of``)."""
-    obj = shape_of(exp, "stats")
-    rep = registry.get(obj.type)
-    built = rep.build(obj, dtype_of(exp))
-    rays = camera_of(framed(exp, built.bounds)).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
+    rep, built, rays = _built_and_rays(exp, "stats")
     stats = rep.traversal_stats(built, rays, chunk_of(exp.render))
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in stats.items()}
 
@@ -157,15 +163,12 @@ def pair_test_row(exp, row: dict) -> dict:
     has the cast's median and the pair tests per ray (bins: ``bin_tests_per_ray_mean``, which
     counts walked chunks' leaves too; walks: ``leaf_tests_per_ray_mean``), the share of the
     cast those tests take at that rate."""
-    obj = shape_of(exp, "pair_test")
-    rep = registry.get(obj.type)
-    built = rep.build(obj, dtype_of(exp))
-    rays = camera_of(framed(exp, built.bounds)).tiled_rays(exp.render.tile, anchor=built.anchor, dtype=dtype_of(exp))
+    rep, built, rays = _built_and_rays(exp, "pair_test")
     out = rep.pair_test_seconds(built, rays)
     if not out:
-        raise ConfigError([f"pair_test: the scene's representation {obj.type!r} times no pair test"])
+        raise ConfigError([f"pair_test: the scene's representation {rep.name!r} times no pair test"])
     per_ray = row.get("bin_tests_per_ray_mean", row.get("leaf_tests_per_ray_mean"))
-    if out and per_ray is not None and row.get("cast_s_median"):
+    if per_ray is not None and row.get("cast_s_median"):
         out["pair_test_share_of_cast"] = round(per_ray * row["rays"] * out["pair_test_ns_median"] * 1e-9 / row["cast_s_median"], 4)
     return out
 
