@@ -132,21 +132,23 @@ def test_a_program_compiles_with_the_cpu_options_its_representations_agree_on(mo
     from jskel.render._scene import Scene
 
     frusta, implicit = registry.get("frusta"), registry.get("implicit")
-    assert frusta.cpu_compiler_options == {"xla_cpu_use_fusion_emitters": False} and implicit.cpu_compiler_options == {}
+    no_ynn = {"xla_cpu_experimental_ynn_fusion_type": ""}
+    elemental = {"xla_cpu_use_fusion_emitters": False, **no_ynn}
+    assert frusta.cpu_compiler_options == elemental and implicit.cpu_compiler_options == {}
     b = _cylinder()
     obj = frusta_object(b)
-    assert executor.compiler_options((obj, None)) == {"xla_cpu_use_fusion_emitters": False}
-    assert interface.agreed_options(["implicit", "frusta", "implicit"], [None] * 3) == {"xla_cpu_use_fusion_emitters": False}
+    assert executor.compiler_options((obj, None)) == elemental
+    assert interface.agreed_options(["implicit", "frusta", "implicit"], [None] * 3) == elemental
     # the exact relief tracer asks for the fusion emitters: alone it has them, beside plain frusta neither wins
     from jskel.frusta import ReliefQuality
 
     exact = obj.static._replace(relief=ReliefQuality(method="exact"))
     assert interface.agreed_options(["frusta"], [exact]) == {"xla_cpu_use_fusion_emitters": True}
-    assert interface.agreed_options(["frusta", "frusta"], [exact, obj.static]) == {}
+    assert interface.agreed_options(["frusta", "frusta"], [exact, obj.static]) == no_ynn
     monkeypatch.setattr(type(implicit), "cpu_compiler_options", {"xla_cpu_use_fusion_emitters": True, "xla_cpu_enable_fast_math": False})
-    assert interface.agreed_options(["frusta", "implicit"], [None, None]) == {"xla_cpu_enable_fast_math": False}
+    assert interface.agreed_options(["frusta", "implicit"], [None, None]) == {"xla_cpu_enable_fast_math": False, **no_ynn}
     scene = Scene(None, type("Static", (), {"reps": ("frusta", "implicit", "frusta"), "statics": (None, None, None)})())
-    assert executor.compiler_options((scene, None)) == {"xla_cpu_enable_fast_math": False}
+    assert executor.compiler_options((scene, None)) == {"xla_cpu_enable_fast_math": False, **no_ynn}
     seen = []
 
     class Recorded(Exception):
@@ -163,4 +165,4 @@ def test_a_program_compiles_with_the_cpu_options_its_representations_agree_on(mo
         map_chunks(interface.intersect_each, fresh, rays, chunk=CHUNK, progress=False)
     except Recorded:
         pass
-    assert seen == [{"xla_cpu_use_fusion_emitters": False}]
+    assert seen == [elemental]

@@ -403,8 +403,10 @@ class _Frusta(Representation, module=__name__):
     #: in about two thirds of the time, and run from 27 % faster to 3 % slower
     #: (docs/choices.md#elemental-emitters). Implicit and cell objects alone keep the default
     #: (theirs ran slower with it); in a scene with frusta they take the frusta's
-    #: (``agreed_options``)
-    cpu_compiler_options = {"xla_cpu_use_fusion_emitters": False}
+    #: (``agreed_options``). And no YNNPACK fusions (jaxlib's default library for some
+    #: elementwise and reduction fusions): the bins' per-block work ran in them several times
+    #: slower than XLA's own loops, most under AVX2 (docs/choices.md#ynn-fusions)
+    cpu_compiler_options = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": ""}
 
     @classmethod
     def compiler_options_for(cls, static):

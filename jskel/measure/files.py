@@ -83,7 +83,8 @@ def command_line() -> str:
 
 def provenance(command: str | None = None) -> dict:
     """What identifies a measurement: when it started (UTC), the commit, the machine, the
-    command and the versions. Every row a result file keeps carries it as ``run``."""
+    command, the versions and, where set, ``XLA_FLAGS`` (options that change every compiled
+    program: an ISA cap, a fusion turned off). Every row a result file keeps carries it as ``run``."""
     import jaxlib
     import numpy
 
@@ -92,7 +93,8 @@ def provenance(command: str | None = None) -> dict:
     return {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "commit": _commit(), "machine": _cpu(),
             "devices": sorted({f"{d.platform}:{d.device_kind}" for d in jax.devices()}),
             "command": command or command_line(), "versions": {"jskel": __version__, "jax": jax.__version__,
-            "jaxlib": jaxlib.__version__, "numpy": numpy.__version__, "python": platform.python_version()}}
+            "jaxlib": jaxlib.__version__, "numpy": numpy.__version__, "python": platform.python_version()},
+            **({"xla_flags": os.environ["XLA_FLAGS"]} if os.environ.get("XLA_FLAGS") else {})}
 
 
 class JsonLines:

@@ -337,8 +337,9 @@ class _Mesh(Representation, module=__name__):
     name = "mesh"
     Config = MeshConfig
     #: as the frusta's (``frusta._scene._Frusta``): mesh_torus's render program compiled faster
-    #: and ran faster with them (docs/choices.md#elemental-emitters)
-    cpu_compiler_options = {"xla_cpu_use_fusion_emitters": False}
+    #: and ran faster with them (docs/choices.md#elemental-emitters); no YNNPACK fusions, as the
+    #: frusta's bins (docs/choices.md#ynn-fusions)
+    cpu_compiler_options = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": ""}
 
     @staticmethod
     def exits_from_inside(cfg) -> bool:
