@@ -471,6 +471,29 @@ def test_packet_meets_keeps_every_box_a_ray_of_the_packet_meets():
     assert truth.any() and max(kept_narrow) < 0.5
 
 
+def test_first_set_and_order_equal_numpy():
+    """The bins' compaction and block order against NumPy: ``first_set`` gives the positions of
+    the first q set bits of a packed mask (``np.flatnonzero``) and their count, for empty, sparse,
+    dense and full masks and fewer set bits than q; ``_order`` is a stable argsort (ties and
+    infinities included, as a block's entry distances have them)."""
+    from jskel.accel._bins import _order
+
+    rng = np.random.default_rng(5)
+    first = jax.jit(lambda m: accel.first_set(accel.pack_bits(m), 96))
+    for density in (0.0, 0.01, 0.2, 0.9, 1.0):
+        mask = rng.random(1000) < density
+        pos, count = first(jnp.asarray(mask))
+        truth = np.flatnonzero(mask)
+        assert int(count) == truth.size, density
+        k = min(96, truth.size)
+        assert np.array_equal(np.asarray(pos)[:k], truth[:k]), density
+    order = jax.jit(_order)
+    for trial in range(4):
+        e = rng.choice([0.5, 1.0, 2.0, np.inf], 128) if trial % 2 else rng.normal(size=128)
+        e = e.astype(np.float32)
+        assert np.array_equal(np.asarray(order(jnp.asarray(e))), np.argsort(e, kind="stable")), trial
+
+
 # the default knobs (64, 128, 256, 32, 1.5) are cast on the oasis above; here the loops run many
 # times per batch, and every listed batch goes to the walks
 @pytest.mark.parametrize("sizes", [(8, 3, 5, 4, 1.5), (64, 128, 256, 32, 1e-6)])

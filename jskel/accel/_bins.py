@@ -159,6 +159,19 @@ def batch_list(whole, lo, hi, groups=None):
     return out, n1
 
 
+def _order(e):
+    """``jnp.argsort(e)`` (stable: ties by index) of a short vector, from each entry's rank
+    among all pairwise comparisons, one fusion and a scatter. XLA on the CPU ran the sort of a
+    bin block's 128 entry distances as a library call costing about as much as the block's
+    box tests (``jax.profiler`` trace of the oasis' densest chunks, 2026-12-07); K^2 compares
+    of K = 128 run at full vector width (docs/choices.md#bins-order)."""
+    k = e.shape[0]
+    i = jnp.arange(k)
+    before = (e[None, :] < e[:, None]) | ((e[None, :] == e[:, None]) & (i[None, :] < i[:, None]))
+    rank = jnp.sum(before, axis=1, dtype=jnp.int32)
+    return jnp.zeros((k,), jnp.int32).at[rank].set(i.astype(jnp.int32), unique_indices=True)
+
+
 def bin_groups(tree, per: int):
     """The BVH ``tree``'s nodes at the level whose subtrees hold ``per`` leaf slots: their boxes
     and slots, the ``groups`` that :func:`batch_list` tests before their primitives."""
@@ -202,13 +215,16 @@ def first_set(words, q: int):
     ``jnp.nonzero(mask, size=q)`` does this with a prefix sum over the whole mask and a scatter
     of every element; XLA on the CPU runs that prefix sum as a long ``reduce_window``, many times
     slower than this on 8,192 elements (docs/choices.md#first-set-words). Here the prefix sum
-    runs over the words' popcounts (32 times fewer), each rank finds its word by binary search
-    and its bit by a binary search on the popcount of the word's low bits."""
+    runs over the words' popcounts (32 times fewer), each rank finds its word by a histogram of
+    those sums and its bit by a binary search on the popcount of the word's low bits."""
     nw = words.shape[0]
     pc = jax.lax.population_count(words).astype(jnp.int32)
     incl = jnp.cumsum(pc)
     r = jnp.arange(q, dtype=jnp.int32)
-    wi = jnp.minimum(jnp.searchsorted(incl, r, side="right", method="scan").astype(jnp.int32), nw - 1)
+    # the word of rank r: how many words' inclusive counts are <= r, as a histogram of those
+    # counts and its prefix sum over q (``searchsorted``'s binary search ran as a loop of 8
+    # small steps, a thunk each on XLA's CPU runtime)
+    wi = jnp.minimum(jnp.cumsum(jnp.zeros((q + 1,), jnp.int32).at[jnp.minimum(incl, q)].add(1))[:q], nw - 1)
     j = r - (incl[wi] - pc[wi])  # the rank within its word
     w = words[wi]
     pos = jnp.zeros_like(r)
@@ -332,7 +348,7 @@ def _block(batch: _Batch, list1, n1, lin, bounds, j, best, tested):
     live = j * k + jnp.arange(k) < n1
     # the block's boxes nearest the batch first (where the batch enters each box)
     e1 = jnp.where(live, packet_entry(*batch.whole, batch.lo[ids], batch.hi[ids])[1], jnp.inf)
-    perm = jnp.argsort(e1)
+    perm = _order(e1)
     ids, live = ids[perm], live[perm]
     m2, e2 = fenced(n1 >= 0, lambda: _meets_per_packet(*bounds, batch.lo[ids], batch.hi[ids]))
     m2 = (m2 & live[None, :]).T  # (K, P): candidate-major, nearest candidates first
