@@ -6,7 +6,8 @@ device, three times under the profiler. Every executed op's self time (its time 
 nested in it, per thread) is summed by the jskel source line its HLO instruction came from (the
 innermost two frames in ``accel/_bins.py``, ``frusta/_accel.py``, ``frusta/_intersect.py`` or
 ``numerics.py``, read from the compiled module's stack frames); the runtime's own work (the
-thunk executor, loop and conditional control, the call's dispatch) is listed by name. One JSON
+thunk executor, loop and conditional control) is listed by name, the call's own host work
+apart (one call per chunk here, where a render makes one call of 64 chunks). One JSON
 line: the chunks, the untraced median wall time of the frame and the top entries in
 microseconds per chunk and as a share of the traced total.
 
@@ -32,6 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 KEEP = ("_bins.py", "_accel.py", "_intersect.py", "numerics.py")
+#: a call's own host work (dispatch, argument handling, output buffers), reported apart
+CALL = ("CommonPjRt", "PjitFunction", "AllocateOutputBuffers", "Handle inputs", "ExecutePrepare")
 
 
 def _self_times(events):
@@ -138,15 +141,18 @@ def main():
     events = events["traceEvents"] if isinstance(events, dict) else events
     own, _ = _self_times(events)
     src = _sources(compiled.as_text())
-    by = collections.Counter()
+    by, call = collections.Counter(), 0.0
     for name, us in own.items():
         if "wait for completion" in name or name.startswith("$"):  # the host thread waiting; Python frames
+            continue
+        if name.startswith(CALL):  # one call per chunk here; a render groups 64 chunks a call
+            call += us
             continue
         by[src.get(name, "runtime:" + name.split(".")[0])] += us
     total = sum(by.values())
     per = 3 * len(chunks)
     print(json.dumps(dict(scene=args.scene, chunks=args.chunks, chunk_count=len(chunks), isa=xla_isa(), options=opts,
-                          frame_ms_median=round(statistics.median(walls) * 1e3, 2), traced_us_per_chunk=round(total / per, 1),
+                          frame_ms_median=round(statistics.median(walls) * 1e3, 2), traced_us_per_chunk=round(total / per, 1), call_us_per_chunk=round(call / per, 1),
                           top=[dict(source=k, us_per_chunk=round(v / per, 1), share=round(v / total, 4)) for k, v in by.most_common(args.top)],
                           run=provenance())), flush=True)
 
