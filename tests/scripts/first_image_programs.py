@@ -16,7 +16,8 @@ render's own arguments (median wall seconds of ``--runs``).
 do. Option sets: ``O3`` (XLA:CPU's defaults, stated), ``O0`` (``xla_backend_optimization_level``
 0), ``noexp`` (``xla_llvm_disable_expensive_passes``), ``O0noexp`` (both: what the frusta build
 compiles with, ``frusta._build._HOST_OPTS``), ``fusion`` and ``elemental`` (XLA:CPU's MLIR fusion
-emitters, its default, or its elemental emitters: ``Representation.cpu_compiler_options``).
+emitters, its default, or its elemental emitters), ``noynn`` (the elemental emitters without
+YNNPACK's fusions: the frusta's and meshes' ``Representation.cpu_compiler_options``).
 """
 import argparse
 import collections
@@ -38,6 +39,7 @@ SETS = {
     "O0noexp": {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True},
     "fusion": {"xla_cpu_use_fusion_emitters": True, "xla_backend_optimization_level": 3},
     "elemental": {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 3},
+    "noynn": {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": "", "xla_backend_optimization_level": 3},
 }
 _seen: list[dict] = []
 
