@@ -191,3 +191,38 @@ def test_a_slow_evaluation_is_compiled_when_asked_again(monkeypatch, rng):
     assert program_counts()["compiled"] + program_counts()["loaded"] == n0 + 1
     for k in ("sum", "scaled"):
         np.testing.assert_allclose(by_xla[k], by_numpy[k], rtol=1e-6)
+
+
+def test_evaluations_that_add_up_to_the_threshold_are_compiled(monkeypatch, rng):
+    """Evaluations each under ``COMPILE_AFTER_S`` whose seconds add up past it (an animation
+    building the same shapes every frame) hand XLA the program after the one that crosses it: on
+    a clock that advances 0.05 s a reading, each evaluation takes 0.05 s, so with a 0.12 s
+    threshold the first three are NumPy's and the fourth compiles; a program of other shapes
+    starts its own count."""
+    import types
+
+    from jskel.compile import host_eval
+    from jskel.compile.cache import count_programs, program_counts
+
+    now = [0.0]
+
+    def tick():
+        now[0] += 0.05
+        return now[0]
+
+    monkeypatch.setattr(host_eval, "time", types.SimpleNamespace(perf_counter=tick))
+    monkeypatch.setattr(host_eval, "COMPILE_AFTER_S", 0.12)
+    count_programs()
+    a, b = rng.normal(size=5).astype(np.float32), rng.normal(size=5).astype(np.float32)
+    fn = HostFn(_traced([]))
+    seen = []
+    for i in range(4):  # new values each frame, as an animation's (a stored value is never read back)
+        n0 = program_counts()["compiled"] + program_counts()["loaded"]
+        out = fn(a + i, b)
+        seen.append(program_counts()["compiled"] + program_counts()["loaded"] - n0)
+        np.testing.assert_allclose(out["scaled"], (a + i) * np.sum(b), rtol=1e-6)
+    assert seen == [0, 0, 0, 1]
+    n0 = program_counts()["compiled"] + program_counts()["loaded"]
+    fn(a[:3], b[:3])  # other shapes: NumPy again
+    assert program_counts()["compiled"] + program_counts()["loaded"] == n0
+

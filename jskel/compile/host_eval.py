@@ -342,9 +342,11 @@ class HostCall:
     static: tuple
 
 
-#: a program whose NumPy evaluation took longer than this is compiled by XLA when its process
-#: asks for it again (a notebook editing a large skeleton): a deep skeleton's geometry runs its
-#: depth levels one after another, which NumPy does at a per-equation cost XLA's loop does not pay
+#: a program whose NumPy evaluations of one shape took longer than this in all is compiled by
+#: XLA when its process asks for it again: a deep skeleton's geometry runs its depth levels one
+#: after another, which NumPy does at a per-equation cost XLA's loop does not pay (a notebook
+#: editing a large skeleton), and an animation builds the same shapes every frame (the dancing
+#: cacti's host build took 0.09 s a frame by NumPy, docs/choices.md#host-build)
 COMPILE_AFTER_S = 0.2
 
 
@@ -356,8 +358,9 @@ class HostFn:
 
     With jskel's cache directory in use (``jskel.compile.executables``) each result is kept there,
     keyed by the arguments' values too: a warm process building the same object reads it back,
-    untraced. A program whose evaluation took over :data:`COMPILE_AFTER_S` is compiled by XLA
-    (``compiler_options``) the next time its process asks for it, and run compiled from then on."""
+    untraced. A program whose evaluations of one key took over :data:`COMPILE_AFTER_S` in all is
+    compiled by XLA (``compiler_options``) the next time its process asks for it, and run compiled
+    from then on."""
 
     KEEP = 16
 
@@ -366,6 +369,7 @@ class HostFn:
         self.jitted = jax.jit(fn, static_argnums=self.static, compiler_options=compiler_options)
         self._mem: collections.OrderedDict = collections.OrderedDict()
         self._slow: set = set()
+        self._spent: collections.Counter = collections.Counter()  # NumPy seconds by key
 
     def __call__(self, *args):
         from . import executables
@@ -391,6 +395,7 @@ class HostFn:
         t0 = time.perf_counter()
         with np.errstate(all="ignore"):
             outs = evaluate(closed, *leaves)
-        if time.perf_counter() - t0 > COMPILE_AFTER_S:
+        self._spent[key] += time.perf_counter() - t0
+        if self._spent[key] > COMPILE_AFTER_S:
             self._slow.add(key)
         return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(shape), outs)
