@@ -83,10 +83,13 @@ def _bucket(n: int) -> int:
 
 # The build runs its geometry once on a few dozen to a few thousand rows: NumPy evaluates its
 # jaxpr without a compile (``jskel.compile.host_eval``), several times faster than XLA:CPU compiles it
-# for a single run (docs/choices.md#host-build). Where its
-# evaluation is slow and asked for again, XLA compiles it at backend level 0 without LLVM's
-# expensive passes (it runs once per build: optimising it buys nothing)
-_HOST_OPTS = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+# for a single run (docs/choices.md#host-build). Where its evaluations add up to
+# ``host_eval.COMPILE_AFTER_S`` (a deep skeleton, or an animation's frames), XLA compiles it with
+# its default optimisation: it then runs for every later build of those shapes, and on the
+# dancing cacti the compiled geometry ran about a third faster so, for about the same compile as
+# backend level 0 without LLVM's expensive passes (development timing; the frames' build in
+# docs/bench_scale_cacti_cpu.jsonl)
+_HOST_OPTS: dict = {}
 _fields_host = HostFn(frusta_fields, compiler_options=_HOST_OPTS)
 
 

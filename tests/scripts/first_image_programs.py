@@ -15,7 +15,7 @@ render's own arguments (median wall seconds of ``--runs``).
 ``default`` is the CLI's embedded experiment (README's first command); any experiment file will
 do. Option sets: ``O3`` (XLA:CPU's defaults, stated), ``O0`` (``xla_backend_optimization_level``
 0), ``noexp`` (``xla_llvm_disable_expensive_passes``), ``O0noexp`` (both: what the frusta build
-compiles with, ``frusta._build._HOST_OPTS``), ``fusion`` and ``elemental`` (XLA:CPU's MLIR fusion
+compiled with before it took XLA's defaults, ``frusta._build._HOST_OPTS``), ``fusion`` and ``elemental`` (XLA:CPU's MLIR fusion
 emitters, its default, or its elemental emitters), ``noynn`` (the elemental emitters without
 YNNPACK's fusions: the frusta's and meshes' ``Representation.cpu_compiler_options``).
 """
