@@ -163,7 +163,7 @@ def _order(e):
     """``jnp.argsort(e)`` (stable: ties by index) of a short vector, from each entry's rank
     among all pairwise comparisons, one fusion and a scatter. XLA on the CPU ran the sort of a
     bin block's 128 entry distances as a library call costing about as much as the block's
-    box tests (``jax.profiler`` trace of the oasis' densest chunks, 2026-12-07); K^2 compares
+    box tests (``jax.profiler`` trace of the oasis' densest chunks); K^2 compares
     of K = 128 run at full vector width (docs/choices.md#bins-order)."""
     k = e.shape[0]
     i = jnp.arange(k)
