@@ -17,7 +17,8 @@ do. Option sets: ``O3`` (XLA:CPU's defaults, stated), ``O0`` (``xla_backend_opti
 0), ``noexp`` (``xla_llvm_disable_expensive_passes``), ``O0noexp`` (both: what the frusta build
 compiled with before it took XLA's defaults, ``frusta._build._HOST_OPTS``), ``fusion`` and ``elemental`` (XLA:CPU's MLIR fusion
 emitters, its default, or its elemental emitters), ``noynn`` (the elemental emitters without
-YNNPACK's fusions: the frusta's and meshes' ``Representation.cpu_compiler_options``).
+YNNPACK's fusions: the frusta's and meshes' ``Representation.cpu_compiler_options``),
+``fusion_noynn`` (the fusion emitters without YNNPACK's fusions).
 """
 import argparse
 import collections
@@ -40,6 +41,7 @@ SETS = {
     "fusion": {"xla_cpu_use_fusion_emitters": True, "xla_backend_optimization_level": 3},
     "elemental": {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 3},
     "noynn": {"xla_cpu_use_fusion_emitters": False, "xla_cpu_experimental_ynn_fusion_type": "", "xla_backend_optimization_level": 3},
+    "fusion_noynn": {"xla_cpu_use_fusion_emitters": True, "xla_cpu_experimental_ynn_fusion_type": "", "xla_backend_optimization_level": 3},
 }
 _seen: list[dict] = []
 
