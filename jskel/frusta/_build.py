@@ -86,9 +86,9 @@ def _bucket(n: int) -> int:
 # for a single run (docs/choices.md#host-build). Where its evaluations add up to
 # ``host_eval.COMPILE_AFTER_S`` (a deep skeleton, or an animation's frames), XLA compiles it with
 # its default optimisation: it then runs for every later build of those shapes, and on the
-# dancing cacti the compiled geometry ran about a third faster so, for about the same compile as
-# backend level 0 without LLVM's expensive passes (development timing; the frames' build in
-# docs/bench_scale_cacti_cpu.jsonl)
+# dancing cacti the compiled geometry ran about a third faster so than at backend level 0
+# without LLVM's expensive passes, for about the same compile; on the 4,176-segment neuron the
+# compile took about 0.4 s longer (docs/choices.md#host-build)
 _HOST_OPTS: dict = {}
 _fields_host = HostFn(frusta_fields, compiler_options=_HOST_OPTS)
 
