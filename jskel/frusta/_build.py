@@ -88,7 +88,7 @@ def _bucket(n: int) -> int:
 # its default optimisation: it then runs for every later build of those shapes, and on the
 # dancing cacti the compiled geometry ran about a third faster so than at backend level 0
 # without LLVM's expensive passes, for about the same compile; on the 4,176-segment neuron the
-# compile took about 0.4 s longer (docs/choices.md#host-build)
+# compile took longer (docs/choices.md#host-build)
 _HOST_OPTS: dict = {}
 _fields_host = HostFn(frusta_fields, compiler_options=_HOST_OPTS)
 
