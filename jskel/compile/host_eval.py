@@ -396,6 +396,7 @@ class HostFn:
         with np.errstate(all="ignore"):
             outs = evaluate(closed, *leaves)
         self._spent[key] += time.perf_counter() - t0
-        if self._spent[key] > COMPILE_AFTER_S:
+        if self._spent[key] > COMPILE_AFTER_S:  # compiled from now on: its count is done with
             self._slow.add(key)
+            del self._spent[key]
         return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(shape), outs)
