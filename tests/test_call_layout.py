@@ -42,10 +42,32 @@ def test_call_rays_deal_chunks_to_devices_and_leave_grouped_padding_zero(n, size
     a = np.arange(n * 3, dtype=np.float32).reshape(n, 3) + 1.0
     lay = Layout(n, size, per, dev)
     assert lay.calls == -(-n // size)
+    one = np.broadcast_to(a[3], a.shape)  # a camera's origin: one row broadcast to every ray
     for i in range(lay.calls):
         want, live = _reference_call(a, n, size, per, dev, i)
         np.testing.assert_array_equal(call_rays(a, lay, i), want, err_msg=f"call {i}")
         np.testing.assert_array_equal(lay.live_flags(i), live, err_msg=f"call {i}")
+        want, _ = _reference_call(np.ascontiguousarray(one), n, size, per, dev, i)
+        np.testing.assert_array_equal(call_rays(one, lay, i), want, err_msg=f"call {i}, broadcast rows")
+
+
+def test_grouped_calls_start_every_device_shard_on_64_bytes():
+    """JAX's CPU client aliases a host array whose data starts on 64 bytes instead of copying
+    it: a grouped call's rays (origins (n, 3) and t (n,)) and each device's shard of them must
+    start there, whatever NumPy's own allocation gives."""
+    from jskel.compile.call_layout import aligned_zeros
+
+    for shape, dtype in [((10, 3), np.float32), ((7,), np.float64), ((33, 2), np.int32)]:
+        for _ in range(8):
+            x = aligned_zeros(shape, dtype)
+            assert x.shape == shape and x.dtype == dtype and x.flags.c_contiguous and x.ctypes.data % 64 == 0
+    n, size, per, dev = 5000, 4096, 16, 2
+    lay = Layout(n, size, per, dev)
+    for a in (np.ones((n, 3), np.float32), np.ones((n,), np.float32)):
+        for i in range(lay.calls):
+            out = call_rays(a, lay, i)
+            shard = out.reshape((dev, -1) + a.shape[1:])
+            assert all(shard[d].ctypes.data % 64 == 0 for d in range(dev))
 
 
 def _as_device_output(x, dev):

@@ -71,14 +71,39 @@ def call_rays(a: np.ndarray, lay: Layout, i: int) -> np.ndarray:
     if lay.per_call == 1 or lay.devices == 1 and rows.shape[0] == lay.size:
         return pad_to(rows, lay.size)  # (the call's rays in order: a view when it is full)
     c, live, d = lay.chunk, lay.live(i), lay.devices
-    out = np.zeros((lay.size,) + a.shape[1:], a.dtype)
+    out = aligned_zeros((lay.size,) + a.shape[1:], a.dtype)
     slots = out.reshape((d, lay.per_call, c) + a.shape[1:])
+    if a.ndim and a.strides[0] == 0 and rows.shape[0]:
+        # one row broadcast to every ray (a camera's origin, t_min): filled, not gathered
+        # (NumPy's strided copy of a broadcast through the dealing took 4 ms a 1024x768 frame)
+        block = np.ascontiguousarray(np.broadcast_to(rows[0], (c,) + a.shape[1:]))
+        for p in range(live):
+            slots[p % d, p // d] = block
+        return out
     whole = min(live, rows.shape[0] // c) // d  # slots full on every device
     if whole:
         slots[:, :whole] = np.swapaxes(rows[: whole * d * c].reshape((whole, d, c) + a.shape[1:]), 0, 1)
     for p in range(whole * d, live):
         slots[p % d, p // d] = pad_to(rows[p * c : (p + 1) * c], c)
     return out
+
+
+ALIGN = 64
+
+
+def aligned_zeros(shape: tuple, dtype) -> np.ndarray:
+    """``np.zeros(shape, dtype)`` whose data starts on a 64-byte boundary. JAX's CPU client
+    takes such a host array as a device buffer without copying it (it aliases it; NumPy's own
+    allocations start on 16 bytes, and those it copies): a call's rays, laid out here once,
+    are not copied again on the way in (``tests/scripts/host_path.py``, docs/choices.md#aligned-rays).
+    The shards of a call start on chunk boundaries, multiples of 64 bytes for any chunk of 16
+    rays or more, so each device's shard is aligned too. Zeros: a grouped call's padding
+    chunks are left as they are (never written, never traced)."""
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape)) * dtype.itemsize
+    raw = np.zeros(n + ALIGN, np.uint8)
+    off = (-raw.ctypes.data) % ALIGN
+    return raw[off : off + n].view(dtype).reshape(shape)
 
 
 def output_buffers(out, lay: Layout):
