@@ -300,12 +300,14 @@ def test_chunks_per_call_equal_one_chunk_per_call(rng):
         np.testing.assert_array_equal(a, b)
 
 
-def test_resident_cast_gives_the_render_hits_in_tile_order():
-    """``measure.cast_resident`` (rays placed on the device before the clock, results left there:
-    how the Mitsuba peer is timed) casts the same rays as a render: 3,072 saguaro rays in chunks
-    of 2,048 (the second padded), put back in pixel order, give the render's hit or miss and
-    segment for every pixel and its t within float32 rounding (the cast alone and the render
-    with shading are compiled apart)."""
+@pytest.mark.parametrize("chunking", [["render.chunk=2048"], ["render.chunk=256", "render.chunks_per_call=8"]])
+def test_resident_cast_gives_the_render_hits_in_tile_order(chunking):
+    """``probe.cast_resident`` (rays laid out as a render lays them out and placed on the device
+    before the clock, results left there: how the Mitsuba peer is timed) casts the same rays as
+    a render: 3,072 saguaro rays in calls of 2,048 (one chunk a call, the second padded; or
+    8 chunks of 256 a call, the second call's last 4 chunks padding), put back in pixel order,
+    give the render's hit or miss and segment for every pixel and its t within float32
+    rounding (the cast alone and the render with shading are compiled apart)."""
     import jax
 
     from jskel import registry
@@ -314,17 +316,16 @@ def test_resident_cast_gives_the_render_hits_in_tile_order():
     from jskel.camera import tile_inverse
     from jskel.render import render
 
-    exp = load("experiments/saguaro.yaml", ["camera.width=64", "camera.height=48", "render.chunk=2048", "render.progress=false"])
+    exp = load("experiments/saguaro.yaml", ["camera.width=64", "camera.height=48", "render.progress=false", *chunking])
     obj = exp.objects[0].shape
     want = render(exp).hits
     built = registry.get(obj.type).build(obj, np.float32)
-    chunks = resident_rays(exp, built)
-    assert [c.size for c in chunks] == [2048, 2048]
-    assert all(isinstance(a, jax.Array) for c in chunks for a in c)
-    secs, outs = cast_resident(exp, built, chunks)
-    assert secs > 0.0 and all(isinstance(a, jax.Array) for o in outs for a in o)
-    t = np.concatenate([np.asarray(o[0]) for o in outs])[:3072][tile_inverse(64, 48, exp.render.tile)]
-    prim = np.concatenate([np.asarray(o[1]) for o in outs])[:3072][tile_inverse(64, 48, exp.render.tile)]
+    res = resident_rays(exp, built)
+    assert (res.layout.n, res.layout.calls, res.layout.size) == (3072, 2, 2048)  # (one device in the tests)
+    assert all(isinstance(a, jax.Array) for a in jax.tree_util.tree_leaves(res.calls))
+    secs, outs = cast_resident(exp, built, res)
+    assert secs > 0.0 and all(isinstance(a, jax.Array) for a in jax.tree_util.tree_leaves(outs))
+    t, prim = (x[tile_inverse(64, 48, exp.render.tile)] for x in res.host_outputs(outs))
     hit = np.isfinite(want.t)
     assert 0.05 < hit.mean() < 0.9  # the saguaro covers about 9 % of this frame
     np.testing.assert_array_equal(np.isfinite(t), hit)

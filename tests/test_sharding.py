@@ -2,7 +2,7 @@
 machine with four forced host devices (a subprocess: the device count is fixed at JAX start).
 The cells' voxel walk is the exception: the sharded program rounds its t apart in the last
 bits on some rays, so there the hits, cells and image are equal and t within float32 rounding.
-The bench's resident cast (``jskel.measure.cast_resident``) on the four devices gives the one-device
+The bench's resident cast (``jskel.probe.cast.cast_resident``) on the four devices gives the one-device
 render's hit or miss and segment for every pixel, and its t within float32 rounding."""
 
 from __future__ import annotations

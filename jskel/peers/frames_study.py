@@ -2,7 +2,7 @@
 
 jskel: skeleton, cutting planes, BVH built in JAX, render with shading (``jskel_frame``); again
 with the cast alone (``jskel_cast_frame``); with the frusta rebuilt on the device from the
-frame's joints (``jskel_device_frame``); on an accelerator that rebuild again with the cast on
+frame's joints (``jskel_device_frame``); that rebuild again with the cast on
 rays kept on the device and its result left there (``jskel_resident_frame``), as Mitsuba's cast is
 timed. The compiles are shared by all frames and not counted. Embree: skeleton, cutting planes,
 tessellation, BVH build, cast. Mitsuba: skeleton, control-point update with its rebuild, cast.
@@ -22,7 +22,7 @@ import time
 import jax
 
 from ..frusta import host_frusta, rebuilder, skeleton_arrays
-from ..probe.cast import cast_once, cast_resident, on_accelerator, resident_rays
+from ..probe.cast import cast_once, cast_resident, resident_rays
 from ..probe.study import shape_of
 from ..probe.timing import median_of
 from ..render import dtype_of, render
@@ -37,7 +37,7 @@ TOTALS = ("jskel", "jskel_cast", "jskel_device", "jskel_resident", "embree", "mi
 
 def _device_rebuild(exp):
     """(rebuild, resident rays or None): the frusta rebuilt on the device from a frame's joints
-    (``frusta.rebuilder``), its cast compiled here; on an accelerator the fixed camera's rays
+    (``frusta.rebuilder``), its cast compiled here; the fixed camera's rays
     placed on the device once for every frame (the rebuild keeps one anchor), as Mitsuba's are.
     (None, None) where the object cannot be rebuilt on the device."""
     obj = shape_of(exp, "peer: skeleton")
@@ -46,7 +46,7 @@ def _device_rebuild(exp):
         j0, r0, _, _ = skeleton_arrays(obj.skeleton, obj.frame)
         b0 = rb(j0, r0)
         cast_once(exp, b0)  # compiles the rebuild and its cast
-        return rb, (resident_rays(exp, b0) if on_accelerator() else None)
+        return rb, resident_rays(exp, b0)
     except ValueError:
         return None, None
 

@@ -58,14 +58,13 @@ obj = exp.objects[0].shape
 want = render(config.load("experiments/saguaro.yaml", ["camera.width=40", "camera.height=30", "render.chunk=150", "render.devices=one"]),
              progress=False).hits
 built = registry.get(obj.type).build(obj, np.float32)
-chunks = resident_rays(exp, built)
-_, outs = cast_resident(exp, built, chunks)
+res = resident_rays(exp, built)
+_, outs = cast_resident(exp, built, res)
 inv = tile_inverse(40, 30, exp.render.tile)
-t = np.concatenate([np.asarray(o[0]) for o in outs])[:1200][inv]
-prim = np.concatenate([np.asarray(o[1]) for o in outs])[:1200][inv]
+t, prim = (x[inv] for x in res.host_outputs(outs))
 hit = np.isfinite(np.asarray(want.t))
 same = (np.array_equal(np.isfinite(t), hit) and np.array_equal(prim[hit], np.asarray(want.prim)[hit])
         and bool(np.allclose(t[hit], np.asarray(want.t)[hit], rtol=2e-6, atol=0)))
-out["frusta_resident_cast"] = {"equal": bool(same), "devices_used": [1, len(chunks[0].origins.sharding.device_set)],
-                               "hit_fraction": float(hit.mean()), "calls": len(chunks)}
+out["frusta_resident_cast"] = {"equal": bool(same), "devices_used": [1, len(res.calls[0].origins.sharding.device_set)],
+                               "hit_fraction": float(hit.mean()), "calls": len(res.calls)}
 print(json.dumps(out))
