@@ -91,3 +91,29 @@ def test_outputs_come_back_in_ray_order_and_padding_chunks_are_not_copied(n, siz
     np.testing.assert_array_equal(bufs[:n], values)
     written = -(-n // c) * c  # rows of the chunks holding rays; every row after them is padding
     assert np.all(np.isnan(bufs[written:])), f"{np.sum(~np.isnan(bufs[written:]))} padding rows copied"
+
+
+def test_replicated_parameters_are_copied_once_for_the_same_arrays():
+    """``executor.replicated``: the same tree of the same (immutable) JAX arrays over an equal
+    mesh is placed once; new arrays, another tree structure or NumPy leaves (mutable) are
+    placed anew, and what comes back always has the given structure and values."""
+    import jax
+    import jax.numpy as jnp
+
+    from jskel.executor import replicated
+
+    mesh = lambda: jax.sharding.Mesh(np.array(jax.devices()[:1]), ("rays",))  # noqa: E731 (a new, equal mesh each call)
+    a, b = jnp.arange(6.0), jnp.ones((2, 3), jnp.int32)
+    first = replicated({"a": a, "b": b}, mesh())
+    assert replicated({"a": a, "b": b}, mesh()) is first
+    np.testing.assert_array_equal(np.asarray(first["a"]), np.arange(6.0))
+    fresh = replicated({"a": a + 1.0, "b": b}, mesh())
+    assert fresh is not first
+    np.testing.assert_array_equal(np.asarray(fresh["a"]), np.arange(6.0) + 1.0)
+    other = replicated({"a": a, "c": b}, mesh())  # the same leaves under other keys
+    assert set(other) == {"a", "c"}
+    host = np.arange(3.0)
+    one = replicated({"h": host}, mesh())
+    host[0] = 7.0  # changed in place: must be seen by the next placement
+    np.testing.assert_array_equal(np.asarray(replicated({"h": host}, mesh())["h"]), [7.0, 1.0, 2.0])
+    np.testing.assert_array_equal(np.asarray(one["h"])[1:], [1.0, 2.0])

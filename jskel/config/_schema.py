@@ -162,15 +162,17 @@ def chunk_of(render) -> int:
     return AUTO_CHUNK_CPU if jax.default_backend() == "cpu" else AUTO_CHUNK_ACCELERATOR
 
 
-AUTO_CHUNKS_PER_CALL_CPU = 64
+AUTO_CHUNKS_PER_CALL_CPU = 128
 
 
 def chunks_per_call_of(render) -> int:
-    """``render.chunks_per_call`` resolved: ``auto`` is 64 on the CPU and 1 on an accelerator,
+    """``render.chunks_per_call`` resolved: ``auto`` is 128 on the CPU and 1 on an accelerator,
     whose auto chunk is already a whole frame. Several chunks per call save the host's per-call
-    slicing, transfer and dispatch; with two host devices a 1024x768 frame runs as two calls of
-    64 chunks per device, the second with 32 traced (``executor.calls_grouping``); 64 was measured
-    against 1 and 16 in ``experiments/bench_scale_cpu_paths.yaml`` (docs/performance.md,
+    slicing, transfer and dispatch; with two host devices a 1024x768 frame runs as one call of
+    128 chunks per device, 96 of them traced (``executor.calls_grouping``). With 64, a frame
+    made two calls, and dispatching the second returned only once the first had run (a
+    development timing of the dispatches), so the host's work around them was not hidden
+    behind the cast; 128 was measured against 1, 16 and 64 in ``experiments/bench_scale_cpu_paths.yaml`` (docs/performance.md,
     docs/choices.md#chunks-per-call)."""
     import jax
 

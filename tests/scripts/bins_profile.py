@@ -145,7 +145,7 @@ def main():
     for name, us in own.items():
         if "wait for completion" in name or name.startswith("$"):  # the host thread waiting; Python frames
             continue
-        if name.startswith(CALL):  # one call per chunk here; a render groups 64 chunks a call
+        if name.startswith(CALL):  # one call per chunk here; a render groups 128 chunks a call
             call += us
             continue
         by[src.get(name, "runtime:" + name.split(".")[0])] += us
