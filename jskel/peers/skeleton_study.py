@@ -58,21 +58,52 @@ def _embree_rows(arrays, level: int, O, D, ref_t, runs: int, base: dict, jsk: di
     return out
 
 
-def _mitsuba_rows(skeleton, variant: str, O, D, ref_t, runs: int, base: dict, jsk: dict):
+def _jskel_casts(exp) -> tuple:
+    """(cast, resident cast) of ``exp``'s one object, each a function returning its seconds:
+    ``probe.cast.cast_once`` (rays laid out on the host, results copied back) and
+    ``probe.cast.cast_resident`` (rays already on the device, results left there) of one build,
+    for timing in turn with a peer."""
+    from .. import registry
+    from ..probe.cast import cast_once, cast_resident, resident_rays
+    from ..render import dtype_of
+
+    obj = shape_of(exp, "peer: skeleton")
+    built = registry.get(obj.type).build(obj, dtype_of(exp))
+    res = resident_rays(exp, built)
+    return (lambda: cast_once(exp, built)[1]), (lambda: cast_resident(exp, built, res)[0])
+
+
+def _mitsuba_rows(exp, skeleton, variant: str, O, D, ref_t, runs: int, base: dict, jsk: dict):
     """(rows, the curves or None): the first Mitsuba variant of ``variant`` and ``scalar_rgb``
-    that runs; a variant that cannot run is a row with its error, not a failure."""
+    that runs; a variant that cannot run is a row with its error, not a failure.
+
+    Mitsuba's casts are timed in turn with jskel's (``exp``, the reference setting: each run
+    casts jskel with the host's copies, jskel on resident rays, then Mitsuba), and the ratios
+    are of those medians (``interleaved: true``): on the 2-core CPUs both systems' casts drifted
+    by up to 1.4x between one block of runs and the next, so separate blocks gave ratios that
+    moved with the drift (docs/performance.md)."""
     out = []
+    once, resident = _jskel_casts(exp)
     for v in dict.fromkeys([variant, "scalar_rgb"]):
         try:
             mc = MitsubaCurves(*skeleton, v)
-            casts = warm_runs(lambda: mc.cast(O, D), runs, 1).warm
+            times = {"once": [], "resident": [], "peer": []}
+            casts = []
+            for i in range(runs + 1):  # the first round warms all three up
+                a, b, c = once(), resident(), mc.cast(O, D)
+                casts.append(c)
+                if i:
+                    times["once"].append(a), times["resident"].append(b), times["peer"].append(c[1])
         except Exception as e:  # noqa: BLE001 - a peer that cannot run is recorded, not fatal
             out.append(dict(base, peer="mitsuba", variant=v, error=f"{type(e).__name__}: {e}"))
             continue
-        med = median_of([c[1] for c in casts])
+        med = median_of(times["peer"])
         row = dict(base, peer="mitsuba", variant=v, curves=mc.n_curves, build_s=round(mc.build_s, 4),
-                   cast_s_median=med, runs=runs, mrays_per_s=round(O.shape[0] / med / 1e6, 3), **agreement(casts[0][0], ref_t))
-        out.append(_ratios(row, jsk, med, resident=True))
+                   cast_s_median=med, runs=runs, mrays_per_s=round(O.shape[0] / med / 1e6, 3), **agreement(casts[-1][0], ref_t))
+        j_once, j_res = median_of(times["once"]), median_of(times["resident"])
+        row.update(interleaved=True, jskel_cast_s_median=round(j_once, 5), jskel_resident_cast_s_median=round(j_res, 5))
+        out.append(_ratios(row, {"render_s_median": jsk.get("render_s_median"), "cast_s_median": j_once, "cast_resident_s_median": j_res},
+                           med, resident=True))
         return out, mc
     return out, None
 
@@ -90,7 +121,7 @@ def skeleton(exp, ref_hits, runs: int, rows: list[dict], options: StudyOptions) 
     parents = skeleton_arrays(obj.skeleton, obj.frame)[2]
     level = TABLE1_GS_LEVEL.get(obj.skeleton.procedural, 1)
     out = _embree_rows(arrays, level, O, D, ref_t, runs, base, jsk)
-    mitsuba, mc = _mitsuba_rows((joints, radii, parents), options.mitsuba_variant, O, D, ref_t, runs, base, jsk)
+    mitsuba, mc = _mitsuba_rows(exp, (joints, radii, parents), options.mitsuba_variant, O, D, ref_t, runs, base, jsk)
     out += mitsuba
     if options.frames and obj.skeleton.procedural in ANIMATED:
         out.append(frames_row(options.frames, exp, (O, D), level, mc, base, runs))
