@@ -58,6 +58,17 @@ def _embree_rows(arrays, level: int, O, D, ref_t, runs: int, base: dict, jsk: di
     return out
 
 
+#: seconds of pause after each cast timed in turn with another system's (``_mitsuba_rows``)
+PAUSE = 0.05
+
+
+def _paused(fn):
+    """``fn()``, then :data:`PAUSE` seconds of sleep."""
+    out = fn()
+    time.sleep(PAUSE)
+    return out
+
+
 def _jskel_casts(exp) -> tuple:
     """(cast, resident cast) of ``exp``'s one object, each a function returning its seconds:
     ``probe.cast.cast_once`` (rays laid out on the host, results copied back) and
@@ -81,7 +92,11 @@ def _mitsuba_rows(exp, skeleton, variant: str, O, D, ref_t, runs: int, base: dic
     casts jskel with the host's copies, jskel on resident rays, then Mitsuba), and the ratios
     are of those medians (``interleaved: true``): on the 2-core CPUs both systems' casts drifted
     by up to 1.4x between one block of runs and the next, so separate blocks gave ratios that
-    moved with the drift (docs/performance.md)."""
+    moved with the drift (docs/performance.md). Each cast is followed by a pause of
+    :data:`PAUSE`: right after Mitsuba's cast, jskel's cast with the host's copies read about
+    30 % slower than in a block of its own on the 2-core AMD EPYC (Dr.Jit's worker threads
+    are still busy for a moment after a cast), and after a pause of 0.05 s it read as in the
+    block (development timing, no figures kept; docs/performance.md#interleaved-casts)."""
     out = []
     once, resident = _jskel_casts(exp)
     for v in dict.fromkeys([variant, "scalar_rgb"]):
@@ -90,7 +105,7 @@ def _mitsuba_rows(exp, skeleton, variant: str, O, D, ref_t, runs: int, base: dic
             times = {"once": [], "resident": [], "peer": []}
             casts = []
             for i in range(runs + 1):  # the first round warms all three up
-                a, b, c = once(), resident(), mc.cast(O, D)
+                a, b, c = _paused(once), _paused(resident), _paused(lambda: mc.cast(O, D))
                 casts.append(c)
                 if i:
                     times["once"].append(a), times["resident"].append(b), times["peer"].append(c[1])
