@@ -312,8 +312,7 @@ def replicated(params, mesh):
     """``params`` placed on every device of ``mesh`` (replicated). The same parameters as the
     last call (the same tree structure and the same JAX arrays, which are immutable) over an
     equal mesh are not copied again: a static scene cast or rendered frame after frame pays the
-    copy once, not per frame (a millisecond or more for a scene of a few MB on the 2-core CPU).
-    The last parameters stay referenced until the next call. NumPy leaves, which can change in
+    copy once, not per frame (docs/choices.md#replicated-params). The last parameters stay referenced until the next call. NumPy leaves, which can change in
     place, are copied every time."""
     leaves, tree = jax.tree_util.tree_flatten(params)
     if _REPLICATED:
