@@ -162,6 +162,35 @@ def edited(points, joints, radii, parents, cfg, scale: float, extent: float, rou
     # segment explains their points within one robust scale as well; an edit changes segments
     # (by child joint) and may move a joint, and no later edit this round uses either
     changed, moved = set(), set()
+    # zip: two segments leaving one joint side by side, their far joints within zip_radii mean
+    # radii of each other, are one tube traced twice; the child arm's far joint is merged into
+    # the other arm's (its other neighbours joined to that one)
+    for b in range(len(par)):
+        if not alive[b] or cfg.zip_radii <= 0 or b in changed | moved:
+            continue
+        arms = children(b) + ([int(par[b])] if par[b] >= 0 else [])
+        best = None
+        for i, c in enumerate(arms):
+            for e in arms[i + 1 :]:
+                gap = float(np.linalg.norm(joints[c] - joints[e]))
+                if gap < cfg.zip_radii * 0.5 * (radii[c] + radii[e]) and (best is None or gap < best[0]):
+                    best = (gap, c, e)
+        if best is None or len(arms) < 3:
+            continue
+        gap, c, e = best
+        if e == par[b] or (c != par[b] and len(children(c)) < len(children(e))):
+            c, e = c, e  # c, a child of b, goes into e
+        else:
+            c, e = e, c
+        if {c, e} & (changed | moved) or any(k in changed | moved for k in children(c)):
+            continue
+        for k in children(c):
+            par[k] = e
+        alive[c] = False
+        changed.update([b, c, e] + children(e))
+        moved.update([c, e])
+        log.append({"round": round_, "edit": "merge", "joint": c, "into": e, "why": "zip", "at": b, "gap": gap,
+                    "radii_mean": float(0.5 * (radii[c] + radii[e]))})
     # necks: a joint much thinner than every neighbour, merged into the nearest of them
     for c in range(len(par)):
         p = int(par[c])
