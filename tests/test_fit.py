@@ -416,15 +416,14 @@ def test_a_neck_is_merged_into_its_nearest_neighbour():
     assert not [e for e in log if e.get("why") == "neck"], log
 
 
-def test_one_tube_traced_twice_from_a_joint_is_pruned_or_zipped_and_a_real_fork_is_not():
-    """``edits.alongside_radii`` and ``edits.zip_radii`` on skeletons and points written here (no
-    fit): a trunk of radius 0.2 along y from 0 to 3, whose joint at y = 1.5 has two children
-    0.07 apart at y = 2 (one tube traced twice, as fits of the grown trees kept beside their
-    junctions), each going on to a tip near the trunk's top. Alongside (the default): one tip
-    branch is pruned whole, the joint is left with one child. Zip: one child is merged into the
-    other (logged at the joint), which carries both continuations. A real fork, two branches of
-    radius 0.1 leaving the joint 60 degrees apart, whose first joints lie 0.5 apart, is kept by
-    both; with both at 0, nothing is edited."""
+def test_one_tube_traced_twice_from_a_joint_is_zipped_and_a_real_fork_is_not():
+    """``edits.zip_radii`` on skeletons and points written here (no fit): a trunk of radius 0.2
+    along y from 0 to 3, whose joint at y = 1.5 has two children 0.07 apart at y = 2 (one tube
+    traced twice, as fits of the grown trees kept beside their junctions), each going on up the
+    trunk. One child is merged into the other (logged as a zip at the joint), the joint is left
+    with one child, and the merged joint carries both continuations. A real fork, two branches
+    of radius 0.1 leaving the joint 60 degrees apart, whose first joints lie 0.5 apart, is
+    kept; with ``zip_radii: 0`` nothing is zipped."""
     from jskel.fit._config import EditsConfig
     from jskel.fit._topology import edited
 
@@ -435,15 +434,12 @@ def test_one_tube_traced_twice_from_a_joint_is_pruned_or_zipped_and_a_real_fork_
     parents = np.array([-1, 0, 1, 1, 2, 3])
     kw = dict(prune_points=0, merge_length=0.0, merge_radii=0.0, merge_angle=0.0, split_residual=100.0, spur_radii=0.0, neck_ratio=0.0)
     j, r, p, log = edited(pts, joints, radii, parents, EditsConfig(**kw), 0.01 * 3.0, 3.0, 1)
-    assert [(e["edit"], e["why"], e["parent"], e["joints"]) for e in log] == [("prune", "alongside", 1, 2)], log
-    assert len(j) == 4 and np.max(np.bincount(p[p >= 0])) == 1  # a chain: the trunk
-    j, r, p, log = edited(pts, joints, radii, parents, EditsConfig(**kw, alongside_radii=0.0, zip_radii=1.0), 0.01 * 3.0, 3.0, 1)
     assert [(e["edit"], e["why"], e["at"]) for e in log] == [("merge", "zip", 1)], log
     assert {e["joint"] for e in log} | {e["into"] for e in log} == {2, 3}
     kids = np.bincount(p[p >= 0], minlength=len(p))
     assert len(j) == 5 and kids[np.argmin(np.linalg.norm(j - [0, 1.5, 0], axis=1))] == 1
     assert np.max(kids) == 2  # the kept joint at y = 2 carries both continuations
-    _, _, _, log = edited(pts, joints, radii, parents, EditsConfig(**kw, alongside_radii=0.0, zip_radii=0.0), 0.01 * 3.0, 3.0, 1)
+    _, _, _, log = edited(pts, joints, radii, parents, EditsConfig(**kw, zip_radii=0.0), 0.01 * 3.0, 3.0, 1)
     assert log == [], log
     # a real fork: branches 60 degrees apart, their first joints 0.5 from the joint and each other
     arm = lambda deg: np.array([0.0, 1.5, 0.0]) + 0.5 * np.array([np.sin(np.radians(deg)), np.cos(np.radians(deg)), 0.0])  # noqa: E731
@@ -451,9 +447,8 @@ def test_one_tube_traced_twice_from_a_joint_is_pruned_or_zipped_and_a_real_fork_
                            tube(np.array([0.0, 1.5, 0.0]), arm(30) * 2 - [0, 1.5, 0], 0.1, 800)])
     joints = np.array([[0, 0, 0], [0, 1.5, 0], arm(-30), arm(30), arm(-30) * 2 - [0, 1.5, 0], arm(30) * 2 - [0, 1.5, 0]])
     radii = np.array([0.2, 0.2, 0.1, 0.1, 0.1, 0.1])
-    for extra in ({}, {"alongside_radii": 0.0, "zip_radii": 1.0}):
-        _, _, _, log = edited(fork, joints, radii, parents, EditsConfig(**kw, **extra), 0.01 * 3.0, 3.0, 1)
-        assert log == [], (extra, log)
+    _, _, _, log = edited(fork, joints, radii, parents, EditsConfig(**kw), 0.01 * 3.0, 3.0, 1)
+    assert log == [], log
 
 
 def test_an_outside_weight_makes_the_radius_enclose_the_points():

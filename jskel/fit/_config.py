@@ -158,9 +158,8 @@ class SolverConfig(StrictModel):
 class EditsConfig(StrictModel):
     """Topology edits between rounds of the fit (``jskel/fit/_topology.py``): after each round
     but the last, tips that fewer than ``prune_points`` points are nearest to and tip branches
-    ending within ``spur_radii`` radii of the tube they leave or beginning beside another arm
-    of their joint (``alongside_radii``) are pruned, two segments leaving a joint side by side
-    (far joints within ``zip_radii`` radii) are zipped, joints thinner than
+    ending within ``spur_radii`` radii of the tube they leave are pruned, two segments leaving
+    a joint side by side (far joints within ``zip_radii`` radii) are zipped, joints thinner than
     ``neck_ratio`` of every neighbour, segments shorter than ``merge_length`` (x extent) or
     ``merge_radii`` radii and joints where a chain turns by less
     than ``merge_angle`` degrees are merged, and segments whose points lie further than
@@ -181,13 +180,9 @@ class EditsConfig(StrictModel):
     """A tip branch (from a tip to the first joint with another branch) whose tip lies within
     this many radii of another segment's axis at that joint is pruned whole: a bump of the tube
     it leaves, not a branch."""
-    alongside_radii: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
-    """A tip branch whose first joint lies closer than this many times the mean radius to the
-    far joint of another segment at the joint it leaves (one tube traced twice) is pruned whole."""
-    zip_radii: Annotated[float, Field(ge=0.0, le=100.0)] = 0.0
+    zip_radii: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
     """Two segments leaving one joint whose far joints lie closer than this many times their
-    mean radius are one tube traced twice: the child one is merged into the other (0: never;
-    docs/fitting.md has the tree benchmark with 1)."""
+    mean radius are one tube traced twice: the child one is merged into the other (0: never)."""
     neck_ratio: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
     """A joint whose radius is below this fraction of every neighbour's (a neck) is merged into
     its nearest neighbour: a connection the fit has hidden inside the tubes around it."""

@@ -149,14 +149,10 @@ def edited(points, joints, radii, parents, cfg, scale: float, extent: float, rou
             continue
         others = [k for k in children(b) if k not in chain] + ([int(par[b])] if par[b] >= 0 else [])
         depth = min(_inside(joints[c], joints[b], joints[k], radii[b], radii[k]) for k in others)
-        # alongside: the branch's first joint lies within the tube of another arm of b, beside
-        # that arm's far joint: the same tube traced twice from b
-        first = chain[-1]
-        beside = min(float(np.linalg.norm(joints[first] - joints[k])) / max(0.5 * (radii[first] + radii[k]), 1e-300) for k in others)
-        if depth < cfg.spur_radii or beside < cfg.alongside_radii:
+        if depth < cfg.spur_radii:
             alive[chain] = False
-            log.append({"round": round_, "edit": "prune", "joint": c, "parent": b, "why": "spur" if depth < cfg.spur_radii else "alongside",
-                        "length": length, "radii_from_axis": depth, "radii_beside": beside, "joints": len(chain)})
+            log.append({"round": round_, "edit": "prune", "joint": c, "parent": b, "why": "spur", "length": length,
+                        "radii_from_axis": depth, "joints": len(chain)})
     root = int(np.nonzero(par < 0)[0][0])
     kids = children(root)
     if len(kids) == 1 and np.sum(alive) > 2 and count[kids[0]] < cfg.prune_points:
