@@ -432,14 +432,16 @@ def test_one_tube_traced_twice_from_a_joint_is_zipped_and_a_real_fork_is_not():
     joints = np.array([[0, 0, 0], [0, 1.5, 0], [0, 2.0, 0], [0.07, 2.0, 0], [0, 3.0, 0], [0.05, 2.9, 0]])
     radii = np.full(6, 0.2)
     parents = np.array([-1, 0, 1, 1, 2, 3])
-    kw = dict(prune_points=0, merge_length=0.0, merge_radii=0.0, merge_angle=0.0, split_residual=100.0, spur_radii=0.0, neck_ratio=0.0)
+    kw = dict(prune_points=0, merge_length=0.0, merge_radii=0.0, merge_angle=0.0, split_residual=100.0, spur_radii=0.0, neck_ratio=0.0,
+              zip_radii=1.0)
+    assert EditsConfig().zip_radii == 0.0  # an option, off by default (docs/fitting.md)
     j, r, p, log = edited(pts, joints, radii, parents, EditsConfig(**kw), 0.01 * 3.0, 3.0, 1)
     assert [(e["edit"], e["why"], e["at"]) for e in log] == [("merge", "zip", 1)], log
     assert {e["joint"] for e in log} | {e["into"] for e in log} == {2, 3}
     kids = np.bincount(p[p >= 0], minlength=len(p))
     assert len(j) == 5 and kids[np.argmin(np.linalg.norm(j - [0, 1.5, 0], axis=1))] == 1
     assert np.max(kids) == 2  # the kept joint at y = 2 carries both continuations
-    _, _, _, log = edited(pts, joints, radii, parents, EditsConfig(**kw, zip_radii=0.0), 0.01 * 3.0, 3.0, 1)
+    _, _, _, log = edited(pts, joints, radii, parents, EditsConfig(**{**kw, "zip_radii": 0.0}), 0.01 * 3.0, 3.0, 1)
     assert log == [], log
     # a real fork: branches 60 degrees apart, their first joints 0.5 from the joint and each other
     arm = lambda deg: np.array([0.0, 1.5, 0.0]) + 0.5 * np.array([np.sin(np.radians(deg)), np.cos(np.radians(deg)), 0.0])  # noqa: E731

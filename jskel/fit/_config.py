@@ -180,9 +180,10 @@ class EditsConfig(StrictModel):
     """A tip branch (from a tip to the first joint with another branch) whose tip lies within
     this many radii of another segment's axis at that joint is pruned whole: a bump of the tube
     it leaves, not a branch."""
-    zip_radii: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
+    zip_radii: Annotated[float, Field(ge=0.0, le=100.0)] = 0.0
     """Two segments leaving one joint whose far joints lie closer than this many times their
-    mean radius are one tube traced twice: the child one is merged into the other (0: never)."""
+    mean radius are one tube traced twice: the child one is merged into the other (0: never,
+    the default; docs/fitting.md has the tree benchmark with 1)."""
     neck_ratio: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
     """A joint whose radius is below this fraction of every neighbour's (a neck) is merged into
     its nearest neighbour: a connection the fit has hidden inside the tubes around it."""
