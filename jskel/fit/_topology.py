@@ -97,10 +97,11 @@ def breadth_first(joints, radii, parents):
     return joints[order], radii[order], np.array([-1 if parents[o] < 0 else pos[int(parents[o])] for o in order])
 
 
-def edited(points, joints, radii, parents, cfg, scale: float, extent: float, round_: int):
+def edited(points, joints, radii, parents, cfg, scale: float, extent: float, round_: int, prunes_only: bool = False):
     """(joints, radii, parents, log) after one round of edits (module docstring); ``cfg`` the
     fit file's ``edits`` section, ``scale`` the robust scale in world units. The log names each
-    edit, its joints (this round's numbering) and why."""
+    edit, its joints (this round's numbering) and why. ``prunes_only``: the prunes alone (after
+    the last round, where no fit follows: removing a branch leaves the rest as fitted)."""
     joints, radii, par = np.asarray(joints, float).copy(), np.asarray(radii, float).copy(), np.asarray(parents).copy()
     seg, dist = nearest_segments(points, joints, radii, par)
     count = np.bincount(seg, minlength=len(par))
@@ -158,6 +159,8 @@ def edited(points, joints, radii, parents, cfg, scale: float, extent: float, rou
     if len(kids) == 1 and np.sum(alive) > 2 and count[kids[0]] < cfg.prune_points:
         alive[root], par[kids[0]] = False, -1
         log.append({"round": round_, "edit": "prune", "joint": root, "parent": -1, "points": int(count[kids[0]])})
+    if prunes_only:
+        return _kept(joints, radii, par, alive) + (log,)
     # merge: tiny segments, then joints where a chain goes on nearly straight and the straight
     # segment explains their points within one robust scale as well; an edit changes segments
     # (by child joint) and may move a joint, and no later edit this round uses either
@@ -264,8 +267,12 @@ def edited(points, joints, radii, parents, cfg, scale: float, extent: float, rou
         radii = np.concatenate([radii, np.array(new_r)])
         par = np.concatenate([par, np.array(new_p)])
         alive = np.concatenate([alive, np.ones(len(new_j), bool)])
+    return _kept(joints, radii, par, alive) + (log,)
+
+
+def _kept(joints, radii, par, alive) -> tuple:
+    """(joints, radii, parents) of the alive joints, renumbered breadth first."""
     keep = np.nonzero(alive)[0]
     pos = {int(k): i for i, k in enumerate(keep)}
     j, r, p = joints[keep], radii[keep], np.array([-1 if par[k] < 0 else pos[int(par[k])] for k in keep])
-    j, r, p = breadth_first(j, r, p)
-    return j, r, p, log
+    return breadth_first(j, r, p)
