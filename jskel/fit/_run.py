@@ -147,9 +147,9 @@ def fitted_in_rounds(solver, edits, points, joints, radii, parents, dtype, seed:
         res = fit_points(points, joints, radii, parents, solver, dtype, seed=seed, perturb=perturb if k == 0 else 0.0)
         k += 1
         if k == rounds:
-            if edits is not None and edits.final_prunes:
-                # the last round's prunes (no fit follows; nothing else is edited)
-                j, r, p, done = edited(points, res.joints, res.radii, res.parents, edits, solver.scale * ext, ext, k, prunes_only=True)
+            if edits is not None and edits.final_spurs:
+                # the last round's spurs (no fit follows; nothing else is edited)
+                j, r, p, done = edited(points, res.joints, res.radii, res.parents, edits, solver.scale * ext, ext, k, spurs_only=True)
                 if done:
                     res = res._replace(joints=j, radii=r, parents=p)
                     log.extend(done)

@@ -97,11 +97,11 @@ def breadth_first(joints, radii, parents):
     return joints[order], radii[order], np.array([-1 if parents[o] < 0 else pos[int(parents[o])] for o in order])
 
 
-def edited(points, joints, radii, parents, cfg, scale: float, extent: float, round_: int, prunes_only: bool = False):
+def edited(points, joints, radii, parents, cfg, scale: float, extent: float, round_: int, spurs_only: bool = False):
     """(joints, radii, parents, log) after one round of edits (module docstring); ``cfg`` the
     fit file's ``edits`` section, ``scale`` the robust scale in world units. The log names each
-    edit, its joints (this round's numbering) and why. ``prunes_only``: the prunes alone (after
-    the last round, where no fit follows: removing a branch leaves the rest as fitted)."""
+    edit, its joints (this round's numbering) and why. ``spurs_only``: the spurs' prune alone
+    (after the last round, where no fit follows: removing a twig leaves the rest as fitted)."""
     joints, radii, par = np.asarray(joints, float).copy(), np.asarray(radii, float).copy(), np.asarray(parents).copy()
     seg, dist = nearest_segments(points, joints, radii, par)
     count = np.bincount(seg, minlength=len(par))
@@ -126,8 +126,9 @@ def edited(points, joints, radii, parents, cfg, scale: float, extent: float, rou
         _, other = nearest_segments(points[own], joints, radii, par, alive=rest)
         return spread(other) < spread(dist[own]) + scale
 
-    # prune: tips without support (not down to a single segment)
-    for c in range(len(par)):
+    # prune: tips without support (not down to a single segment); not after the last round,
+    # where a side branch the last fit left short beside a misplaced junction reads as unsupported
+    for c in range(len(par)) if not spurs_only else ():
         if np.sum(alive) <= 2:
             break
         p = int(par[c])
@@ -156,10 +157,10 @@ def edited(points, joints, radii, parents, cfg, scale: float, extent: float, rou
                         "radii_from_axis": depth, "joints": len(chain)})
     root = int(np.nonzero(par < 0)[0][0])
     kids = children(root)
-    if len(kids) == 1 and np.sum(alive) > 2 and count[kids[0]] < cfg.prune_points:
+    if len(kids) == 1 and np.sum(alive) > 2 and count[kids[0]] < cfg.prune_points and not spurs_only:
         alive[root], par[kids[0]] = False, -1
         log.append({"round": round_, "edit": "prune", "joint": root, "parent": -1, "points": int(count[kids[0]])})
-    if prunes_only:
+    if spurs_only:
         return _kept(joints, radii, par, alive) + (log,)
     # merge: tiny segments, then joints where a chain goes on nearly straight and the straight
     # segment explains their points within one robust scale as well; an edit changes segments
