@@ -336,6 +336,7 @@ def test_each_topology_edit_where_the_points_call_for_it():
     assert len(j) == len(joints) - 4 + 1 and p[0] == -1 and np.all(p[1:] < np.arange(1, len(p)))  # breadth first
     assert np.sum(np.bincount(p[p >= 0], minlength=len(p)) >= 2) == 1  # one branch point left, at (0, 3, 0) or its merge
     assert np.min(np.linalg.norm(j - 0.5 * (joints[7] + bend_top), axis=1)) < 1e-12  # the new joint, mid-segment
+    assert not EditsConfig().final_spurs  # an option, off by default (docs/fitting.md)
     # after the last round, the spurs alone: twig 9 (inside the trunk) goes, the twig 8 without
     # points is not a spur (its tip lies far from the trunk) and stays, as does every other joint
     j, r, p, log = edited(pts, joints, radii, parents, cfg, 0.01 * 5.0, 5.0, 3, spurs_only=True)

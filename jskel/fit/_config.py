@@ -164,7 +164,7 @@ class EditsConfig(StrictModel):
     ``merge_radii`` radii and joints where a chain turns by less
     than ``merge_angle`` degrees are merged, and segments whose points lie further than
     ``split_residual`` robust scales from them (root mean square) are split; after the last
-    round, its spurs alone (``final_spurs``); every edit is logged in fit.json. The rounds
+    round, optionally its spurs alone (``final_spurs``); every edit is logged in fit.json. The rounds
     stop early when a round edits nothing."""
 
     rounds: Annotated[int, Field(ge=1, le=20)] = 3
@@ -185,11 +185,11 @@ class EditsConfig(StrictModel):
     """Two segments leaving one joint whose far joints lie closer than this many times their
     mean radius are one tube traced twice: the child one is merged into the other (0: never,
     the default; docs/fitting.md has the tree benchmark with 1)."""
-    final_spurs: bool = True
+    final_spurs: bool = False
     """After the last round, its spurs are pruned (nothing else is edited, and no fit follows:
-    removing a twig leaves the rest of the skeleton as fitted), each logged like a round's. The
-    other prunes are not: a side branch the last fit left short beside a misplaced junction read
-    as unsupported in 3 of the 5-segment tree's 10 draws (docs/fitting.md)."""
+    removing a twig leaves the rest of the skeleton as fitted), each logged like a round's. Off
+    by default: in the tree benchmark it removed one or two extra tips of the grown trees but
+    also the side branch of one of the 5-segment tree's 10 draws (docs/fitting.md)."""
     neck_ratio: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
     """A joint whose radius is below this fraction of every neighbour's (a neck) is merged into
     its nearest neighbour: a connection the fit has hidden inside the tubes around it."""
