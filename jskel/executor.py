@@ -312,8 +312,9 @@ def replicated(params, mesh):
     """``params`` placed on every device of ``mesh`` (replicated). The same parameters as the
     last call (the same tree structure and the same JAX arrays, which are immutable) over an
     equal mesh are not copied again: a static scene cast or rendered frame after frame pays the
-    copy once, not per frame (docs/choices.md#replicated-params). The last parameters stay referenced until the next call. NumPy leaves, which can change in
-    place, are copied every time."""
+    copy once, not per frame (docs/choices.md#replicated-params). The last parameters stay
+    referenced until the next call. NumPy leaves, which can change in place, are copied every
+    time."""
     leaves, tree = jax.tree_util.tree_flatten(params)
     if _REPLICATED:
         m, t, was, out = _REPLICATED[0]
@@ -349,6 +350,8 @@ def resident_calls(batch_fn: Callable, params, rays: Rays, chunk: int = 65536, d
     order) and placed on the devices ahead of time, for timing the calls alone, with no host
     slicing or copies: how a peer whose rays already live in its own arrays is timed.
     Run them with ``compile_batch_fn(res.batch_fn, (params, res.calls[0]), res.mesh)``."""
+    if rays.size == 0:
+        raise ValueError("rays: the batch is empty")
     plan = _plan(batch_fn, params, rays, chunk, devices, None, group)
     slice_rays, lay, _ = _slicer(rays, plan)
     put = jax.devices()[0] if plan.mesh is None else jax.sharding.NamedSharding(plan.mesh, jax.sharding.PartitionSpec("rays"))

@@ -172,8 +172,8 @@ def chunks_per_call_of(render) -> int:
     128 chunks per device, 96 of them traced (``executor.calls_grouping``). With 64, a frame
     made two calls, and dispatching the second returned only once the first had run (a
     development timing of the dispatches), so the host's work around them was not hidden
-    behind the cast; 128 was measured against 1, 16 and 64 in ``experiments/bench_scale_cpu_paths.yaml`` (docs/performance.md,
-    docs/choices.md#chunks-per-call)."""
+    behind the cast; 128 was measured against 1, 16 and 64 in
+    ``experiments/bench_scale_cpu_paths.yaml`` (docs/performance.md, docs/choices.md#chunks-per-call)."""
     import jax
 
     if render.chunks_per_call != "auto":

@@ -164,8 +164,8 @@ class EditsConfig(StrictModel):
     ``merge_radii`` radii and joints where a chain turns by less
     than ``merge_angle`` degrees are merged, and segments whose points lie further than
     ``split_residual`` robust scales from them (root mean square) are split; after the last
-    round, optionally its spurs alone (``final_spurs``); every edit is logged in fit.json. The rounds
-    stop early when a round edits nothing."""
+    round, optionally its spurs alone (``final_spurs``); every edit is logged in fit.json. The
+    rounds stop early when a round edits nothing."""
 
     rounds: Annotated[int, Field(ge=1, le=20)] = 3
     """Fits in all, with edits between them."""

@@ -173,19 +173,19 @@ def edited(points, joints, radii, parents, cfg, scale: float, extent: float, rou
         if not alive[b] or cfg.zip_radii <= 0 or b in changed | moved:
             continue
         arms = children(b) + ([int(par[b])] if par[b] >= 0 else [])
+        if len(arms) < 3:
+            continue
         best = None
         for i, c in enumerate(arms):
             for e in arms[i + 1 :]:
                 gap = float(np.linalg.norm(joints[c] - joints[e]))
                 if gap < cfg.zip_radii * 0.5 * (radii[c] + radii[e]) and (best is None or gap < best[0]):
                     best = (gap, c, e)
-        if best is None or len(arms) < 3:
+        if best is None:
             continue
-        gap, c, e = best
-        if e == par[b] or (c != par[b] and len(children(c)) < len(children(e))):
-            c, e = c, e  # c, a child of b, goes into e
-        else:
-            c, e = e, c
+        gap, c, e = best  # c is a child of b (b's parent, if paired, comes last: e)
+        if e != par[b] and len(children(c)) >= len(children(e)):
+            c, e = e, c  # of two children, the one with fewer children goes into the other
         if {c, e} & (changed | moved) or any(k in changed | moved for k in children(c)):
             continue
         for k in children(c):

@@ -91,10 +91,10 @@ def _mitsuba_rows(exp, skeleton, variant: str, O, D, ref_t, runs: int, base: dic
     Mitsuba's casts are timed in turn with jskel's (``exp``, the reference setting: each run
     casts jskel with the host's copies, jskel on resident rays, then Mitsuba), and the ratios
     are of those medians (``interleaved: true``): timed in separate blocks, both systems' casts
-    drifted from one block to the next, and the ratios with them (docs/choices.md#interleaved-casts). Each cast is followed by a pause of
-    :data:`PAUSE`: right after Mitsuba's cast, jskel's cast with the host's copies read slower
-    than in a block of its own (Dr.Jit's worker threads are still busy for a moment after a
-    cast), and after the pause it read as in the block (docs/choices.md#interleaved-casts)."""
+    drifted from one block to the next, and the ratios with them. Each cast is followed by a
+    pause of :data:`PAUSE`: with none, jskel's cast with the host's copies read slower right
+    after Mitsuba's (Dr.Jit's worker threads are still busy for a moment after a cast)
+    (docs/choices.md#interleaved-casts)."""
     out = []
     once, resident = _jskel_casts(exp)
     for v in dict.fromkeys([variant, "scalar_rgb"]):

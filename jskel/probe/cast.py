@@ -16,16 +16,11 @@ import jax
 
 from .. import registry
 from ..config import chunk_of, chunks_per_call_of
-from ..executor import Resident, compile_batch_fn, map_chunks, resident_calls
+from ..executor import Resident, compile_batch_fn, map_chunks, replicated, resident_calls
 from ..interface import Object, cast_t_prim
 from ..render import camera_of, devices_of, dtype_of, framed
 from .study import shape_of
 from .timing import Spread, spread, warm_runs
-
-def on_accelerator() -> bool:
-    """Whether JAX's default backend is an accelerator."""
-    return jax.default_backend() != "cpu"
-
 
 def cast_once(exp, built=None) -> tuple[float, float, float]:
     """(build seconds, cast seconds, compile seconds) of one frame: the representation's build
@@ -61,11 +56,11 @@ def cast_resident(exp, built, resident: Resident) -> tuple[float, list]:
     (its rays are made into Dr.Jit arrays before its clock starts and its result is not
     copied back), where :func:`cast_once` also times laying the rays out for each call and
     copying the results back. The same compiled cast as ``cast_once``'s, every call
-    dispatched before one wait. On a GPU the copies are most of a 1024x768 cast; on the CPU
-    they were a sixth of the oasis' (docs/performance.md)."""
+    dispatched before one wait. On a GPU the copies are most of a 1024x768 cast; on the CPU a
+    smaller part of it (docs/performance.md, ``tests/scripts/host_path.py``)."""
     params = Object(built.params, built.static, shape_of(exp, "cast").type)
     if resident.mesh is not None:
-        params = jax.device_put(params, jax.sharding.NamedSharding(resident.mesh, jax.sharding.PartitionSpec()))
+        params = replicated(params, resident.mesh)
     compiled, _ = compile_batch_fn(resident.batch_fn, (params, resident.calls[0]), resident.mesh)
     jax.block_until_ready(params)
     t0 = time.perf_counter()
