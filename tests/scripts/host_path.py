@@ -34,13 +34,12 @@ import numpy as np  # noqa: E402
 from jskel import registry  # noqa: E402
 from jskel.compile.call_layout import aligned_zeros  # noqa: E402
 from jskel.config import load  # noqa: E402
-from jskel.executor import Live, compile_batch_fn  # noqa: E402
+from jskel.executor import compile_batch_fn  # noqa: E402
 from jskel.measure.files import provenance  # noqa: E402
 from jskel.probe.cast import cast_once, cast_resident, resident_rays  # noqa: E402
 from jskel.probe.study import shape_of  # noqa: E402
 from jskel.interface import Object  # noqa: E402
 from jskel.render import dtype_of  # noqa: E402
-from jskel.rays import Rays  # noqa: E402
 
 
 def _offset(x, off: int):
