@@ -25,7 +25,7 @@ from ._distance import segments_of
 from ._fit import fit_many, fit_points, jacobian_of
 from ._measures import culling_exact_fraction
 from ._points import sample_surface
-from ._problem import loss, normaliser_of, problem_of
+from ._problem import blocked, loss, normaliser_of, ordered, problem_of
 from ._starts import perturbed
 
 
@@ -52,6 +52,10 @@ class FitBench(StrictModel):
     """The solver's joint smoothness weight."""
     candidates: Annotated[int, Field(ge=0, le=4096)] = 8
     """Segments each point is measured against (0: all)."""
+    block: Annotated[int, Field(ge=0, le=65536)] = 64
+    """``solver.block``: points sharing a list to choose their candidates from (0: none)."""
+    block_candidates: Annotated[int, Field(ge=1, le=4096)] = 32
+    """``solver.block_candidates``: segments in a block's list."""
     max_seconds: Annotated[float, Field(gt=0.0)] | None = 300.0
     """Limit of each fit's stepping loop; a row says when it ran out."""
     jacobian: Literal["auto", "dense", "sparse", "jaxopt"] = "auto"
@@ -115,7 +119,7 @@ def _loss_at(points, joints, radii, parents, s: SolverConfig) -> float:
     seg = segments_of(joints, radii, parents)
     pr = problem_of(seg, s)
     nz = normaliser_of(points)
-    return float(loss(jnp.asarray(nz.start(joints, radii, pr), jnp.float32), jnp.asarray(nz.points(points), jnp.float32), pr))
+    return float(loss(jnp.asarray(nz.start(joints, radii, pr), jnp.float32), jnp.asarray(nz.points(ordered(points, pr)), jnp.float32), pr))
 
 
 def run_fit_bench(b: FitBench, emit) -> list[dict]:
@@ -138,6 +142,7 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
             for name in b.solvers:
                 s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter if name != "adam" else 10 * b.maxiter,
                                  learning_rate=b.learning_rate, smoothness=b.smoothness, candidates=b.candidates,
+                                 block=b.block, block_candidates=b.block_candidates,
                                  max_seconds=b.max_seconds, jacobian=b.jacobian)
                 try:
                     res = fit_points(pts, j0, r0, p, s)
@@ -147,7 +152,8 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                     rows.append(row)
                     continue
                 jac = jacobian_of(s, n + 5 * (segs - 1), 4 * (segs + 1))
-                row = {"solver": name, "jacobian": jac, "loss": b.loss, "smoothness": b.smoothness, "points": n, "segments": segs, "compile_s": round(res.compile_s, 3),
+                row = {"solver": name, "jacobian": jac, "loss": b.loss, "smoothness": b.smoothness, "points": n, "segments": segs,
+                       "candidate_blocks": blocked(problem_of(segments_of(j0, r0, p), s), n), "compile_s": round(res.compile_s, 3),
                        "seconds": round(res.seconds, 4), "iterations": res.iterations, "converged": res.converged,
                        "s_per_iteration": round(res.seconds / max(res.iterations, 1), 5),
                        "joint_error_max_of_length": round(float(np.max(np.linalg.norm(res.joints - j, axis=1)) / length), 5),

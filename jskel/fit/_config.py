@@ -141,6 +141,12 @@ class SolverConfig(StrictModel):
     """Smallest radius, a fraction of the extent (radii = min + s softplus(u / s), ``_problem.RADIUS_SOFTNESS``)."""
     candidates: Annotated[int, Field(ge=0, le=4096)] = 8
     """Nearest segments each point is measured against (0: all)."""
+    block: Annotated[int, Field(ge=0, le=65536)] = 64
+    """Points (near ones together) that first share a list of ``block_candidates`` segments to
+    choose their ``candidates`` from, when the skeleton has more segments than that (0: every
+    point chooses among every segment; ``_distance._candidates``)."""
+    block_candidates: Annotated[int, Field(ge=1, le=4096)] = 32
+    """Segments in a block's list (more than ``candidates``)."""
     max_seconds: Annotated[float, Field(gt=0.0)] | None = None
     """Stop the stepping loop after this long (reported); unset: no limit."""
     validity: Annotated[float, Field(ge=0.0)] = 1.0
@@ -153,6 +159,13 @@ class SolverConfig(StrictModel):
     expectile of the points' radial spread instead of its mean."""
     jacobian: Literal["auto", "dense", "sparse", "jaxopt"] = "auto"
     """``lm`` / ``gauss_newton``: dense or sparse normal equations, ``auto`` (sparse for big problems), or jaxopt's solvers."""
+
+    @model_validator(mode="after")
+    def _block_list_longer(self):
+        if self.block > 0 and self.candidates > 0 and self.block_candidates <= self.candidates:
+            raise ValueError(f"block_candidates: {self.block_candidates} must exceed candidates ({self.candidates}) "
+                             "while block > 0 (or set block: 0)")
+        return self
 
 
 class EditsConfig(StrictModel):

@@ -17,7 +17,7 @@ from .. import checks, progress
 from . import _solvers
 from ._config import SolverConfig
 from ._distance import segments_of
-from ._problem import Problem, dense_equations, loss, normal_equations, normaliser_of, problem_of, residuals
+from ._problem import Problem, dense_equations, loss, normal_equations, normaliser_of, ordered, problem_of, residuals
 from ._starts import perturbed
 
 
@@ -199,7 +199,7 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
         raise ValueError(f"points: {len(points)} points for {n_par} unknowns (4 per joint of {len(joints0)}); need at least as many points")
     pr = problem_of(seg, s)
     nz = normaliser_of(points)
-    pts = jnp.asarray(np.asarray(nz.points(points), dtype))  # cast on the host: no device program for it
+    pts = jnp.asarray(np.asarray(nz.points(ordered(points, pr)), dtype))  # cast on the host: no device program for it
     key = solver_key(s, len(points) + 5 * len(pr.triples), n_par)
     x0 = jnp.asarray(np.asarray(nz.start(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), pr), dtype))
     t_all = time.perf_counter()
@@ -339,7 +339,7 @@ def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32
     seg = _checked_batch(clouds, j0, r0, parents)
     pr = problem_of(seg, s)
     nzs = [normaliser_of(c) for c in clouds]
-    pts = jnp.asarray(np.stack([nz.points(c) for nz, c in zip(nzs, clouds)]), dtype)
+    pts = jnp.asarray(np.stack([nz.points(ordered(c, pr)) for nz, c in zip(nzs, clouds)]), dtype)
     x0 = jnp.asarray(np.stack([nz.start(j, r, pr) for nz, j, r in zip(nzs, j0, r0)]), dtype)
     key = solver_key(s, clouds.shape[1] + 5 * len(pr.triples), x0.shape[-1])
     t0 = time.perf_counter()

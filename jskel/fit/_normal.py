@@ -128,14 +128,14 @@ def _decode(out, colors, joints, mask):
     return vals
 
 
-def point_rows(flat, seg: Segments, points, candidates: int, robust):
+def point_rows(flat, seg: Segments, points, candidates: int, robust, block: int = 0, per_block: int = 0):
     """Each point's robust residual (N,), its gradient with respect to the 17 numbers of the
     one segment it depends on (N, 17), that segment (N,), and ``spill`` (N,): the squared
     gradient norm on its other candidates (zero unless a tie split it)."""
     s = flat.shape[0]
     cap_b, cap_t = (jnp.asarray(c) for c in caps_of(seg))
     if 0 < candidates < s:
-        idx, _ = _candidates(geometry_of_flat(flat), points, candidates)
+        idx, _ = _candidates(geometry_of_flat(flat), points, candidates, block, per_block)
     else:
         idx = jnp.broadcast_to(jnp.arange(s), (points.shape[0], s))
 
@@ -151,7 +151,7 @@ def point_rows(flat, seg: Segments, points, candidates: int, robust):
     return jax.vmap(one)(points, idx)
 
 
-def normal_equations(x, points, model_fn, seg: Segments, n_joints: int, candidates: int, robust):
+def normal_equations(x, points, model_fn, seg: Segments, n_joints: int, candidates: int, robust, block: int = 0, per_block: int = 0):
     """(r, J^T J, J^T r) of the fit's residuals at ``x`` (4J,): ``r`` in ``_problem.residuals``'s
     order (points, then penalty rows).
 
@@ -170,7 +170,7 @@ def normal_equations(x, points, model_fn, seg: Segments, n_joints: int, candidat
     gj = _decode(dflat, st.colors, st.seg_joints, st.seg_mask).reshape(nseg, FIELDS, -1)  # (S, 17, 4D)
     sidx = _param_index(st.seg_joints, n_joints).reshape(nseg, -1)  # (S, 4D)
 
-    r, rows, which, _ = point_rows(flat, seg, points, candidates, robust)
+    r, rows, which, _ = point_rows(flat, seg, points, candidates, robust, block, per_block)
     m = jax.ops.segment_sum(rows[:, :, None] * rows[:, None, :], which, nseg)  # (S, 17, 17)
     v = jax.ops.segment_sum(rows * r[:, None], which, nseg)  # (S, 17)
     h = jnp.einsum("sfa,sfg,sgb->sab", gj, m, gj)

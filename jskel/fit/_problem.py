@@ -31,7 +31,7 @@ import numpy as np
 from ..frusta import ELLIPSE_MARGIN
 from . import _normal, _solvers
 from ._config import SolverConfig
-from ._distance import Segments, distances_of, geometry, margins_of
+from ._distance import Segments, distances_of, geometry, margins_of, spatial_order
 
 
 def _softplus_inv(y):
@@ -51,6 +51,8 @@ class Problem(NamedTuple):
     validity: float
     candidates: int
     outside: float = 1.0
+    block: int = 0
+    per_block: int = 0
 
 
 VALID_MARGIN = 2.0 * ELLIPSE_MARGIN  # the penalty starts where |n . m| - sin(half-angle) falls below this
@@ -59,7 +61,7 @@ VALID_MARGIN = 2.0 * ELLIPSE_MARGIN  # the penalty starts where |n . m| - sin(ha
 def problem_of(seg: Segments, s: SolverConfig) -> Problem:
     triples = tuple((int(seg.start[a]), int(seg.start[b]), int(seg.end[b])) for a, b in zip(seg.cont_a, seg.cont_b))
     return Problem(seg, triples, s.loss, float(s.scale), float(s.smoothness), float(s.min_radius), float(s.validity), int(s.candidates),
-                   float(s.outside))
+                   float(s.outside), int(s.block), int(s.block_candidates))
 
 
 def point_residuals(d, pr: Problem):
@@ -112,7 +114,7 @@ def residuals(x, points, pr: Problem):
     """Robust point residuals (N,), then the penalty rows (:func:`penalty_rows`), in normalised units."""
     joints, u = unpack(x)
     g = geometry(joints, radii_of(u, pr), pr.seg)  # once, for the distances and the plane margins
-    d = distances_of(g, pr.seg, points, pr.candidates)[0]
+    d = distances_of(g, pr.seg, points, pr.candidates, *blocks_of(pr, points.shape[0]))[0]
     r = point_residuals(d, pr)
     return jnp.concatenate([r, penalty_rows(joints, g, pr).reshape(-1)])
 
@@ -126,7 +128,7 @@ def normal_equations(x, points, pr: Problem):
         return g, penalty_rows(joints, g, pr)
 
     return _normal.normal_equations(x, points, model, pr.seg, x.shape[-1] // 4, pr.candidates,
-                                    lambda d: point_residuals(d, pr))
+                                    lambda d: point_residuals(d, pr), *blocks_of(pr, points.shape[0]))
 
 
 def dense_equations(x, points, pr: Problem):
@@ -162,6 +164,32 @@ class Normaliser(NamedTuple):
         joints, u = unpack(np.asarray(x, np.float64))
         r = (pr.min_radius + RADIUS_SOFTNESS * np.logaddexp(u / RADIUS_SOFTNESS, 0.0)) * self.extent
         return joints * self.extent + self.centre, r
+
+
+def ordered(points, pr: Problem) -> np.ndarray:
+    """``points`` (host) in the order the fit reads them: along a Morton curve where the
+    candidate choice goes by blocks of consecutive points (``pr.block``, more segments than a
+    block's list and more points than a block; ``_distance._candidates``), else as given. The
+    loss is a sum over the points, so their order changes only its rounding (but a fit's path
+    can turn on that)."""
+    p = np.asarray(points)
+    return p[spatial_order(p)] if blocked(pr, len(p)) else p
+
+
+#: points x segments from which the candidate choice goes by blocks (below it the choice over
+#: every segment costs little, and the blocks' program would be compiled for nothing)
+BLOCK_FROM = 1 << 20
+
+
+def blocked(pr: Problem, n: int) -> bool:
+    """Whether a fit of ``n`` points chooses its candidates by blocks (``solver.block``)."""
+    s = len(pr.seg.start)
+    return pr.block > 0 and 0 < pr.candidates < pr.per_block < s and n > pr.block and n * s >= BLOCK_FROM
+
+
+def blocks_of(pr: Problem, n: int) -> tuple[int, int]:
+    """(block, per_block) of ``_distance.distances_of`` for ``n`` points: (0, 0) unless :func:`blocked`."""
+    return (pr.block, pr.per_block) if blocked(pr, n) else (0, 0)
 
 
 def normaliser_of(points) -> Normaliser:
