@@ -3,8 +3,7 @@ a dense Jacobian, so Levenberg-Marquardt and Gauss-Newton fit chains of hundreds
 
 A point's residual is a function of one segment's frusta geometry: the signed distance is a
 minimum over the point's candidate segments (``_distance._signed``), so its gradient reaches
-only the segment that attains it (ties, of measure zero, split it; :func:`point_rows` reports
-the gradient left outside the kept segment as ``spill``, which tests assert is zero). A
+only the segment that attains it (ties, of measure zero, go to one; :func:`point_rows`). A
 segment's geometry (``Geometry``: axis start, direction, length, radii, its two cutting planes:
 17 numbers) depends on at most four joints: its own two, and the far joints of the segment it
 continues and of the one continuing it (the shared planes of Eq. 3-5 of Bhagvat et al. 2009,
@@ -38,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._distance import Geometry, Segments, _candidates, _signed, caps_of
+from ._distance import Geometry, Segments, _candidates, caps_of, segment_distances
 
 FIELDS = 17  # numbers per segment in Geometry (c1 3, m 3, h, r1, r2, nb 3, db, nt 3, dt)
 
@@ -130,8 +129,14 @@ def _decode(out, colors, joints, mask):
 
 def point_rows(flat, seg: Segments, points, candidates: int, robust, block: int = 0, per_block: int = 0):
     """Each point's robust residual (N,), its gradient with respect to the 17 numbers of the
-    one segment it depends on (N, 17), that segment (N,), and ``spill`` (N,): the squared
-    gradient norm on its other candidates (zero unless a tie split it)."""
+    one segment it depends on (N, 17), and that segment (N,).
+
+    The signed distance (``_distance._signed``) is the minimum over the point's candidates of
+    one of two per-segment distances (to the pieces bounded by all their planes, or capped at
+    free ends only, chosen by the candidates together), so its value and gradient are those of
+    the winning segment's distance alone: the candidates are measured forward only, and the
+    reverse pass runs on the winner's 17 numbers (it ran on all candidates' before, their
+    gradients zero but the winner's; ties, of measure zero, go to the first)."""
     s = flat.shape[0]
     cap_b, cap_t = (jnp.asarray(c) for c in caps_of(seg))
     if 0 < candidates < s:
@@ -140,13 +145,20 @@ def point_rows(flat, seg: Segments, points, candidates: int, robust, block: int 
         idx = jnp.broadcast_to(jnp.arange(s), (points.shape[0], s))
 
     def one(p, i):
-        def f(sub):
-            return robust(_signed(geometry_of_flat(sub), p, cap_b[i], cap_t[i]))
+        sub = geometry_of_flat(jax.lax.stop_gradient(flat[i]))
+        cb, ct = cap_b[i], cap_t[i]
+        d_cap, within = segment_distances(sub, p, cb, ct)
+        d_all = segment_distances(sub, p)[0]
+        use_all = (jnp.min(d_all) > 0) | ~jnp.any(within)  # as _signed chooses
+        a = jnp.where(use_all, jnp.argmin(d_all), jnp.argmin(jnp.where(within, d_cap, jnp.inf)))
 
-        r, gsub = jax.value_and_grad(f)(flat[i])
-        n2 = jnp.sum(gsub * gsub, -1)
-        a = jnp.argmax(n2)
-        return r, gsub[a], i[a], jnp.sum(n2) - n2[a]
+        def f(row):
+            g1 = geometry_of_flat(row[None])
+            v = jnp.where(use_all, segment_distances(g1, p)[0][0], segment_distances(g1, p, cb[a][None], ct[a][None])[0][0])
+            return robust(v)
+
+        r, grow = jax.value_and_grad(f)(flat[i[a]])
+        return r, grow, i[a]
 
     return jax.vmap(one)(points, idx)
 
@@ -170,7 +182,7 @@ def normal_equations(x, points, model_fn, seg: Segments, n_joints: int, candidat
     gj = _decode(dflat, st.colors, st.seg_joints, st.seg_mask).reshape(nseg, FIELDS, -1)  # (S, 17, 4D)
     sidx = _param_index(st.seg_joints, n_joints).reshape(nseg, -1)  # (S, 4D)
 
-    r, rows, which, _ = point_rows(flat, seg, points, candidates, robust, block, per_block)
+    r, rows, which = point_rows(flat, seg, points, candidates, robust, block, per_block)
     m = jax.ops.segment_sum(rows[:, :, None] * rows[:, None, :], which, nseg)  # (S, 17, 17)
     v = jax.ops.segment_sum(rows * r[:, None], which, nseg)  # (S, 17)
     h = jnp.einsum("sfa,sfg,sgb->sab", gj, m, gj)
