@@ -602,20 +602,26 @@ def test_jitted_distance_of_a_long_chain_is_zero_on_its_surface():
     assert np.max(np.abs(d)) < 1e-4
 
 
+def _chain_and_cloud(n_surface: int, seed: int):
+    """A 50-segment bent chain (joints, radii, parents, Segments) and points about it: its
+    surface with noise, as many 0.3 inside it, and 500 uniform outliers up to 3 units beyond."""
+    from jskel.fit import sample_surface
+    from jskel.fit._bench import bent_chain
+
+    j, r, p = bent_chain(50, 0)
+    rng = np.random.default_rng(seed)
+    surf = sample_surface(j, r, p, n_surface, rng)
+    inward = (j.mean(0) - surf) / np.linalg.norm(j.mean(0) - surf, axis=1, keepdims=True)
+    pts = np.concatenate([surf + rng.normal(0, 0.05, surf.shape), surf + 0.3 * inward, rng.uniform(j.min(0) - 3, j.max(0) + 3, (500, 3))])
+    return j, r, p, segments_of(j, r, p), pts
+
+
 def test_culled_distances_equal_all_segments_where_certified():
     """Each point measured against its 8 nearest segments (by a lower bound) of a 50-segment
     chain: on and off the surface, inside, and far outliers, the culled distance equals the
     distance over all 50 segments wherever ``culling_exact`` certifies it, and it certifies
     nearly every point; the smallest lower bound never exceeds the distance over all segments."""
-    from jskel.fit import sample_surface
-    from jskel.fit._bench import bent_chain
-
-    j, r, p = bent_chain(50, 0)
-    seg = segments_of(j, r, p)
-    rng = np.random.default_rng(4)
-    surf = sample_surface(j, r, p, 1500, rng)
-    pts = np.concatenate([surf + rng.normal(0, 0.05, surf.shape), surf + 0.3 * (j.mean(0) - surf) / np.linalg.norm(j.mean(0) - surf, axis=1, keepdims=True),
-                          rng.uniform(j.min(0) - 3, j.max(0) + 3, (500, 3))])
+    j, r, p, seg, pts = _chain_and_cloud(1500, 4)
     args = (jnp.asarray(j, jnp.float32), jnp.asarray(r, jnp.float32), seg, jnp.asarray(pts, jnp.float32))
     full = dist(j, r, seg, pts)
     culled = dist(j, r, seg, pts, 8)
@@ -637,17 +643,10 @@ def test_block_lists_choose_what_every_point_would_and_certify_honestly():
     and the certificate holds as often; shuffled, every block is spread over the whole cloud,
     most points are unsure of their block's list and fall back 500 at a time (several passes),
     and the distances are again every point's own."""
-    from jskel.fit import sample_surface
-    from jskel.fit._bench import bent_chain
     from jskel.fit._distance import spatial_order
 
-    j, r, p = bent_chain(50, 0)
-    seg = segments_of(j, r, p)
-    rng = np.random.default_rng(5)
-    surf = sample_surface(j, r, p, 2500, rng)
-    pts = np.concatenate([surf + rng.normal(0, 0.05, surf.shape), surf + 0.3 * (j.mean(0) - surf) / np.linalg.norm(j.mean(0) - surf, axis=1, keepdims=True),
-                          rng.uniform(j.min(0) - 3, j.max(0) + 3, (500, 3))])
-    pts = pts[rng.permutation(len(pts))][:PAD]
+    j, r, p, seg, pts = _chain_and_cloud(2500, 5)
+    pts = pts[np.random.default_rng(5).permutation(len(pts))][:PAD]
     blocked = functools.partial(_blocked, block=32, per_block=16)
     certified = functools.partial(_culling_exact_blocked, block=32, per_block=16)
     full = dist(j, r, seg, pts)
