@@ -143,8 +143,9 @@ class SolverConfig(StrictModel):
     """Nearest segments each point is measured against (0: all)."""
     block: Annotated[int, Field(ge=0, le=65536)] = 64
     """Points (near ones together) that first share a list of ``block_candidates`` segments to
-    choose their ``candidates`` from, when the skeleton has more segments than that (0: every
-    point chooses among every segment; ``_distance._candidates``)."""
+    choose their ``candidates`` from, where the skeleton has more segments than that and
+    points x segments reach ``_problem.BLOCK_FROM`` (2^20); each point's choice stays its own
+    (0: every point chooses among every segment; ``_distance._candidates``)."""
     block_candidates: Annotated[int, Field(ge=1, le=4096)] = 32
     """Segments in a block's list (more than ``candidates``)."""
     max_seconds: Annotated[float, Field(gt=0.0)] | None = None

@@ -253,8 +253,7 @@ UNSURE_SHARE = 8
 def _top(v, k: int):
     """``jax.lax.top_k(v, k)``'s indices, behind a barrier. XLA on the CPU runs ``top_k`` as a
     fast partial selection only where its result is read by prefix slices; an entry read alone
-    (``idx[k]``) left it a full sort of every row (a 1,000-segment chain's 100,000 points: 9 s
-    against 0.5 s, development timing)."""
+    (``idx[k]``) left it a full sort of every row, many times slower (docs/choices.md#top-k-prefix)."""
     return jax.lax.optimization_barrier(jax.lax.top_k(v, k)[1])
 
 
@@ -272,12 +271,13 @@ def _candidates(g: Geometry, points, k: int, block: int = 0, per_block: int = 0)
 
     ``block`` > 0 and ``per_block`` > k: the points are taken ``block`` consecutive ones at a
     time (:func:`spatial_order` puts near points together) and each block first keeps the
-    ``per_block`` segments of smallest bound over a ball around its points (the bound at the
-    ball's centre less its radius: no point of the ball is nearer a piece, by the triangle
-    inequality); each point then chooses among its block's list. The work is blocks x segments
-    plus points x ``per_block`` instead of points x segments. The bound on the segments left
-    out is the smaller of the point's (k+1)-th and the block's (``per_block`` + 1)-th, so
-    :func:`culling_exact`'s certificate stays true."""
+    ``per_block`` segments of smallest bound at its median point; each point then chooses
+    among its block's list. A bound is 1-Lipschitz in the point, so a segment off the list is
+    no nearer a point than its bound at the median less the point's distance from it; a point
+    whose k-th bound may exceed that chooses among every segment (N / ``UNSURE_SHARE`` points
+    a pass, until none is left), so every point's choice is the one it would make alone. The
+    work is blocks x segments plus points x ``per_block``, plus points x segments for the
+    unsure points only, instead of points x segments."""
     gs = jax.tree_util.tree_map(jax.lax.stop_gradient, g)
     pts = jax.lax.stop_gradient(points)
     reach = _reach(gs)
