@@ -16,6 +16,8 @@ import pytest
 from jskel.fit import perturbed, segments_of
 from jskel.fit._bench import bent_chain
 from jskel.fit._config import SolverConfig
+from jskel.fit._cover import SAMPLES
+from jskel.fit._fit import data_of, on_device
 from jskel.fit._problem import dense_equations, normal_equations, normaliser_of, problem_of, residuals
 from jskel.fit._normal import structure
 from jskel.fit._solvers import normal_solver
@@ -23,7 +25,7 @@ from jskel.fit._solvers import normal_solver
 from conftest import random_tree
 
 
-def _problem(j, r, p, n, candidates, seed, smoothness=0.1, validity=1.0):
+def _problem(j, r, p, n, candidates, seed, smoothness=0.1, validity=1.0, cover=0.0):
     from jskel.fit import sample_surface
 
     rng = np.random.default_rng(seed)
@@ -32,10 +34,10 @@ def _problem(j, r, p, n, candidates, seed, smoothness=0.1, validity=1.0):
     k = n // 20
     pts[:k] = rng.uniform(pts.min(0) - 1, pts.max(0) + 1, (k, 3))  # outliers
     seg = segments_of(j, r, p)
-    pr = problem_of(seg, SolverConfig(loss="cauchy", smoothness=smoothness, validity=validity, candidates=candidates))
+    pr = problem_of(seg, SolverConfig(loss="cauchy", smoothness=smoothness, validity=validity, candidates=candidates, cover=cover))
     nz = normaliser_of(pts)
     j0, r0 = perturbed(j, r, np.asarray(p), 0.1, rng)
-    return pr, jnp.asarray(nz.start(j0, r0, pr), jnp.float32), jnp.asarray(nz.points(pts), jnp.float32)
+    return pr, jnp.asarray(nz.start(j0, r0, pr), jnp.float32), on_device(data_of(nz.points(pts), pr, np.float32))
 
 
 def _branching_chain():
@@ -60,10 +62,11 @@ def test_sparse_normal_equations_equal_the_dense_jacobians():
     against its 4 nearest segments: r, J^T J and J^T r from the sparse assembly against the
     dense forward-mode Jacobian of the same residuals, with the smoothness and plane-validity
     rows in (the assembly takes each point's gradient on its winning segment alone, so a
-    gradient it missed would show here). (One skeleton holds the chain and the
-    branches: each case compiled two programs of about 16 s on the 2-core CPU.)"""
+    gradient it missed would show here), and the rows of the term from the surface back to the
+    points (``solver.cover``; each on one segment's 17 numbers). (One skeleton holds the chain
+    and the branches: each case compiled two programs of about 16 s on the 2-core CPU.)"""
     j, r, p = _branching_chain()
-    pr, x, pts = _problem(j, r, p, 1200, 4, 1)
+    pr, x, pts = _problem(j, r, p, 1200, 4, 1, cover=0.5)
     assert len(pr.seg.cont_b) >= 3 and len(pr.seg.cont_b) < len(pr.seg.start) - 1
     (rr, jtj, g) = jax.jit(lambda x: normal_equations(x, pts, pr))(x)
     # the reference, dense forward mode, as one compiled program (run op by op it took twice the
@@ -72,6 +75,8 @@ def test_sparse_normal_equations_equal_the_dense_jacobians():
                                         dense_equations(x, pts, pr)))(x)
     jac = np.asarray(jac, np.float64)
     assert np.count_nonzero(np.abs(jac[-5 * len(pr.triples):]).sum(1)) > 0  # penalty rows are live
+    cover_rows = jac[1200 : 1200 + SAMPLES * len(pr.seg.start)]
+    assert np.count_nonzero(np.abs(cover_rows).sum(1)) > 0.9 * len(cover_rows)  # cover rows are live
     want = jac.T @ jac
     want_g = jac.T @ np.asarray(rd, np.float64)
     for got in ((rr, jtj, g), dense):  # the sparse assembly, and the dense solver's one linearization

@@ -158,6 +158,12 @@ class SolverConfig(StrictModel):
     closed surface (a mesh's vertices, a scan), whose skeleton should enclose them rather than
     halve their noise. With ``l2``, radii then sit at the ``outside / (1 + outside)``
     expectile of the points' radial spread instead of its mean."""
+    cover: Annotated[float, Field(ge=0.0, le=1e6)] = 0.0
+    """Weight of the term from the surface back to the points (0: off): samples on every
+    segment's cone pulled towards their nearest point, together weighing ``cover`` times the
+    points (``jskel/fit/_cover.py``). For points that cover the whole surface (a mesh, a scan
+    from every side): a surface may otherwise grow where no point is (a free tip into outliers,
+    a joint swollen to enclose a side branch)."""
     jacobian: Literal["auto", "dense", "sparse", "jaxopt"] = "auto"
     """``lm`` / ``gauss_newton``: dense or sparse normal equations, ``auto`` (sparse for big problems), or jaxopt's solvers."""
 

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import checks, progress
-from . import _solvers
+from . import _cover, _solvers
 from ._config import SolverConfig
 from ._distance import segments_of
 from ._problem import Problem, dense_equations, loss, normal_equations, normaliser_of, ordered, problem_of, residuals
@@ -183,6 +183,18 @@ def _solve_clouds(x0, points, pr: Problem, key: SolverKey):
     return over_batch(key.name, lambda x, p: run_to_end(pr, key, x, p).x)(x0, points)
 
 
+def data_of(points, pr: Problem, dtype):
+    """A fit's data from normalised host ``points``, as host arrays of ``dtype``: the points, or
+    with ``solver.cover`` > 0 a ``_cover.Cloud`` that also holds their nearest-point index."""
+    pts = np.asarray(points, dtype)
+    return _cover.Cloud(pts, _cover.PointIndex(*_cover.point_index(pts))) if pr.cover > 0 else pts
+
+
+def on_device(data):
+    """``data`` (:func:`data_of`'s, or a stack of them) as device arrays (cast on the host: no device program for it)."""
+    return jax.tree_util.tree_map(jnp.asarray, data)
+
+
 def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dtype=np.float32, seed: int = 1,
                perturb: float = 0.0) -> FitResult:
     """Fit a skeleton of ``parents``' topology to ``points`` from (joints0, radii0): the
@@ -199,8 +211,8 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
         raise ValueError(f"points: {len(points)} points for {n_par} unknowns (4 per joint of {len(joints0)}); need at least as many points")
     pr = problem_of(seg, s)
     nz = normaliser_of(points)
-    pts = jnp.asarray(np.asarray(nz.points(ordered(points, pr)), dtype))  # cast on the host: no device program for it
-    key = solver_key(s, len(points) + 5 * len(pr.triples), n_par)
+    pts = on_device(data_of(nz.points(ordered(points, pr)), pr, dtype))
+    key = solver_key(s, len(points) + _cover.SAMPLES * len(pr.seg.start) * (pr.cover > 0) + 5 * len(pr.triples), n_par)
     x0 = jnp.asarray(np.asarray(nz.start(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), pr), dtype))
     t_all = time.perf_counter()
     restart_losses = []
@@ -234,7 +246,7 @@ def _best_start(pr: Problem, key: SolverKey, s: SolverConfig, nz, start, pts, se
     for _ in range(s.restarts - 1):
         j, r = perturbed(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), np.asarray(parents), max(perturb, 0.1), rng)
         starts.append(nz.start(j, r, pr))
-    xb = jnp.asarray(np.stack(starts), pts.dtype)
+    xb = jnp.asarray(np.stack(starts), _cover.split(pts)[0].dtype)
     t0 = time.perf_counter()
     solve = _solve_starts.lower(xb, pts, pr, key).compile()
     compile_s = time.perf_counter() - t0
@@ -339,9 +351,9 @@ def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32
     seg = _checked_batch(clouds, j0, r0, parents)
     pr = problem_of(seg, s)
     nzs = [normaliser_of(c) for c in clouds]
-    pts = jnp.asarray(np.stack([nz.points(ordered(c, pr)) for nz, c in zip(nzs, clouds)]), dtype)
+    pts = on_device(jax.tree_util.tree_map(lambda *a: np.stack(a), *[data_of(nz.points(ordered(c, pr)), pr, dtype) for nz, c in zip(nzs, clouds)]))
     x0 = jnp.asarray(np.stack([nz.start(j, r, pr) for nz, j, r in zip(nzs, j0, r0)]), dtype)
-    key = solver_key(s, clouds.shape[1] + 5 * len(pr.triples), x0.shape[-1])
+    key = solver_key(s, clouds.shape[1] + _cover.SAMPLES * len(pr.seg.start) * (pr.cover > 0) + 5 * len(pr.triples), x0.shape[-1])
     t0 = time.perf_counter()
     solve = _solve_clouds.lower(x0, pts, pr, key).compile()
     compile_s = time.perf_counter() - t0

@@ -163,12 +163,14 @@ def point_rows(flat, seg: Segments, points, candidates: int, robust, block: int 
     return jax.vmap(one)(points, idx)
 
 
-def normal_equations(x, points, model_fn, seg: Segments, n_joints: int, candidates: int, robust, block: int = 0, per_block: int = 0):
+def normal_equations(x, points, model_fn, seg: Segments, n_joints: int, candidates: int, robust, block: int = 0, per_block: int = 0,
+                     cover=None):
     """(r, J^T J, J^T r) of the fit's residuals at ``x`` (4J,): ``r`` in ``_problem.residuals``'s
-    order (points, then penalty rows).
+    order (points, cover rows, then penalty rows).
 
     ``model_fn(x) -> (Geometry, (K, E))``: the frusta, and ``E`` penalty rows per continuation
-    (each depending only on its two segments' joints)."""
+    (each depending only on its two segments' joints). ``cover(flat) -> (r (S, M), dr/dflat
+    (S, M, 17))``: rows that each depend on one segment's 17 numbers (``_problem.cover_segment_rows``)."""
     st = structure(seg, n_joints)
     nseg = len(seg.start)
     seeds = _seeds(st, n_joints, x.dtype)
@@ -185,6 +187,11 @@ def normal_equations(x, points, model_fn, seg: Segments, n_joints: int, candidat
     r, rows, which = point_rows(flat, seg, points, candidates, robust, block, per_block)
     m = jax.ops.segment_sum(rows[:, :, None] * rows[:, None, :], which, nseg)  # (S, 17, 17)
     v = jax.ops.segment_sum(rows * r[:, None], which, nseg)  # (S, 17)
+    if cover is not None:
+        rc, jc = cover(flat)
+        m = m + jnp.einsum("smf,smg->sfg", jc, jc)
+        v = v + jnp.einsum("smf,sm->sf", jc, rc)
+        r = jnp.concatenate([r, rc.reshape(-1)])
     h = jnp.einsum("sfa,sfg,sgb->sab", gj, m, gj)
     p = 4 * n_joints
     jtj = jnp.zeros((p, p), x.dtype).at[sidx[:, :, None], sidx[:, None, :]].add(h)

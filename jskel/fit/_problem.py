@@ -29,9 +29,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..frusta import ELLIPSE_MARGIN
-from . import _normal, _solvers
+from ..numerics import safe_sqrt
+from . import _cover, _normal, _solvers
 from ._config import SolverConfig
-from ._distance import Segments, distances_of, geometry, margins_of, spatial_order
+from ._distance import Geometry, Segments, distances_of, geometry, margins_of, spatial_order
 
 
 def _softplus_inv(y):
@@ -53,6 +54,7 @@ class Problem(NamedTuple):
     outside: float = 1.0
     block: int = 0
     per_block: int = 0
+    cover: float = 0.0
 
 
 VALID_MARGIN = 2.0 * ELLIPSE_MARGIN  # the penalty starts where |n . m| - sin(half-angle) falls below this
@@ -61,7 +63,7 @@ VALID_MARGIN = 2.0 * ELLIPSE_MARGIN  # the penalty starts where |n . m| - sin(ha
 def problem_of(seg: Segments, s: SolverConfig) -> Problem:
     triples = tuple((int(seg.start[a]), int(seg.start[b]), int(seg.end[b])) for a, b in zip(seg.cont_a, seg.cont_b))
     return Problem(seg, triples, s.loss, float(s.scale), float(s.smoothness), float(s.min_radius), float(s.validity), int(s.candidates),
-                   float(s.outside), int(s.block), int(s.block_candidates))
+                   float(s.outside), int(s.block), int(s.block_candidates), float(s.cover))
 
 
 def point_residuals(d, pr: Problem):
@@ -110,25 +112,70 @@ def penalty_rows(joints, g, pr: Problem):
     return jnp.concatenate(parts, -1)
 
 
-def residuals(x, points, pr: Problem):
-    """Robust point residuals (N,), then the penalty rows (:func:`penalty_rows`), in normalised units."""
+def _near_and_kept(g: Geometry, index, pr: Problem):
+    """(S, M, 3) each cover sample's nearest point and (S, M) whether the sample counts (not
+    inside another segment by more than the robust scale), both without gradient (``_cover``)."""
+    g = jax.lax.stop_gradient(g)
+    xs = _cover.samples(g)
+    flat = xs.reshape(-1, 3)
+    near = _cover.nearest_points(index, flat).reshape(xs.shape)
+    d = distances_of(g, pr.seg, flat, pr.candidates)[0].reshape(xs.shape[:2])
+    return near, d > -pr.scale
+
+
+def _cover_of(xs, near, kept, pr: Problem, n_points: int):
+    """The cover residuals of samples ``xs`` (..., 3) towards their ``near`` points, zero where not ``kept``."""
+    d = safe_sqrt(jnp.sum((xs - near) ** 2, -1))
+    w = np.sqrt(_cover.weight(n_points, len(pr.seg.start), pr.cover))
+    return jnp.where(kept, w * _solvers.robust_residuals(d, pr.loss, pr.scale), 0.0)
+
+
+def cover_rows(g: Geometry, index, pr: Problem, n_points: int):
+    """(S * M,) the residuals of the term from the surface back to the points (``solver.cover``,
+    ``_cover``): each sample's robust distance to its nearest point."""
+    near, kept = _near_and_kept(g, index, pr)
+    return _cover_of(_cover.samples(g), near, kept, pr, n_points).reshape(-1)
+
+
+def cover_segment_rows(flat, index, pr: Problem, n_points: int):
+    """(r (S, M), dr/dflat (S, M, 17)) of :func:`cover_rows` by segment, for the sparse normal
+    equations: a sample's residual depends on its own segment's 17 numbers alone."""
+    near, kept = _near_and_kept(_normal.geometry_of_flat(flat), index, pr)
+
+    def one(row, nr, kp):
+        f = lambda r: _cover_of(_cover.samples(_normal.geometry_of_flat(r[None]))[0], nr, kp, pr, n_points)  # noqa: E731
+        return f(row), jax.jacfwd(f)(row)
+
+    return jax.vmap(one)(flat, near, kept)
+
+
+def residuals(x, data, pr: Problem):
+    """Robust point residuals (N,), the cover rows where ``pr.cover`` > 0 (``data`` then a
+    ``_cover.Cloud``; :func:`cover_rows`), then the penalty rows (:func:`penalty_rows`), in
+    normalised units."""
+    points, index = _cover.split(data)
     joints, u = unpack(x)
     g = geometry(joints, radii_of(u, pr), pr.seg)  # once, for the distances and the plane margins
     d = distances_of(g, pr.seg, points, pr.candidates, *blocks_of(pr, points.shape[0]))[0]
-    r = point_residuals(d, pr)
-    return jnp.concatenate([r, penalty_rows(joints, g, pr).reshape(-1)])
+    r = [point_residuals(d, pr)]
+    if pr.cover > 0:
+        r.append(cover_rows(g, index, pr, points.shape[0]))
+    return jnp.concatenate(r + [penalty_rows(joints, g, pr).reshape(-1)])
 
 
-def normal_equations(x, points, pr: Problem):
+def normal_equations(x, data, pr: Problem):
     """(r, J^T J, J^T r) of :func:`residuals` at ``x``, assembled from the problem's sparsity
     (``_normal``): no dense Jacobian, so LM and Gauss-Newton fit long chains in memory."""
+    points, index = _cover.split(data)
+
     def model(x):
         joints, u = unpack(x)
         g = geometry(joints, radii_of(u, pr), pr.seg)
         return g, penalty_rows(joints, g, pr)
 
+    cover = (lambda flat: cover_segment_rows(flat, index, pr, points.shape[0])) if pr.cover > 0 else None
     return _normal.normal_equations(x, points, model, pr.seg, x.shape[-1] // 4, pr.candidates,
-                                    lambda d: point_residuals(d, pr), *blocks_of(pr, points.shape[0]))
+                                    lambda d: point_residuals(d, pr), *blocks_of(pr, points.shape[0]), cover=cover)
 
 
 def dense_equations(x, points, pr: Problem):

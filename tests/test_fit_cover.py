@@ -1,0 +1,96 @@
+"""The fit's term from the surface back to the points (``solver.cover``, issue 53): its samples lie
+on each segment's cone where the docstring puts them, its nearest-point search finds what brute
+force finds, and its residuals are the distance from a swollen tube's surface to the points of
+the true one (closed form). That the sparse normal equations carry its rows as the dense
+Jacobian does is asserted in ``test_fit_normal``."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jskel.fit import segments_of
+from jskel.fit._config import SolverConfig
+from jskel.fit._cover import AROUND, AXIAL, SAMPLES, nearest_points, point_index, samples
+from jskel.fit._distance import geometry
+from jskel.fit._fit import data_of, on_device
+from jskel.fit._problem import problem_of, residuals
+
+
+def test_samples_lie_on_each_cone_at_their_rings():
+    """Three segments of a bent, tapering chain: every sample's axial coordinate is u h and its
+    distance from the axis r1 + u (r2 - r1) (float64 NumPy), and each ring's samples are evenly
+    spread around the axis, the second ring turned half a step."""
+    j = np.array([[0.0, 0.0, 0.0], [0.3, 1.0, 0.1], [1.2, 1.5, -0.4], [1.4, 1.6, 0.9]])
+    r = np.array([0.3, 0.2, 0.25, 0.05])
+    p = np.array([-1, 0, 1, 2])
+    g = geometry(jnp.asarray(j, jnp.float32), jnp.asarray(r, jnp.float32), segments_of(j, r, p))
+    xs = np.asarray(jax.jit(samples)(g), np.float64)
+    assert xs.shape == (3, SAMPLES, 3)
+    for s in range(3):
+        a, b = j[s], j[s + 1]
+        h = np.linalg.norm(b - a)
+        m = (b - a) / h
+        q = xs[s] - a
+        y = q @ m
+        radial = q - y[:, None] * m
+        rho = np.linalg.norm(radial, axis=1)
+        for i, u in enumerate(AXIAL):
+            ring = slice(i * AROUND, (i + 1) * AROUND)
+            np.testing.assert_allclose(y[ring], u * h, atol=1e-5)
+            np.testing.assert_allclose(rho[ring], r[s] + u * (r[s + 1] - r[s]), atol=1e-5)
+        unit = radial / rho[:, None]
+        step = np.cos(2 * np.pi / AROUND)
+        for i in range(len(AXIAL)):
+            ring = unit[i * AROUND : (i + 1) * AROUND]
+            np.testing.assert_allclose(np.sum(ring * np.roll(ring, -1, 0), 1), step, atol=1e-5)
+        np.testing.assert_allclose(unit[0] @ unit[AROUND], np.cos(np.pi / AROUND), atol=1e-5)
+
+
+def test_nearest_points_match_brute_force():
+    """2,000 points on a noisy torus; samples near its surface and far from it. The point found is
+    never nearer than the true nearest (float64 brute force), and is the nearest for every sample
+    within a point spacing of the surface."""
+    rng = np.random.default_rng(4)
+    u, v = rng.uniform(0, 2 * np.pi, (2, 2000))
+    pts = np.stack([(1 + 0.3 * np.cos(v)) * np.cos(u), (1 + 0.3 * np.cos(v)) * np.sin(u), 0.3 * np.sin(v)], 1)
+    pts += rng.normal(0, 0.005, pts.shape)
+    near_q = pts[rng.choice(2000, 300)] + rng.normal(0, 0.02, (300, 3))
+    far_q = rng.uniform(-1.6, 1.6, (100, 3))
+    q = np.concatenate([near_q, far_q])
+    idx = point_index(pts.astype(np.float32))
+    got = np.asarray(jax.jit(nearest_points)(jax.tree_util.tree_map(jnp.asarray, idx), jnp.asarray(q, jnp.float32)), np.float64)
+    d_all = np.linalg.norm(q[:, None] - pts[None], axis=-1)
+    want = d_all.min(1)
+    d_got = np.linalg.norm(got - q, axis=1)
+    assert np.all(np.min(np.linalg.norm(got[:, None] - pts[None], axis=-1), 1) < 1e-6)  # a point of the cloud
+    assert np.all(d_got >= want - 1e-6)
+    np.testing.assert_allclose(d_got[:300], want[:300], atol=1e-6)
+
+
+def test_cover_rows_are_the_distance_from_a_swollen_tube_to_the_true_one():
+    """Points dense on a straight tube of radius 0.3 (length 2); the skeleton on its axis with
+    radius 0.6. Each sample's residual is sqrt(w) times the l2 distance to its nearest point,
+    which is 0.3 (its ring lies 0.3 outside the points' circle of the same height) within the
+    points' spacing; at the true radius it is within that spacing of 0."""
+    rng = np.random.default_rng(5)
+    n = 6000
+    t, a = rng.uniform(0, 2, n), rng.uniform(0, 2 * np.pi, n)
+    pts = np.stack([0.3 * np.cos(a), t, 0.3 * np.sin(a)], 1)
+    j = np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    p = np.array([-1, 0])
+    spacing = np.sqrt(2 * np.pi * 0.3 * 2 / n) * 2  # twice the mean spacing of the samples
+    w = 0.7 * n / SAMPLES  # cover 0.7, one segment
+
+    pr = problem_of(segments_of(j, np.array([0.3, 0.3]), p), SolverConfig(loss="l2", cover=0.7, candidates=0, validity=0.0))
+    data = on_device(data_of(pts, pr, np.float32))
+    of = jax.jit(lambda x, d: residuals(x, d, pr))
+
+    def rows(radius):
+        # the radius parameter u gives min_radius + s softplus(u / s): radius itself for u = radius - min_radius
+        x = np.concatenate([j.reshape(-1), [radius - pr.min_radius] * 2]).astype(np.float32)
+        return np.asarray(of(jnp.asarray(x), data), np.float64)[n : n + SAMPLES] / np.sqrt(w)
+
+    np.testing.assert_allclose(rows(0.6), 0.3, atol=spacing)
+    assert np.all(np.abs(rows(0.3)) < spacing)
