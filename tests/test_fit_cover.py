@@ -94,3 +94,14 @@ def test_cover_rows_are_the_distance_from_a_swollen_tube_to_the_true_one():
 
     np.testing.assert_allclose(rows(0.6), 0.3, atol=spacing)
     assert np.all(np.abs(rows(0.3)) < spacing)
+
+
+def test_samples_of_a_segment_of_no_length_stay_finite_with_their_derivatives():
+    """Two coincident joints (a fit can pass through one before an edit merges it): the samples
+    sit on the ring's centre and their forward derivatives are finite, not NaN."""
+    from jskel.fit._normal import geometry_of_flat
+
+    row = jnp.asarray([0.5, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.2, 0.1, 0, 0, 1, 0.0, 0, 0, 1, 0.0], jnp.float32)
+    f = jax.jit(lambda r: samples(geometry_of_flat(r[None]))[0])
+    xs, jac = f(row), jax.jit(jax.jacfwd(lambda r: samples(geometry_of_flat(r[None]))[0]))(row)
+    assert np.all(np.isfinite(np.asarray(xs))) and np.all(np.isfinite(np.asarray(jac)))

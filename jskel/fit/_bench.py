@@ -21,8 +21,9 @@ from pydantic import Field
 
 from ..config import StrictModel
 from ._config import SolverConfig
+from ._cover import SAMPLES
 from ._distance import segments_of
-from ._fit import fit_many, fit_points, jacobian_of
+from ._fit import data_of, fit_many, fit_points, jacobian_of, on_device
 from ._measures import culling_exact_fraction
 from ._points import sample_surface
 from ._problem import blocked, loss, normaliser_of, ordered, problem_of
@@ -60,6 +61,8 @@ class FitBench(StrictModel):
     """Limit of each fit's stepping loop; a row says when it ran out."""
     jacobian: Literal["auto", "dense", "sparse", "jaxopt"] = "auto"
     """``lm`` / ``gauss_newton`` (``solver.jacobian``); rows say which ran."""
+    cover: Annotated[float, Field(ge=0.0, le=1e6)] = 0.0
+    """``solver.cover``: weight of the term from the surface back to the points (0: off)."""
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.003
     """``adam``: step size."""
     max_work: Annotated[float, Field(gt=0.0)] = 1e7
@@ -119,7 +122,7 @@ def _loss_at(points, joints, radii, parents, s: SolverConfig) -> float:
     seg = segments_of(joints, radii, parents)
     pr = problem_of(seg, s)
     nz = normaliser_of(points)
-    return float(loss(jnp.asarray(nz.start(joints, radii, pr), jnp.float32), jnp.asarray(nz.points(ordered(points, pr)), jnp.float32), pr))
+    return float(loss(jnp.asarray(nz.start(joints, radii, pr), jnp.float32), on_device(data_of(nz.points(ordered(points, pr)), pr, np.float32)), pr))
 
 
 def run_fit_bench(b: FitBench, emit) -> list[dict]:
@@ -143,7 +146,7 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                 s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter if name != "adam" else 10 * b.maxiter,
                                  learning_rate=b.learning_rate, smoothness=b.smoothness, candidates=b.candidates,
                                  block=b.block, block_candidates=b.block_candidates,
-                                 max_seconds=b.max_seconds, jacobian=b.jacobian)
+                                 max_seconds=b.max_seconds, jacobian=b.jacobian, cover=b.cover)
                 try:
                     res = fit_points(pts, j0, r0, p, s)
                 except ValueError as e:  # too few points, a diverged solver: a row that says so
@@ -151,8 +154,8 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                     emit(row)
                     rows.append(row)
                     continue
-                jac = jacobian_of(s, n + 5 * (segs - 1), 4 * (segs + 1))
-                row = {"solver": name, "jacobian": jac, "loss": b.loss, "smoothness": b.smoothness, "points": n, "segments": segs,
+                jac = jacobian_of(s, n + SAMPLES * segs * (b.cover > 0) + 5 * (segs - 1), 4 * (segs + 1))  # as fit_points counts them
+                row = {"solver": name, "jacobian": jac, "loss": b.loss, "smoothness": b.smoothness, "cover": b.cover, "points": n, "segments": segs,
                        "candidate_blocks": blocked(problem_of(segments_of(j0, r0, p), s), n), "compile_s": round(res.compile_s, 3),
                        "seconds": round(res.seconds, 4), "iterations": res.iterations, "converged": res.converged,
                        "s_per_iteration": round(res.seconds / max(res.iterations, 1), 5),

@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..numerics import dot3
+from ..numerics import dot3, safe_sqrt
 from ._distance import Geometry, _top, spatial_order
 
 AXIAL = (0.25, 0.75)  # where the rings of samples sit along each segment's axis
@@ -84,12 +84,12 @@ def split(data):
 def samples(g: Geometry):
     """(S, M, 3) the :data:`SAMPLES` points on each segment's cone (module docstring). The frame
     around the axis is ``e1 = m x a / |m x a|`` with ``a`` the coordinate axis least aligned with
-    ``m`` (chosen without gradient; ``|m x a|`` >= sqrt(2/3)), ``e2 = m x e1``."""
+    ``m`` (chosen without gradient; ``|m x a|`` >= sqrt(2/3) for a unit ``m``), ``e2 = m x e1``."""
     m = g.m
     pick = jax.lax.stop_gradient(jnp.argmin(jnp.abs(m), axis=-1))
     a = jax.nn.one_hot(pick, 3, dtype=m.dtype)
     e1 = jnp.cross(m, a)
-    e1 = e1 / jnp.sqrt(dot3(e1, e1))[:, None]
+    e1 = e1 / jnp.maximum(safe_sqrt(dot3(e1, e1)), 1e-12)[:, None]  # (m = 0 on a segment of no length: samples on its ring's centre)
     e2 = jnp.cross(m, e1)
     out = []
     for i, u in enumerate(AXIAL):  # static loops over the rings and angles, not over segments
@@ -107,9 +107,10 @@ def nearest_points(index: PointIndex, x):
     x = jax.lax.stop_gradient(x)
     gap = jnp.maximum(jnp.maximum(index.lo[None] - x[:, None], x[:, None] - index.hi[None]), 0.0)
     k = min(NEAREST_BLOCKS, index.lo.shape[0])
-    blk = _top(-jnp.sum(gap * gap, -1), k)  # (Q, k)
+    blk = _top(-dot3(gap, gap), k)  # (Q, k)
     pts = index.blocks[blk].reshape(x.shape[0], -1, 3)  # (Q, k B, 3)
-    d2 = jnp.sum((pts - x[:, None]) ** 2, -1)
+    q = pts - x[:, None]
+    d2 = dot3(q, q)
     return jnp.take_along_axis(pts, jnp.argmin(d2, -1)[:, None, None], 1)[:, 0]
 
 

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..frusta import ELLIPSE_MARGIN
-from ..numerics import safe_sqrt
+from ..numerics import norm3
 from . import _cover, _normal, _solvers
 from ._config import SolverConfig
 from ._distance import Geometry, Segments, distances_of, geometry, margins_of, spatial_order
@@ -125,7 +125,7 @@ def _near_and_kept(g: Geometry, index, pr: Problem):
 
 def _cover_of(xs, near, kept, pr: Problem, n_points: int):
     """The cover residuals of samples ``xs`` (..., 3) towards their ``near`` points, zero where not ``kept``."""
-    d = safe_sqrt(jnp.sum((xs - near) ** 2, -1))
+    d = norm3(xs - near)
     w = np.sqrt(_cover.weight(n_points, len(pr.seg.start), pr.cover))
     return jnp.where(kept, w * _solvers.robust_residuals(d, pr.loss, pr.scale), 0.0)
 
