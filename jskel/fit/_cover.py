@@ -14,8 +14,9 @@ e2)`` (the cone through the joints' circles, Bhagvat et al. 2009, Sec. 2.1; ring
 contributing the robust distance to its nearest point, with that point chosen without
 gradient (as an ICP step does) so the residual moves the sample straight towards it.
 
-Samples inside another segment (signed distance to the whole skeleton below ``-scale``: a
-junction's child cone inside its parent's tube) are not on the surface and are left out.
+Samples off the frusta surface (signed distance to the whole skeleton beyond the robust
+``scale`` either way: a junction's child cone inside its parent's tube, or a cone's ring cut
+off its piece by a cutting plane on the outside of a bend) are left out.
 Each segment gets the same samples whatever its size, so the term pulls the surface onto the
 points and never shrinks it for its area alone. The samples together weigh ``cover`` times the
 points (each sample's squared residual ``cover N / (S M)`` times a point's).

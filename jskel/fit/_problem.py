@@ -113,14 +113,15 @@ def penalty_rows(joints, g, pr: Problem):
 
 
 def _near_and_kept(g: Geometry, index, pr: Problem):
-    """(S, M, 3) each cover sample's nearest point and (S, M) whether the sample counts (not
-    inside another segment by more than the robust scale), both without gradient (``_cover``)."""
+    """(S, M, 3) each cover sample's nearest point and (S, M) whether the sample counts (on the
+    frusta surface within the robust scale: not inside another segment, nor cut off its own
+    piece by a cutting plane on the outside of a bend), both without gradient (``_cover``)."""
     g = jax.lax.stop_gradient(g)
     xs = _cover.samples(g)
     flat = xs.reshape(-1, 3)
     near = _cover.nearest_points(index, flat).reshape(xs.shape)
     d = distances_of(g, pr.seg, flat, pr.candidates)[0].reshape(xs.shape[:2])
-    return near, d > -pr.scale
+    return near, jnp.abs(d) <= pr.scale
 
 
 def _cover_of(xs, near, kept, pr: Problem, n_points: int):
