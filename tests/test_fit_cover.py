@@ -105,3 +105,39 @@ def test_samples_of_a_segment_of_no_length_stay_finite_with_their_derivatives():
     f = jax.jit(lambda r: samples(geometry_of_flat(r[None]))[0])
     xs, jac = f(row), jax.jit(jax.jacfwd(lambda r: samples(geometry_of_flat(r[None]))[0]))(row)
     assert np.all(np.isfinite(np.asarray(xs))) and np.all(np.isfinite(np.asarray(jac)))
+
+
+def test_samples_inside_another_segment_do_not_count():
+    """A T: a trunk of radius 0.5 along y (two segments, joint at y = 1) and a branch leaving
+    that joint along x, 1 long, its cone from the joint's 0.5 down to 0.1. A sample counts where
+    it is not inside the other part (NumPy: the trunk's cylinder for the branch's samples, the
+    branch's cone for the trunk's, each by its perpendicular depth) by more than the scale:
+    the branch's ring at a quarter of its length (radius 0.4, at most 0.47 from the trunk's
+    axis) lies inside the trunk, as does the trunk's sample facing the branch beside the joint."""
+    from jskel.fit._problem import _near_and_kept
+
+    j = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 2.0, 0.0], [1.0, 1.0, 0.0]])
+    r = np.array([0.5, 0.5, 0.5, 0.1])
+    p = np.array([-1, 0, 1, 1])
+    seg = segments_of(j, r, p)
+    scale = 0.01
+    pr = problem_of(seg, SolverConfig(loss="l2", cover=1.0, candidates=0, scale=scale))
+    pts = np.random.default_rng(0).normal(size=(64, 3))
+    idx = jax.tree_util.tree_map(jnp.asarray, point_index(pts.astype(np.float32)))
+    g = geometry(jnp.asarray(j, jnp.float32), jnp.asarray(r, jnp.float32), seg)
+    xs, kept = jax.jit(lambda g, i: (samples(g), _near_and_kept(g, i, pr)[1]))(g, idx)
+    xs, kept = np.asarray(xs, np.float64), np.asarray(kept)
+    branch = int(np.nonzero(np.asarray(seg.end) == 3)[0][0])
+    depth = np.empty(kept.shape)
+    for s in range(3):
+        x = xs[s]
+        if s == branch:  # inside the trunk's cylinder by
+            depth[s] = 0.5 - np.hypot(x[:, 0], x[:, 2])
+        else:  # inside the branch's cone by (its radius 0.5 - 0.4 x between x = 0 and 1)
+            radius = 0.5 - 0.4 * x[:, 0]
+            depth[s] = np.where((x[:, 0] > 0) & (x[:, 0] < 1), (radius - np.hypot(x[:, 1] - 1, x[:, 2])) / np.hypot(1, 0.4), -1.0)
+    clear = np.abs(depth - scale) > scale  # not within a scale of the threshold
+    assert clear.sum() > 40
+    np.testing.assert_array_equal(kept[clear], (depth <= scale)[clear])
+    assert not kept[branch, :AROUND].any() and kept[branch, AROUND:].all()
+    assert (~kept[np.arange(3) != branch]).sum() >= 1  # the trunk's sample beside the joint

@@ -15,8 +15,9 @@ contributing the robust distance to its nearest point, with that point chosen wi
 gradient (as an ICP step does) so the residual moves the sample straight towards it.
 
 Samples off the frusta surface (signed distance to the whole skeleton beyond the robust
-``scale`` either way: a junction's child cone inside its parent's tube, or a cone's ring cut
-off its piece by a cutting plane on the outside of a bend) are left out.
+``scale`` either way: a junction's child cone inside its parent's tube, or a ring beyond its
+own piece's cutting plane where the next segment is thinner, which sticks out of the skeleton
+and would pull the radius in) are left out.
 Each segment gets the same samples whatever its size, so the term pulls the surface onto the
 points and never shrinks it for its area alone. The samples together weigh ``cover`` times the
 points (each sample's squared residual ``cover N / (S M)`` times a point's).

@@ -114,8 +114,9 @@ def penalty_rows(joints, g, pr: Problem):
 
 def _near_and_kept(g: Geometry, index, pr: Problem):
     """(S, M, 3) each cover sample's nearest point and (S, M) whether the sample counts (on the
-    frusta surface within the robust scale: not inside another segment, nor cut off its own
-    piece by a cutting plane on the outside of a bend), both without gradient (``_cover``)."""
+    frusta surface within the robust scale: not inside another segment, nor beyond its own
+    piece's cutting plane where the next segment is thinner, outside the skeleton), both
+    without gradient (``_cover``)."""
     g = jax.lax.stop_gradient(g)
     xs = _cover.samples(g)
     flat = xs.reshape(-1, 3)
