@@ -139,6 +139,23 @@ def test_a_real_mesh_bench_names_what_it_cannot_read():
         mesh_path("navis:nosuchneuron")  # not installed, or installed without that mesh: either way named
 
 
+def test_the_real_mesh_bench_counts_the_branch_points_two_fits_share():
+    """``peers.skeletonizer.branch_points_matched``: a skeleton against itself moved by less than
+    a segment shares all its branch points (1); against a copy with one side branch cut off, 1 of
+    2 (the larger count); moved by three segments, none; two skeletons without branch points
+    share all (none)."""
+    from jskel.peers.skeletonizer import branch_points_matched
+
+    j = np.array([[0.0, 0, 0], [0, 1, 0], [0, 2, 0], [1, 1, 0], [0, 3, 0], [1, 2, 0]])
+    r = np.full(6, 0.1)
+    p = np.array([-1, 0, 1, 1, 2, 2])  # branch points at joints 1 and 2
+    assert branch_points_matched((j, r, p), (j + 0.4, r, p)) == 1.0
+    assert branch_points_matched((j, r, p), (j[:5], r[:5], p[:5])) == 0.5  # joint 2 is no longer a branch point
+    assert branch_points_matched((j, r, p), (j + 3.0, r, p)) == 0.0
+    chain = (j[:3], r[:3], p[:3])
+    assert branch_points_matched(chain, chain) == 1.0
+
+
 def test_the_tree_bench_measures_a_skeleton_against_its_truth():
     """``fit._tree_bench.compared`` (the synthetic-tree bench's row): the truth against itself is
     exact (every branch point matched, joints on the axes, nothing uncovered, every radius within

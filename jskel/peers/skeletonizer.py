@@ -16,7 +16,8 @@ neurons; both GPL-3.0, so read from the installed ``[peers]`` packages, never co
 
 A summary row per mesh gives jskel's mean distance over skeletor's for each subsample, the
 segment counts' ratio and the subsamples' spread (largest over smallest mean distance less 1,
-branch points of each), for the issue's stability requirement.
+branch points of each, and for each pair of subsamples the share of branch points they have in
+common, :func:`branch_points_matched`), for the issue's stability requirement.
 """
 
 from __future__ import annotations
@@ -115,6 +116,29 @@ def jskel_skeleton(points, b: RealFitBench):
                                                 "rounds": rounds, "edits": len(edits), "start_segments": int(np.sum(p >= 0)), **info}
 
 
+def branch_points_matched(a, b) -> float:
+    """How many branch points two skeletons ``a`` and ``b`` ((joints, radii, parents) each)
+    share, over the larger count: the branch points paired one to one by least total distance
+    (an assignment), a pair counted where its two points lie within the two skeletons' median
+    segment length. 1 where both have the same branch points, each within a segment of its mate."""
+    from scipy.optimize import linear_sum_assignment
+
+    def points_and_unit(j, p):
+        p = np.asarray(p)
+        seg = np.linalg.norm(j[p[p >= 0]] - j[p >= 0], axis=1)
+        return j[degrees_of(p) >= 3], seg
+
+    pa, la = points_and_unit(np.asarray(a[0], np.float64), a[2])
+    pb, lb = points_and_unit(np.asarray(b[0], np.float64), b[2])
+    most = max(len(pa), len(pb))
+    if not len(pa) or not len(pb):
+        return 1.0 if most == 0 else 0.0
+    unit = float(np.median(np.concatenate([la, lb])))
+    cost = np.linalg.norm(pa[:, None] - pb[None], axis=-1)
+    row, col = linear_sum_assignment(cost)
+    return float(np.sum(cost[row, col] <= unit)) / most
+
+
 def run_real_fit_bench(b: RealFitBench, emit) -> list[dict]:
     """Run the benchmark (module docstring), calling ``emit(row)`` for each row as measured."""
     import trimesh
@@ -133,16 +157,20 @@ def run_real_fit_bench(b: RealFitBench, emit) -> list[dict]:
         j, r, p, sk_s = skeletor_skeleton(surface)
         peer = {**base, "system": "skeletor", "seconds": round(sk_s, 3), **measured(fresh, j, r, p)}
         out(peer)
-        mine = []
+        mine, skels = [], []
         for k in range(b.subsamples):
             pts = np.asarray(trimesh.sample.sample_surface(surface, b.points, seed=k)[0], np.float64)
             j, r, p, times = jskel_skeleton(pts, b)
             row = {**base, "system": "jskel", "subsample": k, "points": b.points, **times, **measured(fresh, j, r, p)}
             out(row)
             mine.append(row)
+            skels.append((j, r, p))
+        pairs = [(a, c) for a in range(len(skels)) for c in range(a + 1, len(skels))]
         means = [m["mean_abs"] for m in mine]
         out({**base, "summary": True, "jskel_over_skeletor_mean_abs": [round(m / peer["mean_abs"], 3) for m in means],
              "jskel_over_skeletor_segments": [round(m["segments"] / peer["segments"], 3) for m in mine],
              "subsample_mean_abs_spread": round(max(means) / min(means) - 1, 3), "subsample_branch_points": [m["branch_points"] for m in mine],
+             "subsample_pairs": [list(q) for q in pairs],
+             "subsample_branch_points_matched": [round(branch_points_matched(skels[a], skels[c]), 3) for a, c in pairs],
              "jskel_seconds": [m["seconds"] for m in mine], "skeletor_seconds": peer["seconds"]})
     return rows
