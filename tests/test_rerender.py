@@ -50,12 +50,16 @@ def _experiment(joints=JOINTS, radii=RADII, parents=PARENTS, eye=(4.0, 2.5, 6.0)
     return config.validate(raw)
 
 
-def _programs(exp):
-    """(render result, programs handed to XLA by the render: compiled + loaded)."""
+def _programs(exp, names=None):
+    """(render result, programs handed to XLA by the render: compiled + loaded); ``names``, a
+    dict, gets each program's name and how many of it were handed over (for a failure's message)."""
     count_programs()
     before = program_counts()
     res = render(exp)
     after = program_counts()
+    if names is not None:
+        names.update({k: v[0] - before["by_name"].get(k, [0])[0] for k, v in after["by_name"].items()
+                      if v[0] != before["by_name"].get(k, [0])[0]})
     return res, (after["compiled"] - before["compiled"]) + (after["loaded"] - before["loaded"])
 
 
@@ -106,8 +110,9 @@ CHANGES = {
 def test_a_change_within_its_bucket_renders_without_a_program(first, change):
     kw, skeleton = CHANGES[change]()
     exp = _experiment(**kw)
-    res, programs = _programs(exp)
-    assert programs == 0, f"{change}: {programs} programs compiled or loaded"
+    names = {}
+    res, programs = _programs(exp, names)
+    assert programs == 0, f"{change}: {programs} programs compiled or loaded: {names}"
     assert res.run["compile_s"] == 0.0
     _assert_casts(res, exp, *skeleton)
     assert res.image.shape != first.image.shape or np.any(res.image != first.image)  # not the first image again
