@@ -9,6 +9,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from jskel.fit import segments_of
 from jskel.fit._config import SolverConfig
@@ -70,30 +71,32 @@ def test_nearest_points_match_brute_force():
 
 
 def test_cover_rows_are_the_distance_from_a_swollen_tube_to_the_true_one():
-    """Points dense on a straight tube of radius 0.3 (length 2); the skeleton on its axis with
-    radius 0.6. Each sample's residual is sqrt(w) times the l2 distance to its nearest point,
-    which is 0.3 (its ring lies 0.3 outside the points' circle of the same height) within the
-    points' spacing; at the true radius it is within that spacing of 0."""
+    """Points dense on a straight tube of radius 0.3 (length 2); the skeleton on its axis, two
+    segments, with radius 0.6. Each sample's residual is sqrt(w) (w = cover N / (S M), S = 2)
+    times the l2 distance to its nearest point, which is 0.3 (its ring lies 0.3 outside the
+    points' circle of the same height) within the points' spacing; at the true radius it is
+    within that spacing of 0."""
     rng = np.random.default_rng(5)
     n = 6000
     t, a = rng.uniform(0, 2, n), rng.uniform(0, 2 * np.pi, n)
     pts = np.stack([0.3 * np.cos(a), t, 0.3 * np.sin(a)], 1)
-    j = np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
-    p = np.array([-1, 0])
+    j = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 2.0, 0.0]])
+    p = np.array([-1, 0, 1])
     spacing = np.sqrt(2 * np.pi * 0.3 * 2 / n) * 2  # twice the mean spacing of the samples
-    w = 0.7 * n / SAMPLES  # cover 0.7, one segment
-
-    pr = problem_of(segments_of(j, np.array([0.3, 0.3]), p), SolverConfig(loss="l2", cover=0.7, candidates=0, validity=0.0))
+    w = 0.7 * n / (2 * SAMPLES)  # cover 0.7, two segments
+    pr = problem_of(segments_of(j, np.full(3, 0.3), p), SolverConfig(loss="l2", cover=0.7, candidates=0, validity=0.0))
     data = on_device(data_of(pts, pr, np.float32))
     of = jax.jit(lambda x, d: residuals(x, d, pr))
 
     def rows(radius):
         # the radius parameter u gives min_radius + s softplus(u / s): radius itself for u = radius - min_radius
-        x = np.concatenate([j.reshape(-1), [radius - pr.min_radius] * 2]).astype(np.float32)
-        return np.asarray(of(jnp.asarray(x), data), np.float64)[n : n + SAMPLES] / np.sqrt(w)
+        x = np.concatenate([j.reshape(-1), [radius - pr.min_radius] * 3]).astype(np.float32)
+        return np.asarray(of(jnp.asarray(x), data), np.float64)[n : n + 2 * SAMPLES] / np.sqrt(w)
 
     np.testing.assert_allclose(rows(0.6), 0.3, atol=spacing)
     assert np.all(np.abs(rows(0.3)) < spacing)
+    with pytest.raises(ValueError, match="solver.cover"):  # the points alone, without their index
+        residuals(jnp.zeros(12), jnp.asarray(pts, jnp.float32), pr)
 
 
 def test_samples_of_a_segment_of_no_length_stay_finite_with_their_derivatives():
@@ -104,7 +107,29 @@ def test_samples_of_a_segment_of_no_length_stay_finite_with_their_derivatives():
     row = jnp.asarray([0.5, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.2, 0.1, 0, 0, 1, 0.0, 0, 0, 1, 0.0], jnp.float32)
     f = jax.jit(lambda r: samples(geometry_of_flat(r[None]))[0])
     xs, jac = f(row), jax.jit(jax.jacfwd(lambda r: samples(geometry_of_flat(r[None]))[0]))(row)
-    assert np.all(np.isfinite(np.asarray(xs))) and np.all(np.isfinite(np.asarray(jac)))
+    np.testing.assert_array_equal(np.asarray(xs), np.full((SAMPLES, 3), 0.5, np.float32))
+    assert np.all(np.isfinite(np.asarray(jac)))
+
+
+def test_a_fit_with_cover_draws_a_tip_back_to_where_the_points_end():
+    """Points on a tube of radius 0.3 from y = 0 to 1.5 only; the start, two segments on its
+    axis, runs to y = 2. The points' own residuals leave the part beyond 1.5 where it is (no
+    point is near it, nothing pulls it); with cover, its rings are pulled to the tube's last
+    points, so the tip comes back towards y = 1.5 (each ring no further than its nearest points
+    at equilibrium: the outer one, at three quarters of the second segment, ends near the rim
+    at 1.5, so the tip lies below 1.5 + (2 - 1.5) / 3). Through ``fit_points``, data built by
+    ``data_of``; the radius stays the tube's."""
+    from jskel.fit import fit_points
+
+    rng = np.random.default_rng(6)
+    n = 3000
+    t, a = rng.uniform(0, 1.5, n), rng.uniform(0, 2 * np.pi, n)
+    pts = np.stack([0.3 * np.cos(a), t, 0.3 * np.sin(a)], 1) + rng.normal(0, 0.005, (n, 3))
+    j0 = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 2.0, 0.0]])
+    res = fit_points(pts, j0, np.full(3, 0.3), np.array([-1, 0, 1]),
+                     SolverConfig(name="lm", loss="huber", scale=0.005, maxiter=40, cover=1.0, validity=0.0))
+    assert res.joints[2, 1] < 1.5 + 0.5 / 3 + 0.02
+    np.testing.assert_allclose(res.radii[:2], 0.3, rtol=0.05)
 
 
 def test_samples_inside_another_segment_do_not_count():

@@ -179,7 +179,7 @@ def _batch_rows(b: FitBench, common: dict, emit) -> list[dict]:
             rng = np.random.default_rng(b.seed + 3)
             clouds = np.stack([_cloud(j, r, p, b.batch_points, b.noise_sd, b.outliers, rng)[0] for _ in range(bsz)])
             starts = [perturbed(j, r, p, b.perturb, rng) for _ in range(bsz)]
-            s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter, learning_rate=b.learning_rate)
+            s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter, learning_rate=b.learning_rate, cover=b.cover)
             t0 = time.perf_counter()
             try:
                 jj, rr, losses, secs, comp = fit_many(clouds, np.stack([a for a, _ in starts]), np.stack([c for _, c in starts]), p, s)

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import checks, progress
+from .. import checks, numerics, progress
 from . import _cover, _solvers
 from ._config import SolverConfig
 from ._distance import segments_of
@@ -187,12 +187,13 @@ def data_of(points, pr: Problem, dtype):
     """A fit's data from normalised host ``points``, as host arrays of ``dtype``: the points, or
     with ``solver.cover`` > 0 a ``_cover.Cloud`` that also holds their nearest-point index."""
     pts = np.asarray(points, dtype)
-    return _cover.Cloud(pts, _cover.PointIndex(*_cover.point_index(pts))) if pr.cover > 0 else pts
+    return _cover.Cloud(pts, _cover.point_index(pts)) if pr.cover > 0 else pts
 
 
 def on_device(data):
-    """``data`` (:func:`data_of`'s, or a stack of them) as device arrays (cast on the host: no device program for it)."""
-    return jax.tree_util.tree_map(jnp.asarray, data)
+    """``data`` (:func:`data_of`'s, or a stack of them) as device arrays, copied as they are
+    (``numerics.on_device``: no device program for it)."""
+    return jax.tree_util.tree_map(numerics.on_device, data)
 
 
 def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dtype=np.float32, seed: int = 1,

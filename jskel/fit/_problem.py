@@ -22,6 +22,7 @@ fit left them where the start put them (median error 14 % against the truth).
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -72,7 +73,7 @@ def point_residuals(d, pr: Problem):
     r = _solvers.robust_residuals(d, pr.loss, pr.scale)
     if pr.outside == 1.0:
         return r
-    return jnp.where(d > 0, np.sqrt(pr.outside), 1.0) * r
+    return jnp.where(d > 0, math.sqrt(pr.outside), 1.0) * r
 
 
 #: ``s`` of the radius parameter ``r = min_radius + s softplus(u / s)`` (normalised units: a
@@ -128,7 +129,7 @@ def _near_and_kept(g: Geometry, index, pr: Problem):
 def _cover_of(xs, near, kept, pr: Problem, n_points: int):
     """The cover residuals of samples ``xs`` (..., 3) towards their ``near`` points, zero where not ``kept``."""
     d = norm3(xs - near)
-    w = np.sqrt(_cover.weight(n_points, len(pr.seg.start), pr.cover))
+    w = math.sqrt(_cover.weight(n_points, len(pr.seg.start), pr.cover))  # a Python float: the rows keep the fit's dtype
     return jnp.where(kept, w * _solvers.robust_residuals(d, pr.loss, pr.scale), 0.0)
 
 
@@ -151,11 +152,20 @@ def cover_segment_rows(flat, index, pr: Problem, n_points: int):
     return jax.vmap(one)(flat, near, kept)
 
 
+def _data(data, pr: Problem):
+    """(points, index) of a fit's data; a ValueError where ``solver.cover`` needs the index and
+    the data is points alone."""
+    points, index = _cover.split(data)
+    if pr.cover > 0 and index is None:
+        raise ValueError("solver.cover > 0 needs the points with their nearest-point index (_fit.data_of), not the points alone")
+    return points, index
+
+
 def residuals(x, data, pr: Problem):
     """Robust point residuals (N,), the cover rows where ``pr.cover`` > 0 (``data`` then a
     ``_cover.Cloud``; :func:`cover_rows`), then the penalty rows (:func:`penalty_rows`), in
     normalised units."""
-    points, index = _cover.split(data)
+    points, index = _data(data, pr)
     joints, u = unpack(x)
     g = geometry(joints, radii_of(u, pr), pr.seg)  # once, for the distances and the plane margins
     d = distances_of(g, pr.seg, points, pr.candidates, *blocks_of(pr, points.shape[0]))[0]
@@ -168,7 +178,7 @@ def residuals(x, data, pr: Problem):
 def normal_equations(x, data, pr: Problem):
     """(r, J^T J, J^T r) of :func:`residuals` at ``x``, assembled from the problem's sparsity
     (``_normal``): no dense Jacobian, so LM and Gauss-Newton fit long chains in memory."""
-    points, index = _cover.split(data)
+    points, index = _data(data, pr)
 
     def model(x):
         joints, u = unpack(x)
