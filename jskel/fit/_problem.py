@@ -126,9 +126,10 @@ def _near_and_kept(g: Geometry, index, pr: Problem):
     return near, jnp.abs(d) <= pr.scale
 
 
-def _cover_of(xs, near, kept, pr: Problem, n_points: int):
-    """The cover residuals of samples ``xs`` (..., 3) towards their ``near`` points, zero where not ``kept``."""
-    d = norm3(xs - near)
+def _cover_of(xs, near, kept, pr: Problem, n_points: int, spacing):
+    """The cover residuals of samples ``xs`` (..., 3) towards their ``near`` points, zero where
+    not ``kept``: the distance less the points' ``spacing`` (none within it: ``_cover``'s dead zone)."""
+    d = jnp.maximum(norm3(xs - near) - spacing, 0.0)
     w = math.sqrt(_cover.weight(n_points, len(pr.seg.start), pr.cover))  # a Python float: the rows keep the fit's dtype
     return jnp.where(kept, w * _solvers.robust_residuals(d, pr.loss, pr.scale), 0.0)
 
@@ -137,7 +138,7 @@ def cover_rows(g: Geometry, index, pr: Problem, n_points: int):
     """(S * M,) the residuals of the term from the surface back to the points (``solver.cover``,
     ``_cover``): each sample's robust distance to its nearest point."""
     near, kept = _near_and_kept(g, index, pr)
-    return _cover_of(_cover.samples(g), near, kept, pr, n_points).reshape(-1)
+    return _cover_of(_cover.samples(g), near, kept, pr, n_points, index.spacing).reshape(-1)
 
 
 def cover_segment_rows(flat, index, pr: Problem, n_points: int):
@@ -146,7 +147,7 @@ def cover_segment_rows(flat, index, pr: Problem, n_points: int):
     near, kept = _near_and_kept(_normal.geometry_of_flat(flat), index, pr)
 
     def one(row, nr, kp):
-        f = lambda r: _cover_of(_cover.samples(_normal.geometry_of_flat(r[None]))[0], nr, kp, pr, n_points)  # noqa: E731
+        f = lambda r: _cover_of(_cover.samples(_normal.geometry_of_flat(r[None]))[0], nr, kp, pr, n_points, index.spacing)  # noqa: E731
         return f(row), jax.jacfwd(f)(row)
 
     return jax.vmap(one)(flat, near, kept)
