@@ -21,12 +21,11 @@ from pydantic import Field
 
 from ..config import StrictModel
 from ._config import SolverConfig
-from ._cover import SAMPLES
 from ._distance import segments_of
 from ._fit import data_of, fit_many, fit_points, jacobian_of, on_device
 from ._measures import culling_exact_fraction
 from ._points import sample_surface
-from ._problem import blocked, loss, normaliser_of, ordered, problem_of
+from ._problem import blocked, loss, normaliser_of, ordered, problem_of, residual_count
 from ._starts import perturbed
 
 
@@ -154,7 +153,7 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                     emit(row)
                     rows.append(row)
                     continue
-                jac = jacobian_of(s, n + SAMPLES * segs * (b.cover > 0) + 5 * (segs - 1), 4 * (segs + 1))  # as fit_points counts them
+                jac = jacobian_of(s, residual_count(n, problem_of(segments_of(j0, r0, p), s)), 4 * (segs + 1))  # as fit_points counts them
                 row = {"solver": name, "jacobian": jac, "loss": b.loss, "smoothness": b.smoothness, "cover": b.cover, "points": n, "segments": segs,
                        "candidate_blocks": blocked(problem_of(segments_of(j0, r0, p), s), n), "compile_s": round(res.compile_s, 3),
                        "seconds": round(res.seconds, 4), "iterations": res.iterations, "converged": res.converged,

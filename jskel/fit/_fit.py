@@ -17,7 +17,7 @@ from .. import checks, numerics, progress
 from . import _cover, _solvers
 from ._config import SolverConfig
 from ._distance import segments_of
-from ._problem import Problem, dense_equations, loss, normal_equations, normaliser_of, ordered, problem_of, residuals
+from ._problem import Problem, dense_equations, loss, normal_equations, normaliser_of, ordered, problem_of, residual_count, residuals
 from ._starts import perturbed
 
 
@@ -213,7 +213,7 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
     pr = problem_of(seg, s)
     nz = normaliser_of(points)
     pts = on_device(data_of(nz.points(ordered(points, pr)), pr, dtype))
-    key = solver_key(s, len(points) + _cover.SAMPLES * len(pr.seg.start) * (pr.cover > 0) + 5 * len(pr.triples), n_par)
+    key = solver_key(s, residual_count(len(points), pr), n_par)
     x0 = jnp.asarray(np.asarray(nz.start(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), pr), dtype))
     t_all = time.perf_counter()
     restart_losses = []
@@ -354,7 +354,7 @@ def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32
     nzs = [normaliser_of(c) for c in clouds]
     pts = on_device(jax.tree_util.tree_map(lambda *a: np.stack(a), *[data_of(nz.points(ordered(c, pr)), pr, dtype) for nz, c in zip(nzs, clouds)]))
     x0 = jnp.asarray(np.stack([nz.start(j, r, pr) for nz, j, r in zip(nzs, j0, r0)]), dtype)
-    key = solver_key(s, clouds.shape[1] + _cover.SAMPLES * len(pr.seg.start) * (pr.cover > 0) + 5 * len(pr.triples), x0.shape[-1])
+    key = solver_key(s, residual_count(clouds.shape[1], pr), x0.shape[-1])
     t0 = time.perf_counter()
     solve = _solve_clouds.lower(x0, pts, pr, key).compile()
     compile_s = time.perf_counter() - t0

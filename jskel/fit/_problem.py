@@ -113,6 +113,13 @@ def penalty_rows(joints, g, pr: Problem):
     return jnp.concatenate(parts, -1)
 
 
+def residual_count(n_points: int, pr: Problem) -> int:
+    """How many residuals :func:`residuals` gives for ``n_points`` points: the points, the cover
+    samples where ``pr.cover`` > 0, and 5 penalty rows per continuation (the solver's choice of
+    dense or sparse normal equations counts them)."""
+    return n_points + (_cover.SAMPLES * len(pr.seg.start) if pr.cover > 0 else 0) + 5 * len(pr.triples)
+
+
 def _near_and_kept(g: Geometry, index, pr: Problem):
     """(S, M, 3) each cover sample's nearest point and (S, M) whether the sample counts (on the
     frusta surface within the robust scale: not inside another segment, nor beyond its own
