@@ -76,8 +76,9 @@ def test_sparse_normal_equations_equal_the_dense_jacobians():
     jac = np.asarray(jac, np.float64)
     assert np.count_nonzero(np.abs(jac[-5 * len(pr.triples):]).sum(1)) > 0  # penalty rows are live
     cover_rows = jac[1200 : 1200 + SAMPLES * len(pr.seg.start)]
-    # cover rows are live: those beyond the dead zone (16 of 288 at this start)
-    assert np.count_nonzero(np.abs(cover_rows).sum(1)) >= 10
+    # cover rows are live: those beyond the dead zone (5 of 288 at this start; 16 while each
+    # sample measured four blocks, which missed nearer points for some)
+    assert np.count_nonzero(np.abs(cover_rows).sum(1)) >= 4
     want = jac.T @ jac
     want_g = jac.T @ np.asarray(rd, np.float64)
     for got in ((rr, jtj, g), dense):  # the sparse assembly, and the dense solver's one linearization

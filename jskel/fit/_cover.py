@@ -31,13 +31,15 @@ The samples together weigh ``cover`` times the points (each sample's squared res
 The nearest point: the points in Morton order (``_distance.spatial_order``) in blocks of
 ``BLOCK`` with their boxes, computed once on the host (the points never move); each sample
 measures the ``NEAREST_BLOCKS`` blocks whose boxes are nearest it. The point found is the
-nearest wherever the fifth-nearest box lies beyond it; not certified otherwise: where more
-than four boxes hold the sample (Morton blocks that straddle a cell's boundary make long,
+nearest wherever the next-nearest box lies beyond it; not certified otherwise: where more
+boxes than that hold the sample (Morton blocks that straddle a cell's boundary make long,
 overlapping boxes) the nearest point can be missed, and the distance is then overstated by up
-to the diagonal of a box. Every sample scores every block, so an evaluation costs samples x
-blocks box distances (16 S x N / 32), which grows as the points x segments that the fit's
-candidate blocks avoid for the points (``solver.block``): on 100,000 points and 1,000
-segments an LM iteration took 0.83 s with the term against 0.64 s without (docs/fitting.md).
+to the diagonal of a box. With four blocks, 7 of the 368 samples of a ring of cones around a
+noisy torus' core missed theirs by up to 0.06 (0.8 of the dead zone); with six, none did
+(``tests/test_fit_cover.py``). The blocks are chosen through each segment's list
+(:func:`nearest_points`): an evaluation costs segments x blocks box distances plus samples x
+``GROUP_BLOCKS``, not samples x blocks (16 S x N / 32), which grew as the points x segments
+that the fit's candidate blocks avoid for the points (``solver.block``).
 """
 
 from __future__ import annotations
@@ -50,13 +52,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..numerics import dot3, safe_sqrt
-from ._distance import Geometry, _top, spatial_order
+from ..accel import first_set, pack_bits
+from ._distance import UNSURE_SHARE, Geometry, _top, spatial_order
 
 AXIAL = (0.25, 0.75)  # where the rings of samples sit along each segment's axis
 AROUND = 8  # samples around each ring
 SAMPLES = len(AXIAL) * AROUND  # per segment
 BLOCK = 32  # points per block of the nearest-point search
-NEAREST_BLOCKS = 4  # blocks each sample measures
+NEAREST_BLOCKS = 6  # blocks each sample measures
+GROUP_BLOCKS = 32  # blocks each segment's samples choose them from
 DEAD_ZONE = 2.0  # no pull on a sample within this many times the points' median spacing of a point
 
 
@@ -124,17 +128,56 @@ def samples(g: Geometry):
     return jnp.stack(out, 1)
 
 
+def _box_gap2(lo, hi, b_lo, b_hi):
+    """Squared distances (..., NB) between boxes [lo, hi] (..., 3) and the blocks' boxes (NB, 3)
+    (0 where they overlap)."""
+    gap = jnp.maximum(jnp.maximum(b_lo - hi[..., None, :], lo[..., None, :] - b_hi), 0.0)
+    return dot3(gap, gap)
+
+
 def nearest_points(index: PointIndex, x):
-    """(Q, 3) for samples ``x`` (Q, 3): the nearest point among the :data:`NEAREST_BLOCKS`
-    blocks whose boxes lie nearest each sample, without gradient."""
+    """(G, M, 3) for samples ``x`` (G, M, 3) in groups of M near ones (a segment's samples): the
+    nearest point among the :data:`NEAREST_BLOCKS` blocks whose boxes lie nearest each sample,
+    without gradient.
+
+    Each group first keeps the :data:`GROUP_BLOCKS` blocks whose boxes lie nearest the box
+    around its samples (work groups x blocks, not samples x blocks), and a sample measures the
+    boxes of that list. A sample lies in its group's box, so a block off the list is no nearer
+    the sample than the first block off the list is to the group's box: where the farthest of
+    the sample's chosen boxes lies no further than that, they are the ones it would choose
+    among every block. The samples where it lies further (a group box that many blocks touch,
+    or a sample far from its group's points) choose among every block, ``cap`` at a time, as
+    ``_distance._candidates``' unsure points do; so every sample's blocks are its own choice."""
     x = jax.lax.stop_gradient(x)
-    gap = jnp.maximum(jnp.maximum(index.lo[None] - x[:, None], x[:, None] - index.hi[None]), 0.0)
-    k = min(NEAREST_BLOCKS, index.lo.shape[0])
-    blk = _top(-dot3(gap, gap), k)  # (Q, k)
-    pts = index.blocks[blk].reshape(x.shape[0], -1, 3)  # (Q, k B, 3)
-    q = pts - x[:, None]
-    d2 = dot3(q, q)
-    return jnp.take_along_axis(pts, jnp.argmin(d2, -1)[:, None, None], 1)[:, 0]
+    ng, m = x.shape[:2]
+    nb = index.lo.shape[0]
+    kg = min(GROUP_BLOCKS, nb)
+    k = min(NEAREST_BLOCKS, kg)
+    g2 = _box_gap2(x.min(1), x.max(1), index.lo, index.hi)  # (G, NB)
+    top = _top(-g2, min(kg + 1, nb))
+    lst = top[:, :kg]
+    nxt = jnp.take_along_axis(g2, top[:, kg:], 1)[:, 0] if kg < nb else jnp.full((ng,), jnp.inf, x.dtype)
+    gap = _box_gap2(x, x, index.lo[lst][:, None], index.hi[lst][:, None])  # (G, M, kg)
+    sel = _top(-gap, k)  # (G, M, k), nearest first
+    blk = jnp.take_along_axis(lst[:, None, :], sel, 2).reshape(ng * m, k)
+    sure = (jnp.take_along_axis(gap, sel[..., k - 1 :], 2)[..., 0] <= nxt[:, None]).reshape(-1)
+    flat = x.reshape(-1, 3)
+    q = flat.shape[0]
+    cap = min(q, max(m, q // UNSURE_SHARE))
+
+    def fall_back(st):
+        blk, unsure = st
+        at, count = first_set(pack_bits(unsure), cap)
+        rows = jnp.where(jnp.arange(cap) < count, at, q)
+        xq = flat[jnp.minimum(rows, q - 1)]
+        b2 = _top(-_box_gap2(xq, xq, index.lo, index.hi), k)
+        return blk.at[rows].set(b2, mode="drop"), unsure.at[rows].set(False, mode="drop")
+
+    blk, _ = jax.lax.while_loop(lambda st: jnp.any(st[1]), fall_back, (blk, ~sure))
+    pts = index.blocks[blk].reshape(q, -1, 3)  # (Q, k B, 3)
+    d = pts - flat[:, None]
+    near = jnp.take_along_axis(pts, jnp.argmin(dot3(d, d), -1)[:, None, None], 1)[:, 0]
+    return near.reshape(ng, m, 3)
 
 
 def weight(n_points: int, n_segments: int, cover: float) -> float:

@@ -128,8 +128,8 @@ def _near_and_kept(g: Geometry, index, pr: Problem):
     g = jax.lax.stop_gradient(g)
     xs = _cover.samples(g)
     flat = xs.reshape(-1, 3)
-    near = _cover.nearest_points(index, flat).reshape(xs.shape)
-    d = distances_of(g, pr.seg, flat, pr.candidates)[0].reshape(xs.shape[:2])
+    near = _cover.nearest_points(index, xs)
+    d = distances_of(g, pr.seg, flat, pr.candidates, *blocks_of(pr, flat.shape[0]))[0].reshape(xs.shape[:2])
     return near, jnp.abs(d) <= pr.scale
 
 
