@@ -68,17 +68,20 @@ def test_nearest_points_match_brute_force():
     ring = np.asarray(jax.jit(samples)(g), np.float64)  # (23, 16, 3)
     idx = jax.tree_util.tree_map(jnp.asarray, point_index(pts.astype(np.float32)))
     find = jax.jit(nearest_points)
-    for q, got in ((np.concatenate([near_q, far_q]), find(idx, jnp.asarray(np.concatenate([near_q, far_q])[:, None], jnp.float32))[:, 0]),
-                   (ring.reshape(-1, 3), find(idx, jnp.asarray(ring, jnp.float32)).reshape(-1, 3))):
+
+    def check(q, got, exact):
         got = np.asarray(got, np.float64)
-        d_all = np.linalg.norm(q[:, None] - pts[None], axis=-1)
-        want = d_all.min(1)
+        want = np.linalg.norm(q[:, None] - pts[None], axis=-1).min(1)
         d_got = np.linalg.norm(got - q, axis=1)
         assert np.all(np.min(np.linalg.norm(got[:, None] - pts[None], axis=-1), 1) < 1e-6)  # a point of the cloud
         assert np.all(d_got >= want - 1e-6)
-        close = want < 0.08 if len(q) == 400 else np.ones(len(q), bool)
-        assert close[:300].all() if len(q) == 400 else True
-        np.testing.assert_allclose(d_got[close], want[close], atol=1e-6)
+        np.testing.assert_allclose(d_got[exact], want[exact], atol=1e-6)
+        return want
+
+    q = np.concatenate([near_q, far_q])
+    want = check(q, find(idx, jnp.asarray(q[:, None], jnp.float32))[:, 0], np.arange(400) < 300)
+    assert np.all(want[:300] < 0.08)  # the near queries are within a point spacing of the surface
+    check(ring.reshape(-1, 3), find(idx, jnp.asarray(ring, jnp.float32)).reshape(-1, 3), np.ones(len(ring) * SAMPLES, bool))
 
 
 def test_cover_rows_are_the_distance_from_a_swollen_tube_to_the_true_one():

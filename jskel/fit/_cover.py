@@ -52,8 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..numerics import dot3, safe_sqrt
-from ..accel import first_set, pack_bits
-from ._distance import UNSURE_SHARE, Geometry, _top, spatial_order
+from ._distance import UNSURE_SHARE, Geometry, _top, redo_unsure, spatial_order
 
 AXIAL = (0.25, 0.75)  # where the rings of samples sit along each segment's axis
 AROUND = 8  # samples around each ring
@@ -147,7 +146,8 @@ def nearest_points(index: PointIndex, x):
     the sample's chosen boxes lies no further than that, they are the ones it would choose
     among every block. The samples where it lies further (a group box that many blocks touch,
     or a sample far from its group's points) choose among every block, ``cap`` at a time, as
-    ``_distance._candidates``' unsure points do; so every sample's blocks are its own choice."""
+    ``_distance._candidates``' unsure points do (``_distance.redo_unsure``); so every sample's
+    blocks are its own choice."""
     x = jax.lax.stop_gradient(x)
     ng, m = x.shape[:2]
     nb = index.lo.shape[0]
@@ -164,16 +164,7 @@ def nearest_points(index: PointIndex, x):
     flat = x.reshape(-1, 3)
     q = flat.shape[0]
     cap = min(q, max(m, q // UNSURE_SHARE))
-
-    def fall_back(st):
-        blk, unsure = st
-        at, count = first_set(pack_bits(unsure), cap)
-        rows = jnp.where(jnp.arange(cap) < count, at, q)
-        xq = flat[jnp.minimum(rows, q - 1)]
-        b2 = _top(-_box_gap2(xq, xq, index.lo, index.hi), k)
-        return blk.at[rows].set(b2, mode="drop"), unsure.at[rows].set(False, mode="drop")
-
-    blk, _ = jax.lax.while_loop(lambda st: jnp.any(st[1]), fall_back, (blk, ~sure))
+    (blk,) = redo_unsure((blk,), ~sure, cap, lambda rows: (_top(-_box_gap2(flat[rows], flat[rows], index.lo, index.hi), k),))
     pts = index.blocks[blk].reshape(q, -1, 3)  # (Q, k B, 3)
     d = pts - flat[:, None]
     near = jnp.take_along_axis(pts, jnp.argmin(dot3(d, d), -1)[:, None, None], 1)[:, 0]

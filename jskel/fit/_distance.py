@@ -294,16 +294,25 @@ def _candidates(g: Geometry, points, k: int, block: int = 0, per_block: int = 0)
     # near the list's edge) choose among every segment, ``cap`` at a time: the choice is every
     # point's own, and its cost grows with the points left unsure
     cap = min(n, max(block, n // UNSURE_SHARE))
+    return redo_unsure((idx, nxt), ~sure, cap, lambda rows: jax.vmap(one)(pts[rows]))
 
-    def fall_back(st):
-        idx, nxt, unsure = st
-        at, count = first_set(pack_bits(unsure), cap)  # ``jnp.nonzero``'s prefix sum over N cost more than the rest
-        rows = jnp.where(jnp.arange(cap) < count, at, n)
-        i2, n2 = jax.vmap(one)(pts[jnp.minimum(rows, n - 1)])
-        return idx.at[rows].set(i2, mode="drop"), nxt.at[rows].set(n2, mode="drop"), unsure.at[rows].set(False, mode="drop")
 
-    idx, nxt, _ = jax.lax.while_loop(lambda st: jnp.any(st[2]), fall_back, (idx, nxt, ~sure))
-    return idx, nxt
+def redo_unsure(outs: tuple, unsure, cap: int, fn):
+    """``outs`` (arrays over N rows) with each row where ``unsure`` (N,) holds replaced by
+    ``fn(rows)`` (rows (cap,) int, a tuple like ``outs`` of their new values), ``cap`` rows at a
+    time until none is left: the fallback of a search whose cheap answer is not certain for
+    every row (:func:`_candidates`, ``_cover.nearest_points``). The rows come from
+    :func:`jskel.accel.first_set` (``jnp.nonzero``'s prefix sum over N cost more than the rest)."""
+    n = unsure.shape[0]
+
+    def body(st):
+        outs, unsure = st
+        at, count = first_set(pack_bits(unsure), cap)
+        rows = jnp.where(jnp.arange(cap) < count, at, n)  # n: past the end, dropped
+        new = fn(jnp.minimum(rows, n - 1))
+        return tuple(o.at[rows].set(v, mode="drop") for o, v in zip(outs, new)), unsure.at[rows].set(False, mode="drop")
+
+    return jax.lax.while_loop(lambda st: jnp.any(st[1]), body, (tuple(outs), unsure))[0]
 
 
 def _block_candidates(gs: Geometry, reach, pts, k: int, block: int, per_block: int):
