@@ -36,10 +36,11 @@ boxes than that hold the sample (Morton blocks that straddle a cell's boundary m
 overlapping boxes) the nearest point can be missed, and the distance is then overstated by up
 to the diagonal of a box. With four blocks, 7 of the 368 samples of a ring of cones around a
 noisy torus' core missed theirs by up to 0.06 (0.8 of the dead zone); with six, none did
-(``tests/test_fit_cover.py``). The blocks are chosen through each segment's list
-(:func:`nearest_points`): an evaluation costs segments x blocks box distances plus samples x
-``GROUP_BLOCKS``, not samples x blocks (16 S x N / 32), which grew as the points x segments
-that the fit's candidate blocks avoid for the points (``solver.block``).
+(``tests/scripts/cover_search_time.py``; tested in ``tests/test_fit_cover.py``). The blocks
+are chosen through each segment's list (:func:`nearest_points`): an evaluation costs
+segments x blocks box distances plus samples x ``GROUP_BLOCKS``, not samples x blocks
+(16 S x N / 32), which grew as the points x segments that the fit's candidate blocks avoid for
+the points (``solver.block``).
 """
 
 from __future__ import annotations
