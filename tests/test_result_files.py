@@ -59,6 +59,19 @@ def _row(scene, t, date=None, **extra):
     return row
 
 
+def test_the_machine_names_the_cpu_family_and_model_and_its_widest_vector_unit():
+    """Two CPUs sold as "AMD EPYC" are told apart by their family and model numbers; the widest
+    vector unit is AVX-512 only with avx512f (a CPU with avx2 alone is AVX2)."""
+    from jskel.measure.files import _cpu
+
+    info = ("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 26\nmodel\t\t: 2\n"
+            "model name\t: AMD EPYC\nflags\t\t: fpu sse2 avx avx2 fma\n")
+    n = os.cpu_count()
+    assert _cpu(info) == f"{n}-core AMD EPYC (family 26, model 2), AVX2"
+    assert _cpu(info.replace("avx2 fma", "avx2 avx512f fma")) == f"{n}-core AMD EPYC (family 26, model 2), AVX-512"
+    assert _cpu("model name\t: Some CPU\n") == f"{n}-core Some CPU"
+
+
 def test_latest_run_is_the_rows_of_the_latest_date():
     old = [_row("a", 1.0), _row("b", 2.0)]  # written before rows carried a run: older than any dated run
     first = [_row("a", 3.0, "2026-12-01T10:00:00+00:00")]

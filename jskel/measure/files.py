@@ -46,18 +46,29 @@ def beside(name: str, file, field: str) -> Path:
     return p
 
 
-def _cpu() -> str:
-    """The host CPU as a measurement names it: cores, model and widest vector unit
-    ("2-core AMD EPYC 7B13, AVX2"), from /proc/cpuinfo where there is one."""
-    model, flags = platform.processor() or platform.machine(), set()
+def _cpu(info: str | None = None) -> str:
+    """The host CPU as a measurement names it: cores, model name, family and model numbers (a
+    name such as "AMD EPYC" or "Xeon CPU @ 2.20GHz" covers several generations) and widest
+    vector unit ("2-core AMD EPYC (family 26, model 2), AVX-512"), from /proc/cpuinfo (or
+    ``info``, its text) where there is one. Two CPUs sold under one name ("AMD EPYC") gave the frusta's and the fit's programs
+    different last bits and different timings, so a figure names which one it came from."""
+    model, flags, numbers = platform.processor() or platform.machine(), set(), ""
     try:
-        info = Path("/proc/cpuinfo").read_text(errors="replace")
-        model = next((ln.split(":", 1)[1].strip() for ln in info.splitlines() if ln.startswith("model name")), model)
-        flags = set(next((ln.split(":", 1)[1].split() for ln in info.splitlines() if ln.startswith("flags")), []))
+        info = Path("/proc/cpuinfo").read_text(errors="replace") if info is None else info
     except OSError:
-        pass
+        info = ""
+    lines = info.splitlines()
+
+    def field(name):
+        return next((ln.split(":", 1)[1].strip() for ln in lines if ln.split(":", 1)[0].strip() == name), None)
+
+    model = field("model name") or model
+    flags = set((field("flags") or "").split())
+    family, number = field("cpu family"), field("model")
+    if family and number:
+        numbers = f" (family {family}, model {number})"
     vector = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else ""
-    return ", ".join(x for x in (f"{os.cpu_count()}-core {model}", vector) if x)
+    return ", ".join(x for x in (f"{os.cpu_count()}-core {model}{numbers}", vector) if x)
 
 
 def _commit() -> str | None:
