@@ -183,6 +183,21 @@ def test_the_tree_bench_measures_a_skeleton_against_its_truth():
     assert abs(compared(j, r, p, moved, r, p)["branch_point_offset_max_radii"] - 0.5) < 1e-3
 
 
+def test_the_fit_bench_says_whether_the_radii_left_their_start():
+    """``bench_fit.yaml``'s radius measures against a hand-worked case: errors 0.02, -0.06, 0.10,
+    -0.01 of the truth (median of magnitudes 0.04, half within 5 %), each twice its start's (a
+    correlation of exactly 1); then errors unrelated to the start's (correlation 0)."""
+    from jskel.fit._bench import _radius_spread
+
+    truth = np.array([0.5, 0.4, 0.3, 0.25])
+    e = np.array([0.02, -0.06, 0.10, -0.01])
+    got = _radius_spread(truth * (1 + e), truth * (1 + e / 2), truth)
+    assert got["radius_error_median_rel"] == 0.04 and got["radius_within_5pct_share"] == 0.5
+    assert got["radius_error_start_corr"] == 1.0
+    got = _radius_spread(truth * (1 + np.array([0.1, -0.1, 0.1, -0.1])), truth * (1 + np.array([0.1, 0.1, -0.1, -0.1])), truth)
+    assert got["radius_error_start_corr"] == 0.0 and got["radius_within_5pct_share"] == 0.0
+
+
 def test_a_bench_start_other_than_the_contraction_is_named():
     """The benches' start (``fit.contracted_and_fitted``) is the contraction: another
     ``method`` is a ValueError naming the section's key and the value, before any work."""

@@ -124,6 +124,17 @@ def _loss_at(points, joints, radii, parents, s: SolverConfig) -> float:
     return float(loss(jnp.asarray(nz.start(joints, radii, pr), jnp.float32), on_device(data_of(nz.points(ordered(points, pr)), pr, np.float32)), pr))
 
 
+def _radius_spread(radii, start, truth) -> dict:
+    """The fitted radii against the truth: the median relative error, the share within 5 % (issue
+    53's target), and the correlation of each joint's error with its start's (the start is
+    perturbed by up to ``perturb``: near 1, the radii stayed where they started)."""
+    e, e0 = np.asarray(radii) / truth - 1, np.asarray(start) / truth - 1
+    both = np.std(e) > 0 and np.std(e0) > 0
+    return {"radius_error_median_rel": round(float(np.median(np.abs(e))), 4),
+            "radius_within_5pct_share": round(float(np.mean(np.abs(e) < 0.05)), 4),
+            "radius_error_start_corr": round(float(np.corrcoef(e, e0)[0, 1]), 3) if both else None}
+
+
 def run_fit_bench(b: FitBench, emit) -> list[dict]:
     """Run the benchmark, calling ``emit(row)`` for each JSON row as it is measured."""
     rows = []
@@ -160,6 +171,7 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                        "s_per_iteration": round(res.seconds / max(res.iterations, 1), 5),
                        "joint_error_max_of_length": round(float(np.max(np.linalg.norm(res.joints - j, axis=1)) / length), 5),
                        "radius_error_max_rel": round(float(np.max(np.abs(res.radii / r - 1))), 4),
+                       **_radius_spread(res.radii, r0, r),
                        "out_of_time": bool(b.max_seconds is not None and not res.converged and res.iterations < s.maxiter),
                        "loss_final": res.history[-1], "loss_truth": _loss_at(pts, j, r, p, s),
                        "culling_exact_fraction": round(culling_exact_fraction(pts, res.joints, res.radii, p, b.candidates), 5), **common}
