@@ -156,3 +156,45 @@ def test_normal_solver_reaches_closed_form_minima(damped):
     for _ in range(60):
         x, st = upd(x, st)
     np.testing.assert_allclose(np.asarray(x), [1.0, 1.0], atol=1e-4)
+
+
+def test_a_clipped_step_still_reaches_the_least_squares_minimum():
+    """LM with every component of its step clipped to 0.05 (``normal_solver``'s ``clip``, the
+    gain ratio on the model's own predicted decrease) reaches the float64 lstsq minimum of the
+    linear problem above, whose unclipped first step is several times longer, and never moves a
+    component by more than the clip."""
+    from jskel.fit._solvers import normal_solver
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(30, 4))
+    b = rng.normal(size=30) + 3.0
+    want = np.linalg.lstsq(a, b, rcond=None)[0]
+    assert np.max(np.abs(want)) > 0.2  # the minimum lies several clipped steps away
+    step = normal_solver(_linear_system(jnp.asarray(a, jnp.float32), jnp.asarray(b, jnp.float32)),
+                         clip=lambda x, h: jnp.clip(h, -0.05, 0.05))
+    x = jnp.zeros(4, jnp.float32)
+    st = step.init(x)
+    upd = jax.jit(step.update)
+    for _ in range(60):
+        x_new, st = upd(x, st)
+        assert np.max(np.abs(np.asarray(x_new - x))) <= 0.05 + 1e-6
+        x = x_new
+    np.testing.assert_allclose(np.asarray(x), want, atol=2e-5)
+
+
+def test_the_fit_step_limit_caps_each_joint_and_radius_by_the_joint_radius():
+    """``_fit.step_clip``: a joint asked to move 10 radii moves 0.5 radius along the same
+    direction, a radius asked to grow by 3 radii grows by 0.5 radius; steps within the limit are
+    unchanged (radii 0.2 and 0.4, limit 0.5; the radius parameter is the radius above 0.001)."""
+    from jskel.fit._fit import step_clip
+    from jskel.fit._problem import problem_of
+
+    j, r, p = np.array([[0.0, 0, 0], [0, 1.0, 0]]), np.array([0.2, 0.4]), np.array([-1, 0])
+    pr = problem_of(segments_of(j, r, p), SolverConfig())
+    x = jnp.asarray(np.concatenate([j.reshape(-1), r]), jnp.float32)
+    h = np.array([2.0, 0.0, 0.0, 0.03, 0.04, 0.0, 1.2, -0.05], np.float32)  # joint 0 by 10 radii, joint 1 by 0.125
+    got = np.asarray(jax.jit(step_clip(0.5, pr))(x, jnp.asarray(h)))
+    rad = np.asarray(pr.min_radius + 1e-3 * np.log1p(np.exp(r / 1e-3)))  # radii_of, in float64
+    np.testing.assert_allclose(got[:3], [0.5 * rad[0], 0.0, 0.0], rtol=1e-5)
+    np.testing.assert_allclose(got[3:6], h[3:6], rtol=1e-6)
+    np.testing.assert_allclose(got[6:], [0.5 * rad[0], -0.05], rtol=1e-5)

@@ -131,6 +131,13 @@ class SolverConfig(StrictModel):
     """Or stop when the loss falls by less than this fraction ..."""
     patience: Annotated[int, Field(ge=1, le=100_000)] = 10
     """... for this many iterations in a row."""
+    step_limit: Annotated[float, Field(ge=0.0, le=100.0)] = 0.0
+    """``lm`` / ``gauss_newton`` with the project's normal equations: each joint moves, and each
+    radius changes, by at most this many times the joint's radius a step (0: no limit). The
+    Gauss-Newton step from a long chain's start moved a few joints by several segments and a
+    third of the radii by over a quarter; LM's one damping then grew until no radius moved
+    (docs/fitting.md). Off by default until the benches of branching and real shapes have run
+    with it."""
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.01
     """``adam``: step size."""
     smoothness: Annotated[float, Field(ge=0.0)] = 0.0

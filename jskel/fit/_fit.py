@@ -17,7 +17,8 @@ from .. import checks, numerics, progress
 from . import _cover, _solvers
 from ._config import SolverConfig
 from ._distance import segments_of
-from ._problem import Problem, dense_equations, loss, normal_equations, normaliser_of, ordered, problem_of, residual_count, residuals
+from ._problem import (Problem, dense_equations, loss, normal_equations, normaliser_of, ordered, problem_of, radii_of, residual_count,
+                       residuals, unpack)
 from ._starts import perturbed
 
 
@@ -74,11 +75,28 @@ class SolverKey(NamedTuple):
     ftol: float
     jacobian: str | None  # LM / Gauss-Newton: dense or sparse normal equations, or jaxopt's solvers
     dense: bool  # jaxopt's LM forms the Jacobian
+    step_limit: float = 0.0  # solver.step_limit
 
 
 def solver_key(s: SolverConfig, n_res: int, n_par: int) -> SolverKey:
     return SolverKey(s.name, int(s.maxiter), float(s.tol), float(s.learning_rate), int(s.patience), float(s.ftol),
-                     jacobian_of(s, n_res, n_par), n_res * n_par <= DENSE_JACOBIAN_MAX)
+                     jacobian_of(s, n_res, n_par), n_res * n_par <= DENSE_JACOBIAN_MAX, float(s.step_limit))
+
+
+def step_clip(limit: float, pr: Problem):
+    """``clip(x, h)`` of ``solver.step_limit``: each joint's move ``h[3j:3j+3]`` and each radius
+    parameter's change scaled down, apart, to at most ``limit`` times that joint's radius at
+    ``x`` (normalised units), the direction of each kept."""
+
+    def clip(x, h):
+        nj = x.shape[-1] // 4
+        cap = limit * radii_of(unpack(x)[1], pr)
+        hj = h[: 3 * nj].reshape(nj, 3)
+        fj = jnp.minimum(1.0, cap / jnp.maximum(jnp.sqrt(jnp.sum(hj * hj, -1)), jnp.finfo(x.dtype).tiny))
+        fr = jnp.minimum(1.0, cap / jnp.maximum(jnp.abs(h[3 * nj :]), jnp.finfo(x.dtype).tiny))
+        return jnp.concatenate([(hj * fj[:, None]).reshape(-1), h[3 * nj :] * fr])
+
+    return clip
 
 
 def stepper(pr: Problem, key: SolverKey) -> _solvers.Stepper:
@@ -86,7 +104,8 @@ def stepper(pr: Problem, key: SolverKey) -> _solvers.Stepper:
     system = {"dense": dense_equations, "sparse": normal_equations}.get(key.jacobian)
     normal = (lambda x, p: system(x, p, pr)) if system is not None else None
     return _solvers.make(key.name, lambda x, p: residuals(x, p, pr), lambda x, p: loss(x, p, pr), key.maxiter, key.tol,
-                         key.learning_rate, dense=key.dense, normal=normal)
+                         key.learning_rate, dense=key.dense, normal=normal,
+                         clip=step_clip(key.step_limit, pr) if key.step_limit > 0 else None)
 
 
 def _typed_state(step, x0, args):

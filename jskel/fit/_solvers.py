@@ -93,7 +93,7 @@ class NormalState(NamedTuple):
     iter_num: jnp.ndarray
 
 
-def normal_solver(system: Callable, damped: bool = True, tau: float = 1e-6) -> Stepper:
+def normal_solver(system: Callable, damped: bool = True, tau: float = 1e-6, clip: Callable | None = None) -> Stepper:
     """Levenberg-Marquardt (``damped``) or Gauss-Newton on supplied normal equations:
     ``system(x, *args) -> (r, J^T J, J^T r)`` (assembled from the problem's sparsity, ``_normal``,
     or from a dense Jacobian, ``_problem.dense_equations``); the loss is ``|r|^2 / 2``.
@@ -111,7 +111,12 @@ def normal_solver(system: Callable, damped: bool = True, tau: float = 1e-6) -> S
     system instead of a loss; an accepted one a system instead of a loss and a system). The
     initial state is one update from :func:`blank <Stepper>`'s state (``iter_num`` -1: a zero
     step, always taken, ``mu`` set from the new J^T J), so the host loop compiles one program
-    where an ``init`` of its own was a second program holding the system again."""
+    where an ``init`` of its own was a second program holding the system again.
+
+    ``clip(x, h) -> h``: the step shortened unknown by unknown before it is tried (the fit's
+    ``solver.step_limit``, ``_fit.step_clip``); the gain ratio then divides by the model's own
+    predicted decrease, ``-(h . J^T r + h . J^T J h / 2)``, which equals the form above for an
+    unclipped step."""
 
     def blank(x0):
         p, dt = x0.shape[-1], x0.dtype
@@ -123,10 +128,15 @@ def normal_solver(system: Callable, damped: bool = True, tau: float = 1e-6) -> S
         fresh = st.iter_num < 0  # from blank: h = 0, taken, mu from the system at x
         a = st.jtj + st.damping * jnp.eye(x.shape[-1], dtype=x.dtype)
         h = -jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(a), st.gradient)
+        if clip is None:
+            predicted = 0.5 * jnp.dot(h, st.damping * h - st.gradient)
+        else:
+            h = clip(x, h)
+            predicted = -(jnp.dot(h, st.gradient) + 0.5 * jnp.dot(h, st.jtj @ h))
         xn = x + h
         r, jtj, g = system(xn, *args)
         ln = 0.5 * jnp.sum(r * r)
-        rho = (st.value - ln) / (0.5 * jnp.dot(h, st.damping * h - st.gradient))
+        rho = (st.value - ln) / predicted
         ok = fresh | (jnp.isfinite(ln) & (rho > 0)) if damped else jnp.asarray(True)
         start = (tau if damped else 1e-9) * jnp.max(jnp.diagonal(jtj))
         grown = st.damping * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3) if damped else st.damping
@@ -144,7 +154,7 @@ def normal_solver(system: Callable, damped: bool = True, tau: float = 1e-6) -> S
 
 
 def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: float, learning_rate: float = 0.01,
-         dense: bool = True, normal: Callable | None = None) -> Stepper:
+         dense: bool = True, normal: Callable | None = None, clip: Callable | None = None) -> Stepper:
     """A :class:`Stepper` for solver ``name`` (``lm``, ``gauss_newton``, ``lbfgs``, ``adam``).
 
     ``normal``: for ``lm`` and ``gauss_newton``, ``normal(x, *args) -> (r, J^T J, J^T r)``
@@ -154,9 +164,9 @@ def make(name: str, residuals: Callable, loss: Callable, maxiter: int, tol: floa
     against). ``dense``: jaxopt's Levenberg-Marquardt forms the Jacobian (forward mode) and
     solves its normal equations by Cholesky; otherwise it runs matrix-free conjugate gradients
     on J^T J products. On the 24-unknown chain the matrix-free form took several times as long
-    to compile as the dense one (docs/choices.md#lm-dense)."""
+    to compile as the dense one (docs/choices.md#lm-dense). ``clip``: :func:`normal_solver`'s."""
     if normal is not None and name in ("lm", "gauss_newton"):
-        return normal_solver(normal, damped=name == "lm")
+        return normal_solver(normal, damped=name == "lm", clip=clip)
     if name == "lbfgs":
         init, update = _lbfgs.lbfgs(loss)
         return Stepper(init, update, lambda st: st.error, lambda st: st.value)
