@@ -180,6 +180,14 @@ def test_a_clipped_step_still_reaches_the_least_squares_minimum():
         assert np.max(np.abs(np.asarray(x_new - x))) <= 0.05 + 1e-6
         x = x_new
     np.testing.assert_allclose(np.asarray(x), want, atol=2e-5)
+    # a "clip" that turns the step uphill: the model predicts a rise, and LM refuses every step
+    # (a gain ratio of a rise over a predicted rise is positive; it once accepted them)
+    up = normal_solver(_linear_system(jnp.asarray(a, jnp.float32), jnp.asarray(b, jnp.float32)), clip=lambda x, h: -h)
+    x0 = jnp.zeros(4, jnp.float32)
+    st = up.init(x0)
+    for _ in range(3):
+        x1, st = jax.jit(up.update)(x0, st)
+        np.testing.assert_array_equal(np.asarray(x1), np.zeros(4))
 
 
 def test_the_fit_step_limit_caps_each_joint_and_radius_by_the_joint_radius():

@@ -137,7 +137,8 @@ def normal_solver(system: Callable, damped: bool = True, tau: float = 1e-6, clip
         r, jtj, g = system(xn, *args)
         ln = 0.5 * jnp.sum(r * r)
         rho = (st.value - ln) / predicted
-        ok = fresh | (jnp.isfinite(ln) & (rho > 0)) if damped else jnp.asarray(True)
+        # (a clipped step need not descend: one the model itself says raises the loss is refused)
+        ok = fresh | (jnp.isfinite(ln) & (rho > 0) & (predicted > 0)) if damped else jnp.asarray(True)
         start = (tau if damped else 1e-9) * jnp.max(jnp.diagonal(jtj))
         grown = st.damping * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3) if damped else st.damping
         two = jnp.asarray(2.0, x.dtype)
