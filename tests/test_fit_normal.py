@@ -206,3 +206,10 @@ def test_the_fit_step_limit_caps_each_joint_and_radius_by_the_joint_radius():
     np.testing.assert_allclose(got[:3], [0.5 * rad[0], 0.0, 0.0], rtol=1e-5)
     np.testing.assert_allclose(got[3:6], h[3:6], rtol=1e-6)
     np.testing.assert_allclose(got[6:], [0.5 * rad[0], -0.05], rtol=1e-5)
+    for bad in ({"name": "lbfgs"}, {"name": "adam"}, {"name": "lm", "jacobian": "jaxopt"}):  # solvers it would not cap
+        with pytest.raises(ValueError, match="step_limit: 0.5 caps the steps of lm / gauss_newton"):
+            SolverConfig(step_limit=0.5, **bad)
+    from jskel.fit._bench import FitBench
+
+    with pytest.raises(ValueError, match=r"step_limit: 0.5 caps .* \(got solvers \['lbfgs'\]"):
+        FitBench(step_limit=0.5, solvers=["lm", "lbfgs"])

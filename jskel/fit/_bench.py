@@ -17,7 +17,7 @@ from typing import Annotated, Literal
 import jax
 import jax.numpy as jnp
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from ..config import StrictModel
 from ._config import SolverConfig
@@ -78,6 +78,15 @@ class FitBench(StrictModel):
     """Solvers of the batch runs."""
     seed: int = 0
     """Random seed of the chains, clouds and starts."""
+
+
+    @model_validator(mode="after")
+    def _step_limit_needs_the_normal_solver(self):
+        other = [n for n in self.solvers if n not in ("lm", "gauss_newton")]
+        if self.step_limit > 0 and (other or self.jacobian == "jaxopt"):
+            raise ValueError(f"step_limit: {self.step_limit} caps the steps of lm / gauss_newton on the project's normal "
+                             f"equations only (got solvers {other or self.solvers}, jacobian {self.jacobian!r})")
+        return self
 
 
 class FitBenchFile(StrictModel):

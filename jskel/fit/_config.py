@@ -181,6 +181,13 @@ class SolverConfig(StrictModel):
                              "while block > 0 (or set block: 0)")
         return self
 
+    @model_validator(mode="after")
+    def _step_limit_needs_the_normal_solver(self):
+        if self.step_limit > 0 and (self.name not in ("lm", "gauss_newton") or self.jacobian == "jaxopt"):
+            raise ValueError(f"step_limit: {self.step_limit} caps the steps of lm / gauss_newton on the project's normal "
+                             f"equations only (got name {self.name!r}, jacobian {self.jacobian!r}; set step_limit: 0)")
+        return self
+
 
 class EditsConfig(StrictModel):
     """Topology edits between rounds of the fit (``jskel/fit/_topology.py``): after each round
