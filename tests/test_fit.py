@@ -295,6 +295,13 @@ def test_topology_edits_between_rounds_recover_the_chain(tmp_path):
     kinds = sorted((e["edit"], e["joint"]) for e in info["edits"])
     assert kinds == [("merge", 1), ("prune", 7)] and all(e["round"] == 1 for e in info["edits"]), info["edits"]
     assert info["rounds"] == 2  # the second round edited nothing
+    # the time and iterations are the two rounds' (each topology its own program), not the last's
+    per = info["round_fits"]
+    assert [r["round"] for r in per] == [1, 2] and [r["joints"] for r in per] == [8, 6]
+    assert all(r["compile_s"] > 0 and r["iterations"] >= 1 for r in per)
+    assert info["iterations"] == per[0]["iterations"] + per[1]["iterations"]
+    assert info["compile_s"] == pytest.approx(per[0]["compile_s"] + per[1]["compile_s"])
+    assert info["seconds"] == pytest.approx(per[0]["seconds"] + per[1]["seconds"])
     assert info["truth"]["joint_error_max_of_length"] < 0.02 and info["truth"]["radius_error_max_rel"] < 0.05
 
 

@@ -38,6 +38,10 @@ class FitResult(NamedTuple):
     restart_losses: list
     first_iteration_at: float | None = None  # time.time() when the stepping loop's first iteration was done (None: one batched call)
     first_iteration_cpu: float | None = None  # the process's CPU seconds then (time.process_time())
+    #: with topology edits (``fitted_in_rounds``): each round's {round, joints, iterations,
+    #: seconds, compile_s}; ``iterations``, ``seconds`` and ``compile_s`` above are then their sums
+    #: over the rounds (each new topology compiles its own program) and ``history`` the last round's
+    rounds: tuple = ()
 
 
 DENSE_JACOBIAN_MAX = 1 << 24  # entries (residuals x unknowns) up to which jaxopt's LM forms J (64 MiB in float32)

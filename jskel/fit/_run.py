@@ -132,7 +132,8 @@ def run_fit(cfg: FitFile, out: Path, base: Path | None = None) -> dict:
 
 
 def fitted_in_rounds(solver, edits, points, joints, radii, parents, dtype, seed: int = 1, perturb: float = 0.0):
-    """(the last round's FitResult, the edits' log, rounds run): fits of the start's topology
+    """(the last round's FitResult, its iterations, seconds and compile time summed over the
+    rounds and each round's in ``FitResult.rounds``; the edits' log; rounds run): fits of the start's topology
     by ``solver`` with topology edits between them (``edits``, ``_topology.edited``), until a
     round edits nothing or ``edits.rounds`` fits are done; one fit without ``edits``. Each new
     topology compiles its own solver program; ``seed`` and ``perturb`` are the first round's
@@ -140,12 +141,21 @@ def fitted_in_rounds(solver, edits, points, joints, radii, parents, dtype, seed:
     from ._topology import edited
 
     rounds = edits.rounds if edits is not None else 1
-    log = []
+    log, per = [], []
     ext = float(np.max(np.ptp(points, axis=0)))
     k = 0
+
+    def summed(res):
+        """``res`` with its iterations, seconds and compile time summed over the rounds so far,
+        each round's in ``rounds`` (the last round's alone under-reported a fit with edits)."""
+        return res._replace(iterations=sum(r["iterations"] for r in per), seconds=sum(r["seconds"] for r in per),
+                            compile_s=sum(r["compile_s"] for r in per), rounds=tuple(per))
+
     while True:
         res = fit_points(points, joints, radii, parents, solver, dtype, seed=seed, perturb=perturb if k == 0 else 0.0)
         k += 1
+        per.append({"round": k, "joints": len(res.joints), "iterations": int(res.iterations), "seconds": float(res.seconds),
+                    "compile_s": float(res.compile_s)})
         if k == rounds:
             if edits is not None and edits.final_spurs:
                 # the last round's spurs (no fit follows; nothing else is edited)
@@ -153,11 +163,11 @@ def fitted_in_rounds(solver, edits, points, joints, radii, parents, dtype, seed:
                 if done:
                     res = res._replace(joints=j, radii=r, parents=p)
                     log.extend(done)
-            return res, log, k
+            return summed(res), log, k
         joints, radii, parents, done = edited(points, res.joints, res.radii, res.parents, edits, solver.scale * ext, ext, k)
         log.extend(done)
         if not done:
-            return res, log, k
+            return summed(res), log, k
 
 
 def contracted_and_fitted(points, start, solver, edits, section: str):
@@ -210,8 +220,9 @@ def fit_info(cfg: FitFile, res: FitResult, how: str, pinfo: dict, points: np.nda
         "iterations": res.iterations,
         "converged": res.converged,
         "solver_error": res.error,
-        "seconds": res.seconds,
+        "seconds": res.seconds,  # with edits: summed over the rounds, each round's in "round_fits"
         "compile_s": res.compile_s,
+        "round_fits": list(res.rounds),
         # when the stepping loop's first iteration was done (None: the restarts' one batched call),
         # as time.time() and in seconds from the process's start (issue 27's time to a first iteration)
         "first_iteration_at": res.first_iteration_at,
