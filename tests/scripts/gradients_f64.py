@@ -58,6 +58,7 @@ blended balls in the eye's position and the balls' parameters, at every pixel th
 import json
 import sys
 import tempfile
+import time
 import zlib
 from pathlib import Path
 
@@ -231,12 +232,28 @@ which = set(sys.argv[1].split(",")) if len(sys.argv) > 1 else None  # a subset o
 OPT_IN = {"render_implicit"}
 
 
+#: each check's seconds, its compile included (from its ``wanted`` to the next one's, or to the
+#: end), printed beside what was checked: where the suite's time in this process goes
+seconds = {}
+_running = [None, 0.0]
+
+
+def _lap(next_name=None):
+    """Close the running check's time; start ``next_name``'s."""
+    now = time.perf_counter()
+    if _running[0] is not None:
+        seconds[_running[0]] = round(now - _running[1], 2)
+    _running[:] = [next_name, now]
+
+
 def wanted(name):
     """Whether to run the check ``name``; it then sets ``rng`` to a generator of its own, so a
     subset draws the same rays as the whole run."""
     global rng
     rng = np.random.default_rng(zlib.crc32(name.encode()))
-    return name not in OPT_IN if which is None else name in which
+    run = name not in OPT_IN if which is None else name in which
+    _lap(name if run else None)
+    return run
 
 
 # frusta: a branching tree of 6 segments
@@ -616,4 +633,5 @@ def fit_checks():
 if wanted("fit"):
     fit_checks()
 
-print(json.dumps({"checked": checked}))
+_lap()
+print(json.dumps({"checked": checked, "seconds": seconds}))
