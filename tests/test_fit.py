@@ -499,6 +499,10 @@ def test_an_outside_weight_makes_the_radius_enclose_the_points():
         assert abs(out - np.mean(rho > want)) < 0.03 and ((0.4 < out < 0.6) if w == 1.0 else (out < 0.2))
     sparse = fit_points(pts, joints, radii, parents, s.model_copy(update={"jacobian": "sparse"}))  # the other normal equations
     np.testing.assert_allclose(sparse.radii, res.radii, rtol=1e-4)
+    # solver.radii_refit (the same compiled solver): the joints as fitted, the radii again from them
+    refit = fit_points(pts, joints, radii, parents, s.model_copy(update={"radii_refit": True}))
+    np.testing.assert_array_equal(refit.joints, res.joints)
+    np.testing.assert_allclose(refit.radii, want, rtol=1e-2)
     assert expectile(16.0) > expectile(1.0) + 0.02  # the two fits lie more than a noise sigma apart
 
 

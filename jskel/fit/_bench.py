@@ -64,6 +64,8 @@ class FitBench(StrictModel):
     """``solver.cover``: weight of the term from the surface back to the points (0: off)."""
     step_limit: Annotated[float, Field(ge=0.0, le=100.0)] = 0.0
     """``solver.step_limit``: most a joint moves or a radius changes a step, in the joint's radius (0: none)."""
+    radii_refit: bool = False
+    """``solver.radii_refit``: the radii again by least squares with the joints fixed, after the solver."""
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.003
     """``adam``: step size."""
     max_work: Annotated[float, Field(gt=0.0)] = 1e7
@@ -167,7 +169,8 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                 s = SolverConfig(name=name, loss=b.loss, maxiter=b.maxiter if name != "adam" else 10 * b.maxiter,
                                  learning_rate=b.learning_rate, smoothness=b.smoothness, candidates=b.candidates,
                                  block=b.block, block_candidates=b.block_candidates,
-                                 max_seconds=b.max_seconds, jacobian=b.jacobian, cover=b.cover, step_limit=b.step_limit)
+                                 max_seconds=b.max_seconds, jacobian=b.jacobian, cover=b.cover, step_limit=b.step_limit,
+                                 radii_refit=b.radii_refit)
                 try:
                     res = fit_points(pts, j0, r0, p, s)
                 except ValueError as e:  # too few points, a diverged solver: a row that says so
@@ -177,6 +180,7 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                     continue
                 jac = jacobian_of(s, residual_count(n, problem_of(segments_of(j0, r0, p), s)), 4 * (segs + 1))  # as fit_points counts them
                 row = {"solver": name, "jacobian": jac, "loss": b.loss, "smoothness": b.smoothness, "cover": b.cover, "step_limit": b.step_limit,
+                       "radii_refit": b.radii_refit,
                        "points": n, "segments": segs,
                        "candidate_blocks": blocked(problem_of(segments_of(j0, r0, p), s), n), "compile_s": round(res.compile_s, 3),
                        "seconds": round(res.seconds, 4), "iterations": res.iterations, "converged": res.converged,

@@ -138,6 +138,11 @@ class SolverConfig(StrictModel):
     third of the radii by over a quarter; LM's one damping then grew until no radius moved
     (docs/fitting.md). Off by default until the benches of branching and real shapes have run
     with it."""
+    radii_refit: bool = False
+    """After the solver stops: the radii again with the joints fixed, by robust linear least
+    squares of the points' radial offsets from the fitted cones (``_radii.refit_radii``, the
+    fit's loss, scale and ``outside`` weight). The loss history and ``loss_final`` are the
+    solver's, before it. Every fit of a file or a batch."""
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.01
     """``adam``: step size."""
     smoothness: Annotated[float, Field(ge=0.0)] = 0.0

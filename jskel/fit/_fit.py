@@ -257,7 +257,19 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
         raise ValueError(f"solver.name: {s.name} diverged: the loss rose from {history[0]:.4g} to {history[-1]:.4g} in {it} iterations "
                          "(try lm, a smaller learning_rate or more points)")
     j, r = nz.world(x, pr)
+    r = radii_refitted(points, j, r, parents, s)
     return FitResult(j, r, np.asarray(parents), history, it, converged, seconds, compile_s, error, s.restarts, restart_losses, *first_at)
+
+
+def radii_refitted(points, joints, radii, parents, s: SolverConfig) -> np.ndarray:
+    """``radii``, or with ``solver.radii_refit`` the radii again with ``joints`` fixed
+    (``_radii.refit_radii``, in world units: the scales are fractions of the cloud's extent)."""
+    if not s.radii_refit:
+        return radii
+    from ._radii import refit_radii
+
+    ext = float(np.max(np.ptp(np.asarray(points, np.float64), axis=0)))
+    return refit_radii(points, joints, radii, np.asarray(parents), s.loss, s.scale * ext, s.outside, s.min_radius * ext)
 
 
 def _best_start(pr: Problem, key: SolverKey, s: SolverConfig, nz, start, pts, seed: int, perturb: float):
@@ -389,4 +401,5 @@ def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32
     losses = np.asarray(of_each(xs, pts))
     _raise_diverged(s, np.asarray(of_each(x0, pts)), losses, np.all(np.isfinite(np.asarray(xs)), axis=-1))
     out = [nz.world(x, pr) for nz, x in zip(nzs, np.asarray(xs))]
+    out = [(j, radii_refitted(c, j, r, parents, s)) for c, (j, r) in zip(clouds, out)]
     return np.stack([o[0] for o in out]), np.stack([o[1] for o in out]), losses, seconds, compile_s
