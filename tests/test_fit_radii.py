@@ -103,3 +103,36 @@ def test_irls_weights_are_psi_over_e():
         np.testing.assert_allclose(irls_weights(e, name, s), psi / e, rtol=1e-6, err_msg=name)
     with pytest.raises(ValueError, match="solver.loss"):
         irls_weights(e, "tukey", s)
+
+
+def test_nearest_segments_through_the_kd_tree_are_the_exhaustive_search():
+    """``_topology.nearest_segments`` from ``NEAR_FROM`` segments on scores each point's
+    ``NEAR`` nearest segment centres and falls back to every segment where it cannot certify:
+    on a random 300-segment tree with one long thick segment (whose bounding sphere leaves many
+    points uncertified) and surface, noisy and far points, the segment and distance are the
+    exhaustive argmin over every segment (written here over ``_cone_distances``, the distance
+    both use), with and without an ``alive`` mask."""
+    from jskel.fit import _topology as T
+
+    rng = np.random.default_rng(5)
+    n_j = 301
+    parents = np.concatenate([[-1], [rng.integers(0, i) for i in range(1, n_j)]])
+    joints = np.zeros((n_j, 3))
+    for i in range(1, n_j):
+        joints[i] = joints[parents[i]] + rng.normal(0, 1.0, 3)
+    radii = rng.uniform(0.05, 0.4, n_j)
+    pts = np.concatenate([joints[1:] + rng.normal(0, 0.5, (n_j - 1, 3)), rng.uniform(joints.min(0) - 5, joints.max(0) + 5, (2000, 3))])
+    long_j, long_r = joints.copy(), radii.copy()
+    long_j[7] = long_j[parents[7]] + np.array([30.0, 0.0, 0.0])  # the long one
+    long_r[7] = 3.0
+    long_pts = np.concatenate([pts, long_j[parents[7]] + rng.uniform(0, 1, (300, 1)) * (long_j[7] - long_j[parents[7]]) + rng.normal(0, 3.0, (300, 3))])
+    assert T.NEAR_FROM <= 300
+    for joints, radii, pts, alive in ((joints, radii, pts, None), (long_j, long_r, long_pts, None),
+                                      (long_j, long_r, long_pts, rng.uniform(size=n_j) > 0.2)):
+        seg, dist = T.nearest_segments(pts, joints, radii, parents, alive=alive)
+        child = np.nonzero((parents >= 0) & (True if alive is None else alive))[0]
+        a, ab = joints[parents[child]], joints[child] - joints[parents[child]]
+        ll = np.sum(ab * ab, 1)
+        d = T._cone_distances(pts[:, None, :], a[None], ab[None], ll[None], np.sqrt(ll)[None], radii[parents[child]][None], radii[child][None])
+        np.testing.assert_array_equal(dist, d.min(1))
+        np.testing.assert_array_equal(seg, child[np.argmin(d, 1)])

@@ -50,28 +50,72 @@ import numpy as np
 STRAIGHT = 1.05
 
 
+#: segments from which :func:`nearest_segments` scores each point's ``NEAR`` nearest segment
+#: centres first (certified, else all); below it every segment
+NEAR_FROM = 64
+NEAR = 16
+
+
+def _cone_distances(x, a, ab, ll, length, ra, rb):
+    """Classification distances (module docstring) of points ``x`` (B, 1, 3) to segments given
+    by their parent joint ``a`` and axis ``ab`` (..., 3), squared and plain lengths and end
+    radii (...), broadcast against each other: (1, S) for every segment, (B, K) for each
+    point's own candidates; float64."""
+    x = x - a  # (B, S, 3)
+    u = np.sum(x * ab, -1) / ll  # along the axis, 0 at a, 1 at b
+    rho = np.linalg.norm(x - u[..., None] * ab, axis=-1)
+    t = np.clip(u, 0.0, 1.0)
+    side = np.abs(rho - (ra + t * (rb - ra)))
+    y = u * length  # beyond an end: to the end's disc; inside near an end: to its plane
+    before, after = np.hypot(np.maximum(rho - ra, 0.0), y), np.hypot(np.maximum(rho - rb, 0.0), y - length)
+    return np.where(u < 0, before, np.where(u > 1, after, np.minimum(side, np.where(rho < ra + t * (rb - ra), np.minimum(y, length - y), np.inf))))
+
+
 def nearest_segments(points: np.ndarray, joints: np.ndarray, radii: np.ndarray, parents: np.ndarray, block: int = 4096, alive=None):
     """(segment (N,) the child joint of each point's nearest segment, distance (N,) |axis
     distance - radius|) over every segment (blocks of points, float64); ``alive`` (J,): only
-    the segments whose child joint is alive."""
+    the segments whose child joint is alive.
+
+    From ``NEAR_FROM`` segments on, each point first scores only the ``NEAR`` segments whose
+    centres lie nearest it (a k-d tree); the answer stands where every other segment's
+    bounding sphere (its centre, half its length plus its larger radius) lies farther than the
+    best distance found, which bounds that segment's distance from below (the classification
+    distance is at least the distance to the surface, which lies in that sphere). The other
+    points score every segment, so the answer is the brute force's, at a fraction of its cost
+    (100,000 points and 1,000 segments: every point scored 1,000 segments before)."""
     child = np.nonzero((parents >= 0) & (True if alive is None else alive))[0]
     a, b = joints[parents[child]], joints[child]
     ra, rb = radii[parents[child]], radii[child]
     ab = b - a
     ll = np.maximum(np.sum(ab * ab, 1), 1e-300)
-    seg, dist = np.empty(len(points), np.int64), np.empty(len(points))
     length = np.sqrt(ll)
+    seg, dist = np.empty(len(points), np.int64), np.empty(len(points))
+
+    def brute(idx):
+        for s in range(0, len(idx), block):
+            rows = idx[s : s + block]
+            d = _cone_distances(points[rows, None, :], a[None], ab[None], ll[None], length[None], ra[None], rb[None])
+            k = np.argmin(d, 1)
+            seg[rows], dist[rows] = child[k], d[np.arange(len(k)), k]
+
+    if len(child) < NEAR_FROM:
+        brute(np.arange(len(points)))
+        return seg, dist
+    from scipy.spatial import cKDTree
+
+    centre_d, near = cKDTree(0.5 * (a + b)).query(points, k=NEAR)
+    reach = float(np.max(0.5 * length + np.maximum(ra, rb)))  # the largest bounding sphere about a centre
     for s in range(0, len(points), block):
-        x = points[s : s + block, None, :] - a[None]  # (B, S, 3)
-        u = np.einsum("bsk,sk->bs", x, ab) / ll  # along the axis, 0 at a, 1 at b
-        rho = np.linalg.norm(x - u[..., None] * ab[None], axis=-1)
-        t = np.clip(u, 0.0, 1.0)
-        side = np.abs(rho - (ra + t * (rb - ra)))
-        y = u * length  # beyond an end: to the end's disc; inside near an end: to its plane
-        before, after = np.hypot(np.maximum(rho - ra, 0.0), y), np.hypot(np.maximum(rho - rb, 0.0), y - length)
-        d = np.where(u < 0, before, np.where(u > 1, after, np.minimum(side, np.where(rho < ra + t * (rb - ra), np.minimum(y, length - y), np.inf))))
+        n = near[s : s + block]
+        d = _cone_distances(points[s : s + block, None, :], a[n], ab[n], ll[n], length[n], ra[n], rb[n])
         k = np.argmin(d, 1)
-        seg[s : s + block], dist[s : s + block] = child[k], d[np.arange(len(k)), k]
+        rows = np.arange(len(k))
+        seg[s : s + block], dist[s : s + block] = child[n[rows, k]], d[rows, k]
+    # a segment outside a point's candidates has its centre at least as far as the farthest
+    # candidate's, so its distance is at least that less the largest reach
+    unsure = np.nonzero(centre_d[:, -1] - reach < dist)[0]
+    if len(unsure):
+        brute(unsure)
     return seg, dist
 
 
