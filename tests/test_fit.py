@@ -14,6 +14,9 @@ import numpy as np
 import pytest
 import yaml
 
+import fit_truths
+from fit_truths import noisy_cylinder
+
 from jskel.cli import main
 from jskel.fit import culling_exact, distances, fit_many, fit_points, load_points, mst_skeleton, pca_chain, perturbed, segments_of
 from jskel.fit._config import FitFile, PointsConfig, SolverConfig
@@ -474,21 +477,9 @@ def test_an_outside_weight_makes_the_radius_enclose_the_points():
     radius is the mean radial distance with 1 and the ``outside / (1 + outside)`` expectile with
     16, both computed here in float64 from the points (and then about 15 % of them outside, not
     half)."""
-    rng = np.random.default_rng(11)
-    n = 3000
-    y = rng.uniform(0.15, 1.85, n)
-    phi = rng.uniform(0, 2 * np.pi, n)
-    rho = 0.3 + 0.02 * rng.normal(size=n)
-    pts = np.column_stack([rho * np.cos(phi), y, rho * np.sin(phi)])
+    pts, rho = noisy_cylinder()
     joints, radii, parents = np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0]]), np.array([0.3, 0.3]), np.array([-1, 0])
-
-    def expectile(w):  # r with w * sum (rho - r)_+ = sum (r - rho)_+, by bisection
-        lo, hi = rho.min(), rho.max()
-        for _ in range(100):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if w * np.sum(np.maximum(rho - mid, 0)) > np.sum(np.maximum(mid - rho, 0)) else (lo, mid)
-        return 0.5 * (lo + hi)
-
+    expectile = functools.partial(fit_truths.expectile, rho)
     for w in (1.0, 16.0):
         s = SolverConfig(name="lm", loss="l2", maxiter=200, tol=1e-9, jacobian="dense", outside=w, validity=0.0)
         res = fit_points(pts, joints, radii, parents, s)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fit_truths import expectile, noisy_cylinder
 
 from jskel.fit._radii import irls_weights, refit_radii
 
@@ -72,20 +73,12 @@ def test_an_outside_weight_gives_the_expectile_of_a_cylinder():
     """A cylinder of radius 0.3 with radial noise 0.02: with ``outside`` w the radii are the
     w / (1 + w) expectile of the points' radial distances (w sum (rho - r)+ = sum (r - rho)+,
     found here by bisection), as the fit's own weights give (``test_fit``)."""
-    rng = np.random.default_rng(11)
-    n = 3000
-    y = rng.uniform(0.15, 1.85, n)
-    phi = rng.uniform(0, 2 * np.pi, n)
-    rho = 0.3 + 0.02 * rng.normal(size=n)
-    pts = np.column_stack([rho * np.cos(phi), y, rho * np.sin(phi)])
+    pts, rho = noisy_cylinder()
     for w in (1.0, 16.0):
-        lo, hi = rho.min(), rho.max()
-        for _ in range(100):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if w * np.sum(np.maximum(rho - mid, 0)) > np.sum(np.maximum(mid - rho, 0)) else (lo, mid)
+        want = expectile(rho, w)
         got = refit_radii(pts, np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0]]), np.array([0.5, 0.1]), np.array([-1, 0]), "l2", 1.0, outside=w)
-        np.testing.assert_allclose(got, 0.5 * (lo + hi), rtol=1e-2)
-        np.testing.assert_allclose(got.mean(), 0.5 * (lo + hi), rtol=2e-3)
+        np.testing.assert_allclose(got, want, rtol=1e-2)
+        np.testing.assert_allclose(got.mean(), want, rtol=2e-3)
 
 
 def test_irls_weights_are_psi_over_e():
