@@ -165,6 +165,8 @@ def edited(points, joints, radii, parents, cfg, scale: float, extent: float, rou
         if count[c] < cfg.prune_points:
             return True
         own = seg == c
+        if not own.any():  # (prune_points 0) no point to compare: the count rule alone decides
+            return False
         rest = alive.copy()
         rest[c] = False
         _, other = nearest_segments(points[own], joints, radii, par, alive=rest)
@@ -297,8 +299,8 @@ def edited(points, joints, radii, parents, cfg, scale: float, extent: float, rou
     new_j, new_r, new_p = [], [], []
     for c in range(len(par)):
         p = int(par[c])
-        if not alive[c] or p < 0 or c in changed or {p, c} & moved or count[c] < 2 * cfg.prune_points:
-            continue
+        if not alive[c] or p < 0 or c in changed or {p, c} & moved or count[c] < max(2 * cfg.prune_points, 1):
+            continue  # (a segment without points has no residual to split for)
         rms = float(spread(dist[seg == c]))
         if rms > cfg.split_residual * scale:
             m = len(par) + len(new_j)
