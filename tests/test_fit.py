@@ -305,6 +305,18 @@ def test_topology_edits_between_rounds_recover_the_chain(tmp_path):
     assert info["iterations"] == per[0]["iterations"] + per[1]["iterations"]
     assert info["compile_s"] == pytest.approx(per[0]["compile_s"] + per[1]["compile_s"])
     assert info["seconds"] == pytest.approx(per[0]["seconds"] + per[1]["seconds"])
+    # solver.radii_refit with edits: once, after the last round; the rounds, edits and joints as without it
+    f2 = _fit_file(tmp_path, init={"skeleton": {"joints": start_j.tolist(), "radii": start_r.tolist(), "parents": start_p}},
+                   edits={"rounds": 4, "merge_angle": 6.0}, solver={"name": "lm", "loss": "cauchy", "maxiter": 300, "radii_refit": True})
+    assert main(["fit", str(f2), "--out", str(tmp_path / "refit")]) == 0
+    refit = json.loads((tmp_path / "refit" / "fit.json").read_text())
+    assert refit["edits"] == info["edits"] and refit["history"] == info["history"]
+    plain_sk, refit_sk = (yaml.safe_load((tmp_path / d / "fitted.yaml").read_text())["object"]["skeleton"] for d in ("out", "refit"))
+    # (the same solver's steps and loss history; the written joints' last float64 bits differed
+    # between the two runs in one process, 1e-16 relative)
+    np.testing.assert_allclose(refit_sk["joints"], plain_sk["joints"], rtol=1e-12, atol=1e-12)
+    assert refit_sk["radii"] != plain_sk["radii"]
+    assert refit["truth"]["joint_error_max_of_length"] < 0.02 and refit["truth"]["radius_error_max_rel"] < 0.05
     assert info["truth"]["joint_error_max_of_length"] < 0.02 and info["truth"]["radius_error_max_rel"] < 0.05
 
 

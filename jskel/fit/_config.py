@@ -142,7 +142,8 @@ class SolverConfig(StrictModel):
     """After the solver stops: the radii again with the joints fixed, by robust linear least
     squares of the points' radial offsets from the fitted cones (``_radii.refit_radii``, the
     fit's loss, scale and ``outside`` weight). The loss history and ``loss_final`` are the
-    solver's, before it. Every fit of a file or a batch."""
+    solver's, before it. Every fit of a file or a batch; with ``edits``, once after the last
+    round (the rounds and their edits as without it)."""
     learning_rate: Annotated[float, Field(gt=0.0)] = 0.01
     """``adam``: step size."""
     smoothness: Annotated[float, Field(ge=0.0)] = 0.0
