@@ -37,8 +37,8 @@ PASSES = 6  # reweighted solves per round
 #: a joint's pull towards its current radius, in points of mean weight at the joint: without it a
 #: joint that only a few points near its segment's far end reach (a tip whose segment has no
 #: points of its own, beside which the parent's points spill past the joint) got a radius
-#: extrapolated from them, 10 times the truth in the test; with one point's pull a joint that 100
-#: points at each side determine moves 1/67 of the way back towards where it was
+#: extrapolated from them, 10 times the truth in the test; the pull is towards the previous pass's
+#: radius, so for a joint that many points determine it slows the passes and leaves no bias
 HOLD = 1.0
 
 
