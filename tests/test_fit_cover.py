@@ -98,8 +98,9 @@ def test_cover_rows_are_the_distance_from_a_swollen_tube_to_the_true_one():
     p = np.array([-1, 0, 1])
     spacing = np.sqrt(2 * np.pi * 0.3 * 2 / n) * 2  # twice the mean spacing of the samples
     w = 0.7 * n / (2 * SAMPLES)  # cover 0.7, two segments
-    pr = problem_of(segments_of(j, np.full(3, 0.3), p), SolverConfig(loss="l2", cover=0.7, candidates=0, validity=0.0))
-    data = on_device(data_of(pts, pr, np.float32))
+    seg = segments_of(j, np.full(3, 0.3), p)
+    pr = problem_of(seg, SolverConfig(loss="l2", cover=0.7, candidates=0, validity=0.0))
+    data = on_device(data_of(pts, pr, np.float32, seg))
     of = jax.jit(lambda x, d: residuals(x, d, pr))
 
     def rows(radius):
@@ -113,7 +114,7 @@ def test_cover_rows_are_the_distance_from_a_swollen_tube_to_the_true_one():
     np.testing.assert_allclose(rows(0.6), 0.3 - dead, atol=spacing)
     assert np.all(np.abs(rows(0.3)) < spacing)
     with pytest.raises(ValueError, match="solver.cover"):  # the points alone, without their index
-        residuals(jnp.zeros(12), jnp.asarray(pts, jnp.float32), pr)
+        residuals(jnp.zeros(12), data._replace(index=None), pr)
 
 
 def test_samples_of_a_segment_of_no_length_stay_finite_with_their_derivatives():
@@ -157,7 +158,7 @@ def test_samples_inside_another_segment_do_not_count():
     branch's cone for the trunk's, each by its perpendicular depth) by more than the scale:
     the branch's ring at a quarter of its length (radius 0.4, at most 0.47 from the trunk's
     axis) lies inside the trunk, as does the trunk's sample facing the branch beside the joint."""
-    from jskel.fit._problem import _near_and_kept
+    from jskel.fit._problem import _near_and_kept, layout_of
 
     j = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 2.0, 0.0], [1.0, 1.0, 0.0]])
     r = np.array([0.5, 0.5, 0.5, 0.1])
@@ -168,7 +169,8 @@ def test_samples_inside_another_segment_do_not_count():
     pts = np.random.default_rng(0).normal(size=(64, 3))
     idx = jax.tree_util.tree_map(jnp.asarray, point_index(pts.astype(np.float32)))
     g = geometry(jnp.asarray(j, jnp.float32), jnp.asarray(r, jnp.float32), seg)
-    xs, kept = jax.jit(lambda g, i: (samples(g), _near_and_kept(g, i, pr)[1]))(g, idx)
+    lay = layout_of(seg, pr)
+    xs, kept = jax.jit(lambda g, i, lay: (samples(g), _near_and_kept(g, i, pr, lay)[1]))(g, idx, lay)
     xs, kept = np.asarray(xs, np.float64), np.asarray(kept)
     branch = int(np.nonzero(np.asarray(seg.end) == 3)[0][0])
     depth = np.empty(kept.shape)

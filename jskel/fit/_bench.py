@@ -132,9 +132,9 @@ def _loss_at(points, joints, radii, parents, s: SolverConfig) -> float:
     it says whether a fit that ended off the truth found a lower loss (the objective's fault)
     or a higher one (the solver's)."""
     seg = segments_of(joints, radii, parents)
-    pr = problem_of(seg, s)
+    pr = problem_of(seg, s, len(joints))
     nz = normaliser_of(points)
-    return float(loss(jnp.asarray(nz.start(joints, radii, pr), jnp.float32), on_device(data_of(nz.points(ordered(points, pr)), pr, np.float32)), pr))
+    return float(loss(jnp.asarray(nz.start(joints, radii, pr), jnp.float32), on_device(data_of(nz.points(ordered(points, pr)), pr, np.float32, seg)), pr))
 
 
 def _radius_spread(radii, start, truth) -> dict:
@@ -178,11 +178,11 @@ def run_fit_bench(b: FitBench, emit) -> list[dict]:
                     emit(row)
                     rows.append(row)
                     continue
-                jac = jacobian_of(s, residual_count(n, problem_of(segments_of(j0, r0, p), s)), 4 * (segs + 1))  # as fit_points counts them
+                jac = jacobian_of(s, residual_count(n, problem_of(segments_of(j0, r0, p), s, len(j0))), 4 * (segs + 1))  # as fit_points counts them
                 row = {"solver": name, "jacobian": jac, "loss": b.loss, "smoothness": b.smoothness, "cover": b.cover, "step_limit": b.step_limit,
                        "radii_refit": b.radii_refit,
                        "points": n, "segments": segs,
-                       "candidate_blocks": blocked(problem_of(segments_of(j0, r0, p), s), n), "compile_s": round(res.compile_s, 3),
+                       "candidate_blocks": blocked(problem_of(segments_of(j0, r0, p), s, len(j0)), n), "compile_s": round(res.compile_s, 3),
                        "seconds": round(res.seconds, 4), "iterations": res.iterations, "converged": res.converged,
                        "s_per_iteration": round(res.seconds / max(res.iterations, 1), 5),
                        "joint_error_max_of_length": round(float(np.max(np.linalg.norm(res.joints - j, axis=1)) / length), 5),

@@ -76,13 +76,6 @@ class PointIndex(NamedTuple):
     spacing: jax.Array
 
 
-class Cloud(NamedTuple):
-    """A fit's data where ``solver.cover`` > 0: the points (N, 3) and their :class:`PointIndex`."""
-
-    points: jax.Array
-    index: PointIndex
-
-
 def point_index(points, block: int = BLOCK) -> PointIndex:
     """The :class:`PointIndex` of ``points`` (N, 3) (host NumPy, the fit's normalised units)."""
     p = np.asarray(points)
@@ -97,13 +90,6 @@ def point_index(points, block: int = BLOCK) -> PointIndex:
     q = np.asarray(points)
     spacing = DEAD_ZONE * np.median(cKDTree(q).query(q, k=2)[0][:, 1]) if len(q) > 1 else 0.0
     return PointIndex(b, b.min(1), b.max(1), np.asarray(spacing, p.dtype))
-
-
-def split(data):
-    """(points, index or None) of a fit's data: an array of points, or a :class:`Cloud`."""
-    if isinstance(data, Cloud):
-        return data.points, data.index
-    return data, None
 
 
 def samples(g: Geometry):
@@ -176,4 +162,4 @@ def weight(n_points: int, n_segments: int, cover: float) -> float:
     """Each sample's squared-residual weight, ``cover N / (S M)``: all the samples together weigh
     ``cover`` times the points (before samples off the surface are left out, and before the
     points' ``outside`` weight)."""
-    return float(cover * n_points / (n_segments * SAMPLES))
+    return cover * n_points / (n_segments * SAMPLES)

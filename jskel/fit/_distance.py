@@ -18,7 +18,14 @@ NaN, radial gradient; divisions go through ``safe_div``; a segment of zero lengt
 the host (``validate_skeleton``) and guarded in JAX.
 
 Parameters (joints, radii) are traced; the topology (which joints bound which segment, which
-segment continues which) is static and comes from ``jskel.frusta.topology`` on the host.
+segment continues which) comes from ``jskel.frusta.topology`` on the host, either static
+(:class:`Segments`, hashed by content: one program per topology) or as data (:class:`Topology`,
+arrays traced with the points and padded to sizes chosen apart: one program for every topology
+of those sizes, so a fit with topology edits between rounds compiles once for rounds whose
+sizes fit, ``_problem.round_sizes``). A padding segment gets the renderer's padding axis
+(``frusta.segment_axes``' ``valid``: unit length, radius 0) placed :data:`FAR` from the
+normalised cloud, where no point's lower bound reaches it and no point's distance is attained;
+a padding continuation shares no plane (``frusta.joint_planes``' ``cont``).
 """
 
 from __future__ import annotations
@@ -53,6 +60,39 @@ class Segments(NamedTuple):
         return all(np.array_equal(a, b) for a, b in zip(self, other))
 
 
+class Topology(NamedTuple):
+    """A skeleton's topology as arrays (a pytree, traced with the points): :class:`Segments`'
+    four, padded with segment and continuation rows of index 0, and which rows are real
+    (``live`` (S,), ``cont`` (K,))."""
+
+    start: jax.Array
+    end: jax.Array
+    cont_a: jax.Array
+    cont_b: jax.Array
+    live: jax.Array
+    cont: jax.Array
+
+
+#: where a padding segment of a :class:`Topology` sits (each coordinate; the fit's coordinates
+#: are normalised to the cloud's extent, so no point is within thousands of extents of it)
+FAR = 1.0e4
+
+
+def topology_of(seg: Segments, segments: int | None = None, conts: int | None = None) -> Topology:
+    """``seg`` as a :class:`Topology` of host arrays padded to ``segments`` rows and ``conts``
+    continuations (default: its own counts; ValueError where it has more)."""
+    s, k = len(seg.start), len(seg.cont_b)
+    ns, nk = s if segments is None else int(segments), k if conts is None else int(conts)
+    if ns < s or nk < k:
+        raise ValueError(f"topology: {s} segments and {k} continuations do not fit in {ns} and {nk}")
+
+    def pad(a, n):
+        return np.concatenate([np.asarray(a, np.int32), np.zeros(n - len(a), np.int32)])
+
+    return Topology(pad(seg.start, ns), pad(seg.end, ns), pad(seg.cont_a, nk), pad(seg.cont_b, nk),
+                    np.arange(ns) < s, np.arange(nk) < k)
+
+
 def segments_of(joints, radii, parents, path: str = "skeleton") -> Segments:
     """Validate a skeleton on the host (naming the bad field) and return its static topology."""
     j, _, p = validate_skeleton(joints, radii, parents, path)
@@ -72,16 +112,20 @@ Geometry.__doc__ = """Per-segment arrays (S first): the fields of ``jskel.frusta
 :data:`DISTANCE_FIELDS`, unpadded and in world (or normalised) units."""
 
 
-def geometry(joints, radii, seg: Segments) -> Geometry:
+def geometry(joints, radii, seg: Segments | Topology) -> Geometry:
     """Frusta of a skeleton from traced ``joints`` (J,3) and ``radii`` (J,): the axes and cutting
-    planes of ``jskel.frusta`` (``segment_axes``, ``joint_planes``), the build's own functions.
+    planes of ``jskel.frusta`` (``segment_axes``, ``joint_planes``), the build's own functions
+    (a :class:`Topology`'s padding rows as the module docstring says).
     A joint where no shared plane keeps both pieces within ``frusta.PIECE_REACH`` gets
     perpendicular planes there as in the renderer, but the distance still treats them as
     shared (``caps_of`` is the topology's): the renderer's caps at such a joint lie inside the
     neighbouring piece except on the outer side of the bend, and the fit's plane-validity
     penalty keeps a fitted skeleton's planes away from that fallback."""
-    c1, m, h, r1, r2 = segment_axes(joints, radii, seg.start, seg.end)
-    nb, db, nt, dt, _, _, _ = joint_planes(c1, m, h, r1, r2, seg.cont_a, seg.cont_b)
+    live, cont = (seg.live, seg.cont) if isinstance(seg, Topology) else (None, None)
+    c1, m, h, r1, r2 = segment_axes(joints, radii, seg.start, seg.end, live)
+    if live is not None:
+        c1 = jnp.where(live[:, None], c1, jnp.asarray(FAR, c1.dtype))
+    nb, db, nt, dt, _, _, _ = joint_planes(c1, m, h, r1, r2, seg.cont_a, seg.cont_b, cont)
     return Geometry(c1, m, h, r1, r2, nb, db, nt, dt)
 
 
@@ -207,9 +251,13 @@ def _signed(g: Geometry, x, cap_b, cap_t):
     return jnp.where((d_all > 0) | ~jnp.any(within), d_all, d_in)
 
 
-def caps_of(seg: Segments):
-    """(cap_b, cap_t) (S,) bool NumPy: a plane closes a free end unless a continuation shares it."""
+def caps_of(seg: Segments | Topology):
+    """(cap_b, cap_t) (S,) bool (NumPy for :class:`Segments`): a plane closes a free end unless a
+    continuation shares it."""
     s = len(seg.start)
+    if isinstance(seg, Topology):
+        ta, tb = jnp.where(seg.cont, seg.cont_a, s), jnp.where(seg.cont, seg.cont_b, s)  # s: dropped
+        return jnp.ones(s, bool).at[tb].set(False, mode="drop"), jnp.ones(s, bool).at[ta].set(False, mode="drop")
     cap_b = np.ones(s, bool)
     cap_t = np.ones(s, bool)
     cap_b[np.asarray(seg.cont_b, np.int64)] = False
@@ -411,5 +459,5 @@ def _problems(joints, radii, seg: Segments, points):
 checked_distances = checks.checked(distances, _problems, static_argnums=2)
 
 
-__all__ = ["Geometry", "Segments", "caps_of", "checked_distances", "culling_exact", "cutting_planes", "distances", "distances_of", "geometry", "margins_of", "plane_margins",
-           "segment_distances", "segments_of", "signed_distance"]
+__all__ = ["Geometry", "Segments", "Topology", "caps_of", "checked_distances", "culling_exact", "cutting_planes", "distances", "distances_of", "geometry", "margins_of", "plane_margins",
+           "segment_distances", "segments_of", "signed_distance", "topology_of"]

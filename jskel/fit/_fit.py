@@ -17,8 +17,8 @@ from .. import checks, numerics, progress
 from . import _cover, _solvers
 from ._config import SolverConfig
 from ._distance import segments_of
-from ._problem import (Problem, dense_equations, loss, normal_equations, normaliser_of, ordered, problem_of, radii_of, residual_count,
-                       residuals, unpack)
+from ._problem import (Data, Problem, Sizes, dense_equations, layout_of, loss, normal_equations, normaliser_of, ordered, problem_of, radii_of,
+                       residual_count, residuals, unpack)
 from ._starts import perturbed
 
 
@@ -38,7 +38,7 @@ class FitResult(NamedTuple):
     restart_losses: list
     first_iteration_at: float | None = None  # time.time() when the stepping loop's first iteration was done (None: one batched call)
     first_iteration_cpu: float | None = None  # the process's CPU seconds then (time.process_time())
-    #: with topology edits (``fitted_in_rounds``): each round's {round, joints, iterations,
+    #: with topology edits (``fitted_in_rounds``): each round's {round, joints, padded_joints, iterations,
     #: seconds, compile_s}; ``iterations``, ``seconds`` and ``compile_s`` above are then their sums
     #: over the rounds (each new topology compiles its own program) and ``history`` the last round's
     rounds: tuple = ()
@@ -118,6 +118,29 @@ def _typed_state(step, x0, args):
     st0 = step.init(x0, *args)
     shapes = jax.eval_shape(lambda x, st: step.update(x, st, *args), x0, st0)[1]
     return jax.tree_util.tree_map(lambda a, sh: jnp.asarray(a, sh.dtype), st0, shapes)
+
+
+#: executables of the fit's programs compiled in this process, by function, static arguments and
+#: the arguments' structure, shapes and dtypes (:func:`_executable`); at most :data:`KEEP`
+_EXECUTABLES: dict = {}
+KEEP = 16
+
+
+def _executable(fn, *args):
+    """``fn.lower(*args).compile()``, kept for the process: ``Lowered.compile`` compiles anew
+    each time (only JAX's persistent cache, when on, skips XLA's part), so a later fit of another
+    topology of the same sizes (a round of ``_run.fitted_in_rounds``) ran its traced and
+    compiled program again. Arguments that are a :class:`Problem` or :class:`SolverKey` are
+    static, the others traced."""
+    static = tuple(a for a in args if isinstance(a, (Problem, SolverKey)))
+    traced = [a for a in args if not isinstance(a, (Problem, SolverKey))]
+    leaves, tree = jax.tree_util.tree_flatten(traced)
+    k = (fn, static, tree, tuple((np.shape(a), np.dtype(a.dtype), bool(getattr(a, "weak_type", False))) for a in leaves))
+    if k not in _EXECUTABLES:
+        while len(_EXECUTABLES) >= KEEP:
+            _EXECUTABLES.pop(next(iter(_EXECUTABLES)))
+        _EXECUTABLES[k] = fn.lower(*args).compile()
+    return _EXECUTABLES[k]
 
 
 @partial(jax.jit, static_argnums=(2, 3))
@@ -206,11 +229,12 @@ def _solve_clouds(x0, points, pr: Problem, key: SolverKey):
     return over_batch(key.name, lambda x, p: run_to_end(pr, key, x, p).x)(x0, points)
 
 
-def data_of(points, pr: Problem, dtype):
-    """A fit's data from normalised host ``points``, as host arrays of ``dtype``: the points, or
-    with ``solver.cover`` > 0 a ``_cover.Cloud`` that also holds their nearest-point index."""
+def data_of(points, pr: Problem, dtype, seg) -> Data:
+    """A fit's data from normalised host ``points`` and topology ``seg`` (``_distance.Segments``),
+    as host arrays of ``dtype``: the points, with ``solver.cover`` > 0 their nearest-point index,
+    and the topology padded to ``pr.sizes`` (``_problem.layout_of``)."""
     pts = np.asarray(points, dtype)
-    return _cover.Cloud(pts, _cover.point_index(pts)) if pr.cover > 0 else pts
+    return Data(pts, _cover.point_index(pts) if pr.cover > 0 else None, layout_of(seg, pr))
 
 
 def on_device(data):
@@ -220,23 +244,27 @@ def on_device(data):
 
 
 def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dtype=np.float32, seed: int = 1,
-               perturb: float = 0.0) -> FitResult:
+               perturb: float = 0.0, sizes: Sizes | None = None) -> FitResult:
     """Fit a skeleton of ``parents``' topology to ``points`` from (joints0, radii0): the
     stepping loop records the loss after every iteration; with ``s.restarts > 1`` that many
     starts (the given one and perturbed copies) are solved in one call (:func:`over_batch`,
     each recording its loss curve) and the best is the result: one program, not a second
     compile of the stepping loop (compiling was most of an L-BFGS fit's time when this was
     chosen: docs/choices.md#restarts-one-program). A time budget
-    (``max_seconds``) needs the host loop: then the best start is stepped again."""
+    (``max_seconds``) needs the host loop: then the best start is stepped again.
+
+    The program is compiled for ``sizes`` (``_problem.Sizes``; default the topology's own): the
+    topology is data, so a later fit of another topology that fits the same sizes (a round of
+    ``_run.fitted_in_rounds``) runs the same executables."""
     checks.raise_all(checks.nonfinite("points", points, f"of {len(points)} points"))  # every bad point by index, before any compile
     seg = segments_of(joints0, radii0, parents, "init.skeleton")
     n_par = 4 * len(joints0)
     if len(points) < n_par:
         raise ValueError(f"points: {len(points)} points for {n_par} unknowns (4 per joint of {len(joints0)}); need at least as many points")
-    pr = problem_of(seg, s)
+    pr = problem_of(seg, s, len(joints0), sizes)
     nz = normaliser_of(points)
-    pts = on_device(data_of(nz.points(ordered(points, pr)), pr, dtype))
-    key = solver_key(s, residual_count(len(points), pr), n_par)
+    pts = on_device(data_of(nz.points(ordered(points, pr)), pr, dtype, seg))
+    key = solver_key(s, residual_count(len(points), pr), 4 * pr.sizes.joints)
     x0 = jnp.asarray(np.asarray(nz.start(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), pr), dtype))
     t_all = time.perf_counter()
     restart_losses = []
@@ -256,7 +284,7 @@ def fit_points(points: np.ndarray, joints0, radii0, parents, s: SolverConfig, dt
     if history[-1] > history[0]:  # a finite divergence (Gauss-Newton ran to joints of 1e25 on a 50-segment chain)
         raise ValueError(f"solver.name: {s.name} diverged: the loss rose from {history[0]:.4g} to {history[-1]:.4g} in {it} iterations "
                          "(try lm, a smaller learning_rate or more points)")
-    j, r = nz.world(x, pr)
+    j, r = nz.world(x, pr, len(joints0))
     t_refit = time.perf_counter()
     r = radii_refitted(points, j, r, parents, s)
     seconds += time.perf_counter() - t_refit  # (the host's refit counts as fitting time)
@@ -284,9 +312,9 @@ def _best_start(pr: Problem, key: SolverKey, s: SolverConfig, nz, start, pts, se
     for _ in range(s.restarts - 1):
         j, r = perturbed(np.asarray(joints0, np.float64), np.asarray(radii0, np.float64), np.asarray(parents), max(perturb, 0.1), rng)
         starts.append(nz.start(j, r, pr))
-    xb = jnp.asarray(np.stack(starts), _cover.split(pts)[0].dtype)
+    xb = jnp.asarray(np.stack(starts), pts.points.dtype)
     t0 = time.perf_counter()
-    solve = _solve_starts.lower(xb, pts, pr, key).compile()
+    solve = _executable(_solve_starts, xb, pts, pr, key)
     compile_s = time.perf_counter() - t0
     ends = solve(xb, pts)
     ls = np.asarray(ends.loss)
@@ -306,13 +334,13 @@ def _stepped(pr: Problem, key: SolverKey, s: SolverConfig, x0, pts):
     t0 = time.perf_counter()  # compile seconds: the update's program (and the initial state's, where separate; none when cached)
     if step.blank is not None:  # the initial state is one pass of the update's own program
         blank = jax.tree_util.tree_map(jnp.asarray, step.blank(x0))
-        upd = _update.lower(x0, blank, pts, pr, key).compile()
+        upd = _executable(_update, x0, blank, pts, pr, key)
         st0 = upd(x0, blank, pts)[1]
     else:
         st0 = _initial(x0, pts, pr, key)
-        upd = _update.lower(x0, st0, pts, pr, key).compile()
+        upd = _executable(_update, x0, st0, pts, pr, key)
     if step.value is None:  # the loss recorded after each iteration: the state's own where it holds one
-        lossf = _loss.lower(x0, pts, pr).compile()
+        lossf = _executable(_loss, x0, pts, pr)
         value = lambda x, st: float(lossf(x, pts))  # noqa: E731
     else:
         value = lambda x, st: float(step.value(st))  # noqa: E731
@@ -387,13 +415,13 @@ def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32
     j0 = np.broadcast_to(np.asarray(joints0, np.float64), (b,) + np.shape(joints0)[-2:])
     r0 = np.broadcast_to(np.asarray(radii0, np.float64), (b,) + np.shape(radii0)[-1:])
     seg = _checked_batch(clouds, j0, r0, parents)
-    pr = problem_of(seg, s)
+    pr = problem_of(seg, s, j0.shape[1])
     nzs = [normaliser_of(c) for c in clouds]
-    pts = on_device(jax.tree_util.tree_map(lambda *a: np.stack(a), *[data_of(nz.points(ordered(c, pr)), pr, dtype) for nz, c in zip(nzs, clouds)]))
+    pts = on_device(jax.tree_util.tree_map(lambda *a: np.stack(a), *[data_of(nz.points(ordered(c, pr)), pr, dtype, seg) for nz, c in zip(nzs, clouds)]))
     x0 = jnp.asarray(np.stack([nz.start(j, r, pr) for nz, j, r in zip(nzs, j0, r0)]), dtype)
     key = solver_key(s, residual_count(clouds.shape[1], pr), x0.shape[-1])
     t0 = time.perf_counter()
-    solve = _solve_clouds.lower(x0, pts, pr, key).compile()
+    solve = _executable(_solve_clouds, x0, pts, pr, key)
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     xs = solve(x0, pts)
@@ -402,7 +430,7 @@ def fit_many(clouds, joints0, radii0, parents, s: SolverConfig, dtype=np.float32
     of_each = jax.vmap(lambda x, p: loss(x, p, pr))
     losses = np.asarray(of_each(xs, pts))
     _raise_diverged(s, np.asarray(of_each(x0, pts)), losses, np.all(np.isfinite(np.asarray(xs)), axis=-1))
-    out = [nz.world(x, pr) for nz, x in zip(nzs, np.asarray(xs))]
+    out = [nz.world(x, pr, j0.shape[1]) for nz, x in zip(nzs, np.asarray(xs))]
     t_refit = time.perf_counter()
     out = [(j, radii_refitted(c, j, r, parents, s)) for c, (j, r) in zip(clouds, out)]
     seconds += time.perf_counter() - t_refit

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..accel import always, fenced
-from ._distance import Geometry, Segments, _candidates, caps_of, segment_distances
+from ._distance import Geometry, Segments, Topology, _candidates, caps_of, segment_distances
 
 FIELDS = 17  # numbers per segment in Geometry (c1 3, m 3, h, r1, r2, nb 3, db, nt 3, dt)
 
@@ -63,6 +63,24 @@ class Structure(NamedTuple):
     pen_mask: np.ndarray  # (K, Dp) bool
     colors: np.ndarray  # (J,) a colour per joint: no two joints of a row's set share one
     n_colors: int
+
+
+#: joints a segment's geometry depends on (its own two, and the far joints of the segment it
+#: continues and of the one continuing it), and a continuation's penalty rows (its two
+#: segments': the first's before it, the shared joint's, the second's after it)
+SEG_WIDTH, PEN_WIDTH = 4, 6
+
+
+class Sparsity(NamedTuple):
+    """A :class:`Structure`'s arrays padded to a problem's sizes (a pytree traced with the fit's
+    data, ``_problem.Layout``): (S, 4) and (K, 6) joints and masks, (J,) colours; the count of
+    colours is the problem's (static)."""
+
+    seg_joints: np.ndarray
+    seg_mask: np.ndarray
+    pen_joints: np.ndarray
+    pen_mask: np.ndarray
+    colors: np.ndarray
 
 
 def _padded(sets):
@@ -101,34 +119,51 @@ def structure(seg: Segments, n_joints: int) -> Structure:
     return Structure(sj, sm, pj, pm, colors, int(colors.max()) + 1 if n_joints else 0)
 
 
+def sparsity_of(st: Structure, joints: int, segments: int, conts: int) -> Sparsity:
+    """``st``'s arrays padded to ``joints``, ``segments`` and ``conts`` rows (int32; padding
+    rows joint 0, masked; padding joints colour 0, in no row)."""
+
+    def rows(a, n, width, dtype):
+        out = np.zeros((n, width), dtype)
+        out[: a.shape[0], : a.shape[1]] = a
+        return out
+
+    colors = np.zeros(joints, np.int32)
+    colors[: len(st.colors)] = st.colors
+    return Sparsity(rows(st.seg_joints, segments, SEG_WIDTH, np.int32), rows(st.seg_mask, segments, SEG_WIDTH, bool),
+                    rows(st.pen_joints, conts, PEN_WIDTH, np.int32), rows(st.pen_mask, conts, PEN_WIDTH, bool), colors)
+
+
 def _param_index(joints, n_joints: int):
     """(..., 4) flat parameter indices of joints (x, y, z, radius) in ``_problem.unpack``'s layout."""
-    j = np.asarray(joints, np.int64)[..., None]
-    return np.concatenate([3 * j + np.arange(3), 3 * n_joints + j], -1)
+    j = jnp.asarray(joints)[..., None]
+    return jnp.concatenate([3 * j + jnp.arange(3, dtype=j.dtype), 3 * n_joints + j], -1)
 
 
-def _seeds(st: Structure, n_joints: int, dtype):
-    """(4C, 4J) tangents: for colour c and unknown p, 1 on unknown p of every joint of colour c."""
-    t = np.zeros((st.n_colors, 4, 4 * n_joints))
-    pidx = _param_index(np.arange(n_joints), n_joints)  # (J, 4)
-    for p in range(4):
-        t[st.colors, p, pidx[:, p]] = 1.0
-    return jnp.asarray(t.reshape(-1, 4 * n_joints), dtype)
+def _seeds(colors, n_colors: int, dtype):
+    """(4C, 4J) tangents: for colour c and unknown p, 1 on unknown p of every joint of colour c
+    (``colors`` (J,) traced)."""
+    nj = colors.shape[0]
+    oh = (colors[None, :] == jnp.arange(n_colors, dtype=colors.dtype)[:, None]).astype(dtype)  # (C, J)
+    xyz = (oh[:, None, :, None] * jnp.eye(3, dtype=dtype)[None, :, None, :]).reshape(n_colors, 3, 3 * nj)
+    xyz = jnp.concatenate([xyz, jnp.zeros((n_colors, 3, nj), dtype)], -1)
+    rad = jnp.concatenate([jnp.zeros((n_colors, 1, 3 * nj), dtype), oh[:, None, :]], -1)
+    return jnp.concatenate([xyz, rad], 1).reshape(4 * n_colors, 4 * nj)
 
 
 def _decode(out, colors, joints, mask):
     """Read back, for each row of ``out`` (4C, R, F) and each of its joints (R, D), the
     derivative with respect to that joint's 4 unknowns: (R, F, D, 4), zero where masked."""
-    c = np.asarray(colors)[joints]  # (R, D)
-    col = c[..., None] * 4 + np.arange(4)  # (R, D, 4)
+    c = colors[joints]  # (R, D)
+    col = c[..., None] * 4 + jnp.arange(4, dtype=c.dtype)  # (R, D, 4)
     o = jnp.moveaxis(out, 0, -1)  # (R, F, 4C)
-    rows = np.arange(joints.shape[0])[:, None, None]
+    rows = jnp.arange(joints.shape[0])[:, None, None]
     vals = o[rows, :, col]  # (R, D, 4, F)
     vals = jnp.moveaxis(vals, -1, 1) * jnp.asarray(mask, out.dtype)[:, None, :, None]
     return vals
 
 
-def point_rows(flat, seg: Segments, points, candidates: int, robust, block: int = 0, per_block: int = 0):
+def point_rows(flat, seg: Segments | Topology, points, candidates: int, robust, block: int = 0, per_block: int = 0):
     """Each point's robust residual (N,), its gradient with respect to the 17 numbers of the
     one segment it depends on (N, 17), and that segment (N,).
 
@@ -164,17 +199,19 @@ def point_rows(flat, seg: Segments, points, candidates: int, robust, block: int 
     return jax.vmap(one)(points, idx)
 
 
-def normal_equations(x, points, model_fn, seg: Segments, n_joints: int, candidates: int, robust, block: int = 0, per_block: int = 0,
-                     cover=None):
+def normal_equations(x, points, model_fn, seg: Topology, sp: Sparsity, n_colors: int, candidates: int, robust, block: int = 0,
+                     per_block: int = 0, cover=None):
     """(r, J^T J, J^T r) of the fit's residuals at ``x`` (4J,): ``r`` in ``_problem.residuals``'s
     order (points, cover rows, then penalty rows).
 
     ``model_fn(x) -> (Geometry, (K, E))``: the frusta, and ``E`` penalty rows per continuation
-    (each depending only on its two segments' joints). ``cover(flat) -> (r (S, M), dr/dflat
-    (S, M, 17))``: rows that each depend on one segment's 17 numbers (``_problem.cover_segment_rows``)."""
-    st = structure(seg, n_joints)
-    nseg = len(seg.start)
-    seeds = _seeds(st, n_joints, x.dtype)
+    (each depending only on its two segments' joints). ``seg`` and ``sp`` (:func:`sparsity_of`,
+    with ``n_colors`` colours) are the topology and its sparsity as data, so one program serves
+    every topology of the same sizes. ``cover(flat) -> (r (S, M), dr/dflat (S, M, 17))``: rows
+    that each depend on one segment's 17 numbers (``_problem.cover_segment_rows``)."""
+    n_joints = x.shape[-1] // 4
+    nseg = seg.start.shape[0]
+    seeds = _seeds(sp.colors, n_colors, x.dtype)
 
     def both(x):
         g, pen = model_fn(x)
@@ -182,8 +219,8 @@ def normal_equations(x, points, model_fn, seg: Segments, n_joints: int, candidat
 
     (flat, pen), lin = jax.linearize(both, x)
     dflat, dpen = jax.vmap(lin)(seeds)  # (4C, S, 17), (4C, K, E)
-    gj = _decode(dflat, st.colors, st.seg_joints, st.seg_mask).reshape(nseg, FIELDS, -1)  # (S, 17, 4D)
-    sidx = _param_index(st.seg_joints, n_joints).reshape(nseg, -1)  # (S, 4D)
+    gj = _decode(dflat, sp.colors, sp.seg_joints, sp.seg_mask).reshape(nseg, FIELDS, -1)  # (S, 17, 4D)
+    sidx = _param_index(sp.seg_joints, n_joints).reshape(nseg, -1)  # (S, 4D)
 
     # fenced: compiled in one program with the segment_sum of their outer products below, XLA on
     # the CPU (jax 0.10.2) computed the points' rows with the gradient in their segment's first
@@ -204,9 +241,9 @@ def normal_equations(x, points, model_fn, seg: Segments, n_joints: int, candidat
     jtr = jnp.zeros((p,), x.dtype).at[sidx].add(jnp.einsum("sfa,sf->sa", gj, v))
     if pen.shape[0] and pen.shape[1]:
         k, e = pen.shape
-        pv = _decode(dpen, st.colors, st.pen_joints, st.pen_mask)  # (K, E, Dp, 4)
+        pv = _decode(dpen, sp.colors, sp.pen_joints, sp.pen_mask)  # (K, E, Dp, 4)
         pv = pv.reshape(k, e, -1)
-        pidx = _param_index(st.pen_joints, n_joints).reshape(k, -1)
+        pidx = _param_index(sp.pen_joints, n_joints).reshape(k, -1)
         jtj = jtj.at[pidx[:, :, None], pidx[:, None, :]].add(jnp.einsum("kea,keb->kab", pv, pv))
         jtr = jtr.at[pidx].add(jnp.einsum("kea,ke->ka", pv, pen))
         r = jnp.concatenate([r, pen.reshape(-1)])

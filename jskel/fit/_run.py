@@ -135,9 +135,13 @@ def fitted_in_rounds(solver, edits, points, joints, radii, parents, dtype, seed:
     """(the last round's FitResult, its iterations, seconds and compile time summed over the
     rounds and each round's in ``FitResult.rounds``; the edits' log; rounds run): fits of the start's topology
     by ``solver`` with topology edits between them (``edits``, ``_topology.edited``), until a
-    round edits nothing or ``edits.rounds`` fits are done; one fit without ``edits``. Each new
-    topology compiles its own solver program; ``seed`` and ``perturb`` are the first round's
-    restarts' (``fit_points``)."""
+    round edits nothing or ``edits.rounds`` fits are done; one fit without ``edits``. The
+    topology is the solver program's data: with ``edits``, each round is compiled for sizes that
+    a later, smaller topology can reuse (``_problem.round_sizes``), so rounds share a program
+    (each round's ``padded_joints`` says which sizes it ran at); ``seed`` and ``perturb`` are
+    the first round's restarts' (``fit_points``)."""
+    from ._distance import segments_of
+    from ._problem import round_sizes, sizes_of
     from ._topology import edited
 
     rounds = edits.rounds if edits is not None else 1
@@ -160,11 +164,14 @@ def fitted_in_rounds(solver, edits, points, joints, radii, parents, dtype, seed:
         return res._replace(iterations=sum(r["iterations"] for r in per), seconds=sum(r["seconds"] for r in per),
                             compile_s=sum(r["compile_s"] for r in per), rounds=tuple(per))
 
+    sizes = None
     while True:
-        res = fit_points(points, joints, radii, parents, each, dtype, seed=seed, perturb=perturb if k == 0 else 0.0)
+        if edits is not None:
+            sizes = round_sizes(sizes_of(segments_of(joints, radii, parents, "init.skeleton"), len(joints)), sizes)
+        res = fit_points(points, joints, radii, parents, each, dtype, seed=seed, perturb=perturb if k == 0 else 0.0, sizes=sizes)
         k += 1
-        per.append({"round": k, "joints": len(res.joints), "iterations": int(res.iterations), "seconds": float(res.seconds),
-                    "compile_s": float(res.compile_s)})
+        per.append({"round": k, "joints": len(res.joints), "padded_joints": sizes.joints if sizes else len(res.joints),
+                    "iterations": int(res.iterations), "seconds": float(res.seconds), "compile_s": float(res.compile_s)})
         if k == rounds:
             if edits is not None and edits.final_spurs:
                 # the last round's spurs (no fit follows; nothing else is edited)

@@ -84,13 +84,14 @@ def timed(fn, *args, runs=5):
 
 def main():
     j, parents, pts = chain(np.random.default_rng(0))
-    pr = problem_of(segments_of(j, np.full(len(j), 0.02), parents), SolverConfig(cover=1.0, block=64))
-    data = on_device(data_of(pts, pr, np.float32))
+    seg = segments_of(j, np.full(len(j), 0.02), parents)
+    pr = problem_of(seg, SolverConfig(cover=1.0, block=64))
+    data = on_device(data_of(pts, pr, np.float32, seg))
     x = jax.numpy.asarray(np.concatenate([j.reshape(-1), np.full(len(j), 0.02 - pr.min_radius)]), jax.numpy.float32)
 
     def samples_of(x):
         jo, u = unpack(x)
-        g = geometry(jo, radii_of(u, pr), pr.seg)
+        g = geometry(jo, radii_of(u, pr), seg)
         return g, _cover.samples(g)
 
     def nearest(grouped):
@@ -103,7 +104,7 @@ def main():
         def f(x, d):
             g, xs = samples_of(x)
             flat = xs.reshape(-1, 3)
-            return distances_of(g, pr.seg, flat, pr.candidates, *(blocks_of(pr, flat.shape[0]) if blocked else (0, 0)))[0]
+            return distances_of(g, seg, flat, pr.candidates, *(blocks_of(pr, flat.shape[0]) if blocked else (0, 0)))[0]
         return jax.jit(f)
 
     outs = {}

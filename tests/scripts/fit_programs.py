@@ -20,7 +20,7 @@ from jax.extend import core as jcore
 from jskel.fit import _fit, load_points, perturbed, sample_surface
 from jskel.fit._config import PointsConfig, SolverConfig
 from jskel.fit._distance import segments_of
-from jskel.fit._problem import normaliser_of, problem_of
+from jskel.fit._problem import normaliser_of, problem_of, residual_count
 
 BENT = np.array([[0, 0, 0], [0, 1, 0], [-0.5736, 1.8192, 0], [-0.7818, 2.7975, -0.0030], [-0.7838, 3.7469, -0.3171],
                  [-0.6022, 4.6581, -0.6968]])
@@ -63,10 +63,10 @@ def problem(solver, **kw):
     j0, r0 = perturbed(BENT, BENT_R, CHAIN, 0.1, np.random.default_rng(3))
     s = SolverConfig(name=solver, loss="cauchy", scale=0.01, maxiter=300, **kw)
     seg = segments_of(j0, r0, CHAIN)
-    pr = problem_of(seg, s)
+    pr = problem_of(seg, s, len(j0))
     nz = normaliser_of(pts)
-    p = jnp.asarray(nz.points(pts), jnp.float32)
-    key = _fit.solver_key(s, len(pts) + 5 * len(pr.triples), 4 * len(j0))
+    p = _fit.on_device(_fit.data_of(nz.points(pts), pr, np.float32, seg))
+    key = _fit.solver_key(s, residual_count(len(pts), pr), 4 * len(j0))
     x0 = jnp.asarray(nz.start(j0, r0, pr), jnp.float32)
     return pr, key, x0, p
 
@@ -91,11 +91,12 @@ def main(which):
             base = sample_surface(BENT, BENT_R, CHAIN, 600, np.random.default_rng(5))
             s = SolverConfig(name="lm", loss="l2", maxiter=300, tol=1e-7)
             seg = segments_of(BENT, BENT_R, CHAIN)
-            pr = problem_of(seg, s)
-            key = _fit.solver_key(s, 600 + 5 * len(pr.triples), 24)
+            pr = problem_of(seg, s, len(BENT))
+            key = _fit.solver_key(s, residual_count(600, pr), 24)
             nz = normaliser_of(base)
             x0 = jnp.asarray(np.stack([nz.start(BENT, BENT_R, pr)] * 3), jnp.float32)
-            p = jnp.asarray(np.stack([nz.points(base)] * 3), jnp.float32)
+            one = _fit.data_of(nz.points(base), pr, np.float32, seg)
+            p = _fit.on_device(jax.tree_util.tree_map(lambda a: np.stack([a] * 3), one))
             measure("lm_batch3_solve_clouds", _fit._solve_clouds, x0, p, pr, key)
 
 
