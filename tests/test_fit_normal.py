@@ -64,7 +64,8 @@ def test_sparse_normal_equations_equal_the_dense_jacobians():
     rows in (the assembly takes each point's gradient on its winning segment alone, so a
     gradient it missed would show here), and the rows of the term from the surface back to the
     points (``solver.cover``; each on one segment's 17 numbers). (One skeleton holds the chain
-    and the branches: each case compiled two programs of about 16 s on the 2-core CPU.)"""
+    and the branches: each case compiled two programs of about 16 s on the 2-core CPU.) The
+    same system with the topology padded (:func:`_padding_leaves_the_normal_equations_unchanged`)."""
     j, r, p = _branching_chain()
     pr, x, pts = _problem(j, r, p, 1200, 4, 1, cover=0.5)
     assert pr.sizes.conts >= 3 and pr.sizes.conts < pr.sizes.segments - 1
@@ -91,42 +92,30 @@ def test_sparse_normal_equations_equal_the_dense_jacobians():
         err = np.abs(np.asarray(got[1], np.float64) - want)
         assert np.all(err <= tol), (np.unravel_index(np.argmax(err / tol), err.shape), err.max())
         np.testing.assert_allclose(np.asarray(got[2]), want_g, atol=2e-5 * np.abs(want_g).max())
+    _padding_leaves_the_normal_equations_unchanged(j, r, p, pr, x, pts, (rr, jtj, g))
 
 
-def test_padding_the_topology_leaves_the_normal_equations_unchanged():
+def _padding_leaves_the_normal_equations_unchanged(j, r, p, pr, x, pts, exact):
     """The topology as data, padded (``_problem.Sizes`` larger than the skeleton's: 3 joints, 3
-    segments, 2 continuations and 3 colours more): the residuals, J^T J and J^T r of a bent
-    5-segment chain with a side branch, each point against its 3 nearest segments (so padding
-    segments could be chosen, were they near), with the smoothness, plane-validity and cover
-    rows, are the unpadded ones at the real rows and unknowns and zero elsewhere (the padding
-    segments lie far away and own no point; the cover weight counts the real segments only)."""
-    from jskel.fit._problem import Sizes, layout_of
+    segments, 2 continuations and 3 colours more): the residuals, J^T J and J^T r are the
+    unpadded ones at the real rows and unknowns and zero elsewhere (the padding segments lie far
+    away and own no point, though each point's 4 candidates could have reached them; the cover
+    weight counts the real segments only; a weight from the padded count fails this)."""
+    from jskel.fit._problem import Sizes, layout_of, problem_of as problem
 
-    j, r, p = bent_chain(5, 0)
-    side = np.cross(j[3] - j[2], [0.3, 0.2, 1.0])
-    j = np.concatenate([j, [j[2] + 0.8 * side / np.linalg.norm(side)]])
-    r, p = np.concatenate([r, [0.15]]), np.concatenate([p, [2]])
-    rng = np.random.default_rng(4)
-    from jskel.fit import sample_surface
-
-    pts = sample_surface(j, r, p, 400, rng) + rng.normal(0, 0.02, (400, 3))
     seg = segments_of(j, r, p)
-    s = SolverConfig(loss="cauchy", smoothness=0.1, validity=1.0, candidates=3, cover=0.5)
-    nz = normaliser_of(pts)
-    j0, r0 = perturbed(j, r, p, 0.1, rng)
-    exact = problem_of(seg, s, len(j))
-    big = problem_of(seg, s, len(j), Sizes(*(a + b for a, b in zip(exact.sizes, (3, 3, 2, 3)))))
-    out = {}
-    for pr in (exact, big):
-        x = jnp.asarray(nz.start(j0, r0, pr), jnp.float32)
-        data = on_device(data_of(nz.points(pts), pr, np.float32, seg))
-        out[pr.sizes] = [np.asarray(a, np.float64) for a in jax.jit(lambda x, d: normal_equations(x, d, pr))(x, data)]
-    (r_e, a_e, g_e), (r_b, a_b, g_b) = out[exact.sizes], out[big.sizes]
-    nj, nb, sz = exact.sizes.joints, big.sizes.joints, exact.sizes
+    sz = pr.sizes
+    big = problem(seg, SolverConfig(loss="cauchy", smoothness=0.1, validity=1.0, candidates=4, cover=0.5), sz.joints,
+                  Sizes(*(a + b for a, b in zip(sz, (3, 3, 2, 3)))))
+    nj, nb, n = sz.joints, big.sizes.joints, len(pts.points)
+    xb = jnp.concatenate([x[: 3 * nj], jnp.zeros(9, x.dtype), x[3 * nj :], jnp.zeros(3, x.dtype)])
+    data = on_device(jax.tree_util.tree_map(np.asarray, pts._replace(layout=layout_of(seg, big))))
+    r_b, a_b, g_b = (np.asarray(a, np.float64) for a in jax.jit(lambda x, d: normal_equations(x, d, big))(xb, data))
+    r_e, a_e, g_e = (np.asarray(a, np.float64) for a in exact)
     real = np.concatenate([np.arange(3 * nj), 3 * nb + np.arange(nj)])  # the real joints' unknowns in the padded layout
-    rows = np.concatenate([np.arange(400), 400 + np.arange(SAMPLES * sz.segments),  # points, the real segments' cover rows,
-                           400 + SAMPLES * big.sizes.segments + np.arange(5 * sz.conts)])  # the real continuations' penalty rows
-    assert len(r_b) == 400 + SAMPLES * big.sizes.segments + 5 * big.sizes.conts
+    rows = np.concatenate([np.arange(n), n + np.arange(SAMPLES * sz.segments),  # points, the real segments' cover rows,
+                           n + SAMPLES * big.sizes.segments + np.arange(5 * sz.conts)])  # the real continuations' penalty rows
+    assert len(r_b) == n + SAMPLES * big.sizes.segments + 5 * big.sizes.conts
     np.testing.assert_allclose(r_b[rows], r_e, rtol=1e-5, atol=1e-7)
     assert np.all(np.delete(r_b, rows) == 0)
     d = np.sqrt(np.abs(np.diag(a_e)))
@@ -135,7 +124,7 @@ def test_padding_the_topology_leaves_the_normal_equations_unchanged():
     rest = np.setdiff1d(np.arange(4 * nb), real)
     assert np.all(a_b[rest] == 0) and np.all(a_b[:, rest] == 0) and np.all(g_b[rest] == 0)
     with pytest.raises(ValueError, match="do not fit"):
-        layout_of(seg, problem_of(seg, s, len(j), Sizes(nj, sz.segments - 1, sz.conts, sz.colors)))
+        layout_of(seg, problem(seg, SolverConfig(), nj, Sizes(nj, sz.segments - 1, sz.conts, sz.colors)))
 
 
 def test_the_colouring_keeps_every_dependency_set_apart():
