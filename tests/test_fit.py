@@ -48,6 +48,31 @@ def d32(joints, radii, parents, pts):
     return dist(joints, radii, segments_of(joints, radii, parents), pts)
 
 
+def test_measures_of_a_padded_topology_are_those_of_the_capped_cylinder():
+    """``fit.point_distances`` and ``_measures.measures`` take the topology as data padded to a
+    bucket (19 segments in a program for 20: one padding segment far away): on a straight chain
+    of 19 unit segments of radius 0.5 (a capped cylinder, its shared planes perpendicular) the
+    signed distances of points around it are the closed form's, written here in float64
+    (``max(rho - R, -y, y - L)`` inside, the length of the positive parts outside), every point
+    is served exactly by its 4 candidates, and the smallest plane margin is 1 (``n . m`` = 1,
+    no taper) from the real continuations alone."""
+    from jskel.fit import point_distances
+    from jskel.fit._measures import measures
+
+    n, radius = 19, 0.5
+    joints = np.stack([np.zeros(n + 1), np.arange(n + 1.0), np.zeros(n + 1)], 1)
+    radii, parents = np.full(n + 1, radius), np.arange(-1, n)
+    rng = np.random.default_rng(3)
+    pts = np.stack([rng.uniform(-1.5, 1.5, 400), rng.uniform(-1.5, n + 1.5, 400), rng.uniform(-1.5, 1.5, 400)], 1)
+    a = np.hypot(pts[:, 0], pts[:, 2]) - radius
+    b = np.maximum(-pts[:, 1], pts[:, 1] - n)
+    want = np.where((a <= 0) & (b <= 0), np.maximum(a, b), np.hypot(np.maximum(a, 0), np.maximum(b, 0)))
+    np.testing.assert_allclose(point_distances(pts, joints, radii, parents), want, atol=2e-5 * n)
+    d, exact, margin = measures(pts, joints, radii, parents, candidates=4)
+    np.testing.assert_allclose(d, want, atol=2e-5 * n)
+    assert exact == 1.0 and margin == pytest.approx(1.0, abs=1e-6)
+
+
 def test_distance_closed_forms_on_a_cylinder_and_a_cone():
     J, R, P = [[0, 0, 0], [0, 2, 0]], [0.5, 0.5], [-1, 0]
     e = 0.1

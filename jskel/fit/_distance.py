@@ -442,12 +442,14 @@ def culling_exact(joints, radii, seg: Segments, points, candidates: int, block: 
     return jnp.where(d >= 0, nxt >= d, nxt > 0)
 
 
-def _problems(joints, radii, seg: Segments, points):
+def _problems(joints, radii, seg: Segments | Topology, points):
     """``jskel.checks.traced`` of :func:`distances`' inputs: joints and points finite, radii not
-    negative, every segment longer than 0 (by its end joint)."""
+    negative, every segment (a :class:`Topology`'s real ones) longer than 0 (by its end joint)."""
     h = safe_norm(joints[seg.end] - joints[seg.start])
+    live = seg.live if isinstance(seg, Topology) else None
     return (checks.traced("joints", joints) + checks.traced("radii", radii, "nonnegative")
-            + checks.traced("segment_length", h, "positive", ids=np.asarray(seg.end)) + checks.traced("points", points))
+            + checks.traced("segment_length", h, "positive", valid=live, ids=seg.end if live is not None else np.asarray(seg.end))
+            + checks.traced("points", points))
 
 
 #: :func:`distances` with its inputs checked inside the compiled function (``jskel.checks.checked``):

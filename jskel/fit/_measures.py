@@ -1,6 +1,8 @@
 """Measures of a skeleton against a cloud, in world units (issue 10): signed distances, how
 many points the candidate culling serves exactly, and the worst shared cutting plane, all from
-one compiled program per topology (:func:`measures`)."""
+one compiled program (:func:`measures`) that takes the topology as data, padded to sizes
+rounded up by at most 12.5 % (``_problem._bucket``), so skeletons of similar sizes share it
+(a benchmark measures each fit and each peer's skeleton)."""
 
 from __future__ import annotations
 
@@ -8,11 +10,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import checks
-from ._distance import Segments, _problems, distances_of, geometry, margins_of, segments_of
-from ._problem import normaliser_of
+from ._distance import Topology, _problems, distances_of, geometry, margins_of, segments_of, topology_of
+from ._problem import _bucket, normaliser_of
 
 
-def _measured(joints, radii, seg: Segments, points, candidates: int):
+def _measured(joints, radii, seg: Topology, points, candidates: int):
     """Distances over all segments (N,), whether each point's ``candidates`` nearest segments
     certainly give that distance (N,) (``_distance.culling_exact``), and the shared planes'
     margins (K, 2) (``_distance.plane_margins``), from one geometry."""
@@ -27,8 +29,8 @@ def _measured(joints, radii, seg: Segments, points, candidates: int):
 
 
 #: :func:`_measured` with its inputs checked in the same compiled program (``jskel.checks.checked``,
-#: as ``checked_distances``): one program per topology, candidate count and shapes
-_checked = checks.checked(_measured, lambda j, r, seg, p, c: _problems(j, r, seg, p), static_argnums=(2, 4))
+#: as ``checked_distances``): one program per padded size, candidate count and point count
+_checked = checks.checked(_measured, lambda j, r, seg, p, c: _problems(j, r, seg, p), static_argnums=(4,))
 
 
 def measures(points, joints, radii, parents, candidates: int = 0, dtype=np.float32) -> tuple[np.ndarray, float, float | None]:
@@ -39,9 +41,13 @@ def measures(points, joints, radii, parents, candidates: int = 0, dtype=np.float
     scale-free)."""
     seg = segments_of(joints, radii, parents, "skeleton")
     nz = normaliser_of(np.asarray(points, np.float64))
-    args = [np.asarray(a, dtype) for a in (nz.points(joints), np.asarray(radii) / nz.extent, nz.points(points))]
-    d, exact, margins = _checked(jnp.asarray(args[0]), jnp.asarray(args[1]), seg, jnp.asarray(args[2]), int(candidates))
-    margins = np.asarray(margins)
+    topo = topology_of(seg, _bucket(len(seg.start)), _bucket(len(seg.cont_b)))
+    pad = _bucket(len(joints)) - len(joints)  # joints in no segment (a padding segment is joint 0's)
+    j = np.concatenate([nz.points(joints), np.zeros((pad, 3))])
+    r = np.concatenate([np.asarray(radii, np.float64) / nz.extent, np.zeros(pad)])
+    d, exact, margins = _checked(*(jnp.asarray(np.asarray(a, dtype)) for a in (j, r)), topo, jnp.asarray(np.asarray(nz.points(points), dtype)),
+                                 int(candidates))
+    margins = np.asarray(margins)[topo.cont]
     return np.asarray(d, np.float64) * nz.extent, float(np.mean(np.asarray(exact))), float(margins.min()) if margins.size else None
 
 
