@@ -237,6 +237,10 @@ class EditsConfig(StrictModel):
     """A joint where its chain turns by less than this (degrees) is removed."""
     split_residual: Annotated[float, Field(gt=0.0)] = 3.0
     """A segment whose points' RMS distance exceeds this many ``solver.scale`` x extent is split."""
+    later_loss: Literal["l2", "huber", "cauchy", "geman_mcclure"] | None = None
+    """The robust loss of every round after the first (unset: ``solver.loss`` in all). A
+    redescending loss (``geman_mcclure``) once the first round has found the branches: a free
+    tip's cap no longer gains by reaching towards outliers (docs/fitting.md)."""
 
 
 class FitFile(StrictModel):

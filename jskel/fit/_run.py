@@ -138,8 +138,9 @@ def fitted_in_rounds(solver, edits, points, joints, radii, parents, dtype, seed:
     round edits nothing or ``edits.rounds`` fits are done; one fit without ``edits``. The
     topology is the solver program's data: with ``edits``, each round is compiled for sizes that
     a later, smaller topology can reuse (``_problem.round_sizes``), so rounds share a program
-    (each round's ``padded_joints`` says which sizes it ran at); ``seed`` and ``perturb`` are
-    the first round's restarts' (``fit_points``)."""
+    (each round's ``padded_joints`` says which sizes it ran at); rounds after the first take
+    ``edits.later_loss`` where set; ``seed`` and ``perturb`` are the first round's restarts'
+    (``fit_points``)."""
     from ._distance import segments_of
     from ._problem import round_sizes, sizes_of
     from ._topology import edited
@@ -168,9 +169,10 @@ def fitted_in_rounds(solver, edits, points, joints, radii, parents, dtype, seed:
     while True:
         if edits is not None:
             sizes = round_sizes(sizes_of(segments_of(joints, radii, parents, "init.skeleton"), len(joints)), sizes)
-        res = fit_points(points, joints, radii, parents, each, dtype, seed=seed, perturb=perturb if k == 0 else 0.0, sizes=sizes)
+        now = each.model_copy(update={"loss": edits.later_loss}) if k > 0 and edits is not None and edits.later_loss else each
+        res = fit_points(points, joints, radii, parents, now, dtype, seed=seed, perturb=perturb if k == 0 else 0.0, sizes=sizes)
         k += 1
-        per.append({"round": k, "joints": len(res.joints), "padded_joints": sizes.joints if sizes else len(res.joints),
+        per.append({"round": k, "joints": len(res.joints), "padded_joints": sizes.joints if sizes else len(res.joints), "loss": now.loss,
                     "iterations": int(res.iterations), "seconds": float(res.seconds), "compile_s": float(res.compile_s)})
         if k == rounds:
             if edits is not None and edits.final_spurs:
