@@ -359,6 +359,30 @@ def _tube(rng, a, b, r, n):
     return a + t[:, None] * (b - a) + r * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * w)
 
 
+def test_rounds_after_the_first_take_the_later_loss(monkeypatch):
+    """``edits.later_loss``: the first round fits with ``solver.loss``, every later round with
+    the later loss, and ``round_fits`` says which (the fits and edits replaced by stand-ins that
+    record what they were given: no program is compiled)."""
+    from jskel.fit import _fit, _run, _topology
+    from jskel.fit._config import EditsConfig
+
+    seen = []
+
+    def fit(points, joints, radii, parents, s, dtype, seed=1, perturb=0.0, sizes=None):
+        seen.append(s.loss)
+        return _fit.FitResult(np.asarray(joints), np.asarray(radii), np.asarray(parents), [1.0, 0.5], 1, True, 0.1, 0.2, 0.0, 1, [])
+
+    monkeypatch.setattr(_run, "fit_points", fit)
+    monkeypatch.setattr(_topology, "edited", lambda pts, j, r, p, *a, **k: (j, r, p, [{"edit": "stand-in"}]))
+    pts = np.random.default_rng(0).normal(size=(50, 3))
+    for later, want in ((None, ["huber"] * 3), ("geman_mcclure", ["huber", "geman_mcclure", "geman_mcclure"])):
+        seen.clear()
+        res, log, rounds = _run.fitted_in_rounds(SolverConfig(loss="huber"), EditsConfig(rounds=3, later_loss=later), pts, BENT, BENT_R, CHAIN, np.float32)
+        assert seen == want and [r["loss"] for r in res.rounds] == want and rounds == 3
+    with pytest.raises(ValueError, match="later_loss"):
+        EditsConfig(later_loss="tukey")
+
+
 def test_each_topology_edit_where_the_points_call_for_it():
     """``_topology.edited`` on skeletons and points written here (no fit): a tip without points
     and a tip laid along another segment are pruned, a real branch is kept; a joint on a
