@@ -31,6 +31,7 @@ matrix limits this to a few thousand joints (a 5,000-segment chain's 20,004^2 fl
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -93,9 +94,12 @@ def _padded(sets):
     return idx, mask
 
 
+@functools.lru_cache(maxsize=8)
 def structure(seg: Segments, n_joints: int) -> Structure:
     """Which joints each segment's geometry and each continuation's penalty rows depend on,
-    and a greedy colouring of the joints that keeps every such set's joints apart."""
+    and a greedy colouring of the joints that keeps every such set's joints apart (kept for the
+    last few topologies: a fit asks for it for its sizes and again for its layout; callers
+    never write into it)."""
     start, end = np.asarray(seg.start, np.int64), np.asarray(seg.end, np.int64)
     deps = [[int(start[s]), int(end[s])] for s in range(len(start))]
     for a, b in zip(np.asarray(seg.cont_a), np.asarray(seg.cont_b)):
